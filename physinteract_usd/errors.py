@@ -1,0 +1,40 @@
+"""Errors the user sees.
+
+`InputError` is bad input: the CLI prints its one line (``error: <file>: <problem>``) and exits 2.
+`SimulationError` is a simulation that went unstable or left its domain: it says when and what to
+change. Neither carries a traceback to the user.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+class InputError(ValueError):
+    """Bad user input: a file that is missing, malformed or inconsistent with another."""
+
+    def __init__(self, path: str | os.PathLike | None, problem: str):
+        self.path = None if path is None else os.fspath(path)
+        self.problem = problem
+        super().__init__(self.oneline())
+
+    def oneline(self) -> str:
+        return f"{self.path}: {self.problem}" if self.path else self.problem
+
+
+class SimulationError(RuntimeError):
+    """The simulation became unstable (non-finite state) or a particle left the grid domain."""
+
+    def __init__(self, problem: str, frame: int | None = None, substep: int | None = None,
+                 advice: str = ""):
+        self.problem = problem
+        self.frame = frame
+        self.substep = substep
+        self.advice = advice
+        where = ""
+        if frame is not None:
+            where = f" at frame {frame}" + (f" (substep {substep})" if substep is not None else "")
+        msg = f"simulation {problem}{where}"
+        if advice:
+            msg += f"; {advice}"
+        super().__init__(msg)
