@@ -1,0 +1,171 @@
+"""The Python API behind every CLI verb (the CLI and the Blender add-on are thin clients of it)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .capture import read_capture
+from .errors import InputError
+from .fill import fill_from_gaussians, fill_from_mesh
+from .usd.stage import SimSettings, read_stage, write_init_stage
+
+DEFAULT_GRID = 32
+DEFAULT_PADDING = 0.5
+DEFAULT_E_RANGE = (1e3, 1e6)
+MAX_POISSON = 0.45  # the fit keeps nu in (0, MAX_POISSON]: the CFL bound is taken there
+
+
+def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID,
+                        padding: float = DEFAULT_PADDING, youngs_range=DEFAULT_E_RANGE,
+                        poisson: float = 0.3, density: float = 1000.0,
+                        constitutive_model: str = "fixedCorotated") -> SimSettings:
+    """Domain = the object's bounding box padded by `padding` x its extent on every side; `grid`
+    cells along the longest side; particle spacing dx / 2; substeps from the CFL bound at the
+    largest E allowed."""
+    if grid < 8:
+        raise InputError("--grid", "must be at least 8 cells")
+    if not (0 < youngs_range[0] < youngs_range[1]):
+        raise InputError("--youngs-range", "needs 0 < min < max")
+    if not (0.0 < poisson < 0.5):
+        raise InputError("--poisson", "must lie in (0, 0.5)")
+    lo, hi = points.min(0), points.max(0)
+    extent = float(np.max(hi - lo))
+    if not extent > 0:
+        raise InputError("object", "the object has zero extent")
+    pad = padding * extent
+    dlo, dhi = lo - pad, hi + pad
+    dx = float(np.max(dhi - dlo)) / grid
+    res = np.maximum(np.ceil((dhi - dlo) / dx).astype(int), 4)
+    centre = 0.5 * (dlo + dhi)
+    dlo = centre - 0.5 * res * dx
+    dhi = dlo + res * dx
+    substeps = substeps_per_frame(fps, dx, youngs_range[1], MAX_POISSON, density)
+    return SimSettings(domain_min=dlo, domain_max=dhi, grid_resolution=tuple(int(r) for r in res),
+                       cell_size=dx, particle_spacing=dx / 2.0, substeps=substeps,
+                       youngs_min=float(youngs_range[0]), youngs_max=float(youngs_range[1]),
+                       poisson_default=float(poisson), density=float(density),
+                       constitutive_model=constitutive_model)
+
+
+def substeps_per_frame(fps: float, dx: float, youngs_max: float, poisson_max: float, density: float,
+                       cfl: float = 0.4) -> int:
+    """Substeps per video frame so that dt <= cfl * dx / c, c the P-wave speed at the stiffest
+    material allowed: c = sqrt((lambda + 2 mu) / rho)."""
+    mu = youngs_max / (2.0 * (1.0 + poisson_max))
+    lam = youngs_max * poisson_max / ((1.0 + poisson_max) * (1.0 - 2.0 * poisson_max))
+    c = np.sqrt((lam + 2.0 * mu) / density)
+    dt_max = cfl * dx / c
+    return max(1, int(np.ceil(1.0 / (fps * dt_max))))
+
+
+def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, masks=None,
+         fps=None, masks_amodal=False, grid=DEFAULT_GRID, padding=DEFAULT_PADDING,
+         youngs_range=DEFAULT_E_RANGE, poisson=0.3, density=1000.0,
+         constitutive_model="fixedCorotated", force=False):
+    """Build a stage from a capture. Returns the LayerPaths written."""
+    stage_path = Path(stage_path)
+    if stage_path.exists() and not force:
+        raise InputError(stage_path, "already exists: `init --force` replaces the generated layers "
+                         "and keeps your root layer")
+    cap = read_capture(capture_dir, object=object, video=video, camera=camera, masks=masks, fps=fps,
+                       masks_amodal=masks_amodal)
+    g = cap.object.gaussians
+    settings = choose_sim_settings(g.means if cap.object.mesh is None else cap.object.mesh.vertices,
+                                   cap.fps, grid, padding, youngs_range, poisson, density,
+                                   constitutive_model)
+    try:
+        if cap.object.mesh is not None:
+            parts = fill_from_mesh(cap.object.mesh, settings.particle_spacing, g, anchor=settings.domain_min)
+        else:
+            parts = fill_from_gaussians(g, settings.particle_spacing, anchor=settings.domain_min)
+    except ValueError as exc:
+        raise InputError(cap.object.path, str(exc)) from None
+    return write_init_stage(stage_path, cap, parts, settings, force=force)
+
+
+def info(stage_path) -> dict:
+    """A summary of a stage as a dict (the CLI prints it, or its JSON)."""
+    sd = read_stage(stage_path)
+    cam = sd.camera.at(0)
+    d = {
+        "stage": str(sd.path),
+        "generator": sd.generator,
+        "object": {"kind": sd.object_kind, "gaussians": len(sd.gaussians),
+                   "sh_degree": sd.gaussians.sh_degree,
+                   "bounds": [sd.gaussians.means.min(0).round(4).tolist(), sd.gaussians.means.max(0).round(4).tolist()]},
+        "particles": {"count": int(len(sd.particles_positions)), "surface": int(sd.particles_surface.sum()),
+                      "spacing_m": sd.settings.particle_spacing,
+                      "total_volume_m3": float(sd.particles_volumes.sum()),
+                      "mass_kg": float(sd.particles_volumes.sum() * sd.settings.density),
+                      "constitutive_model": sd.settings.constitutive_model},
+        "frames": {"count": sd.n_frames, "fps": sd.fps, "size": list(sd.image_size),
+                   "source": sd.video_asset or (str(Path(sd.frame_assets[0]).parent) if sd.frame_assets else None),
+                   "masks": len(sd.mask_assets), "masks_amodal": sd.masks_amodal},
+        "camera": {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+                   "static": sd.camera.is_static, "position": cam.position.round(4).tolist()},
+        "simulation": {"grid": list(sd.settings.grid_resolution), "cell_size_m": sd.settings.cell_size,
+                       "domain": [sd.settings.domain_min.round(4).tolist(), sd.settings.domain_max.round(4).tolist()],
+                       "substeps_per_frame": sd.settings.substeps,
+                       "youngs_range_pa": [sd.settings.youngs_min, sd.settings.youngs_max]},
+        "effects": sd.effects,
+        "contacts": [{"name": c.name, "type": c.contact_type, "particles": int(len(c.particle_indices)),
+                      "grasp": c.grasp_time, "release": c.release_time, "source": c.source} for c in sd.contacts],
+        "trajectories": [{"name": t.name, "contact": t.contact_set, "stage": t.stage, "samples": int(len(t.frames))}
+                         for t in sd.trajectories],
+        "fits": [{"version": r["version"], "effects": r["effects"],
+                  "psnr": float(np.mean(r["psnr"])) if r["psnr"] else None,
+                  "final_loss": r["final_loss"], "runtime_s": r["runtime_s"], "device": r["device"]}
+                 for r in sd.reports],
+    }
+    e = sd.youngs_modulus
+    d["material"] = {"youngs_modulus_pa": {"min": float(e.min()), "median": float(np.median(e)), "max": float(e.max())},
+                     "poisson_ratio": {"min": float(sd.poisson_ratio.min()), "max": float(sd.poisson_ratio.max())},
+                     "fitted": bool(sd.reports)}
+    if sd.confidence is not None:
+        c = sd.confidence
+        d["material"]["confidence"] = {"min": float(c.min()), "mean": float(c.mean()), "max": float(c.max()),
+                                       "low_share": float(np.mean(c < 0.5))}
+    return d
+
+
+def format_info(d: dict) -> str:
+    o, p, f, c, s, m = d["object"], d["particles"], d["frames"], d["camera"], d["simulation"], d["material"]
+    lines = [
+        f"stage       {d['stage']}  ({d['generator']})",
+        f"object      {o['kind']}: {o['gaussians']} Gaussians, SH degree {o['sh_degree']}, "
+        f"bounds {o['bounds'][0]} .. {o['bounds'][1]} m",
+        f"particles   {p['count']} ({p['surface']} at the surface), spacing {p['spacing_m'] * 1000:.2f} mm, "
+        f"volume {p['total_volume_m3'] * 1e6:.1f} cm^3, mass {p['mass_kg'] * 1000:.1f} g, {p['constitutive_model']}",
+        f"frames      {f['count']} at {f['fps']:g} fps, {f['size'][0]}x{f['size'][1]}, from {f['source']}"
+        + (f", {f['masks']} masks ({'amodal' if f['masks_amodal'] else 'visible-only'})" if f["masks"] else ", no masks"),
+        f"camera      fx {c['fx']:.2f} fy {c['fy']:.2f} cx {c['cx']:.2f} cy {c['cy']:.2f}, "
+        f"{'static' if c['static'] else 'moving'}, at {c['position']}",
+        f"simulation  grid {'x'.join(map(str, s['grid']))}, dx {s['cell_size_m'] * 1000:.2f} mm, "
+        f"{s['substeps_per_frame']} substeps/frame, E in [{s['youngs_range_pa'][0]:.3g}, {s['youngs_range_pa'][1]:.3g}] Pa",
+        f"material    E {m['youngs_modulus_pa']['min']:.3g} .. {m['youngs_modulus_pa']['max']:.3g} Pa "
+        f"(median {m['youngs_modulus_pa']['median']:.3g}), nu {m['poisson_ratio']['min']:.3f} .. "
+        f"{m['poisson_ratio']['max']:.3f}" + ("" if m["fitted"] else "  (not fitted yet)"),
+    ]
+    if "confidence" in m:
+        cf = m["confidence"]
+        lines.append(f"confidence  mean {cf['mean']:.2f} (min {cf['min']:.2f}, max {cf['max']:.2f}); "
+                     f"{cf['low_share'] * 100:.0f}% of particles below 0.5: the video says little about E there")
+    lines.append("effects     " + (", ".join(f"{k} {v}" for k, v in d["effects"].items()) or "none (base model)"))
+    if d["contacts"]:
+        for ct in d["contacts"]:
+            lines.append(f"contact     {ct['name']}: {ct['type']}, {ct['particles']} particles, "
+                         f"frames {ct['grasp']:g}..{min(ct['release'], 1e8):g} ({ct['source']})")
+    else:
+        lines.append("contact     none yet (`physinteract-usd extract` finds them; `fit` runs it)")
+    for t in d["trajectories"]:
+        lines.append(f"trajectory  {t['name']}: {t['stage']}, {t['samples']} samples, moves {t['contact']}")
+    if d["fits"]:
+        for r in d["fits"]:
+            psnr = f"PSNR {r['psnr']:.2f} dB, " if r["psnr"] is not None else ""
+            lines.append(f"fit v{r['version']}      effects [{', '.join(r['effects']) or 'none'}], {psnr}"
+                         f"loss {r['final_loss']:.4g}, {r['runtime_s']:.0f} s on {r['device']}")
+    else:
+        lines.append("fits        none yet")
+    return "\n".join(lines)

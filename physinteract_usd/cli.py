@@ -1,0 +1,112 @@
+"""`physinteract-usd` command line: a thin front end over `physinteract_usd.api`.
+
+Exit codes: 0 success, 2 bad input (one line on stderr naming the file and the problem),
+3 a simulation that went unstable (what to change is in the message), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from . import __version__
+from .errors import InputError, SimulationError
+
+
+def _positive_float(s: str) -> float:
+    v = float(s)
+    if not v > 0:
+        raise argparse.ArgumentTypeError("must be positive")
+    return v
+
+
+def _e_range(s: str):
+    try:
+        lo, hi = (float(x) for x in s.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected MIN,MAX in Pa, e.g. 1e3,1e6") from None
+    return lo, hi
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="physinteract-usd",
+                                description="Fit a simulation-ready digital twin of a soft object from a "
+                                            "video of a hand handling it, stored in OpenUSD.")
+    p.add_argument("--version", action="version", version=f"physinteract-usd {__version__}")
+    sub = p.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    s = sub.add_parser("init", help="build a stage from a capture folder (object, video, camera, masks)")
+    s.add_argument("stage", help="root layer to write, e.g. scene.usda")
+    s.add_argument("--capture", metavar="DIR", help="capture folder (object.*, frames/ or video.mp4, "
+                   "masks/, transforms.json)")
+    s.add_argument("--object", metavar="FILE", help="3DGS PLY or mesh (overrides the folder's)")
+    s.add_argument("--video", metavar="FILE|DIR", help="video file or folder of frames")
+    s.add_argument("--camera", metavar="FILE", help="nerfstudio transforms.json")
+    s.add_argument("--masks", metavar="DIR", help="folder of object silhouettes, one per frame")
+    s.add_argument("--masks-amodal", action="store_true",
+                   help="the masks include the object behind the hand (default: visible only)")
+    s.add_argument("--fps", type=_positive_float, help="frame rate, when neither transforms.json nor "
+                   "the video gives one")
+    s.add_argument("--grid", type=int, default=32, help="MPM grid cells along the longest side of the "
+                   "domain (default 32; the paper uses 100)")
+    s.add_argument("--padding", type=float, default=0.5, help="domain margin around the object, as a "
+                   "fraction of its extent (default 0.5)")
+    s.add_argument("--youngs-range", type=_e_range, default=(1e3, 1e6), metavar="MIN,MAX",
+                   help="Young's modulus range in Pa the fit may use (default 1e3,1e6); MAX sets the substep")
+    s.add_argument("--poisson", type=float, default=0.3, help="starting Poisson ratio (default 0.3)")
+    s.add_argument("--density", type=_positive_float, default=1000.0, help="density in kg/m^3 (default 1000)")
+    s.add_argument("--model", choices=["fixedCorotated", "neoHookean"], default="fixedCorotated",
+                   help="constitutive model (default fixedCorotated)")
+    s.add_argument("--force", action="store_true",
+                   help="replace the generated layers of an existing stage (your root layer is kept)")
+
+    s = sub.add_parser("info", help="summarise a stage")
+    s.add_argument("stage")
+    s.add_argument("--json", action="store_true", help="print JSON")
+    return p
+
+
+def _cmd_init(a) -> int:
+    from . import api
+
+    if a.capture is None and (a.object is None or a.video is None or a.camera is None):
+        raise InputError(a.stage, "give --capture DIR, or all of --object, --video and --camera")
+    lp = api.init(a.stage, a.capture, object=a.object, video=a.video, camera=a.camera, masks=a.masks,
+                  fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, padding=a.padding,
+                  youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
+                  constitutive_model=a.model, force=a.force)
+    print(f"wrote {lp.root} (root), {lp.init.name}, {lp.fit.name}")
+    print(api.format_info(api.info(lp.root)))
+    return 0
+
+
+def _cmd_info(a) -> int:
+    from . import api
+
+    d = api.info(a.stage)
+    print(json.dumps(d, indent=2) if a.json else api.format_info(d))
+    return 0
+
+
+COMMANDS = {"init": _cmd_init, "info": _cmd_info}
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.verb](args)
+    except InputError as exc:
+        print(f"physinteract-usd {args.verb}: error: {exc.oneline()}", file=sys.stderr)
+        return 2
+    except SimulationError as exc:
+        print(f"physinteract-usd {args.verb}: {exc}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        print(f"physinteract-usd {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

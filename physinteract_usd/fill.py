@@ -1,0 +1,274 @@
+"""Internal filling: turn a surface representation into simulation particles.
+
+3D Gaussian captures and meshes describe a surface; an MPM solid needs its volume. Both paths put
+particles on a lattice of spacing ``h`` aligned with the simulation grid (``h = dx / 2`` by default:
+8 particles per cell), one particle per lattice cell whose centre is inside the object:
+
+- from Gaussians: clamp runaway scales, densify inside each ellipsoid so the shell has no holes,
+  mark the lattice cells the (densified) surface touches, flood-fill the closed interior
+  (`scipy.ndimage.binary_fill_holes`), and decide the surface cells by which side of the local
+  tangent plane (PCA normals of the surface samples, oriented from the fill) their centre lies on;
+- from a watertight mesh: the same shell + flood fill, with the surface cells decided exactly by
+  `trimesh`'s inside test (non-watertight meshes fall back to the Gaussian path on surface samples).
+
+Every Gaussian is then bound to its nearest particle (`binding`): it follows that particle's motion
+and deformation gradient. Volumes are the lattice cell volume, so the total is the filled volume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from .gaussians import Gaussians
+
+MIN_OPACITY = 0.1  # Gaussians fainter than this do not define the surface
+MAX_SAMPLES_PER_GAUSSIAN = 64
+MAX_LATTICE_CELLS = 40_000_000
+
+
+@dataclass
+class SimParticles:
+    positions: np.ndarray   # (P, 3) rest positions, metres
+    volumes: np.ndarray     # (P,) rest volumes, m^3
+    is_surface: np.ndarray  # (P,) bool: the particle's lattice cell touches the surface
+    spacing: float          # lattice spacing h, metres
+    binding: np.ndarray     # (N_gaussians,) particle index each Gaussian follows
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+@dataclass
+class Lattice:
+    """Particle lattice aligned with the simulation grid: cell (i,j,k) has centre lo + (ijk + 0.5) h."""
+
+    lo: np.ndarray
+    spacing: float
+    shape: tuple
+
+    def centres(self, idx: np.ndarray) -> np.ndarray:
+        return self.lo + (idx + 0.5) * self.spacing
+
+    def cell_of(self, p: np.ndarray) -> np.ndarray:
+        return np.floor((p - self.lo) / self.spacing).astype(np.int64)
+
+    @staticmethod
+    def around(bmin, bmax, spacing, anchor=None, pad_cells=3) -> "Lattice":
+        """A lattice covering [bmin, bmax] with `pad_cells` of margin, aligned to `anchor`."""
+        anchor = np.zeros(3) if anchor is None else np.asarray(anchor, dtype=np.float64)
+        lo = anchor + np.floor((np.asarray(bmin) - anchor) / spacing - pad_cells) * spacing
+        hi = anchor + np.ceil((np.asarray(bmax) - anchor) / spacing + pad_cells) * spacing
+        shape = tuple(int(round(s)) for s in (hi - lo) / spacing)
+        if np.prod(shape) > MAX_LATTICE_CELLS:
+            raise ValueError(f"particle lattice of {shape} cells is too large: choose a coarser grid")
+        return Lattice(lo, float(spacing), shape)
+
+
+def clamp_scales(g: Gaussians) -> np.ndarray:
+    """Scales clamped to a quarter of the object's extent and 20x the median: no runaway radii."""
+    extent = float(np.max(np.ptp(g.means, axis=0))) if len(g) > 1 else float(np.max(g.scales))
+    med = float(np.median(g.scales.max(axis=1)))
+    cap = min(0.25 * extent, 20.0 * med) if med > 0 else 0.25 * extent
+    return np.clip(g.scales, 1e-9, max(cap, 1e-9))
+
+
+def densify(g: Gaussians, spacing: float, rng=None) -> np.ndarray:
+    """Surface samples: the Gaussian means plus points drawn inside each (clamped) 1-sigma
+    ellipsoid, as many as its footprint needs for samples ~spacing/2 apart (capped per Gaussian)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    keep = g.opacities >= MIN_OPACITY
+    if keep.sum() < 4:
+        keep = np.ones(len(g), bool)
+    means, scales, R = g.means[keep], clamp_scales(g)[keep], g.rotations()[keep]
+    s_sorted = np.sort(scales, axis=1)
+    footprint = np.pi * s_sorted[:, 2] * s_sorted[:, 1]
+    counts = np.minimum(np.ceil(footprint / (0.5 * spacing) ** 2), MAX_SAMPLES_PER_GAUSSIAN).astype(int)
+    counts[counts <= 1] = 0
+    total = int(counts.sum())
+    if total == 0:
+        return means
+    owner = np.repeat(np.arange(len(means)), counts)
+    u = rng.normal(size=(total, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u *= rng.random((total, 1)) ** (1.0 / 3.0)  # uniform in the unit ball
+    local = u * scales[owner]
+    pts = means[owner] + np.einsum("nij,nj->ni", R[owner], local)
+    return np.concatenate([means, pts], 0)
+
+
+def _shell_and_solid(samples: np.ndarray, lat: Lattice, thicken: bool, max_close: int = 4):
+    """Cells the surface samples touch (the shell) and the shell with its enclosed cells (solid).
+
+    Cells that the surface only clips at a corner may hold no sample and open a tunnel between
+    inside and outside; `thicken` dilates the shell by one cell (26-neighbourhood) to close them.
+    Larger holes (sparse Gaussians) are closed morphologically: the shell is dilated by up to
+    `max_close` more cells until the flood fill encloses at least half of what axis-ray voting
+    calls enclosed, and the filled solid is eroded back by as much. Failing that (a large hole,
+    such as an underside no camera saw), the ray vote itself decides."""
+    cells = lat.cell_of(samples)
+    ok = np.all((cells >= 0) & (cells < np.array(lat.shape)), axis=1)
+    shell = np.zeros(lat.shape, bool)
+    shell[tuple(cells[ok].T)] = True
+    cube = np.ones((3, 3, 3), bool)
+    if thicken:
+        shell = ndimage.binary_dilation(shell, structure=cube)
+    rays = (_ray_votes(shell) >= 5) & ~shell
+    enough = max(1, rays.sum() // 2)
+    solid = ndimage.binary_fill_holes(shell)
+    k = 0
+    while (solid & ~shell).sum() < enough and k < max_close:
+        k += 1
+        closed = ndimage.binary_fill_holes(ndimage.binary_dilation(shell, structure=cube, iterations=k))
+        interior = ndimage.binary_erosion(closed, structure=cube, iterations=k, border_value=0) & ~shell
+        if interior.sum() > (solid & ~shell).sum():
+            solid = shell | interior
+    if (solid & ~shell).sum() < enough:
+        # a hole too large to close (an unseen underside): a cell is enclosed when rays along at
+        # least 5 of the 6 axis directions hit the shell (one open side is tolerated)
+        solid = shell | rays
+    return shell, solid
+
+
+def _ray_votes(shell: np.ndarray) -> np.ndarray:
+    """For each cell, in how many of the 6 axis directions a ray from it meets the shell."""
+    votes = np.zeros(shell.shape, np.int8)
+    for axis in range(3):
+        fwd = np.logical_or.accumulate(shell, axis=axis)
+        bwd = np.flip(np.logical_or.accumulate(np.flip(shell, axis), axis=axis), axis)
+        votes += fwd.astype(np.int8) + bwd.astype(np.int8)
+    return votes
+
+
+def _oriented_normals(samples: np.ndarray, solid: np.ndarray, shell: np.ndarray, lat: Lattice, k=16):
+    """PCA normals of the surface samples, oriented outward using the flood fill."""
+    tree = cKDTree(samples)
+    kk = min(k, len(samples))
+    _, nb = tree.query(samples, k=kk)
+    nb = nb.reshape(len(samples), kk)
+    P = samples[nb] - samples[nb].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", P, P)
+    _, vec = np.linalg.eigh(cov)
+    n = vec[:, :, 0]  # smallest eigenvalue
+    interior = solid & ~shell
+
+    def lookup(grid, p):
+        c = lat.cell_of(p)
+        inb = np.all((c >= 0) & (c < np.array(lat.shape)), axis=1)
+        out = np.zeros(len(p), bool)
+        out[inb] = grid[tuple(c[inb].T)]
+        return out
+
+    step = 3.0 * lat.spacing
+    out_plus, out_minus = ~lookup(solid, samples + step * n), ~lookup(solid, samples - step * n)
+    in_plus, in_minus = lookup(interior, samples + step * n), lookup(interior, samples - step * n)
+    flip = (out_minus & ~out_plus) | (in_plus & ~in_minus)
+    n[flip] *= -1
+    known = out_plus ^ out_minus | in_plus ^ in_minus
+    return n, known
+
+
+def fill_from_gaussians(g: Gaussians, spacing: float, anchor=None) -> SimParticles:
+    """Particles filling the volume enclosed by the Gaussians' surface (see module doc)."""
+    samples = densify(g, spacing)
+    lat = Lattice.around(samples.min(0), samples.max(0), spacing, anchor)
+    shell, solid = _shell_and_solid(samples, lat, thicken=True)
+    normals, known = _oriented_normals(samples, solid, shell, lat)
+    idx_shell = np.argwhere(shell)
+    c = lat.centres(idx_shell)
+    tree = cKDTree(samples)
+    kk = min(8, len(samples))
+    _, nb = tree.query(c, k=kk)
+    nb = nb.reshape(len(c), kk)
+    d = np.einsum("nki,nki->nk", c[:, None, :] - samples[nb], normals[nb])
+    dist = np.linalg.norm(c[:, None, :] - samples[nb], axis=2)
+    votes = known[nb] & (dist <= 2.0 * spacing)
+    # keep a surface cell when its centre is behind the tangent plane of every nearby oriented
+    # sample (exact at convex edges, slightly conservative in concave creases), or when the
+    # surface is too thin there to tell a side (a sheet): then the cell itself is the material
+    behind_all = np.where(votes, d, -np.inf).max(1) <= 0
+    behind_all_known = np.where(known[nb], d, -np.inf).max(1) <= 0
+    keep_shell = np.where(votes.any(1), behind_all,
+                          np.where(known[nb].any(1), behind_all_known, dist[:, 0] <= spacing))
+    inside = solid & ~shell
+    inside[tuple(idx_shell[keep_shell].T)] = True
+    return _particles_from_mask(inside, shell, lat, g.means)
+
+
+def fill_from_mesh(mesh, spacing: float, gaussians: Gaussians | None = None, anchor=None) -> SimParticles:
+    """Particles filling a mesh's volume. Watertight: exact inside test on the surface cells.
+    Otherwise the surface is sampled and filled like Gaussians (a thin open surface becomes a shell)."""
+    import trimesh
+
+    if not mesh.is_watertight:
+        pts, _ = trimesh.sample.sample_surface_even(mesh, _sample_count(mesh.area, spacing), seed=0)
+        g = Gaussians.from_colors(pts, (0.5, 0.5, 0.5), spacing * 0.5)
+        parts = fill_from_gaussians(g, spacing, anchor)
+        if gaussians is not None:
+            parts.binding = _bind(gaussians.means, parts.positions)
+        return parts
+    lat = Lattice.around(mesh.bounds[0], mesh.bounds[1], spacing, anchor)
+    pts, _ = trimesh.sample.sample_surface(mesh, _sample_count(mesh.area, spacing), seed=0)
+    samples = np.concatenate([pts, mesh.vertices])
+    shell, solid = _shell_and_solid(samples, lat, thicken=False)
+    if not (solid & ~shell).any():
+        shell, solid = _shell_and_solid(samples, lat, thicken=True)
+    idx_shell = np.argwhere(shell)
+    inside = solid & ~shell
+    contained = mesh.contains(lat.centres(idx_shell))
+    inside[tuple(idx_shell[contained].T)] = True
+    means = gaussians.means if gaussians is not None else pts
+    parts = _particles_from_mask(inside, shell, lat, means)
+    parts.volumes *= float(mesh.volume) / parts.volumes.sum()  # the mesh knows its true volume
+    return parts
+
+
+def _sample_count(area: float, spacing: float) -> int:
+    return int(min(max(4 * area / (0.5 * spacing) ** 2, 1000), 2_000_000))
+
+
+def _bind(gaussian_means: np.ndarray, particles: np.ndarray) -> np.ndarray:
+    return cKDTree(particles).query(gaussian_means, k=1)[1].astype(np.int64)
+
+
+def _particles_from_mask(inside, shell, lat: Lattice, gaussian_means) -> SimParticles:
+    idx = np.argwhere(inside)
+    if len(idx) == 0:
+        raise ValueError("the object encloses no lattice cell at this spacing: use a finer grid")
+    pos = lat.centres(idx)
+    return SimParticles(positions=pos, volumes=np.full(len(pos), lat.spacing ** 3),
+                        is_surface=shell[tuple(idx.T)], spacing=lat.spacing,
+                        binding=_bind(gaussian_means, pos))
+
+
+def gaussians_from_mesh(mesh, count: int, seed: int = 0) -> Gaussians:
+    """Flat Gaussians (surfels) sampled on a mesh surface, coloured from its texture, vertex or face
+    colours (grey if none): how a mesh is rendered."""
+    import trimesh
+
+    colors = None
+    try:
+        pts, face, colors = trimesh.sample.sample_surface(mesh, count, sample_color=True, seed=seed)
+    except Exception:
+        pts, face = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    if colors is None or len(colors) != len(pts):
+        colors = np.full((len(pts), 3), 0.6)
+    else:
+        colors = np.asarray(colors, dtype=np.float64)[:, :3]
+        if colors.max() > 1.0:
+            colors = colors / 255.0
+    normals = mesh.face_normals[face]
+    # surfel radius so the disks cover the surface: area per sample = pi r^2
+    r = np.sqrt(mesh.area / max(len(pts), 1) / np.pi) * 1.2
+    scales = np.tile([r, r, 0.1 * r], (len(pts), 1))
+    # rotation taking local z to the normal: q = (1 + z.n, z x n), normalised
+    quats = np.stack([1.0 + normals[:, 2], -normals[:, 1], normals[:, 0], np.zeros(len(pts))], 1)
+    flipped = normals[:, 2] < -0.999999
+    quats[flipped] = [0.0, 1.0, 0.0, 0.0]
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    g = Gaussians.from_colors(pts, colors, scales, opacities=np.full(len(pts), 0.95), quats=quats)
+    g.normals = normals
+    return g
