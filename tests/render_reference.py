@@ -108,3 +108,36 @@ def reference_render_camera(means, cov, colors, opacities, camera, background=No
     return reference_render(means, cov, colors, opacities, camera.w2c_cv(), camera.fx, camera.fy,
                             camera.cx, camera.cy, camera.width, camera.height, camera.near, camera.far,
                             background)
+
+
+# ------------------------------------------------------------------------- test scenes
+def random_rotations(n, generator, dtype=torch.float64):
+    q = torch.randn(n, 4, generator=generator, dtype=torch.float64)
+    q = q / q.norm(dim=1, keepdim=True)
+    w, x, y, z = q.unbind(1)
+    R = torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+    return R.to(dtype)
+
+
+def make_scene(seed, n, dtype=torch.float64, *, radius=0.4, scale=(0.02, 0.08), thin=0.0,
+               opacity=(0.05, 1.0)):
+    """Random Gaussians around the origin: anisotropic covariances (a share `thin` of them
+    surfel-like, one axis 1e-4 of the others), colours in [0, 1], opacities in `opacity`.
+    Returns (means (n,3), covs (n,3,3), colors (n,3), opacities (n,)) in `dtype`."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    means = radius * d / d.norm(dim=1, keepdim=True) * torch.rand(n, 1, generator=g, dtype=torch.float64) ** (1 / 3)
+    lo, hi = scale
+    s = torch.exp(torch.empty(n, 3, dtype=torch.float64).uniform_(torch.log(torch.tensor(lo)).item(),
+                                                                   torch.log(torch.tensor(hi)).item(), generator=g))
+    flat = torch.rand(n, generator=g, dtype=torch.float64) < thin
+    s[flat, 2] = s[flat, 0] * 1e-4
+    Rm = random_rotations(n, g)
+    M = Rm * s[:, None, :]
+    covs = M @ M.transpose(1, 2)
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    op = opacity[0] + (opacity[1] - opacity[0]) * torch.rand(n, generator=g, dtype=torch.float64)
+    return tuple(t.to(dtype) for t in (means, covs, colors, op))

@@ -115,8 +115,6 @@ class RasterizeGaussians(torch.autograd.Function):
                 R.backward(st, wm, wc, wcol, _wp(g_rgb.view(-1, 3), k.vec3), _wp(g_alpha.view(-1), scalar),
                            _wp(g_depth.view(-1), scalar), _wp(g_means, k.vec3), _wp(g_cov6, k.vec6),
                            _wp(g_colors, k.vec3), _wp(g_pack, k.vec8))
-        ctx.st = None
-        ctx.wp_in = None
         return g_means, g_cov6, g_colors, g_pack[:, 5].contiguous(), None, None
 
 
@@ -171,7 +169,8 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
     """The renderer's own per-Gaussian projection (no gradients), for checks and overlays.
 
     Returns ``uv`` (N, 2) continuous pixel coordinates, ``conic`` (N, 3) inverse 2D covariance
-    (a, b, c) = [[a, b], [b, c]], ``depth`` (N,) camera-frame z, ``visible`` (N,) bool (touches at
+    (a, b, c) = [[a, b], [b, c]] (uv and conic are 0 where not visible), ``depth`` (N,) camera-frame z,
+    ``visible`` (N,) bool (touches at
     least one tile), ``tiles`` (N, 4) tile rectangle (x0, y0, x1, y1).
     """
     _init()
@@ -192,4 +191,6 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
                                             _wp(opacities.to(dtype).contiguous(), scalar), cam],
                       outputs=[_wp(pack, k.vec8), _wp(rect, wp.vec4i), _wp(count, wp.int32), _wp(dkey, wp.float32)],
                       device=wp.device_from_torch(dev))
-    return {"uv": pack[:, 0:2], "conic": pack[:, 2:5], "depth": pack[:, 6], "visible": count > 0, "tiles": rect}
+    w2c = torch.as_tensor(camera.w2c_cv(), dtype=dtype, device=dev)
+    z = means @ w2c[2, :3] + w2c[2, 3]
+    return {"uv": pack[:, 0:2], "conic": pack[:, 2:5], "depth": z, "visible": count > 0, "tiles": rect}
