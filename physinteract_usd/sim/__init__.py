@@ -1,0 +1,27 @@
+"""Differentiable MLS-MPM simulator (NVIDIA Warp) with a torch.autograd front end.
+
+Public API:
+
+- `SimModel.create(...)`, `GridSpec` (model.py): particles, material field, grid, time, effects.
+- `Effects` and the effect tables (effects.py): damping, plasticity, ground, viscoelasticity.
+- `Contact`, `Control` (control.py): pointAdherent, pointNonAdherent, surfaceNonAdherent, fixed.
+- `SimState` (state.py), `MPMSolver` (solver.py): Warp-level stepping.
+- `Rollout`, `simulate` (rollout.py): the differentiable torch entry points.
+- `stable_dt`, `substeps_per_frame` (cfl.py).
+
+USD is kept out of this package: it never imports pxr.
+"""
+
+from .cfl import p_wave_speed, stable_dt, substeps_per_frame
+from .control import CONTACT_TYPES, Contact, Control
+from .effects import DEFAULTS, EFFECT_NAMES, NULL_VALUES, PARAMETERS, Effects
+from .model import MATERIALS, GridSpec, SimModel
+from .rollout import Rollout, effect_inputs, simulate
+from .solver import MPMSolver, SimParams
+from .state import SimState
+
+__all__ = [
+    "SimModel", "GridSpec", "MATERIALS", "Effects", "EFFECT_NAMES", "PARAMETERS", "DEFAULTS", "NULL_VALUES",
+    "Contact", "Control", "CONTACT_TYPES", "SimState", "MPMSolver", "SimParams", "Rollout", "simulate",
+    "effect_inputs", "stable_dt", "substeps_per_frame", "p_wave_speed",
+]

@@ -1,0 +1,519 @@
+"""Warp kernels of the MLS-MPM simulator, generic over float32 / float64.
+
+`get_kernels(dtype)` builds (once per dtype) a namespace of kernels in its own Warp module
+(``physinteract_sim_float32`` / ``physinteract_sim_float64``). One substep is three launches:
+
+    p2g(state_s)            -> grid mass / momentum (+ the mass and momentum of pinned particles)
+    grid_update(grid)       -> grid velocity (gravity, damping, pins, ground, moving colliders)
+    g2p(state_s, grid v)    -> state_{s+1} (APIC velocity and C, F, plasticity, Maxwell branch)
+
+Every kernel reads its inputs and writes separate outputs, so the reverse pass can launch the
+kernels' adjoints directly (`wp.launch(..., adjoint=True)`) after recomputing the grid of a substep
+from the stored particle state; nothing a later adjoint needs is overwritten in place.
+
+Functions of the singular values of F (the polar rotation, the Hencky-strain return mapping, the
+Maxwell branch's stress and relaxation) carry hand-written adjoints (`wp.func_grad`) built from the
+derivative of an isotropic matrix function G(F) = U diag(g(sigma)) V^T:
+
+    diag:      dG^_ii = sum_j dg_i/dsigma_j dF^_jj
+    off-diag:  dG^_ij = (a + b)/2 dF^_ij + (a - b)/2 dF^_ji,
+               a = (g_i - g_j)/(sigma_i - sigma_j),  b = (g_i + g_j)/(sigma_i + sigma_j)
+
+with a written in closed form (no 0/0 when singular values coincide, as they do at rest, F = I),
+instead of differentiating U and V, whose derivatives blow up there (1/(sigma_i^2 - sigma_j^2)).
+"""
+
+
+
+import math
+from types import SimpleNamespace
+
+import warp as wp
+
+# flags (bit mask passed to the kernels at run time: one compiled kernel serves every combination)
+F_DAMPING = 1
+F_PLASTICITY = 2
+F_GROUND = 4
+F_VISCO = 8
+
+# slots of the effect parameter vector (see effects.py)
+I_DAMP_C = 0
+I_YIELD = 1
+I_GROUND_H = 2
+I_GROUND_MU = 3
+I_VISCO_E = 4
+I_VISCO_TAU = 5
+N_EFFECT_PARAMS = 6
+
+# constitutive models
+M_FIXED_COROTATED = 0
+M_NEO_HOOKEAN = 1
+
+# collider shapes (non-adherent contacts)
+S_SPHERE = 0
+S_CAPSULE = 1
+S_PLANE = 2
+
+MAX_COLLIDERS = 4  # non-adherent contacts per scene (unrolled in the grid kernel)
+
+# status columns written by the check kernel, per frame
+ST_NONFINITE = 0
+ST_OUTSIDE = 1
+ST_NONFINITE_P = 2
+ST_OUTSIDE_P = 3
+
+_CACHE = {}
+
+
+def get_kernels(dtype: str) -> SimpleNamespace:
+    """The kernels for ``dtype`` in {"float32", "float64"} (built once, then cached)."""
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be float32 or float64, not {dtype!r}")
+    if dtype not in _CACHE:
+        _CACHE[dtype] = _build(dtype)
+    return _CACHE[dtype]
+
+
+def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
+    if name == "float64":
+        T = wp.float64
+        vec3 = wp.vec3d
+        mat33 = wp.mat33d
+    else:
+        T = wp.float32
+        vec3 = wp.vec3f
+        mat33 = wp.mat33f
+    module = f"physinteract_sim_{name}"
+    SIG_EPS = 1.0e-6
+    SQRT_2_3 = math.sqrt(2.0 / 3.0)
+
+    # ------------------------------------------------------------------ scalar helpers
+    @wp.func
+    def expm1_over_x(x: T):
+        # h(x) = (exp(x) - 1) / x, smooth through 0
+        if wp.abs(x) < T(1.0e-2):
+            return T(1.0) + x * (T(0.5) + x * (T(1.0 / 6.0) + x * (T(1.0 / 24.0) + x * T(1.0 / 120.0))))
+        return (wp.exp(x) - T(1.0)) / x
+
+    @wp.func
+    def safe_den(d: T):
+        # keep |d| >= eps with its sign (sums of singular values of an inverted F)
+        if wp.abs(d) < T(SIG_EPS):
+            if d < T(0.0):
+                return T(-SIG_EPS)
+            return T(SIG_EPS)
+        return d
+
+    @wp.func
+    def logs(s: vec3):
+        return vec3(wp.log(wp.max(s[0], T(SIG_EPS))), wp.log(wp.max(s[1], T(SIG_EPS))),
+                    wp.log(wp.max(s[2], T(SIG_EPS))))
+
+    @wp.func
+    def iso_adjoint(U: mat33, s: vec3, V: mat33, adj_G: mat33, g: vec3, Jg: mat33, A: mat33):
+        # adjoint of G = U diag(g(s)) V^T: Jg[i, j] = dg_i/ds_j, A[i, j] = (g_i - g_j)/(s_i - s_j)
+        Gh = wp.transpose(U) * adj_G * V
+        R = mat33()
+        for i in range(3):
+            for j in range(3):
+                if i == j:
+                    R[i, i] = Jg[0, i] * Gh[0, 0] + Jg[1, i] * Gh[1, 1] + Jg[2, i] * Gh[2, 2]
+                else:
+                    b = (g[i] + g[j]) / safe_den(s[i] + s[j])
+                    a = A[i, j]
+                    R[i, j] = T(0.5) * (a + b) * Gh[i, j] + T(0.5) * (a - b) * Gh[j, i]
+        return U * R * wp.transpose(V)
+
+    # ------------------------------------------------------------------ polar rotation
+    @wp.func
+    def polar_R(F: mat33):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        return U * wp.transpose(V)
+
+    @wp.func_grad(polar_R)
+    def adj_polar_R(F: mat33, adj_ret: mat33):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        g = vec3(T(1.0), T(1.0), T(1.0))
+        wp.adjoint[F] += iso_adjoint(U, s, V, adj_ret, g, mat33(), mat33())
+
+    # ------------------------------------------------------------------ deviatoric Hencky strain
+    @wp.func
+    def dev_norm(F: mat33):
+        # |dev(log sigma)|: the norm of the deviatoric Hencky strain
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        d = e - vec3(em, em, em)
+        return wp.sqrt(wp.dot(d, d))
+
+    @wp.func_grad(dev_norm)
+    def adj_dev_norm(F: mat33, adj_ret: T):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        d = e - vec3(em, em, em)
+        n = wp.sqrt(wp.dot(d, d))
+        if n > T(0.0):
+            D = mat33()
+            for i in range(3):
+                D[i, i] = adj_ret * d[i] / (n * wp.max(s[i], T(SIG_EPS)))
+            wp.adjoint[F] += U * D * wp.transpose(V)
+
+    @wp.func
+    def dev_scale(F: mat33, c: T):
+        # U exp(mean(e) + c dev(e)) V^T, e = log sigma: scales the deviatoric Hencky strain by c
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        D = mat33()
+        for i in range(3):
+            D[i, i] = wp.exp(em + c * (e[i] - em))
+        return U * D * wp.transpose(V)
+
+    @wp.func_grad(dev_scale)
+    def adj_dev_scale(F: mat33, c: T, adj_ret: mat33):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        sc = vec3(wp.max(s[0], T(SIG_EPS)), wp.max(s[1], T(SIG_EPS)), wp.max(s[2], T(SIG_EPS)))
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        g = vec3()
+        for i in range(3):
+            g[i] = wp.exp(em + c * (e[i] - em))
+        Jg = mat33()
+        A = mat33()
+        for i in range(3):
+            for j in range(3):
+                dij = T(0.0)
+                if i == j:
+                    dij = T(1.0)
+                Jg[i, j] = g[i] / sc[j] * ((T(1.0) - c) / T(3.0) + c * dij)
+                if i != j:
+                    L = e[i] - e[j]
+                    A[i, j] = c * g[j] / sc[j] * expm1_over_x(c * L) / expm1_over_x(L)
+        wp.adjoint[F] += iso_adjoint(U, s, V, adj_ret, g, Jg, A)
+        Gh = wp.transpose(U) * adj_ret * V
+        wp.adjoint[c] += Gh[0, 0] * g[0] * (e[0] - em) + Gh[1, 1] * g[1] * (e[1] - em) + Gh[2, 2] * g[2] * (e[2] - em)
+
+    # ------------------------------------------------------------------ Maxwell branch stress
+    @wp.func
+    def maxwell_P(F: mat33, mu_v: T):
+        # first Piola stress of the Hencky branch's deviatoric part: U diag(2 mu_v dev(e)_i / s_i) V^T
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        D = mat33()
+        for i in range(3):
+            D[i, i] = T(2.0) * mu_v * (e[i] - em) / wp.max(s[i], T(SIG_EPS))
+        return U * D * wp.transpose(V)
+
+    @wp.func_grad(maxwell_P)
+    def adj_maxwell_P(F: mat33, mu_v: T, adj_ret: mat33):
+        U = mat33()
+        s = vec3()
+        V = mat33()
+        wp.svd3(F, U, s, V)
+        sc = vec3(wp.max(s[0], T(SIG_EPS)), wp.max(s[1], T(SIG_EPS)), wp.max(s[2], T(SIG_EPS)))
+        e = logs(s)
+        em = (e[0] + e[1] + e[2]) / T(3.0)
+        g = vec3()
+        for i in range(3):
+            g[i] = T(2.0) * mu_v * (e[i] - em) / sc[i]
+        Jg = mat33()
+        A = mat33()
+        for i in range(3):
+            for j in range(3):
+                if i == j:
+                    Jg[i, i] = T(2.0) * mu_v * ((T(2.0) / T(3.0)) / (sc[i] * sc[i]) - (e[i] - em) / (sc[i] * sc[i]))
+                else:
+                    Jg[i, j] = T(2.0) * mu_v * (T(-1.0) / T(3.0)) / (sc[i] * sc[j])
+                    L = e[i] - e[j]
+                    A[i, j] = T(2.0) * mu_v * (T(1.0) / expm1_over_x(L) - (e[j] - em)) / (sc[i] * sc[j])
+        wp.adjoint[F] += iso_adjoint(U, s, V, adj_ret, g, Jg, A)
+        Gh = wp.transpose(U) * adj_ret * V
+        wp.adjoint[mu_v] += T(2.0) * (Gh[0, 0] * (e[0] - em) / sc[0] + Gh[1, 1] * (e[1] - em) / sc[1]
+                                       + Gh[2, 2] * (e[2] - em) / sc[2])
+
+    # ------------------------------------------------------------------ constitutive models
+    @wp.func
+    def lame(E: T, nu: T):
+        mu = E / (T(2.0) * (T(1.0) + nu))
+        lam = E * nu / ((T(1.0) + nu) * (T(1.0) - T(2.0) * nu))
+        return mu, lam
+
+    @wp.func
+    def kirchhoff(F: mat33, mu: T, lam: T, material: int):
+        # tau = P F^T of the equilibrium branch
+        J = wp.determinant(F)
+        I = wp.identity(n=3, dtype=T)
+        if material == 1:
+            Jc = wp.max(J, T(1.0e-6))
+            return mu * (F * wp.transpose(F) - I) + (lam * wp.log(Jc)) * I
+        R = polar_R(F)
+        return (T(2.0) * mu) * (F - R) * wp.transpose(F) + (lam * (J - T(1.0)) * J) * I
+
+    # ------------------------------------------------------------------ B-spline
+    @wp.func
+    def bw(i: int, f: T):
+        if i == 0:
+            return T(0.5) * (T(1.5) - f) * (T(1.5) - f)
+        if i == 1:
+            return T(0.75) - (f - T(1.0)) * (f - T(1.0))
+        return T(0.5) * (f - T(0.5)) * (f - T(0.5))
+
+    @wp.func
+    def cell_base(xp: vec3, res: wp.vec3i):
+        return wp.vec3i(wp.clamp(int(wp.floor(xp[0] - T(0.5))), 0, res[0] - 3),
+                        wp.clamp(int(wp.floor(xp[1] - T(0.5))), 0, res[1] - 3),
+                        wp.clamp(int(wp.floor(xp[2] - T(0.5))), 0, res[2] - 3))
+
+    # ------------------------------------------------------------------ contact helpers
+    @wp.func
+    def soft_weight(phi: T, band: T):
+        # 1 inside (phi <= -band/2), 0 outside (phi >= band/2), C1 smoothstep between
+        if band <= T(0.0):
+            if phi < T(0.0):
+                return T(1.0)
+            return T(0.0)
+        t = wp.clamp(T(0.5) - phi / band, T(0.0), T(1.0))
+        return t * t * (T(3.0) - T(2.0) * t)
+
+    @wp.func
+    def collide(v: vec3, vc: vec3, n: vec3, mu: T, w: T):
+        # push-only contact with Coulomb friction, blended by the weight w
+        vr = v - vc
+        vn = wp.dot(vr, n)
+        if vn < T(0.0):
+            vt = vr - vn * n
+            lt2 = wp.dot(vt, vt)
+            lim = mu * vn
+            vr_new = vec3()
+            if lt2 > lim * lim:
+                lt = wp.sqrt(lt2)
+                vr_new = vt * (T(1.0) + lim / lt)
+            return v + w * (vc + vr_new - v)
+        return v
+
+    # ------------------------------------------------------------------ kernels
+    @wp.kernel(module=module)
+    def p2g(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
+            F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
+            mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+            eff: wp.array(dtype=T), flags: int, material: int,
+            pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+            frame: int, fps: T, lo: vec3, inv_dx: T, dt: T, res: wp.vec3i,
+            gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+            gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+        p = wp.tid()
+        nup = nu[p]
+        mu, lam = lame(E[p], nup)
+        Fp = F[p]
+        tau = kirchhoff(Fp, mu, lam, material)
+        if (flags & 8) != 0:
+            mu_v = eff[4] / (T(2.0) * (T(1.0) + nup))
+            Fvp = Fv[p]
+            tau = tau + maxwell_P(Fvp, mu_v) * wp.transpose(Fvp)
+        m = mass[p]
+        dx = T(1.0) / inv_dx
+        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + m * C[p]
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        mv = m * v[p]
+        pinned = int(0)
+        pv = vec3()
+        cid = pin_id[p]
+        if cid >= 0:
+            if pin_active[cid, frame] != 0:
+                pinned = 1
+                pv = (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
+                    dpos = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, w * (mv + affine * dpos))
+                    wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, w * m)
+                    if pinned != 0:
+                        wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
+                        wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
+
+    @wp.kernel(module=module)
+    def grid_update(gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3),
+                    eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
+                    n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                    col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
+                    col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
+                    frame: int, alpha: T, fps: T,
+                    gv: wp.array3d(dtype=vec3)):
+        i, j, k = wp.tid()
+        m = gm[i, j, k]
+        vel = vec3()
+        if m > T(0.0):
+            vel = gmv[i, j, k] / m + dt * gravity
+            if (flags & 1) != 0:
+                vel = vel * wp.exp(-eff[0] * dt)
+            pm = gpm[i, j, k]
+            if pm > T(0.0):
+                vel = vel * (T(1.0) - pm / m) + gpmv[i, j, k] / m
+            xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
+            if (flags & 4) != 0:
+                wg = soft_weight(xn[1] - eff[2], band)
+                if wg > T(0.0):
+                    vel = collide(vel, vec3(), vec3(T(0.0), T(1.0), T(0.0)), eff[3], wg)
+            for c in range(MAX_COLLIDERS):
+                if c < n_col:
+                    if col_active[c, frame] != 0:
+                        p0 = col_pos[c, frame]
+                        p1 = col_pos[c, frame + 1]
+                        cen = p0 + alpha * (p1 - p0)
+                        vc = (p1 - p0) * fps
+                        shape = col_shape[c]
+                        phi = T(0.0)
+                        nrm = vec3()
+                        if shape == 2:
+                            nrm = col_geom[c]
+                            phi = wp.dot(xn - cen, nrm)
+                        else:
+                            q = cen
+                            if shape == 1:
+                                ax = col_geom[c]
+                                t = wp.clamp(wp.dot(xn - cen, ax) / wp.dot(ax, ax), T(-1.0), T(1.0))
+                                q = cen + t * ax
+                            d = xn - q
+                            dist2 = wp.dot(d, d)
+                            phi = T(1.0e30)
+                            if dist2 > T(1.0e-24):
+                                dist = wp.sqrt(dist2)
+                                nrm = d / dist
+                                phi = dist - col_radius[c]
+                        wc = soft_weight(phi, band)
+                        if wc > T(0.0):
+                            vel = collide(vel, vc, nrm, col_mu[c], wc)
+        gv[i, j, k] = vel
+
+    @wp.kernel(module=module)
+    def g2p(x: wp.array(dtype=vec3), C: wp.array(dtype=mat33), F: wp.array(dtype=mat33),
+            Fv: wp.array(dtype=mat33),
+            E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
+            pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+            frame: int, fps: T, lo: vec3, inv_dx: T, dt: T, res: wp.vec3i,
+            gv: wp.array3d(dtype=vec3),
+            x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
+            F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
+        p = wp.tid()
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        nv = vec3()
+        B = mat33()
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
+                    dpos = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
+                    g = gv[base[0] + i, base[1] + j, base[2] + k]
+                    nv = nv + w * g
+                    B = B + w * wp.outer(g, dpos)
+        nC = (T(4.0) * inv_dx) * B
+        I = wp.identity(n=3, dtype=T)
+        Fn = (I + dt * nC) * F[p]
+        if (flags & 2) != 0:
+            mu, lam = lame(E[p], nu[p])
+            kY = T(SQRT_2_3) * eff[1] / (T(2.0) * mu)
+            nrm = dev_norm(Fn)
+            if nrm > kY:
+                Fn = dev_scale(Fn, kY / nrm)
+        Fvn = Fv[p]
+        if (flags & 8) != 0:
+            a = wp.exp(-dt / eff[5])
+            Fvn = dev_scale((I + dt * nC) * Fvn, a)
+        cid = pin_id[p]
+        if cid >= 0:
+            if pin_active[cid, frame] != 0:
+                nv = (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
+        v1[p] = nv
+        C1[p] = nC
+        F1[p] = Fn
+        Fv1[p] = Fvn
+        x1[p] = x[p] + dt * nv
+
+    @wp.kernel(module=module)
+    def check(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), F: wp.array(dtype=mat33),
+              lo: vec3, inv_dx: T, res: wp.vec3i, row: int, status: wp.array2d(dtype=int)):
+        p = wp.tid()
+        xq = x[p]
+        ok = wp.isfinite(xq) and wp.isfinite(v[p]) and wp.isfinite(F[p])
+        if not ok:
+            wp.atomic_add(status, row, 0, 1)
+            wp.atomic_max(status, row, 2, p)
+        else:
+            xp = (xq - lo) * inv_dx
+            inside = True
+            for d in range(3):
+                if xp[d] < T(0.5) or xp[d] >= T(float(res[d])) - T(1.5):
+                    inside = False
+            if not inside:
+                wp.atomic_add(status, row, 1, 1)
+                wp.atomic_max(status, row, 3, p)
+
+    @wp.kernel(module=module)
+    def add_vec3(a: wp.array(dtype=vec3), b: wp.array(dtype=vec3)):
+        p = wp.tid()
+        a[p] = a[p] + b[p]
+
+    @wp.kernel(module=module)
+    def add_mat33(a: wp.array(dtype=mat33), b: wp.array(dtype=mat33)):
+        p = wp.tid()
+        a[p] = a[p] + b[p]
+
+    @wp.kernel(module=module)
+    def set_rest(x0: wp.array(dtype=vec3), v0: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
+                 v: wp.array(dtype=vec3), C: wp.array(dtype=mat33), F: wp.array(dtype=mat33),
+                 Fv: wp.array(dtype=mat33)):
+        p = wp.tid()
+        x[p] = x0[p]
+        v[p] = v0[p]
+        C[p] = mat33()
+        F[p] = wp.identity(n=3, dtype=T)
+        Fv[p] = wp.identity(n=3, dtype=T)
+
+    # test hooks: the custom-gradient matrix functions as standalone kernels
+    @wp.kernel(module=module)
+    def eval_matfuncs(F: wp.array(dtype=mat33), c: wp.array(dtype=T), W: wp.array(dtype=mat33),
+                      out: wp.array2d(dtype=T)):
+        p = wp.tid()
+        out[p, 0] = wp.ddot(polar_R(F[p]), W[p])
+        out[p, 1] = dev_norm(F[p])
+        out[p, 2] = wp.ddot(dev_scale(F[p], c[p]), W[p])
+        out[p, 3] = wp.ddot(maxwell_P(F[p], c[p]), W[p])
+        mu, lam = lame(T(3.0), T(0.3))
+        out[p, 4] = wp.ddot(kirchhoff(F[p], mu, lam, 0), W[p])
+        out[p, 5] = wp.ddot(kirchhoff(F[p], mu, lam, 1), W[p])
+
+    return SimpleNamespace(
+        name=name, T=T, vec3=vec3, mat33=mat33, module=module,
+        p2g=p2g, grid_update=grid_update, g2p=g2p, check=check,
+        add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
+    )

@@ -1,0 +1,296 @@
+"""Checkpointed differentiable rollout and its torch.autograd.Function.
+
+Forward: the rollout runs on two ping-pong states (no tape, no per-substep allocation) and copies
+the particle state into a checkpoint at the end of every frame; one reduction kernel per frame
+records non-finite or out-of-domain particles, read once after the rollout (one host sync).
+
+Backward, frame by frame from the last: restore the frame's checkpoint, replay its substeps
+storing the particle states (S+1 states of P particles; no grid is stored), then run the substeps'
+adjoints in reverse, each recomputing its grid from the stored particle state (`MPMSolver.
+step_adjoint`). The adjoint of the frame's first state carries into the previous frame. Memory:
+checkpoints (T+1 frames x P particles) + S replay states + one grid and its adjoint.
+
+Torch entry points: `Rollout(model, control)(E, nu, effects=..., trajectories=...)` (keeps its
+buffers between calls: use it in a fit loop) and `simulate(model, control, ...)` (one-off).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from ..errors import SimulationError
+from .control import Control, ControlArrays
+from .effects import DEFAULTS, PARAMETERS, SLOTS, N_PARAMS, canonical
+from .solver import ControlAdjoint, MPMSolver, SimParams
+from .state import SimState
+
+_TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
+
+
+def _torch_device(model) -> torch.device:
+    d = str(model.device)
+    return torch.device("cpu" if d == "cpu" else d)
+
+
+class Checkpoints:
+    """Per-frame particle states (T+1 frames) as torch tensors, with Warp views for the kernels."""
+
+    def __init__(self, model, n_frames: int, tensors: dict | None = None):
+        td = _TORCH_DTYPE[model.dtype]
+        dev = _torch_device(model)
+        P = model.n_particles
+        shapes = {"x": (3,), "v": (3,), "C": (3, 3), "F": (3, 3), "Fv": (3, 3)}
+        if tensors is None:
+            tensors = {k: torch.empty((n_frames + 1, P) + s, dtype=td, device=dev) for k, s in shapes.items()}
+        self.t = tensors
+        from .kernels import get_kernels
+        K = get_kernels(model.dtype)
+        types = {"x": K.vec3, "v": K.vec3, "C": K.mat33, "F": K.mat33, "Fv": K.mat33}
+        self.w = {k: wp.from_torch(tensors[k].detach(), dtype=types[k]) for k in shapes}
+
+    def frame(self, k: int) -> SimState:
+        return SimState(*(self.w[f][k] for f in SimState.FIELDS))
+
+
+class Rollout:
+    """A differentiable rollout of ``control.n_frames`` frames of ``model`` under ``control``.
+
+    Call it with torch tensors:
+
+        x, F = rollout(E, nu, effects={"damping": {"coefficient": c}}, trajectories={0: traj})
+
+    E (P,) [Pa], nu (P,); ``effects``: {effect: {parameter: value}} (tensors or floats; effects
+    must be enabled in the model; missing values take the model's defaults); ``trajectories``:
+    {contact index: (T+1, 3)} or a list aligned with ``control.contacts`` (None: the contact's own);
+    ``v0``: optional initial velocity (P, 3) or (3,). Returns x (T+1, P, 3) and F (T+1, P, 3, 3),
+    frame 0 = rest, differentiable w.r.t. all the inputs.
+    """
+
+    def __init__(self, model, control: Control | None = None, n_frames: int | None = None):
+        if control is None:
+            control = Control([], n_frames=n_frames or 1)
+        self.model = model
+        self.control = control
+        self.T = control.n_frames
+        self.S = model.substeps
+        self.P = model.n_particles
+        self.ctrl = ControlArrays(model, control)
+        self.params = SimParams(model)
+        self.solver = MPMSolver(model, self.ctrl, self.params)
+        m = model
+        self._pp = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(2)]
+        self._replay: list[SimState] | None = None
+        self._adj = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(2)]
+        self.adj_params = SimParams.zeros_like(self.params)
+        self.adj_ctrl = ControlAdjoint(self.ctrl)
+        self.status = self.solver.new_status(self.T)
+        K = self.solver.K
+        self.v0 = wp.zeros(self.P, dtype=K.vec3, device=m.device)
+
+    # ------------------------------------------------------------------ warp-level passes
+    def run_forward(self, ck: Checkpoints) -> None:
+        """Rollout from rest (with self.v0) writing every frame's state into ``ck``; raises
+        SimulationError if a frame's state is non-finite or left the domain."""
+        sol = self.solver
+        a, b = self._pp
+        a.set_rest(self.model, self.v0)
+        ck.frame(0).assign(a)
+        self.status.zero_()
+        for k in range(self.T):
+            for s in range(self.S):
+                sol.step(a, b, k, s)
+                a, b = b, a
+            sol.check(a, k, self.status)
+            ck.frame(k + 1).assign(a)
+        sol.raise_on_status(self.status)
+
+    def run_backward(self, ck: Checkpoints, grad_x: wp.array | None, grad_F: wp.array | None) -> SimState:
+        """Accumulate into self.adj_params / self.adj_ctrl the gradient of sum <grad_x, x> + <grad_F, F>
+        over frames; returns the adjoint of the initial state (its v part is dL/dv0)."""
+        sol = self.solver
+        K = sol.K
+        m = self.model
+        if self._replay is None:
+            self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
+        st = self._replay
+        self.adj_params.zero_()
+        self.adj_ctrl.zero_()
+        carry, other = self._adj
+        carry.zero_()
+        for k in reversed(range(self.T)):
+            st[0].assign(ck.frame(k))
+            for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
+                sol.step(st[s], st[s + 1], k, s)
+            if grad_x is not None:
+                wp.launch(K.add_vec3, self.P, [carry.x, grad_x[k + 1]], device=m.device, record_tape=False)
+            if grad_F is not None:
+                wp.launch(K.add_mat33, self.P, [carry.F, grad_F[k + 1]], device=m.device, record_tape=False)
+            for s in reversed(range(self.S)):
+                other.zero_()
+                sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl)
+                carry, other = other, carry
+        self._adj = [carry, other]
+        return carry
+
+    # ------------------------------------------------------------------ torch
+    def __call__(self, E=None, nu=None, effects: Mapping | None = None, trajectories=None, v0=None):
+        m = self.model
+        td = _TORCH_DTYPE[m.dtype]
+        dev = _torch_device(m)
+
+        def as_t(v, default):
+            if v is None:
+                v = default
+            if not torch.is_tensor(v):
+                v = torch.as_tensor(np.asarray(v, dtype=np.float64))
+            return v.to(device=dev, dtype=td)
+
+        E = as_t(E, m.E).expand(self.P)
+        nu = as_t(nu, m.nu).expand(self.P)
+        eff = self._effect_vector(effects, td, dev)
+        pin_pos, col_pos = self._trajectories(trajectories, td, dev)
+        v0 = torch.zeros(self.P, 3, dtype=td, device=dev) if v0 is None else as_t(v0, None).expand(self.P, 3)
+        lim = torch.stack([E.detach().max(), E.detach().min(), nu.detach().max(), nu.detach().min()]).cpu()
+        if not bool(torch.isfinite(lim).all()):
+            raise SimulationError("got non-finite E or nu", frame=0, advice="check the material parameters")
+        if float(lim[0]) > m.E_max * (1.0 + 1e-5):
+            raise SimulationError(
+                f"E up to {float(lim[0]):.4g} Pa exceeds E_max = {m.E_max:.4g} Pa, where the substep was chosen "
+                "(CFL)", frame=0,
+                advice="clamp E in the fit, or build the model with a larger E_max (more substeps)")
+        if float(lim[1]) <= 0 or float(lim[2]) >= 0.5 or float(lim[3]) <= -1.0:
+            raise SimulationError("E must be > 0 and nu in (-1, 0.5)", frame=0, advice="clamp the material parameters")
+        if float(lim[2]) > m.nu_max + 1e-6:
+            raise SimulationError(
+                f"nu up to {float(lim[2]):.4g} exceeds nu_max = {m.nu_max:.4g}, where the substep was chosen (CFL)",
+                frame=0, advice="clamp nu in the fit, or build the model with a larger nu_max")
+        return _SimulateFn.apply(self, E.contiguous(), nu.contiguous(), eff, pin_pos, col_pos, v0.contiguous())
+
+    def _effect_vector(self, effects, td, dev) -> torch.Tensor:
+        m = self.model
+        base = m.effect_vector()
+        entries: list = [torch.tensor(base[i], dtype=td, device=dev) for i in range(N_PARAMS)]
+        for eff, ps in (effects or {}).items():
+            if eff not in PARAMETERS:
+                raise KeyError(f"unknown effect {eff!r}")
+            if eff not in m.effects:
+                raise ValueError(f"effect {eff!r} is off in this model; enable it (SimModel.create(effects=...) "
+                                 "or model.replace(effects=...)) to give it parameters")
+            for p, v in ps.items():
+                slot = SLOTS[(eff, canonical(eff, p))]
+                entries[slot] = (v if torch.is_tensor(v) else torch.tensor(float(v))).to(device=dev, dtype=td).reshape(())
+        return torch.stack(entries)
+
+    def _trajectories(self, trajectories, td, dev):
+        c = self.control
+        given: dict[int, object] = {}
+        if trajectories is not None:
+            if isinstance(trajectories, Mapping):
+                given = dict(trajectories)
+            else:
+                given = {i: t for i, t in enumerate(trajectories) if t is not None}
+        for i in given:
+            if c.contacts[i].type == "fixed":
+                raise ValueError(f"contact {i} is fixed: it has no trajectory")
+
+        def row(i):
+            t = given.get(i, c.contacts[i].trajectory)
+            t = t if torch.is_tensor(t) else torch.as_tensor(np.asarray(t, dtype=np.float64))
+            t = t.to(device=dev, dtype=td)
+            if tuple(t.shape) != (self.T + 1, 3):
+                raise ValueError(f"trajectory of contact {i} must have shape ({self.T + 1}, 3), got {tuple(t.shape)}")
+            return t
+
+        zeros = torch.zeros(self.T + 1, 3, dtype=td, device=dev)
+        pins = [row(i) if c.contacts[i].type != "fixed" else zeros for i in c.pins] or [zeros]
+        cols = [row(i) for i in c.colliders] or [zeros]
+        return torch.stack(pins), torch.stack(cols)
+
+    def _load_inputs(self, E, nu, eff, pin_pos, col_pos, v0):
+        K = self.solver.K
+        wp.copy(self.params.E, wp.from_torch(E.detach().contiguous(), dtype=K.T))
+        wp.copy(self.params.nu, wp.from_torch(nu.detach().contiguous(), dtype=K.T))
+        wp.copy(self.params.eff, wp.from_torch(eff.detach().contiguous(), dtype=K.T))
+        wp.copy(self.ctrl.pin_pos, wp.from_torch(pin_pos.detach().contiguous(), dtype=K.vec3))
+        wp.copy(self.ctrl.col_pos, wp.from_torch(col_pos.detach().contiguous(), dtype=K.vec3))
+        wp.copy(self.v0, wp.from_torch(v0.detach().contiguous(), dtype=K.vec3))
+
+
+class _SimulateFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, ro: Rollout, E, nu, eff, pin_pos, col_pos, v0):
+        with _warp_stream(ro.model):
+            ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
+            ck = Checkpoints(ro.model, ro.T)
+            ro.run_forward(ck)
+        ctx.ro = ro
+        ctx.save_for_backward(E, nu, eff, pin_pos, col_pos, v0, ck.t["x"], ck.t["v"], ck.t["C"], ck.t["F"],
+                              ck.t["Fv"])
+        return ck.t["x"], ck.t["F"]
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, gx, gF):
+        ro: Rollout = ctx.ro
+        E, nu, eff, pin_pos, col_pos, v0, x, v, C, F, Fv = ctx.saved_tensors
+        K = ro.solver.K
+        with _warp_stream(ro.model):
+            ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
+            ck = Checkpoints(ro.model, ro.T, {"x": x, "v": v, "C": C, "F": F, "Fv": Fv})
+            wgx = None if gx is None else wp.from_torch(gx.detach().to(x.dtype).contiguous(), dtype=K.vec3)
+            wgF = None if gF is None else wp.from_torch(gF.detach().to(x.dtype).contiguous(), dtype=K.mat33)
+            adj0 = ro.run_backward(ck, wgx, wgF)
+            gE = wp.to_torch(ro.adj_params.E).clone()
+            gnu = wp.to_torch(ro.adj_params.nu).clone()
+            geff = wp.to_torch(ro.adj_params.eff).clone()
+            gpin = wp.to_torch(ro.adj_ctrl.pin_pos).clone()
+            gcol = wp.to_torch(ro.adj_ctrl.col_pos).clone()
+            gv0 = wp.to_torch(adj0.v).clone()
+        # effects that are off do not depend on their parameters
+        on = torch.zeros(N_PARAMS, dtype=torch.bool)
+        for e in ro.model.effects.enabled:
+            for p in PARAMETERS[e]:
+                on[SLOTS[(e, p)]] = True
+        geff = torch.where(on.to(geff.device), geff, torch.zeros_like(geff))
+        return None, gE, gnu, geff, gpin, gcol, gv0
+
+
+class _warp_stream:
+    """On CUDA, run Warp on torch's current stream so that torch and Warp work stays ordered."""
+
+    def __init__(self, model):
+        self.cuda = str(model.device).startswith("cuda")
+        self.ctx = None
+
+    def __enter__(self):
+        if self.cuda:
+            self.ctx = wp.ScopedStream(wp.stream_from_torch())
+            self.ctx.__enter__()
+
+    def __exit__(self, *exc):
+        if self.ctx is not None:
+            self.ctx.__exit__(*exc)
+
+
+def simulate(model, control: Control | None = None, E=None, nu=None, effects=None, trajectories=None, v0=None,
+             n_frames: int | None = None):
+    """One-off differentiable rollout (allocates its buffers; in a loop, reuse a `Rollout`).
+    Returns x (T+1, P, 3), F (T+1, P, 3, 3) as torch tensors."""
+    return Rollout(model, control, n_frames=n_frames)(E, nu, effects=effects, trajectories=trajectories, v0=v0)
+
+
+def effect_inputs(model, requires_grad: bool = True, dtype=torch.float64) -> dict:
+    """The enabled effects' default parameters as leaf tensors {effect: {parameter: tensor}}."""
+    out = {}
+    for e in model.effects.enabled:
+        out[e] = {p: torch.tensor(model.effects.params[e][p], dtype=dtype, requires_grad=requires_grad)
+                  for p in PARAMETERS[e]}
+    return out
+
+
+__all__ = ["Rollout", "simulate", "Checkpoints", "effect_inputs"]

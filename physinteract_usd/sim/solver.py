@@ -1,0 +1,231 @@
+"""MPMSolver: one MLS-MPM substep (forward) and its adjoint (reverse), plus the per-frame check.
+
+The forward substep is p2g -> grid_update -> g2p (kernels.py). The adjoint of a substep first
+recomputes that substep's grid from the stored particle state (so no grid is kept per substep),
+then launches the adjoints of g2p, grid_update and p2g in reverse order. Grid arrays are zeroed
+with ``array.zero_()`` and reused: nothing is allocated per substep.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..errors import SimulationError
+from .control import Control, ControlArrays
+from .effects import N_PARAMS
+from .kernels import get_kernels
+from .state import SimState
+
+
+class SimParams:
+    """The differentiable inputs of the kernels: per-particle E, nu and the effect parameter vector."""
+
+    def __init__(self, model, E=None, nu=None, effect_vector=None, requires_grad: bool = False):
+        K = get_kernels(model.dtype)
+        nd = model.np_dtype
+        d = model.device
+        P = model.n_particles
+        E = model.E if E is None else np.broadcast_to(np.asarray(E, dtype=np.float64), (P,))
+        nu = model.nu if nu is None else np.broadcast_to(np.asarray(nu, dtype=np.float64), (P,))
+        ev = model.effect_vector() if effect_vector is None else effect_vector
+        self.E = wp.array(np.ascontiguousarray(E, dtype=nd), dtype=K.T, device=d, requires_grad=requires_grad)
+        self.nu = wp.array(np.ascontiguousarray(nu, dtype=nd), dtype=K.T, device=d, requires_grad=requires_grad)
+        self.eff = wp.array(np.asarray(ev, dtype=nd).reshape(N_PARAMS), dtype=K.T, device=d,
+                            requires_grad=requires_grad)
+
+    @classmethod
+    def zeros_like(cls, other: "SimParams") -> "SimParams":
+        p = cls.__new__(cls)
+        p.E = wp.zeros_like(other.E)
+        p.nu = wp.zeros_like(other.nu)
+        p.eff = wp.zeros_like(other.eff)
+        return p
+
+    def zero_(self):
+        self.E.zero_()
+        self.nu.zero_()
+        self.eff.zero_()
+
+
+class ControlAdjoint:
+    """Adjoint arrays of a ControlArrays' trajectories."""
+
+    def __init__(self, ctrl: ControlArrays):
+        self.pin_pos = wp.zeros_like(ctrl.pin_pos)
+        self.col_pos = wp.zeros_like(ctrl.col_pos)
+
+    def zero_(self):
+        self.pin_pos.zero_()
+        self.col_pos.zero_()
+
+
+class MPMSolver:
+    """Steps a SimModel. ``step(s_in, s_out, frame, substep)`` advances one substep of frame ``frame``."""
+
+    def __init__(self, model, control: Control | ControlArrays | None = None, params: SimParams | None = None):
+        self.model = model
+        self.K = get_kernels(model.dtype)
+        K = self.K
+        g = model.grid
+        d = model.device
+        self.device = d
+        self.res = tuple(g.resolution)
+        self.lo = K.vec3(*g.lower)
+        self.inv_dx = 1.0 / g.dx
+        self.dx = g.dx
+        self.dt = model.dt
+        self.fps = model.fps
+        self.S = model.substeps
+        self.flags = model.effects.flags
+        self.material = model.material_id
+        self.gravity = K.vec3(*model.gravity)
+        self.band = model.contact_band
+        self.res3 = wp.vec3i(*self.res)
+        if control is None:
+            control = Control([], n_frames=1)
+        self.ctrl = control if isinstance(control, ControlArrays) else ControlArrays(model, control)
+        self.params = params if params is not None else SimParams(model)
+        self.dev = model.device_arrays()
+        self.gm = wp.zeros(self.res, dtype=K.T, device=d)
+        self.gmv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        self.gpm = wp.zeros(self.res, dtype=K.T, device=d)
+        self.gpmv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        self.gv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        self._adj_grid = None
+
+    # ------------------------------------------------------------------ argument lists
+    def _p2g_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
+        return [s.x, s.v, s.C, s.F, s.Fv, self.dev["mass"], self.dev["volume"], p.E, p.nu, p.eff,
+                self.flags, self.material, c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
+                self.inv_dx, self.dt, self.res3]
+
+    def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
+        alpha = (substep + 1) / self.S
+        return [self.gm, self.gmv, self.gpm, self.gpmv, p.eff, self.flags, self.gravity, self.dt, self.lo,
+                self.dx, self.band, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom, c.col_radius,
+                c.col_mu, frame, alpha, self.fps]
+
+    def _g2p_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
+        return [s.x, s.C, s.F, s.Fv, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos, frame,
+                self.fps, self.lo, self.inv_dx, self.dt, self.res3, self.gv]
+
+    @staticmethod
+    def _outs(s: SimState):
+        return [s.x, s.v, s.C, s.F, s.Fv]
+
+    # ------------------------------------------------------------------ forward
+    def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None):
+        """p2g + grid update of substep ``substep`` of frame ``frame`` (fills self.gv)."""
+        K, d = self.K, self.device
+        p = params or self.params
+        c = ctrl or self.ctrl
+        self.gm.zero_()
+        self.gmv.zero_()
+        self.gpm.zero_()
+        self.gpmv.zero_()
+        wp.launch(K.p2g, s.x.shape[0], self._p2g_args(s, frame, p, c), [self.gm, self.gmv, self.gpm, self.gpmv],
+                  device=d, record_tape=False)
+        wp.launch(K.grid_update, self.res, self._grid_args(frame, substep, p, c), [self.gv], device=d,
+                  record_tape=False)
+
+    def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None):
+        """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
+        p = params or self.params
+        c = ctrl or self.ctrl
+        self.grid(s_in, frame, substep, p, c)
+        wp.launch(self.K.g2p, s_in.x.shape[0], self._g2p_args(s_in, frame, p, c), self._outs(s_out),
+                  device=self.device, record_tape=False)
+
+    # ------------------------------------------------------------------ adjoint
+    def _alloc_adj_grid(self):
+        if self._adj_grid is None:
+            K, d = self.K, self.device
+            self._adj_grid = dict(
+                gm=wp.zeros(self.res, dtype=K.T, device=d), gmv=wp.zeros(self.res, dtype=K.vec3, device=d),
+                gpm=wp.zeros(self.res, dtype=K.T, device=d), gpmv=wp.zeros(self.res, dtype=K.vec3, device=d),
+                gv=wp.zeros(self.res, dtype=K.vec3, device=d))
+        return self._adj_grid
+
+    def step_adjoint(self, s_in: SimState, s_out: SimState, adj_in: SimState, adj_out: SimState,
+                     frame: int, substep: int, adj_params: SimParams, adj_ctrl: ControlAdjoint,
+                     params=None, ctrl=None):
+        """Reverse one substep: given adj_out (dL/d s_out), ACCUMULATE dL/d s_in into adj_in and the
+        parameter / trajectory gradients into adj_params / adj_ctrl. s_out must hold step(s_in)."""
+        K, d = self.K, self.device
+        p = params or self.params
+        c = ctrl or self.ctrl
+        P = s_in.x.shape[0]
+        ag = self._alloc_adj_grid()
+        self.grid(s_in, frame, substep, p, c)
+        for a in ag.values():
+            a.zero_()
+        # g2p
+        adj_g2p = [adj_in.x, adj_in.C, adj_in.F, adj_in.Fv, adj_params.E, adj_params.nu, adj_params.eff, 0,
+                   None, None, adj_ctrl.pin_pos, 0, 0.0, None, 0.0, 0.0, None, ag["gv"]]
+        wp.launch(K.g2p, P, self._g2p_args(s_in, frame, p, c), self._outs(s_out), adj_g2p, self._outs(adj_out),
+                  adjoint=True, device=d, record_tape=False)
+        # grid update
+        adj_grid = [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0,
+                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0]
+        wp.launch(K.grid_update, self.res, self._grid_args(frame, substep, p, c), [self.gv], adj_grid, [ag["gv"]],
+                  adjoint=True, device=d, record_tape=False)
+        # p2g
+        adj_p2g = [adj_in.x, adj_in.v, adj_in.C, adj_in.F, adj_in.Fv, None, None, adj_params.E, adj_params.nu,
+                   adj_params.eff, 0, 0, None, None, adj_ctrl.pin_pos, 0, 0.0, None, 0.0, 0.0, None]
+        wp.launch(K.p2g, P, self._p2g_args(s_in, frame, p, c), [self.gm, self.gmv, self.gpm, self.gpmv],
+                  adj_p2g, [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"]], adjoint=True, device=d, record_tape=False)
+
+    # ------------------------------------------------------------------ checks
+    def check(self, s: SimState, row: int, status: wp.array):
+        """Count non-finite and out-of-domain particles of state s into status[row] (no host sync)."""
+        wp.launch(self.K.check, s.x.shape[0], [s.x, s.v, s.F, self.lo, self.inv_dx, self.res3, row], [status],
+                  device=self.device, record_tape=False)
+
+    def new_status(self, n_rows: int) -> wp.array:
+        return wp.zeros((n_rows, 4), dtype=wp.int32, device=self.device)
+
+    def raise_on_status(self, status: wp.array, frames=None, x_host=None):
+        """Raise SimulationError for the first frame whose status row reports a problem."""
+        st = status.numpy()
+        bad = np.nonzero((st[:, 0] > 0) | (st[:, 1] > 0))[0]
+        if bad.size == 0:
+            return
+        r = int(bad[0])
+        frame = r + 1 if frames is None else int(frames[r])
+        m = self.model
+        if st[r, 0] > 0:
+            raise SimulationError(
+                f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]})", frame=frame,
+                advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
+                        f"or speed reached: raise substeps per frame, lower E_max = {m.E_max:g} Pa (and nu_max "
+                        f"= {m.nu_max:g}), or slow the trajectory"))
+        lo, hi = m.grid.valid_lower, m.grid.valid_upper
+        raise SimulationError(
+            f"left the grid domain ({st[r, 1]} particles, e.g. particle {st[r, 3]}; valid box "
+            f"[{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)", frame=frame,
+            advice="enlarge the grid (GridSpec lower corner / resolution, or GridSpec.around with more padding), "
+                   "or check the trajectory, the ground height and gravity")
+
+    # ------------------------------------------------------------------ convenience
+    def simulate(self, n_frames: int, state: SimState | None = None, check: bool = True) -> dict[str, np.ndarray]:
+        """Forward rollout without gradients; returns per-frame numpy arrays x, v, F (frame 0 = start)."""
+        m = self.model
+        if state is None:
+            state = SimState.rest(m)
+        a, b = state, SimState.zeros(m.n_particles, m.dtype, m.device)
+        status = self.new_status(n_frames)
+        frames = {"x": [a.x.numpy().copy()], "v": [a.v.numpy().copy()], "F": [a.F.numpy().copy()]}
+        for k in range(n_frames):
+            for s in range(self.S):
+                self.step(a, b, k, s)
+                a, b = b, a
+            self.check(a, k, status)
+            frames["x"].append(a.x.numpy().copy())
+            frames["v"].append(a.v.numpy().copy())
+            frames["F"].append(a.F.numpy().copy())
+        if check:
+            self.raise_on_status(status)
+        if a is not state:
+            state.assign(a)
+        return {k: np.stack(v) for k, v in frames.items()}
