@@ -1,0 +1,115 @@
+"""Metrics, in one place (numpy; no torch, no USD).
+
+- PSNR over the full frame, and inside the union of the true and rendered silhouettes (the honest
+  one: a mostly-background frame cannot inflate it).
+- SSIM exactly as ``skimage.metrics.structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+  use_sample_covariance=False, data_range=1, channel_axis=-1)``: 11x11 Gaussian window (sigma 1.5,
+  truncated at 3.5 sigma), K1 = 0.01, K2 = 0.03, mean over the map cropped by the window radius.
+- Silhouette IoU; 2D track error in pixels; 3D position error in metres.
+- Material accuracy MA: the share of Gaussians whose predicted E is within 20% of the truth,
+  and the MA of the best uniform E (what a single number could at most reach).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+MA_TOLERANCE = 0.2
+
+
+def psnr(pred: np.ndarray, true: np.ndarray, mask: np.ndarray | None = None, data_range: float = 1.0) -> float:
+    """PSNR in dB over all pixels (and channels), or over the pixels where `mask` is true."""
+    pred = np.asarray(pred, dtype=np.float64)
+    true = np.asarray(true, dtype=np.float64)
+    err = (pred - true) ** 2
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if not mask.any():
+            return float("nan")
+        err = err[mask]
+    mse = float(np.mean(err))
+    if mse == 0.0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range ** 2 / mse))
+
+
+def psnr_masked(pred, true, sil_pred, sil_true, data_range: float = 1.0) -> float:
+    """PSNR inside the union of the true and rendered silhouettes."""
+    return psnr(pred, true, np.asarray(sil_pred, bool) | np.asarray(sil_true, bool), data_range)
+
+
+def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0, sigma: float = 1.5) -> float:
+    """Mean SSIM of two (H, W) or (H, W, C) images, matching skimage (see module doc)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError("ssim: images differ in shape")
+    if a.ndim == 3:
+        return float(np.mean([ssim(a[..., c], b[..., c], data_range, sigma) for c in range(a.shape[2])]))
+    truncate = 3.5
+    filt = lambda x: gaussian_filter(x, sigma=sigma, truncate=truncate, mode="reflect")  # noqa: E731
+    c1 = (0.01 * data_range) ** 2
+    c2 = (0.03 * data_range) ** 2
+    ux, uy = filt(a), filt(b)
+    vx = filt(a * a) - ux * ux
+    vy = filt(b * b) - uy * uy
+    vxy = filt(a * b) - ux * uy
+    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    r = int(truncate * sigma + 0.5)  # window radius: 5 for sigma 1.5 (an 11x11 window)
+    return float(s[r:-r, r:-r].mean())
+
+
+def iou(sil_pred, sil_true) -> float:
+    a = np.asarray(sil_pred, bool)
+    b = np.asarray(sil_true, bool)
+    union = np.logical_or(a, b).sum()
+    if union == 0:
+        return 1.0
+    return float(np.logical_and(a, b).sum() / union)
+
+
+def material_accuracy(e_pred, e_true, tol: float = MA_TOLERANCE) -> float:
+    """Share of entries with |E_pred - E_true| / E_true <= tol."""
+    e_pred = np.asarray(e_pred, dtype=np.float64)
+    e_true = np.asarray(e_true, dtype=np.float64)
+    return float(np.mean(np.abs(e_pred - e_true) <= tol * e_true + 1e-12 * e_true))
+
+
+def best_uniform_ma(e_true, tol: float = MA_TOLERANCE) -> tuple[float, float]:
+    """The best MA any single E reaches, and that E: E passes for entry i iff
+    E_true_i (1 - tol) <= E <= E_true_i (1 + tol); the best E maximises the overlap count."""
+    e = np.asarray(e_true, dtype=np.float64)
+    lo, hi = e * (1 - tol), e * (1 + tol)
+    events = np.concatenate([np.stack([lo, np.ones_like(lo)], 1), np.stack([hi, -np.ones_like(hi)], 1)])
+    order = np.lexsort((-events[:, 1], events[:, 0]))  # starts before ends at equal values
+    counts = np.cumsum(events[order, 1])
+    k = int(np.argmax(counts))
+    return float(counts[k] / len(e)), float(events[order][k, 0])
+
+
+def track_error_px(pred_uv, true_uv) -> float:
+    """Mean 2D distance in pixels between predicted and true tracks (any shape ending in 2)."""
+    d = np.linalg.norm(np.asarray(pred_uv, float) - np.asarray(true_uv, float), axis=-1)
+    return float(np.nanmean(d))
+
+
+def position_error_m(pred_xyz, true_xyz) -> float:
+    """Mean 3D distance in metres between corresponding points (any shape ending in 3)."""
+    d = np.linalg.norm(np.asarray(pred_xyz, float) - np.asarray(true_xyz, float), axis=-1)
+    return float(np.mean(d))
+
+
+def frame_metrics(pred_rgb, true_rgb, pred_sil, true_sil) -> dict:
+    """All image metrics of one frame."""
+    return {"psnr": psnr(pred_rgb, true_rgb), "psnr_masked": psnr_masked(pred_rgb, true_rgb, pred_sil, true_sil),
+            "ssim": ssim(pred_rgb, true_rgb), "iou": iou(pred_sil, true_sil)}
+
+
+def summarize(per_frame: list[dict]) -> dict:
+    """Means over frames (infinite PSNRs, from identical frames, are capped at 100 dB)."""
+    out = {}
+    for key in ("psnr", "psnr_masked", "ssim", "iou"):
+        vals = np.array([min(f[key], 100.0) for f in per_frame if key in f and not np.isnan(f[key])])
+        out[key] = float(np.nanmean(vals)) if len(vals) else float("nan")
+    return out
