@@ -362,7 +362,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def grid_update(gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
                     gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3),
                     eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
-                    n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                    pin_gain: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
                     frame: int, alpha: T, fps: T,
@@ -376,7 +376,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 vel = vel * wp.exp(-eff[0] * dt)
             pm = gpm[i, j, k]
             if pm > T(0.0):
-                vel = vel * (T(1.0) - pm / m) + gpmv[i, j, k] / m
+                wpin = wp.min(pin_gain * pm / m, T(1.0))
+                vel = vel * (T(1.0) - wpin) + (wpin / pm) * gpmv[i, j, k]
             xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
             if (flags & 4) != 0:
                 wg = soft_weight(xn[1] - eff[2], band)

@@ -89,6 +89,7 @@ class SimModel:
     E_max: float                        # the CFL bound was taken here; larger E is refused
     nu_max: float
     contact_band: float                 # width [m] of the smoothed contact boundary (0 = hard)
+    pin_gain: float                     # grid nodes with >= 1/pin_gain of their mass pinned are fully pinned
     _dev: dict = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ construction
@@ -98,7 +99,7 @@ class SimModel:
                E_max: float | None = None, nu_max: float = 0.45, E_v_max: float | None = None,
                cfl: float = 0.4, max_speed: float = 0.0, gravity=(0.0, -9.81, 0.0),
                effects: Effects | dict | None = None, dtype: str = "float32", device: str = "cpu",
-               contact_band: float | None = None) -> "SimModel":
+               contact_band: float | None = None, pin_gain: float = 4.0) -> "SimModel":
         x0 = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         P = x0.shape[0]
         if P == 0:
@@ -135,7 +136,7 @@ class SimModel:
         m = cls(x0=x0, volume=vol, density=float(density), E=Ea, nu=nua, material=material, grid=grid,
                 fps=float(fps), substeps=int(substeps), gravity=tuple(float(g) for g in gravity),
                 effects=effects, dtype=dtype, device=str(wp.get_device(device)), E_max=E_max, nu_max=nu_max,
-                contact_band=band)
+                contact_band=band, pin_gain=float(pin_gain))
         lo, hi = grid.valid_lower, grid.valid_upper
         if np.any(x0 < lo) or np.any(x0 >= hi):
             raise ValueError(f"particles at rest lie outside the grid's valid box [{lo}, {hi}); "

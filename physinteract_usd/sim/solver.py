@@ -81,6 +81,7 @@ class MPMSolver:
         self.material = model.material_id
         self.gravity = K.vec3(*model.gravity)
         self.band = model.contact_band
+        self.pin_gain = model.pin_gain
         self.res3 = wp.vec3i(*self.res)
         if control is None:
             control = Control([], n_frames=1)
@@ -103,7 +104,7 @@ class MPMSolver:
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
         return [self.gm, self.gmv, self.gpm, self.gpmv, p.eff, self.flags, self.gravity, self.dt, self.lo,
-                self.dx, self.band, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom, c.col_radius,
+                self.dx, self.band, self.pin_gain, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom, c.col_radius,
                 c.col_mu, frame, alpha, self.fps]
 
     def _g2p_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
@@ -166,7 +167,7 @@ class MPMSolver:
         wp.launch(K.g2p, P, self._g2p_args(s_in, frame, p, c), self._outs(s_out), adj_g2p, self._outs(adj_out),
                   adjoint=True, device=d, record_tape=False)
         # grid update
-        adj_grid = [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0,
+        adj_grid = [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0]
         wp.launch(K.grid_update, self.res, self._grid_args(frame, substep, p, c), [self.gv], adj_grid, [ag["gv"]],
                   adjoint=True, device=d, record_tape=False)
