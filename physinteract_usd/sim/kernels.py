@@ -358,61 +358,86 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
 
+    @wp.func
+    def apply_collider(vel: vec3, xn: vec3, c: int, frame: int, alpha: T, fps: T, band: T,
+                       col_shape: wp.array(dtype=int), col_pos: wp.array2d(dtype=vec3),
+                       col_geom: wp.array(dtype=vec3), col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T)):
+        p0 = col_pos[c, frame]
+        p1 = col_pos[c, frame + 1]
+        cen = p0 + alpha * (p1 - p0)
+        shape = col_shape[c]
+        phi = T(0.0)
+        nrm = vec3()
+        if shape == 2:
+            nrm = col_geom[c]
+            phi = wp.dot(xn - cen, nrm)
+        else:
+            q = cen
+            if shape == 1:
+                ax = col_geom[c]
+                t = wp.clamp(wp.dot(xn - cen, ax) / wp.dot(ax, ax), T(-1.0), T(1.0))
+                q = cen + t * ax
+            d = xn - q
+            dist2 = wp.dot(d, d)
+            phi = T(1.0e30)
+            if dist2 > T(1.0e-24):
+                dist = wp.sqrt(dist2)
+                nrm = d / dist
+                phi = dist - col_radius[c]
+        wc = soft_weight(phi, band)
+        if wc > T(0.0):
+            return collide(vel, (p1 - p0) * fps, nrm, col_mu[c], wc)
+        return vel
+
+    @wp.func
+    def node_velocity(m: T, mv: vec3, pm: T, pmv: vec3, xn: vec3,
+                      eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, band: T, pin_gain: T,
+                      n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                      col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
+                      col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
+                      frame: int, alpha: T, fps: T):
+        vel = mv / m + dt * gravity
+        if (flags & 1) != 0:
+            vel = vel * wp.exp(-eff[0] * dt)
+        if pm > T(0.0):
+            wpin = wp.min(pin_gain * pm / m, T(1.0))
+            vel = vel * (T(1.0) - wpin) + (wpin / pm) * pmv
+        if (flags & 4) != 0:
+            wg = soft_weight(xn[1] - eff[2], band)
+            if wg > T(0.0):
+                vel = collide(vel, vec3(), vec3(T(0.0), T(1.0), T(0.0)), eff[3], wg)
+        for c in range(MAX_COLLIDERS):
+            if c < n_col:
+                if col_active[c, frame] != 0:
+                    vel = apply_collider(vel, xn, c, frame, alpha, fps, band, col_shape, col_pos, col_geom,
+                                         col_radius, col_mu)
+        return vel
+
     @wp.kernel(module=module)
-    def grid_update(gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3),
+    def grid_update(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
+                    gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
                     eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
                     pin_gain: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
-                    frame: int, alpha: T, fps: T,
-                    gv: wp.array3d(dtype=vec3)):
-        i, j, k = wp.tid()
-        m = gm[i, j, k]
-        vel = vec3()
-        if m > T(0.0):
-            vel = gmv[i, j, k] / m + dt * gravity
-            if (flags & 1) != 0:
-                vel = vel * wp.exp(-eff[0] * dt)
-            pm = gpm[i, j, k]
-            if pm > T(0.0):
-                wpin = wp.min(pin_gain * pm / m, T(1.0))
-                vel = vel * (T(1.0) - wpin) + (wpin / pm) * gpmv[i, j, k]
-            xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
-            if (flags & 4) != 0:
-                wg = soft_weight(xn[1] - eff[2], band)
-                if wg > T(0.0):
-                    vel = collide(vel, vec3(), vec3(T(0.0), T(1.0), T(0.0)), eff[3], wg)
-            for c in range(MAX_COLLIDERS):
-                if c < n_col:
-                    if col_active[c, frame] != 0:
-                        p0 = col_pos[c, frame]
-                        p1 = col_pos[c, frame + 1]
-                        cen = p0 + alpha * (p1 - p0)
-                        vc = (p1 - p0) * fps
-                        shape = col_shape[c]
-                        phi = T(0.0)
-                        nrm = vec3()
-                        if shape == 2:
-                            nrm = col_geom[c]
-                            phi = wp.dot(xn - cen, nrm)
-                        else:
-                            q = cen
-                            if shape == 1:
-                                ax = col_geom[c]
-                                t = wp.clamp(wp.dot(xn - cen, ax) / wp.dot(ax, ax), T(-1.0), T(1.0))
-                                q = cen + t * ax
-                            d = xn - q
-                            dist2 = wp.dot(d, d)
-                            phi = T(1.0e30)
-                            if dist2 > T(1.0e-24):
-                                dist = wp.sqrt(dist2)
-                                nrm = d / dist
-                                phi = dist - col_radius[c]
-                        wc = soft_weight(phi, band)
-                        if wc > T(0.0):
-                            vel = collide(vel, vc, nrm, col_mu[c], wc)
-        gv[i, j, k] = vel
+                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int,
+                    gv: wp.array(dtype=vec3)):
+        # flat launch over the grid, ``chunk`` nodes per thread (the CPU pays per thread; chunk = 1
+        # on CUDA); a node's index is decoded only where there is mass. Iterations are independent.
+        n = gm.shape[0]
+        t0 = wp.tid() * chunk
+        for t in range(t0, wp.min(t0 + chunk, n)):
+            m = gm[t]
+            vel = vec3()
+            if m > T(0.0):
+                i = t / (res[1] * res[2])
+                j = (t / res[2]) % res[1]
+                k = t % res[2]
+                xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
+                vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
+                                    pin_gain, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
+                                    frame, alpha, fps)
+            gv[t] = vel
 
     @wp.kernel(module=module)
     def g2p(x: wp.array(dtype=vec3), C: wp.array(dtype=mat33), F: wp.array(dtype=mat33),

@@ -93,7 +93,13 @@ class MPMSolver:
         self.gpm = wp.zeros(self.res, dtype=K.T, device=d)
         self.gpmv = wp.zeros(self.res, dtype=K.vec3, device=d)
         self.gv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        n_nodes = int(np.prod(self.res))
+        self.chunk = 64 if wp.get_device(d).is_cpu else 1
+        self.n_nodes = n_nodes
+        self.n_grid_threads = (n_nodes + self.chunk - 1) // self.chunk
+        self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
         self._adj_grid = None
+        self._adj_flat = None
 
     # ------------------------------------------------------------------ argument lists
     def _p2g_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
@@ -103,9 +109,10 @@ class MPMSolver:
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
-        return [self.gm, self.gmv, self.gpm, self.gpmv, p.eff, self.flags, self.gravity, self.dt, self.lo,
+        f = self._flat
+        return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], p.eff, self.flags, self.gravity, self.dt, self.lo,
                 self.dx, self.band, self.pin_gain, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom, c.col_radius,
-                c.col_mu, frame, alpha, self.fps]
+                c.col_mu, frame, alpha, self.fps, self.res3, self.chunk]
 
     def _g2p_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
         return [s.x, s.C, s.F, s.Fv, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos, frame,
@@ -127,8 +134,8 @@ class MPMSolver:
         self.gpmv.zero_()
         wp.launch(K.p2g, s.x.shape[0], self._p2g_args(s, frame, p, c), [self.gm, self.gmv, self.gpm, self.gpmv],
                   device=d, record_tape=False)
-        wp.launch(K.grid_update, self.res, self._grid_args(frame, substep, p, c), [self.gv], device=d,
-                  record_tape=False)
+        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
+                  device=d, record_tape=False)
 
     def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None):
         """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
@@ -146,6 +153,7 @@ class MPMSolver:
                 gm=wp.zeros(self.res, dtype=K.T, device=d), gmv=wp.zeros(self.res, dtype=K.vec3, device=d),
                 gpm=wp.zeros(self.res, dtype=K.T, device=d), gpmv=wp.zeros(self.res, dtype=K.vec3, device=d),
                 gv=wp.zeros(self.res, dtype=K.vec3, device=d))
+            self._adj_flat = {k: a.flatten() for k, a in self._adj_grid.items()}
         return self._adj_grid
 
     def step_adjoint(self, s_in: SimState, s_out: SimState, adj_in: SimState, adj_out: SimState,
@@ -167,10 +175,11 @@ class MPMSolver:
         wp.launch(K.g2p, P, self._g2p_args(s_in, frame, p, c), self._outs(s_out), adj_g2p, self._outs(adj_out),
                   adjoint=True, device=d, record_tape=False)
         # grid update
-        adj_grid = [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0,
-                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0]
-        wp.launch(K.grid_update, self.res, self._grid_args(frame, substep, p, c), [self.gv], adj_grid, [ag["gv"]],
-                  adjoint=True, device=d, record_tape=False)
+        af = self._adj_flat
+        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0,
+                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, 0]
+        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]], adj_grid,
+                  [af["gv"]], adjoint=True, device=d, record_tape=False)
         # p2g
         adj_p2g = [adj_in.x, adj_in.v, adj_in.C, adj_in.F, adj_in.Fv, None, None, adj_params.E, adj_params.nu,
                    adj_params.eff, 0, 0, None, None, adj_ctrl.pin_pos, 0, 0.0, None, 0.0, 0.0, None]

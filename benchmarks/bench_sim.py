@@ -1,0 +1,159 @@
+"""Speed of the differentiable MPM simulator: forward and forward+backward time per substep.
+
+Prints a markdown table for a few particle counts and grids, with the naive MLS-MPM probe
+(mpm_probe.py: the same substep without effects or contacts, backward on a wp.Tape that keeps
+every substep's grid) timed in the same run as the baseline.
+
+    python benchmarks/bench_sim.py --device cpu
+    python benchmarks/bench_sim.py --device cuda --sizes 2000:32 15000:100 --probe .dev/probes/mpm_probe.py
+
+The scene: a block of P particles (2 per cell per axis) in the middle of an n^3 grid, fixed
+corotated, float32, gravity, damping, a grasp pulling one end and a clamp on the other (so the
+pin and effect code paths run), T frames of S substeps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+import warp as wp
+
+wp.config.quiet = True
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+from physinteract_usd.sim import Contact, Control, GridSpec, Rollout, SimModel  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+DEFAULT_PROBES = [os.path.join(HERE, "..", ".dev", "probes", "mpm_probe.py"),
+                  os.path.join(HERE, "..", "..", "shared", "device", "mpm_probe.py")]
+
+
+def make_scene(P: int, n: int, T: int, S: int, device: str, dtype: str = "float32"):
+    dx = 1.0 / n
+    sp = dx / 2
+    side = max(2, int(round(P ** (1 / 3))))
+    dims = [side, side, max(1, int(round(P / side / side)))]
+    idx = np.stack(np.meshgrid(*[np.arange(k) for k in dims], indexing="ij"), -1).reshape(-1, 3)
+    pts = (idx - np.array(dims) / 2) * sp + 0.5
+    left = np.nonzero(idx[:, 0] == 0)[0]
+    right = np.nonzero(idx[:, 0] == dims[0] - 1)[0]
+    traj = np.repeat(pts[right].mean(0)[None], T + 1, 0)
+    traj[:, 0] += np.linspace(0, 2 * dx, T + 1)
+    ctrl = Control([Contact("fixed", indices=left), Contact("pointAdherent", indices=right, trajectory=traj)],
+                   n_frames=T)
+    fps = 1.0 / (S * 1e-4)        # dt = 1e-4 s, as in the probe
+    m = SimModel.create(pts, sp ** 3, 1000.0, 1e4, 0.3, grid=GridSpec((0, 0, 0), dx, (n, n, n)), fps=fps,
+                        substeps=S, E_max=1e4, dtype=dtype, device=device,
+                        effects={"damping": {"coefficient": 1.0}})
+    return m, ctrl
+
+
+def sync(device):
+    wp.synchronize_device(device)
+
+
+def time_rollout(P, n, T, S, device, reps):
+    m, ctrl = make_scene(P, n, T, S, device)
+    ro = Rollout(m, ctrl)
+    tdev = "cpu" if device == "cpu" else device
+    E = torch.full((m.n_particles,), 1e4, device=tdev, requires_grad=True)
+    # warm up (compiles)
+    x, F = ro(E)
+    (x[-1].sum() + F[-1].sum()).backward()
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        with torch.no_grad():
+            x, F = ro(E)
+    sync(device)
+    tf = (time.perf_counter() - t0) / reps
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        x, F = ro(E)
+        (x[-1].sum() + F[-1].sum()).backward()
+    sync(device)
+    tb = (time.perf_counter() - t0) / reps
+    return m.n_particles, tf / (T * S), tb / (T * S)
+
+
+def run_probe(probe, device, P, n, S):
+    if not probe or not os.path.exists(probe):
+        return None, None
+    try:
+        out = subprocess.run([sys.executable, probe, device, str(P), str(n), str(S)], capture_output=True,
+                             text=True, timeout=900).stdout
+    except Exception as e:  # noqa: BLE001
+        print(f"probe failed: {e}", file=sys.stderr)
+        return None, None
+    f = re.search(r"forward \d+ substeps: [\d.]+ ms\s+\(([\d.]+) us/substep", out)
+    b = re.search(r"forward\+backward \d+ substeps: ([\d.]+) ms", out)
+    fwd = float(f.group(1)) * 1e-6 if f else None
+    fb = float(b.group(1)) * 1e-3 / S if b else None
+    g = re.search(r"graph: forward ([\d.]+) us/substep; forward\+backward ([\d.]+) us/substep", out)
+    if g:
+        print(f"  probe graph ({P}, {n}^3): forward {g.group(1)} us, fwd+bwd {g.group(2)} us per substep")
+    return fwd, fb
+
+
+def device_name(device):
+    if device == "cpu":
+        cpu = platform.processor() or "CPU"
+        try:
+            with open("/proc/cpuinfo") as fh:
+                for line in fh:
+                    if line.startswith("model name"):
+                        cpu = line.split(":", 1)[1].strip()
+                        break
+        except OSError:
+            pass
+        return f"{cpu}, {os.cpu_count()} cores (Warp CPU backend: single-threaded)"
+    return wp.get_device(device).name
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--sizes", nargs="*", default=None, help="P:n pairs (particles : grid nodes per axis)")
+    ap.add_argument("--frames", type=int, default=2)
+    ap.add_argument("--substeps", type=int, default=25)
+    ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--probe", default=None, help="path of mpm_probe.py ('' to skip)")
+    args = ap.parse_args(argv)
+    device = "cuda:0" if args.device == "cuda" else args.device
+    wp.init()
+    sizes = args.sizes or (["500:16", "1000:24", "2000:32", "4000:40"] if device == "cpu"
+                           else ["2000:32", "15000:64", "15000:100", "50000:100"])
+    probe = args.probe
+    if probe is None:
+        probe = next((p for p in DEFAULT_PROBES if os.path.exists(p)), "")
+    print(f"device: {device_name(device)}; warp {wp.__version__}, torch {torch.__version__}; float32; "
+          f"{args.frames} frames x {args.substeps} substeps; mean of {args.reps} runs")
+    rows = []
+    for s in sizes:
+        P, n = (int(v) for v in s.split(":"))
+        Pm, tf, tb = time_rollout(P, n, args.frames, args.substeps, device, args.reps)
+        pf, pb = run_probe(probe, device.split(":")[0] if device == "cpu" else device, P, n,
+                           args.frames * args.substeps)
+        rows.append((Pm, n, tf, tb, pf, pb))
+        print(f"  P={Pm} n={n}: fwd {tf * 1e6:.0f} us, fwd+bwd {tb * 1e6:.0f} us per substep", flush=True)
+
+    def us(v):
+        return "-" if v is None else f"{v * 1e6:,.0f}"
+
+    print()
+    print("| particles | grid | forward us/substep | fwd+bwd us/substep | bwd/fwd | probe fwd | probe fwd+bwd |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for Pm, n, tf, tb, pf, pb in rows:
+        print(f"| {Pm:,} | {n}^3 | {us(tf)} | {us(tb)} | {tb / tf:.1f} | {us(pf)} | {us(pb)} |")
+
+
+if __name__ == "__main__":
+    main()
