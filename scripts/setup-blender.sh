@@ -39,7 +39,10 @@ if ! "$PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
 fi
 
 start=$(date +%s)
-if [ ! -x "$VENV/bin/python" ]; then
+if [ -x "$VENV/bin/python" ] && ! "$VENV/bin/python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+    echo "setup-blender: $VENV is not a working Python 3.11 venv: recreating it"
+    "$PY" -m venv --clear "$VENV"
+elif [ ! -x "$VENV/bin/python" ]; then
     echo "setup-blender: creating $VENV"
     "$PY" -m venv "$VENV"
 fi
