@@ -38,20 +38,15 @@ def _torch_device(model) -> torch.device:
 
 
 class Checkpoints:
-    """Per-frame particle states (T+1 frames) as torch tensors, with Warp views for the kernels."""
+    """Per-frame particle states (T+1 frames): Warp arrays (T+1, P) with torch views."""
 
-    def __init__(self, model, n_frames: int, tensors: dict | None = None):
-        td = _TORCH_DTYPE[model.dtype]
-        dev = _torch_device(model)
-        P = model.n_particles
-        shapes = {"x": (3,), "v": (3,), "C": (3, 3), "F": (3, 3), "Fv": (3, 3)}
-        if tensors is None:
-            tensors = {k: torch.empty((n_frames + 1, P) + s, dtype=td, device=dev) for k, s in shapes.items()}
-        self.t = tensors
+    def __init__(self, model, n_frames: int):
         from .kernels import get_kernels
         K = get_kernels(model.dtype)
+        P = model.n_particles
         types = {"x": K.vec3, "v": K.vec3, "C": K.mat33, "F": K.mat33, "Fv": K.mat33}
-        self.w = {k: wp.from_torch(tensors[k].detach(), dtype=types[k]) for k in shapes}
+        self.w = {k: wp.zeros((n_frames + 1, P), dtype=t, device=model.device) for k, t in types.items()}
+        self.t = {k: wp.to_torch(a, requires_grad=False) for k, a in self.w.items()}
 
     def frame(self, k: int) -> SimState:
         return SimState(*(self.w[f][k] for f in SimState.FIELDS))
@@ -69,9 +64,14 @@ class Rollout:
     {contact index: (T+1, 3)} or a list aligned with ``control.contacts`` (None: the contact's own);
     ``v0``: optional initial velocity (P, 3) or (3,). Returns x (T+1, P, 3) and F (T+1, P, 3, 3),
     frame 0 = rest, differentiable w.r.t. all the inputs.
+
+    The rollout keeps its buffers (checkpoints, replay states, one grid and its adjoint) between
+    calls. With ``graphs=True`` (default) each frame's forward and backward is captured once into a
+    graph (CUDA graph on a GPU, Warp's CPU graph on the CPU) and replayed on later calls: no
+    per-substep Python work. ``graphs=False`` launches every kernel from Python (same results).
     """
 
-    def __init__(self, model, control: Control | None = None, n_frames: int | None = None):
+    def __init__(self, model, control: Control | None = None, n_frames: int | None = None, graphs: bool = True):
         if control is None:
             control = Control([], n_frames=n_frames or 1)
         self.model = model
@@ -83,59 +83,104 @@ class Rollout:
         self.params = SimParams(model)
         self.solver = MPMSolver(model, self.ctrl, self.params)
         m = model
+        K = self.solver.K
         self._pp = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(2)]
         self._replay: list[SimState] | None = None
         self._adj = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(2)]
         self.adj_params = SimParams.zeros_like(self.params)
         self.adj_ctrl = ControlAdjoint(self.ctrl)
         self.status = self.solver.new_status(self.T)
-        K = self.solver.K
         self.v0 = wp.zeros(self.P, dtype=K.vec3, device=m.device)
+        self.ck = Checkpoints(m, self.T)
+        self.grad_x = wp.zeros((self.T + 1, self.P), dtype=K.vec3, device=m.device)
+        self.grad_F = wp.zeros((self.T + 1, self.P), dtype=K.mat33, device=m.device)
+        self.graphs = bool(graphs)
+        self._fwd_graphs: dict[int, object] = {}
+        self._bwd_graphs: dict[int, object] = {}
+        self._warm = False
 
-    # ------------------------------------------------------------------ warp-level passes
-    def run_forward(self, ck: Checkpoints) -> None:
-        """Rollout from rest (with self.v0) writing every frame's state into ``ck``; raises
-        SimulationError if a frame's state is non-finite or left the domain."""
+    # ------------------------------------------------------------------ one frame, forward / backward
+    def _forward_frame(self, k: int) -> None:
         sol = self.solver
         a, b = self._pp
-        a.set_rest(self.model, self.v0)
-        ck.frame(0).assign(a)
-        self.status.zero_()
-        for k in range(self.T):
-            for s in range(self.S):
-                sol.step(a, b, k, s)
-                a, b = b, a
-            sol.check(a, k, self.status)
-            ck.frame(k + 1).assign(a)
-        sol.raise_on_status(self.status)
+        if k == 0:
+            self.status.zero_()
+            a.set_rest(self.model, self.v0)
+            self.ck.frame(0).assign(a)
+        else:
+            a.assign(self.ck.frame(k))
+        for s in range(self.S):
+            sol.step(a, b, k, s)
+            a, b = b, a
+        sol.check(a, k, self.status)
+        self.ck.frame(k + 1).assign(a)
 
-    def run_backward(self, ck: Checkpoints, grad_x: wp.array | None, grad_F: wp.array | None) -> SimState:
-        """Accumulate into self.adj_params / self.adj_ctrl the gradient of sum <grad_x, x> + <grad_F, F>
-        over frames; returns the adjoint of the initial state (its v part is dL/dv0)."""
+    def _backward_frame(self, k: int) -> None:
         sol = self.solver
         K = sol.K
+        d = self.model.device
+        st = self._replay
+        st[0].assign(self.ck.frame(k))
+        for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
+            sol.step(st[s], st[s + 1], k, s)
+        carry, other = self._adj
+        wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False)
+        wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False)
+        for s in reversed(range(self.S)):
+            other.zero_()
+            sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl)
+            carry, other = other, carry
+        if carry is not self._adj[0]:
+            self._adj[0].assign(carry)
+
+    def _ensure_graphs(self, graphs: dict, fn) -> None:
+        """Capture fn(k) for every frame (once). Capturing may execute the work (CPU graphs), so the
+        callers reset their accumulators after this and then replay the graphs in order."""
+        if not self.graphs or len(graphs) == self.T:
+            return
+        try:
+            if not self._warm:      # load the modules before any capture
+                fn(0)
+                self._warm = True
+            for k in range(self.T):
+                if k not in graphs:
+                    with wp.ScopedCapture(device=self.model.device) as cap:
+                        fn(k)
+                    graphs[k] = cap.graph
+        except Exception as e:  # noqa: BLE001  (capture unsupported here: fall back to launches)
+            import warnings
+            warnings.warn(f"graph capture failed ({e}); running without graphs", RuntimeWarning, stacklevel=3)
+            self.graphs = False
+            graphs.clear()
+
+    def _frame(self, graphs: dict, fn, k: int) -> None:
+        if self.graphs:
+            wp.capture_launch(graphs[k])
+        else:
+            fn(k)
+
+    # ------------------------------------------------------------------ warp-level passes
+    def run_forward(self) -> None:
+        """Rollout from rest (with self.v0) into self.ck; raises SimulationError if a frame's state
+        is non-finite or left the domain (one host sync, after the last frame)."""
+        self._ensure_graphs(self._fwd_graphs, self._forward_frame)
+        for k in range(self.T):
+            self._frame(self._fwd_graphs, self._forward_frame, k)
+        self.solver.raise_on_status(self.status)
+
+    def run_backward(self) -> SimState:
+        """From self.ck (the forward's checkpoints) and self.grad_x / self.grad_F (dL/dx, dL/dF per
+        frame), fill self.adj_params / self.adj_ctrl; returns the adjoint of the initial state."""
         m = self.model
         if self._replay is None:
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
-        st = self._replay
+        self._ensure_graphs(self._bwd_graphs, self._backward_frame)
         self.adj_params.zero_()
         self.adj_ctrl.zero_()
-        carry, other = self._adj
-        carry.zero_()
+        self._adj[0].zero_()
         for k in reversed(range(self.T)):
-            st[0].assign(ck.frame(k))
-            for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
-                sol.step(st[s], st[s + 1], k, s)
-            if grad_x is not None:
-                wp.launch(K.add_vec3, self.P, [carry.x, grad_x[k + 1]], device=m.device, record_tape=False)
-            if grad_F is not None:
-                wp.launch(K.add_mat33, self.P, [carry.F, grad_F[k + 1]], device=m.device, record_tape=False)
-            for s in reversed(range(self.S)):
-                other.zero_()
-                sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl)
-                carry, other = other, carry
-        self._adj = [carry, other]
-        return carry
+            self._frame(self._bwd_graphs, self._backward_frame, k)
+        return self._adj[0]
 
     # ------------------------------------------------------------------ torch
     def __call__(self, E=None, nu=None, effects: Mapping | None = None, trajectories=None, v0=None):
@@ -226,25 +271,34 @@ class _SimulateFn(torch.autograd.Function):
     def forward(ctx, ro: Rollout, E, nu, eff, pin_pos, col_pos, v0):
         with _warp_stream(ro.model):
             ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
-            ck = Checkpoints(ro.model, ro.T)
-            ro.run_forward(ck)
+            ro.run_forward()
+            saved = {k: t.clone() for k, t in ro.ck.t.items()}
         ctx.ro = ro
-        ctx.save_for_backward(E, nu, eff, pin_pos, col_pos, v0, ck.t["x"], ck.t["v"], ck.t["C"], ck.t["F"],
-                              ck.t["Fv"])
-        return ck.t["x"], ck.t["F"]
+        ctx.save_for_backward(E, nu, eff, pin_pos, col_pos, v0, saved["x"], saved["v"], saved["C"], saved["F"],
+                              saved["Fv"])
+        x, F = saved["x"], saved["F"]
+        return x.view(ro.T + 1, ro.P, 3), F.view(ro.T + 1, ro.P, 3, 3)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, gx, gF):
         ro: Rollout = ctx.ro
         E, nu, eff, pin_pos, col_pos, v0, x, v, C, F, Fv = ctx.saved_tensors
-        K = ro.solver.K
         with _warp_stream(ro.model):
             ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
-            ck = Checkpoints(ro.model, ro.T, {"x": x, "v": v, "C": C, "F": F, "Fv": Fv})
-            wgx = None if gx is None else wp.from_torch(gx.detach().to(x.dtype).contiguous(), dtype=K.vec3)
-            wgF = None if gF is None else wp.from_torch(gF.detach().to(x.dtype).contiguous(), dtype=K.mat33)
-            adj0 = ro.run_backward(ck, wgx, wgF)
+            for k, t in zip(("x", "v", "C", "F", "Fv"), (x, v, C, F, Fv)):   # another forward may have run
+                ro.ck.t[k].copy_(t)
+            gxt = wp.to_torch(ro.grad_x, requires_grad=False)
+            gFt = wp.to_torch(ro.grad_F, requires_grad=False)
+            if gx is None:
+                gxt.zero_()
+            else:
+                gxt.copy_(gx.reshape(gxt.shape))
+            if gF is None:
+                gFt.zero_()
+            else:
+                gFt.copy_(gF.reshape(gFt.shape))
+            adj0 = ro.run_backward()
             gE = wp.to_torch(ro.adj_params.E).clone()
             gnu = wp.to_torch(ro.adj_params.nu).clone()
             geff = wp.to_torch(ro.adj_params.eff).clone()
@@ -278,10 +332,11 @@ class _warp_stream:
 
 
 def simulate(model, control: Control | None = None, E=None, nu=None, effects=None, trajectories=None, v0=None,
-             n_frames: int | None = None):
+             n_frames: int | None = None, graphs: bool = False):
     """One-off differentiable rollout (allocates its buffers; in a loop, reuse a `Rollout`).
     Returns x (T+1, P, 3), F (T+1, P, 3, 3) as torch tensors."""
-    return Rollout(model, control, n_frames=n_frames)(E, nu, effects=effects, trajectories=trajectories, v0=v0)
+    return Rollout(model, control, n_frames=n_frames, graphs=graphs)(E, nu, effects=effects, trajectories=trajectories,
+                                                                     v0=v0)
 
 
 def effect_inputs(model, requires_grad: bool = True, dtype=torch.float64) -> dict:
