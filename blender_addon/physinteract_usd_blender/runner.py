@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -154,13 +155,19 @@ class Job:
         return self.state
 
     def cancel(self) -> None:
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.terminate()
-            try:
-                self._proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            # SIGINT first: the CLI turns it into KeyboardInterrupt, removes its temp files and
+            # exits 130; then SIGTERM, then SIGKILL
+            stops = ([lambda: proc.send_signal(signal.SIGINT)] if os.name == "posix" else []) + \
+                [proc.terminate, proc.kill]
+            for stop in stops:
+                stop()
+                try:
+                    proc.wait(3)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
         self._close()
         if not self.finished:
             self.state = "cancelled"

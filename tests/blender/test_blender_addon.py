@@ -287,3 +287,56 @@ def test_error_line_picks_the_clis_line(addon):
         "physinteract-usd fit: error: s.usda: no contacts"
     assert r.last_line("step 1\rstep 2\r") == "step 2"
     assert os.path.basename(r.resolve_cli(sys.executable)[0]) == os.path.basename(sys.executable)
+
+
+def test_modal_operator_runs_the_job_on_timer_ticks(addon, settings, capture, tmp_path):
+    """The UI path: invoke starts the job and returns at once, each TIMER tick polls it and
+    updates the panel's status line, the last tick finishes it. Blender's event loop does not run
+    headless, so the ticks are delivered here by hand to the operator's own methods."""
+    from types import SimpleNamespace
+
+    op_cls = addon.PHYSINTERACT_OT_run
+    settings.capture_dir = str(capture)
+    settings.stage_path = str(tmp_path / "scene.usda")
+    settings.grid = 16
+    context = bpy.context
+    wm = context.window_manager
+    reports = []
+    op = SimpleNamespace(steps="init", report=lambda kind, msg: reports.append((kind, msg)))
+    op._finish = lambda ctx: op_cls._finish(op, ctx)
+    assert op_cls._start(op, context)
+    op._timer = wm.event_timer_add(0.25, window=context.window or wm.windows[0])
+    assert settings.running and not bpy.ops.physinteract.run.poll() and bpy.ops.physinteract.cancel.poll()
+    statuses = []
+    t0 = time.monotonic()
+    while True:
+        assert op_cls.modal(op, context, SimpleNamespace(type="MOUSEMOVE")) == {"PASS_THROUGH"}
+        result = op_cls.modal(op, context, SimpleNamespace(type="TIMER"))
+        statuses.append(settings.status)
+        if result != {"PASS_THROUGH"}:
+            break
+        assert time.monotonic() - t0 < 120
+        time.sleep(0.05)
+    assert result == {"FINISHED"}, settings.error
+    assert any(s.startswith("[1/1] init") for s in statuses[:-1])
+    assert "done" in settings.status and not settings.running and op._timer is None
+    assert reports[-1][0] == {"INFO"} and (tmp_path / "scene.usda").exists()
+
+
+def test_cancel_button_stops_a_running_step(addon, settings, capture, tmp_path):
+    from types import SimpleNamespace
+
+    op_cls = addon.PHYSINTERACT_OT_run
+    settings.capture_dir = str(capture)
+    settings.stage_path = str(tmp_path / "scene.usda")
+    context = bpy.context
+    op = SimpleNamespace(steps="init", report=lambda kind, msg: None)
+    op._finish = lambda ctx: op_cls._finish(op, ctx)
+    assert op_cls._start(op, context)
+    op._timer = context.window_manager.event_timer_add(0.25, window=context.window or
+                                                       context.window_manager.windows[0])
+    assert bpy.ops.physinteract.cancel() == {"FINISHED"}
+    assert op_cls.modal(op, context, SimpleNamespace(type="TIMER")) == {"CANCELLED"}
+    assert settings.error == "init: cancelled" and not settings.running
+    assert bpy.ops.physinteract.run.poll()
+    assert not (tmp_path / "scene.usda").exists()  # init writes atomically: nothing half-written
