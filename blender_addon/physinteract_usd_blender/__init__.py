@@ -284,11 +284,20 @@ def build_job(context, steps: str) -> runner.Job:
         elif name in ("import", "import_stage"):
             target = p["stage"] if name == "import_stage" else p["export"]
             job_steps.append(runner.CliStep("info", runner.verb_argv(cli, "info", p["stage"], "--json"),
-                                            on_done=lambda out, info=info: info.update(json.loads(out))))
+                                            on_done=lambda out, info=info: info.update(parse_json(out))))
             job_steps.append(runner.PyStep(
                 "import", lambda target=target, info=info: import_result(
                     bpy.context, target, info, bpy.context.scene.physinteract.replace_import)))
     return runner.Job(job_steps)
+
+
+def parse_json(out: str) -> dict:
+    """The JSON object a `--json` verb prints, skipping any banner lines before it (Warp prints
+    one to stdout when it initialises)."""
+    start = out.find("\n{") + 1 if not out.lstrip().startswith("{") else out.find("{")
+    if start <= 0 and not out.lstrip().startswith("{"):
+        raise ValueError("info --json printed no JSON object")
+    return json.loads(out[start:])
 
 
 def _redraw(context) -> None:

@@ -340,3 +340,10 @@ def test_cancel_button_stops_a_running_step(addon, settings, capture, tmp_path):
     assert settings.error == "init: cancelled" and not settings.running
     assert bpy.ops.physinteract.run.poll()
     assert not (tmp_path / "scene.usda").exists()  # init writes atomically: nothing half-written
+
+
+def test_info_json_survives_a_banner_on_stdout(addon):
+    assert addon.parse_json('{"frames": {"size": [4, 3]}}\n') == {"frames": {"size": [4, 3]}}
+    assert addon.parse_json('Warp 1.10.0 initialized:\n   CUDA not enabled\n{\n "a": 1\n}\n') == {"a": 1}
+    with pytest.raises(ValueError):
+        addon.parse_json("no json here\n")
