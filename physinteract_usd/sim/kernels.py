@@ -85,6 +85,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         mat33 = wp.mat33f
     module = f"physinteract_sim_{name}"
     SIG_EPS = 1.0e-6
+    POLAR_MAX_IT = 30
+    POLAR_MIN_DET = 1.0e-4
+    POLAR_TOL2 = 1.0e-16 if name == "float64" else 1.0e-8
     SQRT_2_3 = math.sqrt(2.0 / 3.0)
 
     # ------------------------------------------------------------------ scalar helpers
@@ -125,22 +128,45 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         return U * R * wp.transpose(V)
 
     # ------------------------------------------------------------------ polar rotation
+    # R of F = R S by Higham's scaled Newton iteration (cheaper than the SVD on the CPU; converged
+    # to round-off), the SVD for inverted or degenerate F. The adjoint needs no SVD either:
+    # dR = R [w]x with (tr(S) I - S) w = axial(R^T dF - dF^T R), so
+    # adj_F = R [y]x with (tr(S) I - S) y = axial2(R^T adj_R).
     @wp.func
     def polar_R(F: mat33):
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
-        return U * wp.transpose(V)
+        X = F
+        if wp.determinant(F) > T(POLAR_MIN_DET):
+            for it in range(POLAR_MAX_IT):
+                Xi = wp.inverse(X)
+                g = wp.sqrt(wp.sqrt(wp.ddot(Xi, Xi) / wp.ddot(X, X)))
+                Xn = T(0.5) * (g * X + (T(1.0) / g) * wp.transpose(Xi))
+                dX = Xn - X
+                X = Xn
+                if wp.ddot(dX, dX) < T(POLAR_TOL2):
+                    break
+            # one more (unscaled) step: quadratic convergence takes the residual to round-off
+            X = T(0.5) * (X + wp.transpose(wp.inverse(X)))
+        else:
+            U = mat33()
+            s = vec3()
+            V = mat33()
+            wp.svd3(F, U, s, V)
+            X = U * wp.transpose(V)
+        return X
 
     @wp.func_grad(polar_R)
     def adj_polar_R(F: mat33, adj_ret: mat33):
-        U = mat33()
-        s = vec3()
-        V = mat33()
-        wp.svd3(F, U, s, V)
-        g = vec3(T(1.0), T(1.0), T(1.0))
-        wp.adjoint[F] += iso_adjoint(U, s, V, adj_ret, g, mat33(), mat33())
+        R = polar_R(F)
+        S = wp.transpose(R) * F
+        S = T(0.5) * (S + wp.transpose(S))
+        A = wp.trace(S) * wp.identity(n=3, dtype=T) - S
+        X = wp.transpose(R) * adj_ret
+        h = vec3(X[2, 1] - X[1, 2], X[0, 2] - X[2, 0], X[1, 0] - X[0, 1])
+        dA = wp.determinant(A)
+        if wp.abs(dA) > T(1.0e-12):
+            y = wp.inverse(A) * h
+            Y = mat33(T(0.0), -y[2], y[1], y[2], T(0.0), -y[0], -y[1], y[0], T(0.0))
+            wp.adjoint[F] += R * Y
 
     # ------------------------------------------------------------------ deviatoric Hencky strain
     @wp.func
@@ -282,6 +308,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         return T(0.5) * (f - T(0.5)) * (f - T(0.5))
 
     @wp.func
+    def dbw(i: int, f: T):
+        # d bw(i, f) / df
+        if i == 0:
+            return f - T(1.5)
+        if i == 1:
+            return T(-2.0) * (f - T(1.0))
+        return f - T(0.5)
+
+    @wp.func
     def cell_base(xp: vec3, res: wp.vec3i):
         return wp.vec3i(wp.clamp(int(wp.floor(xp[0] - T(0.5))), 0, res[0] - 3),
                         wp.clamp(int(wp.floor(xp[1] - T(0.5))), 0, res[1] - 3),
@@ -316,47 +351,110 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     # ------------------------------------------------------------------ kernels
     @wp.kernel(module=module)
-    def p2g(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
-            F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
-            mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
-            eff: wp.array(dtype=T), flags: int, material: int,
-            pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-            frame: int, fps: T, lo: vec3, inv_dx: T, dt: T, res: wp.vec3i,
-            gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-            gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+    def p2g_stress(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
+                   mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+                   eff: wp.array(dtype=T), flags: int, material: int, inv_dx: T, dt: T,
+                   A: wp.array(dtype=mat33)):
+        # the MLS-MPM affine matrix: -dt V0 (4 / dx^2) tau + m C, tau the Kirchhoff stress
         p = wp.tid()
         nup = nu[p]
         mu, lam = lame(E[p], nup)
-        Fp = F[p]
-        tau = kirchhoff(Fp, mu, lam, material)
+        tau = kirchhoff(F[p], mu, lam, material)
         if (flags & 8) != 0:
             mu_v = eff[4] / (T(2.0) * (T(1.0) + nup))
             Fvp = Fv[p]
             tau = tau + maxwell_P(Fvp, mu_v) * wp.transpose(Fvp)
+        A[p] = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + mass[p] * C[p]
+
+    @wp.func
+    def pin_velocity(p: int, pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
+                     pin_pos: wp.array2d(dtype=vec3), frame: int, fps: T):
+        # (pinned?, prescribed velocity) of particle p in frame ``frame``
+        cid = pin_id[p]
+        if cid >= 0:
+            if pin_active[cid, frame] != 0:
+                return 1, (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
+        return 0, vec3()
+
+    @wp.kernel(module=module)
+    def p2g_scatter(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
+                    mass: wp.array(dtype=T),
+                    pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                    frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
+                    gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+        p = wp.tid()
         m = mass[p]
         dx = T(1.0) / inv_dx
-        affine = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + m * C[p]
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
-        pinned = int(0)
-        pv = vec3()
-        cid = pin_id[p]
-        if cid >= 0:
-            if pin_active[cid, frame] != 0:
-                pinned = 1
-                pv = (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
+        Ap = A[p]
+        pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
         for i in range(3):
             for j in range(3):
                 for k in range(3):
                     w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
-                    dpos = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
-                    wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, w * (mv + affine * dpos))
+                    d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, w * (mv + Ap * d))
                     wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, w * m)
                     if pinned != 0:
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
+
+    @wp.kernel(module=module)
+    def p2g_scatter_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
+                        mass: wp.array(dtype=T),
+                        pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
+                        pin_pos: wp.array2d(dtype=vec3),
+                        frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
+                        adj_gm: wp.array3d(dtype=T), adj_gmv: wp.array3d(dtype=vec3),
+                        adj_gpm: wp.array3d(dtype=T), adj_gpmv: wp.array3d(dtype=vec3),
+                        adj_x: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), adj_A: wp.array(dtype=mat33),
+                        adj_pin_pos: wp.array2d(dtype=vec3)):
+        # hand-written adjoint of p2g_scatter (a gather of the grid adjoints): accumulates into
+        # adj_x, adj_v, adj_A and adj_pin_pos
+        p = wp.tid()
+        m = mass[p]
+        dx = T(1.0) / inv_dx
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        mv = m * v[p]
+        Ap = A[p]
+        AT = wp.transpose(Ap)
+        pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        g_v = vec3()
+        g_A = mat33()
+        g_fx = vec3()
+        g_pv = vec3()
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    wi = bw(i, fx[0])
+                    wj = bw(j, fx[1])
+                    wk = bw(k, fx[2])
+                    w = wi * wj * wk
+                    gw = vec3(dbw(i, fx[0]) * wj * wk, wi * dbw(j, fx[1]) * wk, wi * wj * dbw(k, fx[2]))
+                    d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    a = adj_gmv[base[0] + i, base[1] + j, base[2] + k]
+                    dLdw = wp.dot(a, mv + Ap * d) + adj_gm[base[0] + i, base[1] + j, base[2] + k] * m
+                    g_v = g_v + (w * m) * a
+                    g_A = g_A + w * wp.outer(a, d)
+                    g_fx = g_fx - (dx * w) * (AT * a)
+                    if pinned != 0:
+                        e = adj_gpmv[base[0] + i, base[1] + j, base[2] + k]
+                        dLdw = dLdw + m * (adj_gpm[base[0] + i, base[1] + j, base[2] + k] + wp.dot(e, pv))
+                        g_pv = g_pv + (w * m) * e
+                    g_fx = g_fx + dLdw * gw
+        adj_v[p] = adj_v[p] + g_v
+        adj_A[p] = adj_A[p] + g_A
+        adj_x[p] = adj_x[p] + inv_dx * g_fx
+        if pinned != 0:
+            cid = pin_id[p]
+            wp.atomic_add(adj_pin_pos, cid, frame + 1, fps * g_pv)
+            wp.atomic_sub(adj_pin_pos, cid, frame, fps * g_pv)
 
     @wp.func
     def apply_collider(vel: vec3, xn: vec3, c: int, frame: int, alpha: T, fps: T, band: T,
@@ -440,14 +538,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             gv[t] = vel
 
     @wp.kernel(module=module)
-    def g2p(x: wp.array(dtype=vec3), C: wp.array(dtype=mat33), F: wp.array(dtype=mat33),
-            Fv: wp.array(dtype=mat33),
-            E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
-            pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-            frame: int, fps: T, lo: vec3, inv_dx: T, dt: T, res: wp.vec3i,
-            gv: wp.array3d(dtype=vec3),
-            x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
-            F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
+    def g2p_gather(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
+                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33)):
+        # APIC: v = sum w g, C = (4 / dx^2) sum w g (x_i - x_p)^T
         p = wp.tid()
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
@@ -458,11 +551,51 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             for j in range(3):
                 for k in range(3):
                     w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
-                    dpos = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
+                    e = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
                     g = gv[base[0] + i, base[1] + j, base[2] + k]
                     nv = nv + w * g
-                    B = B + w * wp.outer(g, dpos)
-        nC = (T(4.0) * inv_dx) * B
+                    B = B + w * wp.outer(g, e)
+        vg[p] = nv
+        Cg[p] = (T(4.0) * inv_dx) * B
+
+    @wp.kernel(module=module)
+    def g2p_gather_adj(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
+                       adj_vg: wp.array(dtype=vec3), adj_Cg: wp.array(dtype=mat33),
+                       adj_x: wp.array(dtype=vec3), adj_gv: wp.array3d(dtype=vec3)):
+        # hand-written adjoint of g2p_gather: scatters into adj_gv, accumulates into adj_x
+        p = wp.tid()
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        a = adj_vg[p]
+        Cb = (T(4.0) * inv_dx) * adj_Cg[p]
+        CbT = wp.transpose(Cb)
+        g_fx = vec3()
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    wi = bw(i, fx[0])
+                    wj = bw(j, fx[1])
+                    wk = bw(k, fx[2])
+                    w = wi * wj * wk
+                    gw = vec3(dbw(i, fx[0]) * wj * wk, wi * dbw(j, fx[1]) * wk, wi * wj * dbw(k, fx[2]))
+                    e = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
+                    g = gv[base[0] + i, base[1] + j, base[2] + k]
+                    Ce = Cb * e
+                    wp.atomic_add(adj_gv, base[0] + i, base[1] + j, base[2] + k, w * (a + Ce))
+                    g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
+        adj_x[p] = adj_x[p] + inv_dx * g_fx
+
+    @wp.kernel(module=module)
+    def g2p_update(x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
+                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33),
+                   E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
+                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                   frame: int, fps: T, dt: T,
+                   x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
+                   F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
+        p = wp.tid()
+        nC = Cg[p]
         I = wp.identity(n=3, dtype=T)
         Fn = (I + dt * nC) * F[p]
         if (flags & 2) != 0:
@@ -475,10 +608,10 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if (flags & 8) != 0:
             a = wp.exp(-dt / eff[5])
             Fvn = dev_scale((I + dt * nC) * Fvn, a)
-        cid = pin_id[p]
-        if cid >= 0:
-            if pin_active[cid, frame] != 0:
-                nv = (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
+        nv = vg[p]
+        pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        if pinned != 0:
+            nv = pv
         v1[p] = nv
         C1[p] = nC
         F1[p] = Fn
@@ -540,6 +673,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     return SimpleNamespace(
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
-        p2g=p2g, grid_update=grid_update, g2p=g2p, check=check,
+        p2g_stress=p2g_stress, p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj,
+        grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
+        check=check,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
     )

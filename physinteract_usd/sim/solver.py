@@ -1,8 +1,11 @@
 """MPMSolver: one MLS-MPM substep (forward) and its adjoint (reverse), plus the per-frame check.
 
-The forward substep is p2g -> grid_update -> g2p (kernels.py). The adjoint of a substep first
-recomputes that substep's grid from the stored particle state (so no grid is kept per substep),
-then launches the adjoints of g2p, grid_update and p2g in reverse order. Grid arrays are zeroed
+The forward substep is p2g_stress -> p2g_scatter -> grid_update -> g2p_gather -> g2p_update
+(kernels.py). The adjoint of a substep first recomputes that substep's grid from the stored particle
+state (so no grid is kept per substep), then runs the reverse kernels in reverse order: Warp's
+generated adjoints for the per-particle / per-node physics (stress, update, grid update) and
+hand-written adjoints for the two transfers (p2g_scatter_adj, g2p_gather_adj), which are gathers
+of the grid adjoints and much cheaper than the generated ones. Grid arrays are zeroed
 with ``array.zero_()`` and reused: nothing is allocated per substep.
 """
 
@@ -93,6 +96,10 @@ class MPMSolver:
         self.gpm = wp.zeros(self.res, dtype=K.T, device=d)
         self.gpmv = wp.zeros(self.res, dtype=K.vec3, device=d)
         self.gv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        P = model.n_particles
+        self.A = wp.zeros(P, dtype=K.mat33, device=d)     # affine matrices (stress + APIC)
+        self.vg = wp.zeros(P, dtype=K.vec3, device=d)     # gathered grid velocity
+        self.Cg = wp.zeros(P, dtype=K.mat33, device=d)    # gathered velocity gradient
         n_nodes = int(np.prod(self.res))
         self.chunk = 64 if wp.get_device(d).is_cpu else 1
         self.n_nodes = n_nodes
@@ -102,21 +109,24 @@ class MPMSolver:
         self._adj_flat = None
 
     # ------------------------------------------------------------------ argument lists
-    def _p2g_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
-        return [s.x, s.v, s.C, s.F, s.Fv, self.dev["mass"], self.dev["volume"], p.E, p.nu, p.eff,
-                self.flags, self.material, c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
-                self.inv_dx, self.dt, self.res3]
+    def _stress_args(self, s: SimState, p: SimParams):
+        return [s.F, s.Fv, s.C, self.dev["mass"], self.dev["volume"], p.E, p.nu, p.eff, self.flags, self.material,
+                self.inv_dx, self.dt]
+
+    def _scatter_args(self, s: SimState, frame: int, c: ControlArrays):
+        return [s.x, s.v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
+                self.inv_dx, self.res3]
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
         f = self._flat
         return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], p.eff, self.flags, self.gravity, self.dt, self.lo,
-                self.dx, self.band, self.pin_gain, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom, c.col_radius,
-                c.col_mu, frame, alpha, self.fps, self.res3, self.chunk]
+                self.dx, self.band, self.pin_gain, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
+                c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.chunk]
 
-    def _g2p_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
-        return [s.x, s.C, s.F, s.Fv, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos, frame,
-                self.fps, self.lo, self.inv_dx, self.dt, self.res3, self.gv]
+    def _update_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
+        return [s.x, s.F, s.Fv, self.vg, self.Cg, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos,
+                frame, self.fps, self.dt]
 
     @staticmethod
     def _outs(s: SimState):
@@ -124,67 +134,85 @@ class MPMSolver:
 
     # ------------------------------------------------------------------ forward
     def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None):
-        """p2g + grid update of substep ``substep`` of frame ``frame`` (fills self.gv)."""
+        """Stress, p2g and the grid update of substep ``substep`` of frame ``frame`` (fills self.gv),
+        then the gather of the grid velocity and its gradient at the particles (self.vg, self.Cg)."""
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
+        P = s.x.shape[0]
         self.gm.zero_()
         self.gmv.zero_()
         self.gpm.zero_()
         self.gpmv.zero_()
-        wp.launch(K.p2g, s.x.shape[0], self._p2g_args(s, frame, p, c), [self.gm, self.gmv, self.gpm, self.gpmv],
+        wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
+        wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c), [self.gm, self.gmv, self.gpm, self.gpmv],
                   device=d, record_tape=False)
         wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False)
+        wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg], device=d,
+                  record_tape=False)
 
     def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None):
         """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
         p = params or self.params
         c = ctrl or self.ctrl
         self.grid(s_in, frame, substep, p, c)
-        wp.launch(self.K.g2p, s_in.x.shape[0], self._g2p_args(s_in, frame, p, c), self._outs(s_out),
+        wp.launch(self.K.g2p_update, s_in.x.shape[0], self._update_args(s_in, frame, p, c), self._outs(s_out),
                   device=self.device, record_tape=False)
 
     # ------------------------------------------------------------------ adjoint
-    def _alloc_adj_grid(self):
+    def _alloc_adj(self):
         if self._adj_grid is None:
             K, d = self.K, self.device
+            P = self.model.n_particles
             self._adj_grid = dict(
                 gm=wp.zeros(self.res, dtype=K.T, device=d), gmv=wp.zeros(self.res, dtype=K.vec3, device=d),
                 gpm=wp.zeros(self.res, dtype=K.T, device=d), gpmv=wp.zeros(self.res, dtype=K.vec3, device=d),
                 gv=wp.zeros(self.res, dtype=K.vec3, device=d))
             self._adj_flat = {k: a.flatten() for k, a in self._adj_grid.items()}
+            self._adj_part = dict(A=wp.zeros(P, dtype=K.mat33, device=d), vg=wp.zeros(P, dtype=K.vec3, device=d),
+                                  Cg=wp.zeros(P, dtype=K.mat33, device=d))
         return self._adj_grid
 
     def step_adjoint(self, s_in: SimState, s_out: SimState, adj_in: SimState, adj_out: SimState,
                      frame: int, substep: int, adj_params: SimParams, adj_ctrl: ControlAdjoint,
                      params=None, ctrl=None):
         """Reverse one substep: given adj_out (dL/d s_out), ACCUMULATE dL/d s_in into adj_in and the
-        parameter / trajectory gradients into adj_params / adj_ctrl. s_out must hold step(s_in)."""
+        parameter / trajectory gradients into adj_params / adj_ctrl. s_out is only written (it may
+        hold anything). The substep's grid is recomputed from s_in first."""
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
         P = s_in.x.shape[0]
-        ag = self._alloc_adj_grid()
+        ag = self._alloc_adj()
+        af = self._adj_flat
+        ap = self._adj_part
         self.grid(s_in, frame, substep, p, c)
         for a in ag.values():
             a.zero_()
-        # g2p
-        adj_g2p = [adj_in.x, adj_in.C, adj_in.F, adj_in.Fv, adj_params.E, adj_params.nu, adj_params.eff, 0,
-                   None, None, adj_ctrl.pin_pos, 0, 0.0, None, 0.0, 0.0, None, ag["gv"]]
-        wp.launch(K.g2p, P, self._g2p_args(s_in, frame, p, c), self._outs(s_out), adj_g2p, self._outs(adj_out),
-                  adjoint=True, device=d, record_tape=False)
-        # grid update
-        af = self._adj_flat
+        for a in ap.values():
+            a.zero_()
+        # particle update (Warp autodiff): -> adj x, F, Fv, vg, Cg, E, nu, effects, pins
+        adj_upd = [adj_in.x, adj_in.F, adj_in.Fv, ap["vg"], ap["Cg"], adj_params.E, adj_params.nu, adj_params.eff, 0,
+                   None, None, adj_ctrl.pin_pos, 0, 0.0, 0.0]
+        wp.launch(K.g2p_update, P, self._update_args(s_in, frame, p, c), self._outs(s_out), adj_upd,
+                  self._outs(adj_out), adjoint=True, device=d, record_tape=False)
+        # gather (hand-written adjoint) -> adj x, adj grid velocity
+        wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
+                  [adj_in.x, ag["gv"]], device=d, record_tape=False)
+        # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, 0]
-        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]], adj_grid,
-                  [af["gv"]], adjoint=True, device=d, record_tape=False)
-        # p2g
-        adj_p2g = [adj_in.x, adj_in.v, adj_in.C, adj_in.F, adj_in.Fv, None, None, adj_params.E, adj_params.nu,
-                   adj_params.eff, 0, 0, None, None, adj_ctrl.pin_pos, 0, 0.0, None, 0.0, 0.0, None]
-        wp.launch(K.p2g, P, self._p2g_args(s_in, frame, p, c), [self.gm, self.gmv, self.gpm, self.gpmv],
-                  adj_p2g, [ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"]], adjoint=True, device=d, record_tape=False)
+        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
+                  adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
+        # scatter (hand-written adjoint) -> adj x, v, A, pins
+        wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
+                  ag["gpmv"]], [adj_in.x, adj_in.v, ap["A"], adj_ctrl.pin_pos], device=d, record_tape=False)
+        # stress (Warp autodiff) -> adj F, Fv, C, E, nu, effects
+        adj_st = [adj_in.F, adj_in.Fv, adj_in.C, None, None, adj_params.E, adj_params.nu, adj_params.eff, 0, 0,
+                  0.0, 0.0]
+        wp.launch(K.p2g_stress, P, self._stress_args(s_in, p), [self.A], adj_st, [ap["A"]], adjoint=True, device=d,
+                  record_tape=False)
 
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
