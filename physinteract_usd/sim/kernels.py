@@ -376,7 +376,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 return 1, (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
         return 0, vec3()
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def p2g_scatter(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                     mass: wp.array(dtype=T),
                     pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
@@ -403,7 +403,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def p2g_scatter_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                         mass: wp.array(dtype=T),
                         pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
@@ -537,7 +537,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                                     frame, alpha, fps)
             gv[t] = vel
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def g2p_gather(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
                    vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33)):
         # APIC: v = sum w g, C = (4 / dx^2) sum w g (x_i - x_p)^T
@@ -558,7 +558,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         vg[p] = nv
         Cg[p] = (T(4.0) * inv_dx) * B
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def g2p_gather_adj(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
                        adj_vg: wp.array(dtype=vec3), adj_Cg: wp.array(dtype=mat33),
                        adj_x: wp.array(dtype=vec3), adj_gv: wp.array3d(dtype=vec3)):
@@ -618,7 +618,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         Fv1[p] = Fvn
         x1[p] = x[p] + dt * nv
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def check(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), F: wp.array(dtype=mat33),
               lo: vec3, inv_dx: T, res: wp.vec3i, row: int, status: wp.array2d(dtype=int)):
         p = wp.tid()
@@ -637,17 +637,17 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 wp.atomic_add(status, row, 1, 1)
                 wp.atomic_max(status, row, 3, p)
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def add_vec3(a: wp.array(dtype=vec3), b: wp.array(dtype=vec3)):
         p = wp.tid()
         a[p] = a[p] + b[p]
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def add_mat33(a: wp.array(dtype=mat33), b: wp.array(dtype=mat33)):
         p = wp.tid()
         a[p] = a[p] + b[p]
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def set_rest(x0: wp.array(dtype=vec3), v0: wp.array(dtype=vec3), x: wp.array(dtype=vec3),
                  v: wp.array(dtype=vec3), C: wp.array(dtype=mat33), F: wp.array(dtype=mat33),
                  Fv: wp.array(dtype=mat33)):
