@@ -34,7 +34,7 @@ PARTICLES = Sdf.Path("/World/Object/SimParticles")
 MESH = Sdf.Path("/World/Object/Mesh")
 CAMERA = Sdf.Path("/World/Camera")
 SCENE = Sdf.Path("/World/PhysInteract")
-HORIZONTAL_APERTURE = 36.0  # film back width in mm (any value works: the ratio to focalLength matters)
+HORIZONTAL_APERTURE = 0.36  # film back width: 36 mm in tenths of a scene unit (metres); only the ratio to focalLength matters for projection
 
 PRIMVAR_E = "primvars:physinteract:youngsModulus"
 PRIMVAR_NU = "primvars:physinteract:poissonRatio"

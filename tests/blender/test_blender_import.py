@@ -129,10 +129,6 @@ def test_time_sampled_points_import_as_animation(stages, empty_scene):
         assert "physinteract:youngsModulus" in ev.data.attributes
 
 
-@pytest.mark.xfail(strict=True, reason="stage.py authors the film back as 36 (meant as mm), but USD "
-                   "camera lens/filmback values are tenths of a scene unit: on a metre stage Blender "
-                   "reads a 3600 mm sensor and a ~4280 mm lens (same field of view). Authoring "
-                   "HORIZONTAL_APERTURE = 0.36 fixes it; then drop this marker.")
 def test_camera_film_back_is_36_mm_in_blender(stages, empty_scene):
     c = usd_import(stages["gaussians"].stage)["Camera"].data
     assert c.sensor_width == pytest.approx(36.0, rel=1e-4)
