@@ -14,13 +14,14 @@ from .usd.stage import SimSettings, read_stage, write_init_stage
 DEFAULT_GRID = 32
 DEFAULT_PADDING = 0.5
 DEFAULT_E_RANGE = (1e3, 1e6)
-MAX_POISSON = 0.45  # the fit keeps nu in (0, MAX_POISSON]: the CFL bound is taken there
+MAX_POISSON = 0.45  # default: the fit keeps nu in (0, max_poisson]: the CFL bound is taken there
 
 
 def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID,
                         padding: float = DEFAULT_PADDING, youngs_range=DEFAULT_E_RANGE,
                         poisson: float = 0.3, density: float = 1000.0,
-                        constitutive_model: str = "fixedCorotated") -> SimSettings:
+                        constitutive_model: str = "fixedCorotated", max_poisson: float = MAX_POISSON,
+                        spacing: float | None = None) -> SimSettings:
     """Domain = the object's bounding box padded by `padding` x its extent on every side; `grid`
     cells along the longest side; particle spacing dx / 2; substeps from the CFL bound at the
     largest E allowed."""
@@ -28,8 +29,10 @@ def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID
         raise InputError("--grid", "must be at least 8 cells")
     if not (0 < youngs_range[0] < youngs_range[1]):
         raise InputError("--youngs-range", "needs 0 < min < max")
-    if not (0.0 < poisson < 0.5):
-        raise InputError("--poisson", "must lie in (0, 0.5)")
+    if not (0.0 < max_poisson < 0.5):
+        raise InputError("--max-poisson", "must lie in (0, 0.5)")
+    if not (0.0 < poisson <= max_poisson):
+        raise InputError("--poisson", f"must lie in (0, {max_poisson:g}] (--max-poisson)")
     lo, hi = points.min(0), points.max(0)
     extent = float(np.max(hi - lo))
     if not extent > 0:
@@ -41,29 +44,27 @@ def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID
     centre = 0.5 * (dlo + dhi)
     dlo = centre - 0.5 * res * dx
     dhi = dlo + res * dx
-    substeps = substeps_per_frame(fps, dx, youngs_range[1], MAX_POISSON, density)
+    substeps = substeps_per_frame(fps, dx, youngs_range[1], max_poisson, density)
+    if spacing is not None and not (0 < spacing):
+        raise InputError("--spacing", "must be positive")
     return SimSettings(domain_min=dlo, domain_max=dhi, grid_resolution=tuple(int(r) for r in res),
-                       cell_size=dx, particle_spacing=dx / 2.0, substeps=substeps,
+                       cell_size=dx, particle_spacing=float(spacing or dx / 2.0), substeps=substeps,
                        youngs_min=float(youngs_range[0]), youngs_max=float(youngs_range[1]),
-                       poisson_default=float(poisson), density=float(density),
+                       poisson_default=float(poisson), poisson_max=float(max_poisson), density=float(density),
                        constitutive_model=constitutive_model)
 
 
-def substeps_per_frame(fps: float, dx: float, youngs_max: float, poisson_max: float, density: float,
-                       cfl: float = 0.4) -> int:
-    """Substeps per video frame so that dt <= cfl * dx / c, c the P-wave speed at the stiffest
-    material allowed: c = sqrt((lambda + 2 mu) / rho)."""
-    mu = youngs_max / (2.0 * (1.0 + poisson_max))
-    lam = youngs_max * poisson_max / ((1.0 + poisson_max) * (1.0 - 2.0 * poisson_max))
-    c = np.sqrt((lam + 2.0 * mu) / density)
-    dt_max = cfl * dx / c
-    return max(1, int(np.ceil(1.0 / (fps * dt_max))))
+def substeps_per_frame(fps: float, dx: float, youngs_max: float, poisson_max: float, density: float) -> int:
+    """Substeps per video frame from the CFL bound at the stiffest material allowed."""
+    from .sim.cfl import substeps_per_frame as cfl_substeps
+
+    return cfl_substeps(fps, dx, youngs_max, poisson_max, density)
 
 
 def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, masks=None,
          fps=None, masks_amodal=False, grid=DEFAULT_GRID, padding=DEFAULT_PADDING,
          youngs_range=DEFAULT_E_RANGE, poisson=0.3, density=1000.0,
-         constitutive_model="fixedCorotated", force=False):
+         constitutive_model="fixedCorotated", max_poisson=MAX_POISSON, spacing=None, force=False):
     """Build a stage from a capture. Returns the LayerPaths written."""
     stage_path = Path(stage_path)
     if stage_path.exists() and not force:
@@ -74,7 +75,7 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
     g = cap.object.gaussians
     settings = choose_sim_settings(g.means if cap.object.mesh is None else cap.object.mesh.vertices,
                                    cap.fps, grid, padding, youngs_range, poisson, density,
-                                   constitutive_model)
+                                   constitutive_model, max_poisson, spacing)
     try:
         if cap.object.mesh is not None:
             parts = fill_from_mesh(cap.object.mesh, settings.particle_spacing, g, anchor=settings.domain_min)

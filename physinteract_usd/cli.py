@@ -55,11 +55,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--youngs-range", type=_e_range, default=(1e3, 1e6), metavar="MIN,MAX",
                    help="Young's modulus range in Pa the fit may use (default 1e3,1e6); MAX sets the substep")
     s.add_argument("--poisson", type=float, default=0.3, help="starting Poisson ratio (default 0.3)")
+    s.add_argument("--max-poisson", type=float, default=0.45,
+                   help="largest Poisson ratio the fit may use (default 0.45); it sets the substep with E max")
+    s.add_argument("--spacing", type=_positive_float, help="particle spacing in metres (default: half a grid cell)")
     s.add_argument("--density", type=_positive_float, default=1000.0, help="density in kg/m^3 (default 1000)")
     s.add_argument("--model", choices=["fixedCorotated", "neoHookean"], default="fixedCorotated",
                    help="constitutive model (default fixedCorotated)")
     s.add_argument("--force", action="store_true",
                    help="replace the generated layers of an existing stage (your root layer is kept)")
+
+    s = sub.add_parser("synth", help="write a synthetic capture folder with ground truth (gt/)")
+    s.add_argument("name", nargs="?", help="scene name (see --list)")
+    s.add_argument("out_dir", nargs="?", help="capture folder to write")
+    s.add_argument("--list", action="store_true", help="list the scenes")
+    s.add_argument("--size", choices=["small", "paper"], default="small",
+                   help="small: CPU-sized (default); paper: the paper's scale")
+    s.add_argument("--frames", type=int, help="number of frames (default: the size's)")
+    s.add_argument("--hidden", choices=["damping", "plasticity", "ground", "viscoelasticity"],
+                   help="switch on an effect the model will not be told about")
+    s.add_argument("--strength", type=float, default=1.0,
+                   help="hidden effect strength, in multiples of the 0.5 px noise level (default 1)")
+    s.add_argument("--noise", type=float, help="sensor noise sigma (default 0; 0.015 for real stand-ins)")
+    s.add_argument("--blur", type=int, help="motion-blur samples per frame (default 1; 3 for real stand-ins)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--device", default="cpu", help="cpu or cuda")
+    s.add_argument("--force", action="store_true", help="replace an existing synth folder")
 
     s = sub.add_parser("info", help="summarise a stage")
     s.add_argument("stage")
@@ -75,7 +95,7 @@ def _cmd_init(a) -> int:
     lp = api.init(a.stage, a.capture, object=a.object, video=a.video, camera=a.camera, masks=a.masks,
                   fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, padding=a.padding,
                   youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
-                  constitutive_model=a.model, force=a.force)
+                  constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force)
     print(f"wrote {lp.root} (root), {lp.init.name}, {lp.fit.name}")
     print(api.format_info(api.info(lp.root)))
     return 0
@@ -89,7 +109,21 @@ def _cmd_info(a) -> int:
     return 0
 
 
-COMMANDS = {"init": _cmd_init, "info": _cmd_info}
+def _cmd_synth(a) -> int:
+    from .synth import generate, list_scenes
+
+    if a.list:
+        for name, paper, kind, desc in list_scenes():
+            print(f"{name:16s} {kind:19s} {paper}: {desc}")
+        return 0
+    if not a.name or not a.out_dir:
+        raise InputError("synth", "give NAME OUT_DIR (or --list)")
+    generate(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
+             noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force)
+    return 0
+
+
+COMMANDS = {"init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth}
 
 
 def main(argv=None) -> int:

@@ -212,6 +212,7 @@ class SimSettings:
     youngs_min: float = 1e3
     youngs_max: float = 1e6
     poisson_default: float = 0.3
+    poisson_max: float = 0.45
     density: float = 1000.0
     gravity: tuple = (0.0, -9.81, 0.0)
     constitutive_model: str = "fixedCorotated"
@@ -221,7 +222,8 @@ class SimSettings:
                 "grid_resolution": list(map(int, self.grid_resolution)), "cell_size": self.cell_size,
                 "particle_spacing": self.particle_spacing, "substeps": self.substeps,
                 "youngs_min": self.youngs_min, "youngs_max": self.youngs_max,
-                "poisson_default": self.poisson_default, "density": self.density,
+                "poisson_default": self.poisson_default, "poisson_max": self.poisson_max,
+                "density": self.density,
                 "gravity": list(self.gravity), "constitutive_model": self.constitutive_model}
 
 
@@ -358,6 +360,7 @@ def write_init_stage(path, capture, particles, settings: SimSettings, *, force: 
     sa("youngsModulusMin", float(settings.youngs_min))
     sa("youngsModulusMax", float(settings.youngs_max))
     sa("poissonRatioDefault", float(settings.poisson_default))
+    sa("poissonRatioMax", float(settings.poisson_max))
     sa("gravity", Gf.Vec3f(*settings.gravity))
     from ..frames import VideoFile
 
@@ -460,7 +463,7 @@ def read_stage(path) -> SceneData:
         grid_resolution=tuple(int(x) for x in ga("gridResolution")), cell_size=float(ga("cellSize")),
         particle_spacing=float(ga("particleSpacing")), substeps=int(ga("substeps")),
         youngs_min=float(ga("youngsModulusMin")), youngs_max=float(ga("youngsModulusMax")),
-        poisson_default=float(ga("poissonRatioDefault")),
+        poisson_default=float(ga("poissonRatioDefault")), poisson_max=float(ga("poissonRatioMax")),
         density=float(pprim.GetAttribute("physinteract:density").Get()),
         gravity=tuple(float(x) for x in ga("gravity")),
         constitutive_model=str(pprim.GetAttribute("physinteract:constitutiveModel").Get()))
