@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ from .. import __version__
 from ..camera import Camera
 from ..errors import InputError
 from ..gaussians import Gaussians
+from ..scene import ContactSet, SceneData, SimSettings, Trajectory
 from . import EFFECT_APIS
 
 GENERATOR = f"physinteract-usd {__version__}"
@@ -196,92 +197,6 @@ def author_mesh(stage: Usd.Stage, mesh, path: Sdf.Path = MESH) -> UsdGeom.Mesh:
     m.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     m.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*mesh.bounds[0]), Gf.Vec3f(*mesh.bounds[1])]))
     return m
-
-
-# ------------------------------------------------------------------------------ scene settings
-@dataclass
-class SimSettings:
-    """Simulation domain and discretisation, chosen at init and stored on PhysInteractScene."""
-
-    domain_min: np.ndarray
-    domain_max: np.ndarray
-    grid_resolution: tuple
-    cell_size: float
-    particle_spacing: float
-    substeps: int
-    youngs_min: float = 1e3
-    youngs_max: float = 1e6
-    poisson_default: float = 0.3
-    poisson_max: float = 0.45
-    density: float = 1000.0
-    gravity: tuple = (0.0, -9.81, 0.0)
-    constitutive_model: str = "fixedCorotated"
-
-    def to_dict(self) -> dict:
-        return {"domain_min": list(map(float, self.domain_min)), "domain_max": list(map(float, self.domain_max)),
-                "grid_resolution": list(map(int, self.grid_resolution)), "cell_size": self.cell_size,
-                "particle_spacing": self.particle_spacing, "substeps": self.substeps,
-                "youngs_min": self.youngs_min, "youngs_max": self.youngs_max,
-                "poisson_default": self.poisson_default, "poisson_max": self.poisson_max,
-                "density": self.density,
-                "gravity": list(self.gravity), "constitutive_model": self.constitutive_model}
-
-
-@dataclass
-class ContactSet:
-    name: str
-    particle_indices: np.ndarray
-    contact_type: str = "pointAdherent"
-    grasp_time: float = 0.0
-    release_time: float = 1e9
-    source: str = "user"
-    collider_radius: float = 0.0
-    contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-@dataclass
-class Trajectory:
-    name: str
-    contact_set: str              # name of the ContactSet it moves
-    frames: np.ndarray            # (T,) frame indices
-    positions: np.ndarray         # (T, 3)
-    velocities: np.ndarray | None = None
-    stage: str = "initial"
-
-
-@dataclass
-class SceneData:
-    """Everything a stage says, as plain Python objects (what the core modules consume)."""
-
-    path: Path
-    fps: float
-    start_frame: int
-    end_frame: int
-    image_size: tuple
-    camera: Camera
-    gaussians: Gaussians
-    particles_positions: np.ndarray
-    particles_volumes: np.ndarray
-    particles_surface: np.ndarray
-    binding: np.ndarray
-    youngs_modulus: np.ndarray
-    poisson_ratio: np.ndarray
-    confidence: np.ndarray | None
-    settings: SimSettings
-    frame_assets: list
-    video_asset: str | None
-    mask_assets: list
-    masks_amodal: bool
-    effects: dict
-    contacts: list
-    trajectories: list
-    reports: list
-    generator: str
-    object_kind: str
-
-    @property
-    def n_frames(self) -> int:
-        return self.end_frame - self.start_frame + 1
 
 
 # --------------------------------------------------------------------------------- write: init
