@@ -17,18 +17,19 @@ def block(n=(4, 4, 4), spacing=0.025, corner=(0.3, 0.12, 0.3)) -> np.ndarray:
     return idx * spacing + np.asarray(corner) + 0.5 * spacing
 
 
-def directional_check(loss_fn, args: list[torch.Tensor], scales: list[float], eps: float = 1e-6, seed: int = 0):
+def directional_check(loss_fn, args: list[torch.Tensor], scales: list[float], eps=1e-6, seed: int = 0):
     """Directional derivatives of loss_fn(*args) along a random direction per argument: (analytic, central FD).
 
     args are float64 leaf tensors; scales set each direction's magnitude (about the argument's size),
-    eps the relative FD step along it.
+    eps the FD step along it (a float, or one per argument).
     """
+    eps_list = list(eps) if isinstance(eps, (list, tuple)) else [eps] * len(args)
     gen = torch.Generator().manual_seed(seed)
     args = [a.detach().clone().requires_grad_(True) for a in args]
     L = loss_fn(*args)
     L.backward()
     out = []
-    for i, (a, s) in enumerate(zip(args, scales)):
+    for i, (a, s, eps) in enumerate(zip(args, scales, eps_list)):
         d = torch.randn(a.shape, generator=gen, dtype=a.dtype) * s
         an = float((a.grad * d).sum())
         with torch.no_grad():

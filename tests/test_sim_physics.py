@@ -334,3 +334,30 @@ def test_float32_matches_float64():
         xs[dt] = MPMSolver(m, ctrl).simulate(T)["x"]
     disp = np.abs(xs["float64"] - pts).max()
     assert np.abs(xs["float32"] - xs["float64"]).max() < 1e-3 * disp
+
+
+@pytest.mark.slow
+def test_cantilever_tip_deflection_high_resolution():
+    """Slow (~3 min on 2 CPU cores): a cantilever (L/h = 10, 6 cells through the thickness, 18k
+    particles) clamped at one end sags under gravity (damped to rest) by the Timoshenko beam's tip
+    deflection, 3 rho g L^4 / (2 E h^2) (1 + 2 (1 + nu) h^2 / (3 kappa L^2)), within 5%.
+    (At 4 cells through the thickness the MPM beam is ~10% too soft: it converges with dx.)"""
+    L, h = 0.5, 0.05
+    dx = h / 6
+    sp = dx / 2
+    nl, nh, nclamp = int(round(L / sp)), int(round(h / sp)), 4
+    pts = block((nl + nclamp, nh, nh), sp, (0.1 - nclamp * sp, 0.3, 0.1))
+    nu = 0.3
+    E = 3 * RHO * G * L ** 4 / (2 * 0.02 * L * h ** 2)       # ~2% of L deflection
+    clamp = np.nonzero(pts[:, 0] < 0.1)[0]
+    grid = GridSpec.around(pts, dx, lower=(pts[:, 0].min() - 0.01, 0.25, 0.09), upper=(0.11 + L, 0.31 + h, 0.11 + h))
+    T = 3
+    m = SimModel.create(pts, sp ** 3, RHO, E, nu, grid=grid, fps=10, E_max=E, dtype="float32",
+                        effects={"damping": {"coefficient": 60.0}})
+    out = MPMSolver(m, Control([Contact("fixed", indices=clamp)], n_frames=T)).simulate(T)
+    tip = pts[:, 0] > pts[:, 0].max() - 1e-9
+    Lb = pts[tip, 0].mean() - 0.1
+    kappa = 5 / 6
+    expected = 3 * RHO * G * Lb ** 4 / (2 * E * h ** 2) * (1 + 2 * (1 + nu) * h ** 2 / (3 * kappa * Lb ** 2))
+    d = -(out["x"][-1][tip, 1] - pts[tip, 1]).mean()
+    assert d == pytest.approx(expected, rel=0.05)

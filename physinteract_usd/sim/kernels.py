@@ -1,26 +1,34 @@
 """Warp kernels of the MLS-MPM simulator, generic over float32 / float64.
 
-`get_kernels(dtype)` builds (once per dtype) a namespace of kernels in its own Warp module
-(``physinteract_sim_float32`` / ``physinteract_sim_float64``). One substep is three launches:
+`get_kernels(dtype)` builds (once per dtype) a namespace of kernels in one Warp module per dtype
+(``physinteract_sim_float32`` / ``physinteract_sim_float64``). One substep is five launches:
 
-    p2g(state_s)            -> grid mass / momentum (+ the mass and momentum of pinned particles)
-    grid_update(grid)       -> grid velocity (gravity, damping, pins, ground, moving colliders)
-    g2p(state_s, grid v)    -> state_{s+1} (APIC velocity and C, F, plasticity, Maxwell branch)
+    p2g_stress(state_s)           -> A = -dt V0 (4/dx^2) tau + m C per particle (tau: Kirchhoff stress)
+    p2g_scatter(state_s, A)       -> grid mass / momentum (+ mass and momentum of pinned particles)
+    grid_update(grid)             -> grid velocity (gravity, damping, pins, ground, moving colliders)
+    g2p_gather(state_s, grid v)   -> v, C at the particles (APIC)
+    g2p_update(state_s, v, C)     -> state_{s+1} (x, F, plasticity, Maxwell branch, pinned particles)
 
-Every kernel reads its inputs and writes separate outputs, so the reverse pass can launch the
-kernels' adjoints directly (`wp.launch(..., adjoint=True)`) after recomputing the grid of a substep
-from the stored particle state; nothing a later adjoint needs is overwritten in place.
+Every kernel reads its inputs and writes separate outputs, so the reverse pass can launch
+adjoints directly after recomputing the grid of a substep from the stored particle state. The
+per-particle / per-node physics (p2g_stress, grid_update, g2p_update) use Warp's generated adjoints
+(`wp.launch(..., adjoint=True)`); the two transfers have hand-written adjoints
+(p2g_scatter_adj, g2p_gather_adj: gathers / scatters of the grid adjoints) and are compiled
+without backward code.
 
-Functions of the singular values of F (the polar rotation, the Hencky-strain return mapping, the
-Maxwell branch's stress and relaxation) carry hand-written adjoints (`wp.func_grad`) built from the
-derivative of an isotropic matrix function G(F) = U diag(g(sigma)) V^T:
+Functions of F whose textbook derivative goes through the SVD carry hand-written adjoints
+(`wp.func_grad`), finite at repeated singular values (F = I at rest):
+- the polar rotation R(F): computed by Higham's scaled Newton iteration, adjoint
+  adj_F = R [y]x with (tr(S) I - S) y = axial(R^T adj_R - adj_R^T R), S = R^T F;
+- the Hencky-strain functions (plastic return mapping, Maxwell relaxation and stress), written as
+  isotropic matrix functions G(F) = U diag(g(sigma)) V^T, whose adjoint uses
 
     diag:      dG^_ii = sum_j dg_i/dsigma_j dF^_jj
     off-diag:  dG^_ij = (a + b)/2 dF^_ij + (a - b)/2 dF^_ji,
                a = (g_i - g_j)/(sigma_i - sigma_j),  b = (g_i + g_j)/(sigma_i + sigma_j)
 
-with a written in closed form (no 0/0 when singular values coincide, as they do at rest, F = I),
-instead of differentiating U and V, whose derivatives blow up there (1/(sigma_i^2 - sigma_j^2)).
+  with a in closed form (no 0/0 when singular values coincide) instead of the derivatives of U
+  and V, which blow up there (1/(sigma_i^2 - sigma_j^2)).
 """
 
 

@@ -8,10 +8,14 @@ Backward, frame by frame from the last: restore the frame's checkpoint, replay i
 storing the particle states (S+1 states of P particles; no grid is stored), then run the substeps'
 adjoints in reverse, each recomputing its grid from the stored particle state (`MPMSolver.
 step_adjoint`). The adjoint of the frame's first state carries into the previous frame. Memory:
-checkpoints (T+1 frames x P particles) + S replay states + one grid and its adjoint.
+checkpoints (T+1 frames x P particles) + S+1 replay states + one grid and its adjoint, whatever
+the number of substeps.
+
+Each frame's forward and backward is captured once into a graph (CUDA graph on a GPU, Warp's CPU
+graph on the CPU) and replayed on later calls, so the inner loop has no Python work.
 
 Torch entry points: `Rollout(model, control)(E, nu, effects=..., trajectories=...)` (keeps its
-buffers between calls: use it in a fit loop) and `simulate(model, control, ...)` (one-off).
+buffers and graphs between calls: use it in a fit loop) and `simulate(model, control, ...)`.
 """
 
 from __future__ import annotations
