@@ -170,3 +170,67 @@ def format_info(d: dict) -> str:
     else:
         lines.append("fits        none yet")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ fit
+def load_observations(sd):
+    """Frames and masks a stage refers to, as arrays (the fit's observations)."""
+    from .fit.problem import Observations
+    from .frames import ImageSequence, VideoFile, read_mask
+
+    if sd.frame_assets:
+        src = ImageSequence([Path(p) for p in sd.frame_assets])
+    elif sd.video_asset:
+        src = VideoFile(sd.video_asset)
+    else:
+        raise InputError(sd.path, "the stage names no frames and no video")
+    if len(src) < sd.n_frames:
+        raise InputError(src.path, f"{len(src)} frames but the stage expects {sd.n_frames}")
+    frames = np.stack([src.read(k) for k in range(sd.n_frames)]).astype(np.float32)
+    masks = None
+    if sd.mask_assets:
+        masks = np.stack([read_mask(p) for p in sd.mask_assets[: sd.n_frames]])
+    return Observations(frames=frames, masks=masks)
+
+
+def contacts_from_gt(sd, gt_dir):
+    """Contacts, supports and the initial trajectory from a synthetic capture's gt/ (the truth:
+    for experiments before extraction exists, `fit --contact-from DIR/gt`)."""
+    import json
+
+    from .fit.problem import ContactSpec
+
+    gt_dir = Path(gt_dir)
+    p = gt_dir / "gt.json"
+    if not p.exists():
+        raise InputError(p, "file not found (is this a synth capture's gt/ folder?)")
+    g = json.loads(p.read_text())
+    it = g["interaction"]
+    x0 = sd.particles_positions
+    traj = np.asarray(it["trajectory"], np.float64)
+    if len(traj) != sd.n_frames:
+        raise InputError(p, f"trajectory has {len(traj)} frames, the stage {sd.n_frames}")
+    contacts = []
+    cp = np.asarray(it["contact_point"])
+    if it["type"] == "pointAdherent":
+        d = np.linalg.norm(x0 - cp, axis=1)
+        idx = np.where(d < it["contact_radius"])[0]
+        if len(idx) < 3:
+            idx = np.argsort(d)[:3]
+        contacts.append(ContactSpec("hand", "pointAdherent", idx, it["grasp_frame"], it["release_frame"], traj))
+    elif it["type"] == "pointNonAdherent":
+        contacts.append(ContactSpec("finger", "pointNonAdherent", np.zeros(0, np.int64), it["grasp_frame"],
+                                    it.get("release_frame"), traj, radius=it["collider_radius"],
+                                    friction=it.get("friction", 0.5)))
+    else:
+        contacts.append(ContactSpec("palm", "surfaceNonAdherent", np.zeros(0, np.int64), it["grasp_frame"],
+                                    it.get("release_frame"), traj, normal=tuple(it["plane_normal"]),
+                                    friction=it.get("friction", 0.5)))
+    fixed = np.zeros(len(x0), bool)
+    for s in g["supports"]:
+        fixed |= np.linalg.norm(x0 - np.asarray(s["centre"]), axis=1) < s["radius"]
+    if contacts[0].type == "pointAdherent":
+        fixed[contacts[0].indices] = False
+    if fixed.any():
+        contacts.append(ContactSpec("support", "fixed", np.where(fixed)[0]))
+    return contacts

@@ -159,13 +159,14 @@ def _balloon_dog():
 
 
 def _balloon():
-    return Shape([Ellipsoid("balloon", (0, 0.02, 0), (0.1, 0.125, 0.1)),
-                  Ellipsoid("neck", (0, -0.11, 0), (0.022, 0.03, 0.022))])
+    """Hanging from its knot (the neck up)."""
+    return Shape([Ellipsoid("balloon", (0, -0.02, 0), (0.1, 0.125, 0.1)),
+                  Ellipsoid("neck", (0, 0.11, 0), (0.022, 0.03, 0.022))])
 
 
 def _balloon_E(p, part):
-    # thicker, stiffer rubber near the neck grading to a thin soft top: 6x
-    s = np.clip((p[:, 1] + 0.14) / 0.28, 0, 1)
+    # thicker, stiffer rubber near the neck grading to a thin soft bottom: 5x
+    s = np.clip((0.14 - p[:, 1]) / 0.28, 0, 1)
     return np.exp(np.log(STIFF) + s * (np.log(SOFT) - np.log(STIFF)))
 
 
@@ -310,11 +311,11 @@ _add(SceneSpec(
 
 _add(SceneSpec(
     name="balloon", paper_name="balloon", origin="synthetic", interaction="pointAdherent",
-    description="a balloon tied down at its neck; the hand grabs its side, pulls it over and lets go",
+    description="a balloon hanging from a string at its neck; the hand grabs its side, pulls it aside and lets go",
     shape=_balloon, youngs=_balloon_E, poisson={"balloon": 0.4, "neck": 0.4}, density=RHO,
     texture=lambda p, part: pattern_color(p, (0.15, 0.55, 0.9), (0.95, 0.95, 1.0), 0.025, "dots"),
-    contact_point=(0.099, 0.04, 0.0), contact_radius=0.035, path=_arc((0.07, 0.03, 0.02), (0.0, 0.02, 0.04)),
-    hand_dir=(1.0, 0.1, 0.5), supports=[Support((0.0, -0.14, 0.0), 0.03, "tie")],
+    contact_point=(0.099, -0.04, 0.0), contact_radius=0.035, path=_arc((0.07, 0.03, 0.02), (0.0, 0.02, 0.04)),
+    hand_dir=(1.0, 0.1, 0.5), supports=[Support((0.0, 0.14, 0.0), 0.03, "string")],
     camera_eye=(0.35, 0.2, 0.7), camera_target=(0.02, 0.0, 0.0), hidden_effects=("damping", "viscoelasticity")))
 
 _add(SceneSpec(

@@ -1,0 +1,343 @@
+"""Joint fit of the material field and the interaction trajectory.
+
+Schedule (each part measured on the synthetic suite, see docs/fit.md):
+1. a uniform E from a golden-section search on log E over the allowed range (forward passes only;
+   never looks at ground truth);
+2. coarse-to-fine: AdamW on the basis coefficients of log E (and nu at the coarsest levels) and,
+   jointly, on the trajectory (unless `joint=False`, the paper's "w/o JO"), with cosine-annealed
+   learning rates inside each level; the best iterate (lowest total loss) is kept;
+3. per-particle confidence from the Gauss-Newton diagonal (Hutchinson probes of J^T J);
+4. per-frame metrics of the kept iterate.
+Ctrl-C stops the loop and keeps the best iterate so far.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from .. import metrics as M
+from ..errors import SimulationError
+from .material import MaterialField, neighbour_pairs
+from .problem import FitProblem
+
+
+@dataclass
+class FitSettings:
+    iterations: int = 60
+    levels: tuple = (1, 6, 24)          # basis sizes, coarse to fine
+    level_share: tuple = (0.2, 0.35, 0.45)
+    lr_material: float = 0.05           # on the basis coefficients (logit space)
+    lr_poisson: float = 0.05
+    lr_trajectory: float = 0.001        # metres per step (Adam)
+    weight_decay: float = 0.0
+    joint: bool = True
+    search_evals: int = 7               # golden-section steps for the uniform E
+    confidence_probes: int = 4
+    seed: int = 0
+    fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
+
+
+@dataclass
+class FitResult:
+    youngs: np.ndarray                  # (P,)
+    poisson: np.ndarray                 # (P,)
+    confidence: np.ndarray              # (P,)
+    trajectories: dict                  # contact name -> (T, 3)
+    positions: np.ndarray               # (T, P, 3)
+    deformation: np.ndarray             # (T, P, 3, 3)
+    gaussian_means: np.ndarray          # (T, N, 3)
+    gaussian_covs: np.ndarray           # (T, N, 3, 3)
+    youngs_gaussian: np.ndarray         # (N,)
+    poisson_gaussian: np.ndarray
+    confidence_gaussian: np.ndarray
+    frame_metrics: list                 # per frame dicts
+    loss_history: list
+    final_loss: float
+    runtime_s: float
+    device: str
+    settings: dict
+    effects: dict = field(default_factory=dict)
+    interrupted: bool = False
+    uniform_start: float = 0.0
+
+
+def _seed(s):
+    torch.manual_seed(s)
+    np.random.seed(s)
+
+
+def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None) -> float:
+    """Golden-section search of the reconstruction loss over a uniform log E (no gradients)."""
+    lo, hi = mat.lo, mat.hi
+    g = (math.sqrt(5) - 1) / 2
+    cache = {}
+
+    def f(le):
+        E = torch.full((len(mat.points),), math.exp(le), dtype=mat.dtype, device=mat.device)
+        with torch.no_grad():
+            try:
+                v = float(prob.loss(E, mat.poisson().detach())["rec"])
+            except SimulationError:
+                v = float("inf")
+        cache[le] = v
+        if log:
+            log(f"uniform E {math.exp(le):.4g} Pa: loss {v:.5f}")
+        return v
+
+    a, b = lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo)
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(max(evals - 2, 0)):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(d)
+    best = min(cache, key=cache.get)
+    return math.exp(best)
+
+
+def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
+        start: dict | None = None, on_iteration=None) -> FitResult:
+    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from."""
+    s = settings or FitSettings()
+    _seed(s.seed)
+    t0 = time.perf_counter()
+    st = prob.scene.settings
+    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
+                        device=prob.tdev, seed=s.seed)
+    mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
+    trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
+    if start is not None:
+        mat.set_values(np.asarray(start["youngs"]), np.asarray(start["poisson"]))
+        for i, (slot, _) in enumerate(prob.traj_slots):
+            name = prob.contacts[_contact_of_slot(prob, slot)].name
+            if name in start.get("trajectories", {}):
+                trajs[i] = torch.as_tensor(start["trajectories"][name], dtype=prob.tdtype,
+                                           device=prob.tdev).requires_grad_(s.joint)
+        e_uniform = float(np.exp(np.mean(np.log(start["youngs"]))))
+    else:
+        e_uniform = golden_uniform_search(prob, mat, s.search_evals, log)
+        mat.set_uniform(e_uniform)
+    pairs = torch.as_tensor(neighbour_pairs(prob.x0, 1.6 * st.particle_spacing), device=prob.tdev)
+    history: list[float] = []
+    best = {"loss": float("inf")}
+    interrupted = False
+
+    def snapshot(loss_value):
+        best.update(loss=loss_value, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
+                    B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs])
+
+    budget = max(int(s.iterations), 0)
+    per_level = _split(budget, s.level_share, len(s.levels))
+    bar = None
+    if progress and budget:
+        from tqdm import tqdm
+
+        bar = tqdm(total=budget, desc="fit", unit="it", dynamic_ncols=True)
+    it = 0
+    try:
+        for li, (k, n_it) in enumerate(zip(s.levels, per_level)):
+            if li > 0:
+                if "theta" in best:  # refine from the best iterate so far
+                    mat.B, mat.nu_basis = best["B"], best["nu_basis"]
+                    with torch.no_grad():
+                        mat.theta = best["theta"].clone().requires_grad_(True)
+                        mat.w_nu = best["w_nu"].clone().requires_grad_(True)
+                    trajs = [t.clone().requires_grad_(s.joint) for t in best["trajs"]]
+                mat.refine(k, refine_nu=False)
+            fit_nu = li < s.fit_poisson_levels
+            groups = [{"params": [mat.theta], "lr": s.lr_material}]
+            if fit_nu:
+                groups.append({"params": [mat.w_nu], "lr": s.lr_poisson})
+            if s.joint and trajs:
+                groups.append({"params": trajs, "lr": s.lr_trajectory})
+            opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+            base = [g["lr"] for g in opt.param_groups]
+            for j in range(n_it):
+                cos = 0.5 * (1 + math.cos(math.pi * j / max(n_it, 1)))
+                for g, b0 in zip(opt.param_groups, base):
+                    g["lr"] = b0 * (0.1 + 0.9 * cos)
+                opt.zero_grad(set_to_none=True)
+                E = mat.youngs()
+                nu = mat.poisson()
+                try:
+                    out = prob.loss(E, nu, trajs if trajs else None)
+                except SimulationError as exc:
+                    if log:
+                        log(f"iteration {it}: {exc}; halving the step")
+                    for g in opt.param_groups:
+                        g["lr"] *= 0.5
+                    _restore(mat, trajs, best, s.joint)
+                    it += 1
+                    continue
+                reg = prob.weights.smooth * mat.smoothness(pairs) if len(pairs) and mat.K > 1 else 0.0
+                total = out["rec"] + out["reg_traj"] + reg
+                lv = float(total.detach())
+                history.append(lv)
+                if lv < best["loss"]:
+                    snapshot(lv)
+                total.backward()
+                for tr in trajs:  # the rest frame is observed: its position is not a parameter
+                    if tr.grad is not None:
+                        tr.grad[0] = 0
+                bad = [p for g in opt.param_groups for p in g["params"]
+                       if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
+                for p in bad:  # a rare non-finite gradient (a degenerate F): skip that parameter's step
+                    p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+                opt.step()
+                it += 1
+                if bar is not None:
+                    with torch.no_grad():
+                        bar.set_postfix(loss=f"{lv:.4f}", best=f"{best['loss']:.4f}", K=mat.K,
+                                        E=f"{float(E.median()):.3g}")
+                    bar.update(1)
+                if on_iteration is not None:
+                    on_iteration(it, lv, mat, trajs)
+    except KeyboardInterrupt:
+        interrupted = True
+        if log:
+            log("interrupted: keeping the best iterate so far")
+    finally:
+        if bar is not None:
+            bar.close()
+    if "theta" in best:
+        _restore(mat, trajs, best, s.joint)
+    E = mat.youngs().detach()
+    nu = mat.poisson().detach()
+    # final pass: renders, metrics, animation
+    with torch.no_grad():
+        out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None,
+                        frames=range(0, prob.T), keep_renders=True)
+    final_loss = float(out["rec"] + out["reg_traj"])
+    x, F = out["x"], out["F"]
+    metrics = frame_metrics(prob, out["renders"])
+    conf = np.ones(len(prob.x0))
+    if s.confidence_probes > 0 and not interrupted:
+        conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed)
+    means, covs = [], []
+    with torch.no_grad():
+        for k in range(prob.T):
+            m, c = prob.gaussians_at(x[k], F[k])
+            means.append(m.cpu().numpy())
+            covs.append(c.cpu().numpy())
+    w = prob.binding.weight.cpu().numpy()
+    idx = prob.binding.index.cpu().numpy()
+    En = E.cpu().numpy()
+    nun = nu.cpu().numpy()
+    names = [prob.contacts[_contact_of_slot(prob, slot)].name for slot, _ in prob.traj_slots]
+    return FitResult(
+        youngs=En, poisson=nun, confidence=conf,
+        trajectories={n: t.detach().cpu().numpy() for n, t in zip(names, trajs)},
+        positions=x.cpu().numpy(), deformation=F.cpu().numpy(), gaussian_means=np.stack(means),
+        gaussian_covs=np.stack(covs), youngs_gaussian=np.exp((w * np.log(En)[idx]).sum(1)),
+        poisson_gaussian=(w * nun[idx]).sum(1), confidence_gaussian=(w * conf[idx]).sum(1),
+        frame_metrics=metrics, loss_history=history, final_loss=final_loss,
+        runtime_s=time.perf_counter() - t0, device=_device_name(prob.device),
+        settings={**asdict(s), "levels": list(s.levels), "level_share": list(s.level_share)},
+        effects=dict(prob.effects), interrupted=interrupted, uniform_start=e_uniform)
+
+
+def _contact_of_slot(prob, slot):
+    """Index into prob.contacts of the sim contact `slot` (they are built in the same order)."""
+    return slot
+
+
+def _split(total, shares, n):
+    shares = np.asarray(shares[:n], float)
+    shares = shares / shares.sum()
+    counts = np.floor(shares * total).astype(int)
+    counts[-1] += total - counts.sum()
+    return counts.tolist()
+
+
+def _restore(mat, trajs, best, joint):
+    if "theta" not in best:
+        return
+    mat.B, mat.nu_basis = best["B"], best["nu_basis"]
+    mat.K = mat.B.shape[1]
+    with torch.no_grad():
+        mat.theta = best["theta"].clone().requires_grad_(True)
+        mat.w_nu = best["w_nu"].clone().requires_grad_(True)
+    for t, b in zip(trajs, best["trajs"]):
+        with torch.no_grad():
+            t.copy_(b)
+
+
+def _device_name(device: str) -> str:
+    if str(device).startswith("cuda") and torch.cuda.is_available():
+        return torch.cuda.get_device_name(torch.device(device))
+    import platform
+
+    return f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+
+
+def frame_metrics(prob: FitProblem, renders: dict) -> list:
+    out = []
+    for k in sorted(renders):
+        r = renders[k]
+        pred = r["rgb"].cpu().numpy()
+        sil = r["alpha"].cpu().numpy() > 0.5
+        true = prob.obs.frames[k]
+        true_sil = prob.obs.masks[k] if prob.obs.masks is not None else sil
+        d = M.frame_metrics(pred, true, sil, true_sil)
+        d["frame"] = int(k)
+        out.append(d)
+    return out
+
+
+def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
+               tol: float = math.log(1.2)) -> np.ndarray:
+    """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
+    the estimate, from the Gauss-Newton diagonal of the current basis coefficients.
+
+    diag(J^T J) is estimated with Rademacher probes s: E[(J^T s)^2] = diag(J^T J), J the
+    Jacobian of the weighted pixel residuals (RGB and silhouette) w.r.t. the coefficients; the
+    noise variance is the mean squared residual. sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
+    """
+    gen = torch.Generator(device="cpu").manual_seed(seed + 11)
+    theta = mat.theta.detach().clone().requires_grad_(True)
+    mat.theta = theta
+    diag = torch.zeros_like(theta)
+    rss, count = 0.0, 0
+    tr = [t.detach() for t in trajs] if trajs else None
+    nu = mat.poisson().detach()
+    for p in range(probes):
+        E = mat.youngs()
+        x, F = prob.simulate(E, nu, tr)
+        acc = 0.0
+        for k in range(1, prob.T):
+            out = prob.render_frame(k, x[k], F[k])
+            w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
+            r = (out["rgb"] - prob.frames[k]) * w[..., None]
+            sgn = (torch.randint(0, 2, r.shape, generator=gen) * 2 - 1).to(r)
+            acc = acc + (sgn * r).sum()
+            if prob.masks is not None:
+                rm = (out["alpha"] - prob.masks[k]) * w
+                sm = (torch.randint(0, 2, rm.shape, generator=gen) * 2 - 1).to(rm)
+                acc = acc + (sm * rm).sum()
+                if p == 0:
+                    rss += float((rm ** 2).sum())
+                    count += rm.numel()
+            if p == 0:
+                rss += float((r ** 2).sum())
+                count += r.numel()
+        g, = torch.autograd.grad(acc, theta)
+        diag += g.detach() ** 2
+    diag /= probes
+    noise_var = max(rss / max(count, 1), 1e-8)
+    sigma_theta = torch.sqrt(noise_var / diag.clamp_min(1e-30))
+    with torch.no_grad():
+        s = torch.sigmoid(mat.B @ theta)
+        dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
+        sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
+        conf = torch.erf(tol / (sigma_p * math.sqrt(2.0)).clamp_min(1e-12))
+    return conf.cpu().numpy()
