@@ -234,3 +234,133 @@ def contacts_from_gt(sd, gt_dir):
     if fixed.any():
         contacts.append(ContactSpec("support", "fixed", np.where(fixed)[0]))
     return contacts
+
+
+def _hand_masks(sd, n):
+    from .frames import read_mask
+
+    if not sd.hand_mask_assets:
+        return None
+    return np.stack([read_mask(p) for p in sd.hand_mask_assets[:n]])
+
+
+def stage_contacts(sd):
+    """The contact sets and initial trajectories the stage holds (user, extracted or earlier fits)."""
+    from .fit.problem import ContactSpec
+
+    init = {t.contact_set: t for t in sd.trajectories if t.stage in ("initial", "user", "groundTruth")}
+    out = []
+    for c in sd.contacts:
+        tr = init.get(c.name)
+        traj = None
+        if tr is not None:
+            traj = np.asarray(tr.positions, float)
+            if len(traj) != sd.n_frames:
+                raise InputError(sd.path, f"trajectory of {c.name} has {len(traj)} samples for {sd.n_frames} frames")
+        if c.contact_type != "fixed" and traj is None:
+            raise InputError(sd.path, f"contact set {c.name} ({c.contact_type}) has no initial trajectory")
+        out.append(ContactSpec.from_stage(c, traj, sd.n_frames))
+    return out
+
+
+def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu", seed=0,
+        resume=False, progress=True, log=print, settings_overrides=None):
+    """Fit the stage's material field and trajectory to its video; write scene.fit.usdc."""
+    import dataclasses
+
+    from .fit import FitProblem, FitSettings
+    from .fit import fit as run_fit
+    from .usd.stage import write_fit_layer
+
+    sd = read_stage(stage_path)
+    obs = load_observations(sd)
+    source = "extracted"
+    if contact_from is not None:
+        contacts = contacts_from_gt(sd, contact_from)
+        from .frames import read_mask
+
+        hm = Path(contact_from) / "hand_masks"
+        if hm.is_dir():
+            obs.hand_masks = np.stack([read_mask(hm / f"{k:06d}.png") for k in range(sd.n_frames)])
+        source = "groundTruth"
+    else:
+        contacts = stage_contacts(sd)
+        if not contacts:
+            from .extract import extract as run_extract
+
+            log("no contact sets on the stage: running extraction first")
+            run_extract(stage_path, log=log)
+            sd = read_stage(stage_path)
+            contacts = stage_contacts(sd)
+        obs.hand_masks = _hand_masks(sd, sd.n_frames)
+    effects = {name: {k: v for k, v in params.items() if k != "fit"} for name, params in sd.effects.items()}
+    settings = FitSettings(iterations=iterations, joint=joint, seed=seed)
+    if settings_overrides:
+        settings = dataclasses.replace(settings, **settings_overrides)
+    start = None
+    if resume:
+        if not sd.reports:
+            raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
+        start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
+                 "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
+    try:
+        prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
+    except ValueError as exc:
+        raise InputError(stage_path, str(exc)) from None
+    result = run_fit(prob, settings, progress=progress, log=log, start=start)
+    info = write_fit_layer(stage_path, sd, result, contacts, source=source)
+    return result, info
+
+
+# ------------------------------------------------------------------------------------- evaluate
+def evaluate(stage_path, gt_dir, device="cpu") -> dict:
+    """Score a fitted stage against a synthetic capture's ground truth: MA (and the best uniform
+    E's MA), PSNR (full and masked), SSIM, IoU from re-rendering the stage's animation, and the
+    3D position error of the Gaussians."""
+    import torch
+
+    from . import metrics as M
+    from .gaussians import Gaussians
+    from .render import covariance_from_scales_quats, estimate_background, render
+    from .usd.stage import read_splat_animation
+
+    gt_dir = Path(gt_dir)
+    for f in ("youngs_modulus.npy", "gaussian_positions.npy"):
+        if not (gt_dir / f).exists():
+            raise InputError(gt_dir / f, "file not found (is this a synth capture's gt/ folder?)")
+    sd = read_stage(stage_path)
+    anim = read_splat_animation(stage_path)
+    if anim["youngsModulus"] is None or not anim["times"]:
+        raise InputError(stage_path, "has no fitted material or animation: run `physinteract-usd fit` first")
+    e_gt = np.load(gt_dir / "youngs_modulus.npy").astype(np.float64)
+    if len(e_gt) != len(anim["youngsModulus"]):
+        raise InputError(gt_dir / "youngs_modulus.npy", f"{len(e_gt)} Gaussians, the stage has {len(anim['youngsModulus'])}")
+    obs = load_observations(sd)
+    T = min(len(anim["times"]), sd.n_frames)
+    pos_gt = np.load(gt_dir / "gaussian_positions.npy").astype(np.float64)[:T]
+    pos = np.stack(anim["positions"][:T])
+    cover = obs.masks
+    bg = torch.as_tensor(estimate_background(obs.frames, cover, dilate=2) if cover is not None else
+                         np.median(obs.frames, axis=0), dtype=torch.float32)
+    g0 = sd.gaussians
+    col = torch.as_tensor(g0.colors, dtype=torch.float32)
+    op = torch.as_tensor(g0.opacities, dtype=torch.float32)
+    frames = []
+    for k in range(T):
+        cov = covariance_from_scales_quats(torch.as_tensor(anim["scales"][k], dtype=torch.float32),
+                                           torch.as_tensor(anim["quats"][k], dtype=torch.float32))
+        with torch.no_grad():
+            out = render(torch.as_tensor(pos[k], dtype=torch.float32), cov, col, op, sd.camera.at(k), background=bg)
+        pred = out["rgb"].numpy()
+        sil = out["alpha"].numpy() > 0.5
+        true_sil = obs.masks[k] if obs.masks is not None else sil
+        d = M.frame_metrics(pred, obs.frames[k], sil, true_sil)
+        d["frame"] = k
+        frames.append(d)
+    summary = M.summarize(frames)
+    ma_uniform, e_uniform = M.best_uniform_ma(e_gt)
+    del Gaussians
+    return {"ma": M.material_accuracy(anim["youngsModulus"], e_gt), "ma_best_uniform": ma_uniform,
+            "best_uniform_e": e_uniform, "psnr": summary["psnr"], "psnr_masked": summary["psnr_masked"],
+            "ssim": summary["ssim"], "iou": summary["iou"], "position_error_m": M.position_error_m(pos, pos_gt),
+            "frames": frames}

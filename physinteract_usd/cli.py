@@ -81,6 +81,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
 
+    s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
+    s.add_argument("stage")
+    s.add_argument("--iterations", type=int, default=60, help="optimiser iterations (default 60)")
+    s.add_argument("--no-joint", action="store_true",
+                   help="keep the trajectory at its initialisation T0 (the paper's w/o JO ablation)")
+    s.add_argument("--contact-from", metavar="DIR/gt", help="take contacts, supports and T0 from a synthetic "
+                   "capture's ground truth instead of the stage / extraction")
+    s.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable)")
+    s.add_argument("--resume", action="store_true", help="start from the stage's last fit")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    s = sub.add_parser("evaluate", help="score a fitted stage against synthetic ground truth")
+    s.add_argument("stage")
+    s.add_argument("--gt", required=True, metavar="DIR/gt", help="the synth capture's gt/ folder")
+    s.add_argument("--json", action="store_true", help="print JSON")
+
     s = sub.add_parser("info", help="summarise a stage")
     s.add_argument("stage")
     s.add_argument("--json", action="store_true", help="print JSON")
@@ -123,7 +140,58 @@ def _cmd_synth(a) -> int:
     return 0
 
 
-COMMANDS = {"init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth}
+def _cmd_fit(a) -> int:
+    from . import api
+
+    log = (lambda m: print(m, file=sys.stderr)) if a.json else print
+    result, info = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
+                           device=a.device, seed=a.seed, resume=a.resume, log=log)
+    import numpy as np
+
+    fm = result.frame_metrics
+    summary = {"version": info["version"], "layer": info["layer"], "iterations": len(result.loss_history),
+               "final_loss": result.final_loss, "runtime_s": result.runtime_s, "device": result.device,
+               "interrupted": result.interrupted,
+               "psnr": float(np.mean([min(f["psnr"], 100) for f in fm])),
+               "psnr_masked": float(np.nanmean([min(f["psnr_masked"], 100) for f in fm])),
+               "ssim": float(np.mean([f["ssim"] for f in fm])), "iou": float(np.mean([f["iou"] for f in fm])),
+               "youngs_modulus_pa": {"min": float(result.youngs.min()), "median": float(np.median(result.youngs)),
+                                     "max": float(result.youngs.max())},
+               "confidence_mean": float(result.confidence.mean())}
+    if a.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"fit v{summary['version']} written to {info['layer']}"
+              + (" (interrupted: best iterate kept)" if result.interrupted else ""))
+        print(f"  {summary['iterations']} iterations in {summary['runtime_s']:.0f} s on {summary['device']}, "
+              f"loss {summary['final_loss']:.5f}")
+        print(f"  PSNR {summary['psnr']:.2f} dB (masked {summary['psnr_masked']:.2f}), SSIM {summary['ssim']:.3f}, "
+              f"IoU {summary['iou']:.3f}")
+        e = summary["youngs_modulus_pa"]
+        print(f"  E {e['min']:.3g} .. {e['max']:.3g} Pa (median {e['median']:.3g}), mean confidence "
+              f"{summary['confidence_mean']:.2f}")
+    return 130 if result.interrupted else 0
+
+
+def _cmd_evaluate(a) -> int:
+    from . import api
+
+    d = api.evaluate(a.stage, a.gt)
+    keys = ("ma", "psnr", "psnr_masked", "ssim", "iou", "position_error_m")
+    if a.json:
+        print(json.dumps({**{k: d[k] for k in keys}, "ma_best_uniform": d["ma_best_uniform"]}, indent=2))
+    else:
+        print(f"{'metric':22s} value")
+        print(f"{'MA':22s} {d['ma']:.3f}   (best uniform E: {d['ma_best_uniform']:.3f} at {d['best_uniform_e']:.3g} Pa)")
+        print(f"{'PSNR':22s} {d['psnr']:.2f} dB")
+        print(f"{'PSNR (masked)':22s} {d['psnr_masked']:.2f} dB")
+        print(f"{'SSIM':22s} {d['ssim']:.3f}")
+        print(f"{'IoU':22s} {d['iou']:.3f}")
+        print(f"{'position error':22s} {d['position_error_m'] * 1000:.2f} mm")
+    return 0
+
+
+COMMANDS = {"init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
 
 
 def main(argv=None) -> int:

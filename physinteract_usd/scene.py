@@ -87,6 +87,7 @@ class SceneData:
     video_asset: str | None
     mask_assets: list
     masks_amodal: bool
+    hand_mask_assets: list
     effects: dict
     contacts: list
     trajectories: list

@@ -434,6 +434,7 @@ def read_stage(path) -> SceneData:
         confidence=pv(pprim, PRIMVAR_CONF), settings=settings,
         frame_assets=[_resolve(path, a) for a in frames], video_asset=_resolve(path, video.path) if video and video.path else None,
         mask_assets=[_resolve(path, a) for a in masks], masks_amodal=bool(ga("masksAmodal")),
+        hand_mask_assets=[_resolve(path, a.path) for a in (ga("handMasks") or [])],
         effects=effects, contacts=contacts, trajectories=trajectories, reports=reports,
         generator=str(ga("generator")), object_kind="mesh" if stage.GetPrimAtPath(MESH) else "gaussians")
 
@@ -455,3 +456,158 @@ def _read_report(prim) -> dict:
             "runtime_s": float(g("runtimeSeconds")), "device": str(g("device")),
             "settings": json.loads(settings) if settings else {},
             "effect_parameters": json.loads(params) if params else {}}
+
+
+# ---------------------------------------------------------------------------------- write: fit
+REPORT_PREFIX = "FitReport_v"
+
+
+def _open_or_new_fit_layer(lp: LayerPaths, fps: float, n: int):
+    """A fresh anonymous fit layer carrying over the previous FitReport prims (one per version)."""
+    new = Sdf.Layer.CreateAnonymous("fit.usdc")
+    _set_stage_metadata(new, fps, 0, n - 1)
+    versions = []
+    if lp.fit.exists():
+        old = Sdf.Layer.FindOrOpen(str(lp.fit))
+        if old is not None:
+            scene_spec = old.GetPrimAtPath(SCENE)
+            if scene_spec is not None:
+                for child in scene_spec.nameChildren:
+                    if child.typeName == "PhysInteractFitReport":
+                        Sdf.CreatePrimInLayer(new, child.path)
+                        Sdf.CopySpec(old, child.path, new, child.path)
+                        attr = child.attributes.get("physinteract:version")
+                        versions.append(int(attr.default) if attr is not None and attr.default is not None else 1)
+    return new, versions
+
+
+def _splat_samples(covs: np.ndarray):
+    from ..render.deform import scales_quats_from_covariance
+
+    T, N = covs.shape[:2]
+    s, q = scales_quats_from_covariance(covs.reshape(-1, 3, 3))
+    return s.reshape(T, N, 3), q.reshape(T, N, 4)
+
+
+def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, source: str = "extracted",
+                    effect_parameters: dict | None = None) -> dict:
+    """Write the fit into scene.fit.usdc (atomically), keeping earlier versions' reports.
+
+    Authors: the material field (primvars on SimParticles and, per Gaussian, on Splats), the
+    confidence, the contacts used and the fitted trajectories, the simulated animation
+    (time-sampled SimParticles points and Splats positions / orientations / scales), and a
+    PhysInteractFitReport for this model version. Returns {"version", "layer"}.
+    """
+    lp = LayerPaths.of(stage_path)
+    n = scene.n_frames
+    layer, versions = _open_or_new_fit_layer(lp, scene.fps, n)
+    version = max(versions, default=0) + 1
+    stage = Usd.Stage.Open(layer)
+    f32 = lambda a: Vt.FloatArray.FromNumpy(np.asarray(a, np.float32))  # noqa: E731
+
+    # material on particles, animated points
+    pts = stage.OverridePrim(PARTICLES)
+    pv = UsdGeom.PrimvarsAPI(pts)
+    for name, vals in (("youngsModulus", result.youngs), ("poissonRatio", result.poisson),
+                       ("confidence", result.confidence)):
+        pv.CreatePrimvar(f"physinteract:{name}", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(f32(vals))
+    pattr = pts.CreateAttribute("points", Sdf.ValueTypeNames.Point3fArray)
+    for k in range(len(result.positions)):
+        pattr.Set(Vt.Vec3fArray.FromNumpy(result.positions[k].astype(np.float32)), Usd.TimeCode(k))
+    ext = pts.CreateAttribute("extent", Sdf.ValueTypeNames.Float3Array)
+    for k in range(len(result.positions)):
+        lo, hi = result.positions[k].min(0), result.positions[k].max(0)
+        ext.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]), Usd.TimeCode(k))
+
+    # material per Gaussian (input PLY order), deformed splats
+    spl = stage.OverridePrim(SPLATS)
+    spv = UsdGeom.PrimvarsAPI(spl)
+    for name, vals in (("youngsModulus", result.youngs_gaussian), ("poissonRatio", result.poisson_gaussian),
+                       ("confidence", result.confidence_gaussian)):
+        spv.CreatePrimvar(f"physinteract:{name}", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(f32(vals))
+    scales, quats = _splat_samples(result.gaussian_covs)
+    a_pos = spl.CreateAttribute("positions", Sdf.ValueTypeNames.Point3fArray)
+    a_rot = spl.CreateAttribute("orientations", Sdf.ValueTypeNames.QuatfArray)
+    a_scl = spl.CreateAttribute("scales", Sdf.ValueTypeNames.Float3Array)
+    for k in range(len(result.gaussian_means)):
+        tc = Usd.TimeCode(k)
+        a_pos.Set(Vt.Vec3fArray.FromNumpy(result.gaussian_means[k].astype(np.float32)), tc)
+        a_rot.Set(Vt.QuatfArray([Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))) for q in quats[k]]), tc)
+        a_scl.Set(Vt.Vec3fArray.FromNumpy(scales[k].astype(np.float32)), tc)
+
+    # contacts and trajectories
+    scene_prim = stage.OverridePrim(SCENE)
+    dt = 1.0 / scene.fps
+    for c in contacts:
+        cp = stage.DefinePrim(SCENE.AppendChild(c.name), "PhysInteractContactSet")
+        cp.GetAttribute("physinteract:particleIndices").Set(Vt.IntArray.FromNumpy(np.asarray(c.indices, np.int32)))
+        cp.GetAttribute("physinteract:contactType").Set(c.type)
+        cp.GetAttribute("physinteract:graspTime").Set(float(c.grasp_frame))
+        cp.GetAttribute("physinteract:releaseTime").Set(float(c.release_frame) if c.release_frame is not None else 1e9)
+        cp.GetAttribute("physinteract:source").Set(source)
+        cp.GetAttribute("physinteract:colliderRadius").Set(float(c.radius))
+        if len(c.indices):
+            cp.GetAttribute("physinteract:contactPoint").Set(Gf.Vec3f(*map(float, scene.particles_positions[c.indices].mean(0))))
+        for stage_name, traj in (("initial", c.trajectory), ("fitted", result.trajectories.get(c.name))):
+            if traj is None:
+                continue
+            tp = stage.DefinePrim(SCENE.AppendChild(f"{c.name}_{stage_name}"), "PhysInteractTrajectory")
+            tp.GetAttribute("physinteract:stage").Set(stage_name)
+            tp.GetRelationship("physinteract:contactSet").SetTargets([cp.GetPath()])
+            traj = np.asarray(traj, np.float64)
+            vel = np.vstack([np.diff(traj, axis=0) / dt, np.zeros((1, 3))])
+            for k in range(len(traj)):
+                tp.GetAttribute("physinteract:position").Set(Gf.Vec3f(*map(float, traj[k])), Usd.TimeCode(k))
+                tp.GetAttribute("physinteract:velocity").Set(Gf.Vec3f(*map(float, vel[k])), Usd.TimeCode(k))
+
+    # the report of this version
+    rp = stage.DefinePrim(SCENE.AppendChild(f"{REPORT_PREFIX}{version}"), "PhysInteractFitReport")
+    fm = result.frame_metrics
+    ra = lambda name, v: rp.GetAttribute(f"physinteract:{name}").Set(v)  # noqa: E731
+    ra("version", version)
+    ra("effects", Vt.TokenArray(sorted(result.effects)))
+    ra("frameIndices", Vt.IntArray([int(f["frame"]) for f in fm]))
+    for key, attr in (("psnr", "framePsnr"), ("psnr_masked", "framePsnrMasked"), ("ssim", "frameSsim"),
+                      ("iou", "frameIou")):
+        ra(attr, f32([min(float(f[key]), 100.0) if np.isfinite(f[key]) else 100.0 for f in fm]))
+    ra("lossHistory", f32(result.loss_history))
+    ra("finalLoss", float(result.final_loss))
+    ra("runtimeSeconds", float(result.runtime_s))
+    ra("device", str(result.device))
+    ra("settings", json.dumps(result.settings, default=_json_default))
+    ra("effectParameters", json.dumps(effect_parameters or {}, default=_json_default))
+    del scene_prim
+    layer.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "fit", "version": version}}
+    with atomic_outputs(lp.fit) as (tmp,):
+        if not layer.Export(str(tmp)):
+            raise OSError(f"{lp.fit}: could not write the fit layer")
+    return {"version": version, "layer": str(lp.fit)}
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)
+
+
+def read_splat_animation(path) -> dict:
+    """The composed Splats per frame (positions, orientations, scales), their per-Gaussian
+    primvars, and the time codes: what a fitted (or simulated) stage shows."""
+    stage = open_stage(path)
+    prim = stage.GetPrimAtPath(SPLATS)
+    pos_a = UsdVol.ParticleFieldPositionAttributeAPI(prim).GetPositionsAttr()
+    rot_a = UsdVol.ParticleFieldOrientationAttributeAPI(prim).GetOrientationsAttr()
+    scl_a = UsdVol.ParticleFieldScaleAttributeAPI(prim).GetScalesAttr()
+    times = pos_a.GetTimeSamples()
+    out = {"times": list(times), "positions": [], "quats": [], "scales": []}
+    for t in times:
+        tc = Usd.TimeCode(t)
+        out["positions"].append(np.array(pos_a.Get(tc), dtype=np.float64))
+        out["quats"].append(np.array([[q.GetReal(), *q.GetImaginary()] for q in rot_a.Get(tc)], dtype=np.float64))
+        out["scales"].append(np.array(scl_a.Get(tc), dtype=np.float64))
+    for name in ("youngsModulus", "poissonRatio", "confidence"):
+        a = prim.GetAttribute(f"primvars:physinteract:{name}")
+        out[name] = np.array(a.Get(), dtype=np.float64) if a and a.HasValue() else None
+    return out
