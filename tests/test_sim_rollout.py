@@ -77,8 +77,9 @@ def test_errors_for_bad_inputs():
 
 
 def test_gradients_at_null_values_and_initial_velocity():
-    """At the null value (damping c = 0, Maxwell E_v = 0) the gradient exists and matches FD, so
-    a diagnosis can score an effect that is off; dL/dv0 is returned too."""
+    """At the null value (damping c = 0, Maxwell E_v = 0) the gradient exists and matches a
+    one-sided second-order difference (the parameters may not go negative), so a diagnosis can
+    score an effect that is off; dL/dv0 is returned too (central difference)."""
     eff = {"damping": {"coefficient": 0.0}, "viscoelasticity": {"modulus": 0.0, "relaxationTime": 0.05}}
     m, ctrl, pts, traj = _scene(effects=eff, T=3, substeps=20)
     ro = Rollout(m, ctrl)
@@ -88,8 +89,17 @@ def test_gradients_at_null_values_and_initial_velocity():
         x, _ = ro(effects={"damping": {"c": c}, "viscoelasticity": {"E_v": ev}}, v0=v0)
         return (x * W).sum()
 
-    res = directional_check(loss, [torch.tensor(0.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64),
-                                   torch.zeros(3, dtype=torch.float64)], [1.0, 1e3, 0.1])
+    c = torch.tensor(0.0, dtype=torch.float64, requires_grad=True)
+    ev = torch.tensor(0.0, dtype=torch.float64, requires_grad=True)
+    v0 = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    loss(c, ev, v0).backward()
+    z = torch.tensor(0.0, dtype=torch.float64)
+    with torch.no_grad():
+        for grad, h, f in ((c.grad, 1e-3, lambda t: loss(t, z, torch.zeros(3, dtype=torch.float64))),
+                           (ev.grad, 1.0, lambda t: loss(z, t, torch.zeros(3, dtype=torch.float64)))):
+            fd = float((-3 * f(z) + 4 * f(z + h) - f(z + 2 * h)) / (2 * h))
+            assert abs(fd) > 1e-8 and rel_err(float(grad), fd) < 1e-4, (float(grad), fd)
+    res = directional_check(lambda v: loss(z, z, v), [torch.zeros(3, dtype=torch.float64)], [0.1], eps=1e-5)
     for an, fd in res:
         assert abs(fd) > 1e-8 and rel_err(an, fd) < 1e-4, res
 
@@ -143,3 +153,13 @@ def test_graphs_match_eager_launches():
         for u, v in zip(a, b):
             assert torch.equal(u, v)
     assert not torch.equal(outs[True][0][1], outs[True][1][1])
+
+
+def test_effect_parameters_outside_their_domain_are_refused():
+    eff = {"damping": {"coefficient": 1.0}, "viscoelasticity": {"modulus": 1e3, "relaxationTime": 0.1}}
+    m, ctrl, pts, _ = _scene(effects=eff)
+    ro = Rollout(m, ctrl)
+    with pytest.raises(SimulationError, match="relaxationTime"):
+        ro(effects={"viscoelasticity": {"tau": torch.tensor(-0.1, dtype=torch.float64)}})
+    with pytest.raises(SimulationError, match="damping.coefficient"):
+        ro(effects={"damping": {"c": -1.0}})

@@ -204,9 +204,23 @@ class Rollout:
         eff = self._effect_vector(effects, td, dev)
         pin_pos, col_pos = self._trajectories(trajectories, td, dev)
         v0 = torch.zeros(self.P, 3, dtype=td, device=dev) if v0 is None else as_t(v0, None).expand(self.P, 3)
-        lim = torch.stack([E.detach().max(), E.detach().min(), nu.detach().max(), nu.detach().min()]).cpu()
-        if not bool(torch.isfinite(lim).all()):
+        lim = torch.cat([torch.stack([E.detach().max(), E.detach().min(), nu.detach().max(), nu.detach().min()]),
+                         eff.detach()]).cpu().double()          # one host sync per call
+        if not bool(torch.isfinite(lim[:4]).all()):
             raise SimulationError("got non-finite E or nu", frame=0, advice="check the material parameters")
+        ev = lim[4:]
+        bad = []
+        for e in m.effects.enabled:
+            for p_ in PARAMETERS[e]:
+                v = float(ev[SLOTS[(e, p_)]])
+                ok = {"coefficient": v >= 0, "yieldStress": v > 0, "height": math.isfinite(v),
+                      "friction": v >= 0, "modulus": v >= 0, "relaxationTime": v > 0}[p_]
+                if not ok or math.isnan(v):
+                    bad.append(f"{e}.{p_} = {v:g}")
+        if bad:
+            raise SimulationError("got effect parameters outside their domain: " + ", ".join(bad), frame=0,
+                                  advice="c, friction, modulus >= 0; yieldStress, relaxationTime > 0 (fit them "
+                                         "through exp / softplus)")
         if float(lim[0]) > m.E_max * (1.0 + 1e-5):
             raise SimulationError(
                 f"E up to {float(lim[0]):.4g} Pa exceeds E_max = {m.E_max:.4g} Pa, where the substep was chosen "
