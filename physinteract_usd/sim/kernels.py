@@ -162,19 +162,23 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             X = U * wp.transpose(V)
         return X
 
-    @wp.func_grad(polar_R)
-    def adj_polar_R(F: mat33, adj_ret: mat33):
-        R = polar_R(F)
+    @wp.func
+    def polar_vjp(F: mat33, R: mat33, adj_R: mat33):
+        # adj_F of R = polar(F), given adj_R
         S = wp.transpose(R) * F
         S = T(0.5) * (S + wp.transpose(S))
         A = wp.trace(S) * wp.identity(n=3, dtype=T) - S
-        X = wp.transpose(R) * adj_ret
+        X = wp.transpose(R) * adj_R
         h = vec3(X[2, 1] - X[1, 2], X[0, 2] - X[2, 0], X[1, 0] - X[0, 1])
-        dA = wp.determinant(A)
-        if wp.abs(dA) > T(1.0e-12):
+        out = mat33()
+        if wp.abs(wp.determinant(A)) > T(1.0e-12):
             y = wp.inverse(A) * h
-            Y = mat33(T(0.0), -y[2], y[1], y[2], T(0.0), -y[0], -y[1], y[0], T(0.0))
-            wp.adjoint[F] += R * Y
+            out = R * mat33(T(0.0), -y[2], y[1], y[2], T(0.0), -y[0], -y[1], y[0], T(0.0))
+        return out
+
+    @wp.func_grad(polar_R)
+    def adj_polar_R(F: mat33, adj_ret: mat33):
+        wp.adjoint[F] += polar_vjp(F, polar_R(F), adj_ret)
 
     # ------------------------------------------------------------------ deviatoric Hencky strain
     @wp.func
@@ -373,6 +377,67 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             Fvp = Fv[p]
             tau = tau + maxwell_P(Fvp, mu_v) * wp.transpose(Fvp)
         A[p] = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + mass[p] * C[p]
+
+    @wp.kernel(module=module, enable_backward=False)
+    def p2g_stress_adj(F: wp.array(dtype=mat33), mass: wp.array(dtype=T), vol: wp.array(dtype=T),
+                       E: wp.array(dtype=T), nu: wp.array(dtype=T), material: int, inv_dx: T, dt: T,
+                       adj_A: wp.array(dtype=mat33),
+                       adj_F: wp.array(dtype=mat33), adj_C: wp.array(dtype=mat33), adj_E: wp.array(dtype=T),
+                       adj_nu: wp.array(dtype=T)):
+        # hand-written adjoint of the equilibrium part of p2g_stress (A = s tau(F) + m C):
+        # accumulates into adj_F, adj_C, adj_E, adj_nu (the Maxwell branch: p2g_stress_visco)
+        p = wp.tid()
+        Ab = adj_A[p]
+        s = -dt * vol[p] * T(4.0) * inv_dx * inv_dx
+        tb = s * Ab                      # adjoint of tau
+        e = E[p]
+        n = nu[p]
+        mu, lam = lame(e, n)
+        Fp = F[p]
+        J = wp.determinant(Fp)
+        I = wp.identity(n=3, dtype=T)
+        trt = wp.trace(tb)
+        gF = mat33()
+        gmu = T(0.0)
+        glam = T(0.0)
+        if material == 1:
+            # tau = mu (F F^T - I) + lam log J I
+            gF = mu * (tb * Fp + wp.transpose(tb) * Fp)
+            gmu = wp.ddot(tb, Fp * wp.transpose(Fp) - I)
+            if J > T(1.0e-6):
+                gF = gF + (lam * trt) * wp.transpose(wp.inverse(Fp))
+                glam = wp.log(J) * trt
+        else:
+            # tau = 2 mu (F - R) F^T + lam (J - 1) J I
+            R = polar_R(Fp)
+            gF = (T(2.0) * mu) * (tb * Fp + wp.transpose(tb) * Fp - wp.transpose(tb) * R)
+            gF = gF + polar_vjp(Fp, R, (T(-2.0) * mu) * (tb * Fp))
+            # dJ = <cof(F), dF>, cof(F) = J F^-T (written without the inverse: adjugate transposed)
+            cof = mat33(Fp[1, 1] * Fp[2, 2] - Fp[1, 2] * Fp[2, 1], Fp[1, 2] * Fp[2, 0] - Fp[1, 0] * Fp[2, 2],
+                        Fp[1, 0] * Fp[2, 1] - Fp[1, 1] * Fp[2, 0],
+                        Fp[0, 2] * Fp[2, 1] - Fp[0, 1] * Fp[2, 2], Fp[0, 0] * Fp[2, 2] - Fp[0, 2] * Fp[2, 0],
+                        Fp[0, 1] * Fp[2, 0] - Fp[0, 0] * Fp[2, 1],
+                        Fp[0, 1] * Fp[1, 2] - Fp[0, 2] * Fp[1, 1], Fp[0, 2] * Fp[1, 0] - Fp[0, 0] * Fp[1, 2],
+                        Fp[0, 0] * Fp[1, 1] - Fp[0, 1] * Fp[1, 0])
+            gF = gF + (lam * (T(2.0) * J - T(1.0)) * trt) * cof
+            gmu = T(2.0) * wp.ddot(tb, (Fp - R) * wp.transpose(Fp))
+            glam = (J - T(1.0)) * J * trt
+        adj_F[p] = adj_F[p] + gF
+        adj_C[p] = adj_C[p] + mass[p] * Ab
+        one_n = T(1.0) + n
+        one_2n = T(1.0) - T(2.0) * n
+        adj_E[p] = adj_E[p] + gmu / (T(2.0) * one_n) + glam * n / (one_n * one_2n)
+        adj_nu[p] = adj_nu[p] - gmu * e / (T(2.0) * one_n * one_n) \
+            + glam * e * (T(1.0) + T(2.0) * n * n) / (one_n * one_n * one_2n * one_2n)
+
+    @wp.kernel(module=module)
+    def p2g_stress_visco(Fv: wp.array(dtype=mat33), vol: wp.array(dtype=T), nu: wp.array(dtype=T),
+                         eff: wp.array(dtype=T), inv_dx: T, dt: T, A: wp.array(dtype=mat33)):
+        # the Maxwell branch's part of p2g_stress, launched (as an adjoint) only when it is on
+        p = wp.tid()
+        mu_v = eff[4] / (T(2.0) * (T(1.0) + nu[p]))
+        Fvp = Fv[p]
+        A[p] = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * (maxwell_P(Fvp, mu_v) * wp.transpose(Fvp))
 
     @wp.func
     def pin_velocity(p: int, pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
@@ -681,7 +746,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     return SimpleNamespace(
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
-        p2g_stress=p2g_stress, p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj,
+        p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
+        p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,

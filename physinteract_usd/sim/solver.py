@@ -17,7 +17,7 @@ import warp as wp
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS
-from .kernels import get_kernels
+from .kernels import F_VISCO, get_kernels
 from .state import SimState
 
 
@@ -208,11 +208,14 @@ class MPMSolver:
         # scatter (hand-written adjoint) -> adj x, v, A, pins
         wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
                   ag["gpmv"]], [adj_in.x, adj_in.v, ap["A"], adj_ctrl.pin_pos], device=d, record_tape=False)
-        # stress (Warp autodiff) -> adj F, Fv, C, E, nu, effects
-        adj_st = [adj_in.F, adj_in.Fv, adj_in.C, None, None, adj_params.E, adj_params.nu, adj_params.eff, 0, 0,
-                  0.0, 0.0]
-        wp.launch(K.p2g_stress, P, self._stress_args(s_in, p), [self.A], adj_st, [ap["A"]], adjoint=True, device=d,
-                  record_tape=False)
+        # stress: equilibrium branch by hand -> adj F, C, E, nu; Maxwell branch (Warp autodiff) -> adj Fv, nu, E_v
+        wp.launch(K.p2g_stress_adj, P, [s_in.F, self.dev["mass"], self.dev["volume"], p.E, p.nu, self.material,
+                                        self.inv_dx, self.dt, ap["A"]],
+                  [adj_in.F, adj_in.C, adj_params.E, adj_params.nu], device=d, record_tape=False)
+        if self.flags & F_VISCO:
+            wp.launch(K.p2g_stress_visco, P, [s_in.Fv, self.dev["volume"], p.nu, p.eff, self.inv_dx, self.dt],
+                      [self.A], [adj_in.Fv, None, adj_params.nu, adj_params.eff, 0.0, 0.0], [ap["A"]], adjoint=True,
+                      device=d, record_tape=False)
 
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
