@@ -11,10 +11,10 @@
 
 Every kernel reads its inputs and writes separate outputs, so the reverse pass can launch
 adjoints directly after recomputing the grid of a substep from the stored particle state. The
-per-particle / per-node physics (p2g_stress, grid_update, g2p_update) use Warp's generated adjoints
-(`wp.launch(..., adjoint=True)`); the two transfers have hand-written adjoints
-(p2g_scatter_adj, g2p_gather_adj: gathers / scatters of the grid adjoints) and are compiled
-without backward code.
+grid update, the particle update and the Maxwell branch's stress (p2g_stress_visco) use Warp's
+generated adjoints (`wp.launch(..., adjoint=True)`); the equilibrium stress and the two transfers
+have hand-written adjoints (p2g_stress_adj; p2g_scatter_adj, g2p_gather_adj: gathers / scatters of
+the grid adjoints), and the kernels they reverse are compiled without backward code.
 
 Functions of F whose textbook derivative goes through the SVD carry hand-written adjoints
 (`wp.func_grad`), finite at repeated singular values (F = I at rest):
@@ -362,7 +362,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         return v
 
     # ------------------------------------------------------------------ kernels
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def p2g_stress(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
                    mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
                    eff: wp.array(dtype=T), flags: int, material: int, inv_dx: T, dt: T,
