@@ -101,7 +101,7 @@ class Rollout:
         self.graphs = bool(graphs)
         self._fwd_graphs: dict[int, object] = {}
         self._bwd_graphs: dict[int, object] = {}
-        self._warm = False
+        self._warm: set = set()
 
     # ------------------------------------------------------------------ one frame, forward / backward
     def _forward_frame(self, k: int) -> None:
@@ -143,9 +143,9 @@ class Rollout:
         if not self.graphs or len(graphs) == self.T:
             return
         try:
-            if not self._warm:      # load the modules before any capture
+            if id(graphs) not in self._warm:      # load modules, allocate lazily built buffers: not in a capture
                 fn(0)
-                self._warm = True
+                self._warm.add(id(graphs))
             for k in range(self.T):
                 if k not in graphs:
                     with wp.ScopedCapture(device=self.model.device) as cap:
@@ -178,6 +178,7 @@ class Rollout:
         m = self.model
         if self._replay is None:
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
+            self.solver._alloc_adj()
         self._ensure_graphs(self._bwd_graphs, self._backward_frame)
         self.adj_params.zero_()
         self.adj_ctrl.zero_()
