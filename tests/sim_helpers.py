@@ -8,8 +8,6 @@ import warp as wp
 
 wp.config.quiet = True
 
-from physinteract_usd.sim import Contact, Control, GridSpec, Rollout, SimModel  # noqa: E402
-
 
 def block(n=(4, 4, 4), spacing=0.025, corner=(0.3, 0.12, 0.3)) -> np.ndarray:
     """A regular block of particles (n[0] x n[1] x n[2]) with its lower corner at ``corner``."""

@@ -19,7 +19,6 @@ what would catch an input overwritten in place.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 import warp as wp
 

@@ -21,7 +21,7 @@ buffers and graphs between calls: use it in a fit loop) and `simulate(model, con
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 import torch
@@ -29,7 +29,7 @@ import warp as wp
 
 from ..errors import SimulationError
 from .control import Control, ControlArrays
-from .effects import DEFAULTS, PARAMETERS, SLOTS, N_PARAMS, canonical
+from .effects import N_PARAMS, PARAMETERS, SLOTS, canonical
 from .solver import ControlAdjoint, MPMSolver, SimParams
 from .state import SimState
 
