@@ -8,4 +8,13 @@ renderer (`physinteract_usd.render`) and optimiser (`physinteract_usd.fit`) know
 
 __version__ = "0.1.0"
 
-from . import usd as _usd  # noqa: F401  (registers the schemas before any stage opens)
+import os as _os
+
+import warp as _wp
+
+# Warp's greeting, module-load lines and "no CUDA driver" notice would clutter every command's
+# output (and `--json`); PHYSINTERACT_WARP_LOG=info brings them back.
+_wp.config.log_level = {"debug": _wp.LOG_DEBUG, "info": _wp.LOG_INFO, "warning": _wp.LOG_WARNING}.get(
+    _os.environ.get("PHYSINTERACT_WARP_LOG", ""), _wp.LOG_ERROR)
+
+from . import usd as _usd  # noqa: E402,F401  (registers the schemas before any stage opens)

@@ -208,6 +208,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"physinteract-usd {args.verb}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into `head` and the like
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
