@@ -364,3 +364,168 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
             "best_uniform_e": e_uniform, "psnr": summary["psnr"], "psnr_masked": summary["psnr_masked"],
             "ssim": summary["ssim"], "iou": summary["iou"], "position_error_m": M.position_error_m(pos, pos_gt),
             "frames": frames}
+
+
+# ------------------------------------------------------------------------------------- simulate
+INTERACTION_DOC = """Interaction spec (JSON) for `simulate`:
+{
+  "name": "pull_petal",            optional; default: the file's stem
+  "frames": 40,                    optional; default: the stage's frame count
+  "keep_supports": true,           keep the fitted stage's fixed contact sets (default true)
+  "contacts": [
+    {"type": "pointAdherent",      pointAdherent | pointNonAdherent | surfaceNonAdherent | fixed
+     "select": {"centre": [x, y, z], "radius": 0.03},   which particles (rest positions, metres);
+                                   or {"indices": [...]} or {"contact": "hand"} (a stage contact set)
+     "grasp_frame": 2, "release_frame": 30,
+     "displacement": [0.05, 0.1, 0.0]   moved smoothly over the grasp window; or
+     "trajectory": [[x, y, z], ...]     positions per frame (frames entries); or
+     "velocity": [vx, vy, vz]           constant while grasped
+    },
+    {"type": "pointNonAdherent", "radius": 0.02, "trajectory": [[x, y, z], ...]},
+    {"type": "surfaceNonAdherent", "normal": [0, -1, 0], "trajectory": [[x, y, z], ...], "friction": 0.5}
+  ]
+}"""
+
+
+def _parse_interaction(path, sd):
+    import json
+
+    from .fit.problem import ContactSpec
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    try:
+        spec = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from None
+    if not isinstance(spec, dict) or not isinstance(spec.get("contacts"), list) or not spec["contacts"]:
+        raise InputError(path, "expected an object with a non-empty 'contacts' list (see `simulate --help`)")
+    n = int(spec.get("frames", sd.n_frames))
+    if n < 2:
+        raise InputError(path, "'frames' must be at least 2")
+    x0 = sd.particles_positions
+    by_name = {c.name: c for c in sd.contacts}
+    out = []
+    for i, c in enumerate(spec["contacts"]):
+        where = f"contacts[{i}]"
+        t = c.get("type")
+        if t not in ("pointAdherent", "pointNonAdherent", "surfaceNonAdherent", "fixed"):
+            raise InputError(path, f"{where}: type must be pointAdherent, pointNonAdherent, surfaceNonAdherent or fixed")
+        idx = np.zeros(0, np.int64)
+        if t in ("pointAdherent", "fixed"):
+            sel = c.get("select")
+            if not isinstance(sel, dict):
+                raise InputError(path, f"{where}: needs 'select' (centre+radius, indices or contact)")
+            if "indices" in sel:
+                idx = np.asarray(sel["indices"], np.int64)
+                if len(idx) == 0 or idx.min() < 0 or idx.max() >= len(x0):
+                    raise InputError(path, f"{where}: indices must lie in [0, {len(x0)})")
+            elif "contact" in sel:
+                if sel["contact"] not in by_name:
+                    raise InputError(path, f"{where}: the stage has no contact set '{sel['contact']}' "
+                                     f"(it has {', '.join(by_name) or 'none'})")
+                idx = by_name[sel["contact"]].particle_indices
+            elif "centre" in sel and "radius" in sel:
+                idx = np.where(np.linalg.norm(x0 - np.asarray(sel["centre"], float), axis=1) <= float(sel["radius"]))[0]
+                if len(idx) == 0:
+                    raise InputError(path, f"{where}: no particle within {sel['radius']} m of {sel['centre']}")
+            else:
+                raise InputError(path, f"{where}: 'select' needs centre+radius, indices or contact")
+        g = int(c.get("grasp_frame", 0))
+        r = c.get("release_frame")
+        r = None if r is None else int(r)
+        traj = None
+        if t != "fixed":
+            start = x0[idx].mean(0) if len(idx) else np.asarray(c.get("trajectory", [[0, 0, 0]])[0], float)
+            if "trajectory" in c:
+                traj = np.asarray(c["trajectory"], float)
+                if traj.shape != (n, 3):
+                    raise InputError(path, f"{where}: trajectory must be {n} positions [x, y, z]")
+            elif "displacement" in c:
+                s = np.clip((np.arange(n) - g) / max((r if r is not None else n - 1) - g, 1), 0, 1)
+                s = s * s * (3 - 2 * s)
+                traj = start + s[:, None] * np.asarray(c["displacement"], float)
+            elif "velocity" in c:
+                steps = np.clip(np.arange(n) - g, 0, (r if r is not None else n) - g)
+                traj = start + steps[:, None] / sd.fps * np.asarray(c["velocity"], float)
+            else:
+                raise InputError(path, f"{where}: give a trajectory, a displacement or a velocity")
+        out.append(ContactSpec(c.get("name", f"{t}{i}"), t, idx, g, r, traj, radius=float(c.get("radius", 0.0)),
+                               normal=tuple(c.get("normal", (0.0, 1.0, 0.0))), friction=float(c.get("friction", 0.5))))
+        if t == "pointNonAdherent" and not out[-1].radius > 0:
+            raise InputError(path, f"{where}: pointNonAdherent needs a radius > 0")
+    if spec.get("keep_supports", True):
+        used = set(np.concatenate([c.indices for c in out])) if out else set()
+        for c in sd.contacts:
+            if c.contact_type == "fixed":
+                keep = np.array([i for i in c.particle_indices if i not in used], np.int64)
+                if len(keep):
+                    out.append(ContactSpec(c.name, "fixed", keep))
+    return spec, n, out
+
+
+def simulate(stage_path, interaction, *, name=None, device="cpu", log=print) -> dict:
+    """Re-simulate the fitted object under a new interaction; writes a new time-sampled layer."""
+    import re
+
+    import torch
+
+    from .fit.problem import FitProblem, Observations
+    from .usd.stage import write_simulation_layer
+
+    sd = read_stage(stage_path)
+    if not sd.reports:
+        log("note: the stage has no fit yet; simulating with its current (initial) material")
+    spec, n, contacts = _parse_interaction(interaction, sd)
+    name = name or spec.get("name") or Path(interaction).stem
+    if not re.fullmatch(r"[A-Za-z0-9_\-]+", name):
+        raise InputError(name, "simulation name may hold letters, digits, '_' and '-' only")
+    # reuse the fit problem's model building (no observations needed: blank frames)
+    h, w = sd.image_size[1], sd.image_size[0]
+    obs = Observations(frames=np.zeros((n, h, w, 3), np.float32))
+    sd_n = _with_frames(sd, n)
+    effects = {e: {k: v for k, v in p.items() if k != "fit"} for e, p in sd.effects.items()}
+    if sd.reports:
+        for e, p in sd.reports[-1].get("effect_parameters", {}).items():
+            effects.setdefault(e, {}).update(p)
+    prob = FitProblem(sd_n, obs, contacts, effects=effects, device=device)
+    E = torch.as_tensor(sd.youngs_modulus, dtype=prob.tdtype)
+    nu = torch.as_tensor(np.minimum(sd.poisson_ratio, sd.settings.poisson_max), dtype=prob.tdtype)
+    with torch.no_grad():
+        x, F = prob.simulate(E.clamp(sd.settings.youngs_min, sd.settings.youngs_max), nu)
+        means, covs = zip(*[prob.gaussians_at(x[k], F[k]) for k in range(n)])
+    out = write_simulation_layer(stage_path, sd, name, x.cpu().numpy(), np.stack([m.cpu().numpy() for m in means]),
+                                 np.stack([c.cpu().numpy() for c in covs]), sd.fps, spec)
+    out["frames"] = n
+    return out
+
+
+def _with_frames(sd, n):
+    import dataclasses
+
+    return dataclasses.replace(sd, end_frame=sd.start_frame + n - 1)
+
+
+# --------------------------------------------------------------------------------------- export
+def export(stage_path, out_path, *, ply_sequence=None) -> dict:
+    """Flatten the stage into one self-contained USD file; optionally a 3DGS PLY per frame."""
+    from .usd.stage import export_stage, read_splat_animation
+
+    result = {"usd": export_stage(stage_path, out_path)}
+    if ply_sequence:
+        from .gaussians import Gaussians, write_ply
+
+        out_dir = Path(ply_sequence)
+        if out_dir.exists() and any(out_dir.iterdir()):
+            raise InputError(out_dir, "exists and is not empty")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        sd = read_stage(stage_path)
+        anim = read_splat_animation(stage_path)
+        g0 = sd.gaussians
+        for k, t in enumerate(anim["times"]):
+            g = Gaussians(anim["positions"][k], anim["scales"][k], anim["quats"][k], g0.opacities, g0.sh)
+            write_ply(g, out_dir / f"{int(t):06d}.ply")
+        result["ply_frames"] = len(anim["times"])
+        result["ply_sequence"] = str(out_dir)
+    return result

@@ -98,6 +98,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gt", required=True, metavar="DIR/gt", help="the synth capture's gt/ folder")
     s.add_argument("--json", action="store_true", help="print JSON")
 
+    from .api import INTERACTION_DOC
+
+    s = sub.add_parser("simulate", help="re-simulate the fitted object under a new interaction",
+                       epilog=INTERACTION_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("stage")
+    s.add_argument("--interaction", required=True, metavar="SPEC.json", help="the new interaction (see below)")
+    s.add_argument("--name", help="name of the simulation (default: the spec's name or file stem)")
+    s.add_argument("--device", default="cpu")
+
+    s = sub.add_parser("export", help="write a self-contained simulation-ready asset (flattened USD)")
+    s.add_argument("stage")
+    s.add_argument("out", help="OUT.usd, .usdc, .usda or .usdz")
+    s.add_argument("--ply-sequence", metavar="DIR", help="also write one 3DGS PLY per frame into DIR")
+
     s = sub.add_parser("info", help="summarise a stage")
     s.add_argument("stage")
     s.add_argument("--json", action="store_true", help="print JSON")
@@ -191,7 +205,24 @@ def _cmd_evaluate(a) -> int:
     return 0
 
 
-COMMANDS = {"init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
+def _cmd_simulate(a) -> int:
+    from . import api
+
+    out = api.simulate(a.stage, a.interaction, name=a.name, device=a.device)
+    print(f"simulated {out['frames']} frames: layer {out['layer']}; open {out['stage']} to view it over the fit")
+    return 0
+
+
+def _cmd_export(a) -> int:
+    from . import api
+
+    out = api.export(a.stage, a.out, ply_sequence=a.ply_sequence)
+    print(f"wrote {out['usd']}" + (f" and {out['ply_frames']} PLY frames in {out['ply_sequence']}"
+                                    if "ply_sequence" in out else ""))
+    return 0
+
+
+COMMANDS = {"simulate": _cmd_simulate, "export": _cmd_export, "init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
 
 
 def main(argv=None) -> int:

@@ -611,3 +611,99 @@ def read_splat_animation(path) -> dict:
         a = prim.GetAttribute(f"primvars:physinteract:{name}")
         out[name] = np.array(a.Get(), dtype=np.float64) if a and a.HasValue() else None
     return out
+
+
+# -------------------------------------------------------------------------------- write: simulate
+def write_simulation_layer(stage_path, scene: SceneData, name: str, positions, gaussian_means,
+                           gaussian_covs, fps: float, spec: dict) -> dict:
+    """A re-simulation under a new interaction as its own time-sampled layer
+    `<stem>.sim.<name>.usdc`, and a small stage `<stem>.sim.<name>.usda` that puts it over the
+    fitted stage (your root layer is not touched). Returns the two paths."""
+    lp = LayerPaths.of(stage_path)
+    stem = lp.root.name[: -len(lp.root.suffix)] if lp.root.suffix else lp.root.name
+    layer_path = lp.root.with_name(f"{stem}.sim.{name}.usdc")
+    view_path = lp.root.with_name(f"{stem}.sim.{name}.usda")
+    n = len(positions)
+    layer = Sdf.Layer.CreateAnonymous("sim.usdc")
+    _set_stage_metadata(layer, fps, 0, n - 1)
+    stage = Usd.Stage.Open(layer)
+    pts = stage.OverridePrim(PARTICLES)
+    pattr = pts.CreateAttribute("points", Sdf.ValueTypeNames.Point3fArray)
+    for k in range(n):
+        pattr.Set(Vt.Vec3fArray.FromNumpy(np.asarray(positions[k], np.float32)), Usd.TimeCode(k))
+    spl = stage.OverridePrim(SPLATS)
+    scales, quats = _splat_samples(np.asarray(gaussian_covs))
+    a_pos = spl.CreateAttribute("positions", Sdf.ValueTypeNames.Point3fArray)
+    a_rot = spl.CreateAttribute("orientations", Sdf.ValueTypeNames.QuatfArray)
+    a_scl = spl.CreateAttribute("scales", Sdf.ValueTypeNames.Float3Array)
+    for k in range(n):
+        tc = Usd.TimeCode(k)
+        a_pos.Set(Vt.Vec3fArray.FromNumpy(np.asarray(gaussian_means[k], np.float32)), tc)
+        a_rot.Set(Vt.QuatfArray([Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))) for q in quats[k]]), tc)
+        a_scl.Set(Vt.Vec3fArray.FromNumpy(scales[k].astype(np.float32)), tc)
+    layer.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "simulation", "name": name,
+                                              "interaction": json.dumps(spec, default=_json_default)}}
+    view = Sdf.Layer.CreateAnonymous("view.usda")
+    _set_stage_metadata(view, fps, 0, n - 1)
+    view.subLayerPaths.append(f"./{layer_path.name}")
+    view.subLayerPaths.append(f"./{lp.root.name}")
+    view.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "simulationView", "name": name}}
+    with atomic_outputs(layer_path, view_path) as (t1, t2):
+        if not layer.Export(str(t1)) or not view.Export(str(t2)):
+            raise OSError(f"{layer_path}: could not write the simulation layer")
+    return {"layer": str(layer_path), "stage": str(view_path)}
+
+
+# ------------------------------------------------------------------------------------------ export
+def export_stage(stage_path, out_path) -> str:
+    """Flatten the composed stage into one self-contained file (.usd/.usdc/.usda or .usdz).
+
+    Asset paths (frames, masks) are rewritten relative to the output; the animation, material
+    primvars and every prim are kept. Blender imports the result's SimParticles as an animated
+    point cloud."""
+    from pxr import UsdUtils
+
+    out = Path(out_path)
+    ext = out.suffix.lower()
+    if ext not in (".usd", ".usdc", ".usda", ".usdz"):
+        raise InputError(out, "the output must end in .usd, .usdc, .usda or .usdz")
+    if not out.parent.exists():
+        raise InputError(out.parent, "output folder does not exist")
+    src = Path(stage_path).resolve()
+    if out.resolve() in {p.resolve() for p in (src, *LayerPaths.of(src).__dict__.values()) if isinstance(p, Path)}:
+        raise InputError(out, "would overwrite a layer of the stage itself")
+    stage = open_stage(stage_path)
+    flat = stage.Flatten()
+    src_dir = src.parent
+    out_dir = out.resolve().parent
+
+    def rebase(p: str) -> str:
+        if not p or "://" in p or p.startswith("@"):
+            return p
+        ap = Path(p) if Path(p).is_absolute() else (src_dir / p).resolve()
+        return os.path.relpath(ap, out_dir).replace(os.sep, "/")
+
+    UsdUtils.ModifyAssetPaths(flat, rebase)
+    flat.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "export", "source": str(src)}}
+    if ext == ".usdz":
+        import tempfile
+
+        # a package holds what it references: the capture's frames and masks stay outside it
+        spec = flat.GetPrimAtPath(SCENE)
+        if spec is not None:
+            for name in ("physinteract:frames", "physinteract:masks", "physinteract:handMasks", "physinteract:video"):
+                if name in spec.attributes:
+                    spec.RemoveProperty(spec.attributes[name])
+
+        with tempfile.TemporaryDirectory() as td:
+            inner = Path(td) / (out.stem + ".usdc")
+            if not flat.Export(str(inner)):
+                raise OSError(f"{out}: could not write")
+            with atomic_outputs(out) as (tmp,):
+                if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(inner)), str(tmp)):
+                    raise OSError(f"{out}: could not write the usdz package")
+        return str(out)
+    with atomic_outputs(out) as (tmp,):
+        if not flat.Export(str(tmp)):
+            raise OSError(f"{out}: could not write")
+    return str(out)
