@@ -1,0 +1,675 @@
+"""Interaction extraction from a video: where the hand touches the object, when it grasps and lets
+go, how (interaction type), how it moves (the initial trajectory T0), and what holds the object
+still (supports). numpy / OpenCV / scipy only; no USD (the stage I/O is `usd.extract_io`).
+
+The method (docs/extract.md has the full account):
+
+1. render the object at rest through the camera (silhouette, depth, particle visibility);
+2. segment the hand in every frame (`models.segmenter`) and compute optical flow (`models.tracker`);
+3. per frame, the contact region = hand pixels over the object at rest or next to its visible
+   silhouette; per frame pair, the hand's and the object's velocities near it;
+4. timing: the grasp window is the longest run of frames in which the hand touches the object and
+   the object next to the contact moves with the hand (or both stand still); grasp = its first
+   frame, release = the first frame after it;
+5. type: a contact that only ever moves the object away from the hand's body is a push
+   (non-adherent); a long, straight hand-object interface is a surface (a palm); else adherent;
+6. contact particles: the contact pixels at the grasp frame back-projected with the rendered depth
+   (X = T_c^-1 pi^-1(x, d)) and mapped to the particles within a radius;
+7. T0: the hand's velocity at the contact integrated over the grasp window, lifted to 3D at the
+   contact's depth;
+8. supports: particles that do not move while the rest does (tracked, interpolated to the ones
+   the camera does not see), grouped into connected regions; gravity says a still object that
+   would otherwise fall is held somewhere, so the stillest particles are taken when no region is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .geometry import back_project, particles_near, pixel_centres, render_rest, sample
+from .models import Models
+from .result import CONTACT_NAMES, INTERACTION_TYPES, ExtractedContact, ExtractionResult, Hint
+from .segment import dilate, erode
+
+
+# ------------------------------------------------------------------------------ small helpers
+def _disk_mask(shape, centre, radius) -> np.ndarray:
+    H, W = shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    return (xx + 0.5 - centre[0]) ** 2 + (yy + 0.5 - centre[1]) ** 2 <= radius ** 2
+
+
+def _median_flow(flow: np.ndarray, mask: np.ndarray, fallback: np.ndarray | None = None):
+    m = mask if mask.sum() >= 3 else fallback
+    if m is None or not m.any():
+        return None
+    return np.median(flow[m], axis=0)
+
+
+def _unit(v):
+    n = np.linalg.norm(v)
+    return v / n if n > 1e-12 else np.zeros_like(v)
+
+
+def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
+    """The default rules (see the module doc). Returns (type, confidence in [0, 1])."""
+    push = evidence.get("push_cos")
+    moved = evidence.get("contact_motion_px", 0.0)
+    surface = evidence.get("interface_span", 0.0)
+    if push is None or moved < 1.0:
+        return "pointAdherent", 0.3
+    if push < -0.6:
+        # the object only moved away from the hand: pushed. A long flat interface is a palm.
+        if surface > 0.45:
+            return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
+        return "pointNonAdherent", float(min(1.0, -push))
+    return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
+
+
+# ------------------------------------------------------------------------------ the analysis
+class _Analysis:
+    """Per-frame quantities shared by the steps."""
+
+    def __init__(self, scene, frames, masks, masks_amodal, models: Models, log):
+        self.scene = scene
+        self.frames = np.asarray(frames, np.float32)
+        self.T, self.H, self.W = self.frames.shape[:3]
+        self.log = log
+        cam = scene.camera
+        self.static_camera = cam.is_static or np.allclose(cam.c2w, cam.c2w[0:1], atol=1e-9)
+        self.cam0 = cam.at(0)
+        self.x0 = np.asarray(scene.particles_positions, np.float64)
+        self.spacing = float(scene.settings.particle_spacing)
+        self.rest = render_rest(scene.gaussians, self.cam0, self.x0, self.spacing)
+        if not self.rest.silhouette.any():
+            raise InputError(scene.path, "the object is not in the camera's view at frame 0 (its rendered "
+                             "silhouette is empty): check the camera")
+        z = self.rest.depth[self.rest.silhouette]
+        self.z_obj = float(np.median(z))
+        self.px_per_m = float(self.cam0.fx / self.z_obj)
+        self.spacing_px = self.spacing * self.px_per_m
+        self.seg = models.segmenter(self.frames, masks, masks_amodal=masks_amodal, rest_alpha=self.rest.alpha,
+                                    object_colors=scene.gaussians.colors)
+        self.hand = self.seg.hand
+        self.obj = self.seg.object
+        self.flows = models.tracker.flows(self.frames)
+        self.tracker = models.tracker
+        ys, xs = np.nonzero(self.rest.silhouette)
+        self.obj_size_px = float(max(np.ptp(xs), np.ptp(ys)) + 1)
+        self.R = float(np.clip(2.5 * self.spacing_px, 4.0, 0.25 * self.obj_size_px + 4.0))
+        self.eps = 0.35  # px per frame: below this, "not moving"
+        self.clear = max(2, int(round(0.4 * self.R)))  # px kept clear of the hand when measuring the object
+
+    # ---- contact region per frame
+    def contact_region(self, k: int, centre=None) -> np.ndarray:
+        hand = self.hand[k]
+        region = hand & (self.rest.silhouette | dilate(self.obj[k], 2))
+        if centre is not None:
+            region &= _disk_mask((self.H, self.W), centre, 1.5 * self.R)
+        return region
+
+    def touching(self, k: int) -> int:
+        return int((self.hand[k] & dilate(self.obj[k], 2)).sum())
+
+
+def _hand_body_direction(an: _Analysis, k: int, c2: np.ndarray) -> np.ndarray:
+    """Unit 2D vector from the contact to the hand's body (the centroid of the hand component
+    that touches the object)."""
+    import cv2
+
+    hand = an.hand[k]
+    if not hand.any():
+        return np.zeros(2)
+    n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+    near = lab[_disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
+    comp = np.bincount(near[near > 0], minlength=n).argmax() if (near > 0).any() else 0
+    m = lab == comp if comp > 0 else hand
+    pts = pixel_centres(m)
+    return _unit(pts.mean(0) - c2)
+
+
+def _velocities(an: _Analysis, centres: list):
+    """Per frame pair k -> k+1 the hand's and the object's median flow near the contact."""
+    T = an.T
+    vh = np.full((T - 1, 2), np.nan)
+    vo = np.full((T - 1, 2), np.nan)
+    for k in range(T - 1):
+        c = centres[k]
+        if c is None:
+            continue
+        disk = _disk_mask((an.H, an.W), c, an.R)
+        big = _disk_mask((an.H, an.W), c, 2.0 * an.R)
+        fl = an.flows.forward[k]
+        h_in = erode(an.hand[k], 1)
+        v = _median_flow(fl, h_in & disk, h_in & big)
+        if v is not None:
+            vh[k] = v
+        # object pixels clear of the hand: the flow smears a few pixels across motion boundaries
+        o_in = erode(an.obj[k], 1) & ~dilate(an.hand[k], an.clear)
+        v = _median_flow(fl, o_in & big, o_in & _disk_mask((an.H, an.W), c, 3.0 * an.R))
+        if v is not None:
+            vo[k] = v
+    return vh, vo
+
+
+def _coupling(vh: np.ndarray, vo: np.ndarray, eps: float) -> np.ndarray:
+    """+1: the object near the contact moves with the hand; 0: both (about) still; -1: not."""
+    out = np.full(len(vh), -1, np.int8)
+    for k in range(len(vh)):
+        a, b = vh[k], vo[k]
+        if np.isnan(a).any() and np.isnan(b).any():
+            out[k] = 0
+            continue
+        if np.isnan(a).any():
+            a = np.zeros(2)  # the hand hidden (e.g. behind the object): no evidence of its motion
+        if np.isnan(b).any():
+            out[k] = 0 if np.linalg.norm(a) < eps else 1  # the object near the contact all covered
+            continue
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        if max(na, nb) < eps:
+            out[k] = 0
+        elif nb >= eps and nb >= 0.2 * na and np.dot(a, b) >= 0.7 * na * nb:
+            # the object next to the contact moves the hand's way (slower: it stretches)
+            out[k] = 1
+        else:
+            out[k] = -1
+    return out
+
+
+def _grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
+    """The run of touching frames with coupled (or still) motion that carries the most motion.
+    Returns (grasp, release or None, motion in px)."""
+    T = len(touch)
+    best = None
+    k = 0
+    speed = np.nan_to_num(np.linalg.norm(vh, axis=1))
+    while k < T - 1:
+        if touch[k] and coupled[k] >= 0:
+            j = k
+            while j < T - 1 and touch[j] and coupled[j] >= 0:
+                j += 1
+            # frames k .. j-1 are pairs inside the window; the window holds from k to j
+            score = float(np.sum(speed[k:j][coupled[k:j] > 0]))
+            if best is None or score > best[2]:
+                best = (k, j, score)
+            k = j + 1
+        else:
+            k += 1
+    if best is None:
+        return None
+    g, j, score = best
+    release = None if j >= T - 1 else j
+    return g, release, score
+
+
+# ------------------------------------------------------------------------------ main entry
+def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
+                        interaction_type: str | None = None, models: Models | None = None,
+                        user_contacts: list | None = None, log=print) -> ExtractionResult:
+    """Extract the interaction from a video of the stage's object.
+
+    scene: a `SceneData` (read_stage); frames (T, H, W, 3) float in [0, 1]; masks (T, H, W) bool
+    object silhouettes or None. `hint` and `interaction_type` win over detection. Returns an
+    `ExtractionResult` (contacts with the fit's fields, hand masks, evidence)."""
+    models = models or Models()
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim != 4 or frames.shape[-1] != 3:
+        raise InputError(scene.path, "frames must be (T, H, W, 3)")
+    T = len(frames)
+    if T < 3:
+        raise InputError(scene.path, f"extraction needs at least 3 frames, the stage has {T}")
+    if (frames.shape[2], frames.shape[1]) != (scene.camera.width, scene.camera.height):
+        raise InputError(scene.path, f"frames are {frames.shape[2]}x{frames.shape[1]}, the camera "
+                         f"{scene.camera.width}x{scene.camera.height}")
+    if interaction_type is not None and interaction_type not in INTERACTION_TYPES:
+        raise InputError("--type", f"must be one of {', '.join(INTERACTION_TYPES)}, not {interaction_type!r}")
+    hint = _check_hint(hint, scene, T)
+    notes = []
+    an = _Analysis(scene, frames, masks, masks_amodal, models, log)
+    if not an.static_camera:
+        notes.append("the camera moves: image-space motion cues (timing, supports) assume a static camera "
+                     "and are unreliable")
+    evidence = {"spacing_px": an.spacing_px, "object_size_px": an.obj_size_px, "radius_px": an.R,
+                "hand_pixels": int(an.hand.sum()), "models": models.describe()}
+    touch = np.array([an.touching(k) for k in range(T)])
+    evidence["touch_px"] = touch.tolist()
+
+    # ---- where: a first contact location (hint or detection), refined at the grasp frame
+    hint_c2, hint_idx, hint_frame = _hint_location(an, hint)
+    touching = touch >= 3
+    if hint_c2 is None and not touching.any():
+        raise InputError(scene.path, "no hand touching the object was found in the video; give a hint "
+                         "(--hint-pixel K,U,V or --hint-particles) or author a contact set")
+    centres = _contact_centres(an, touching, hint_c2, hint_frame)
+    vh, vo = _velocities(an, centres)
+    coupled = _coupling(vh, vo, an.eps)
+    near = touching | (np.array([c is not None for c in centres]) & (hint_c2 is not None))
+    win = _grasp_window(near, coupled, vh)
+    if win is None:
+        first = int(np.argmax(touching)) if touching.any() else (hint_frame or 0)
+        win = (first, None, 0.0)
+        notes.append("the object never moved with the hand: grasp taken at the first touch")
+    # the grasp: a hand comes to (near) rest on the object before it pulls or pushes, so within
+    # the touching frames just before the coupled run, the frame where the hand is slowest
+    # (ties go to the later frame: a late grasp only misses the first, slow motion; an early
+    # one would put the approach into T0)
+    a, r = win[0], win[1]
+    first_touch = int(np.argmax(near)) if near.any() else a
+    speed = np.linalg.norm(vh, axis=1)
+    cands = [k for k in range(max(first_touch, a - 3), min(a + 1, T - 2) + 1) if near[k] and np.isfinite(speed[k])]
+    g = a
+    if cands:
+        best = min(speed[k] for k in cands)
+        g = max(k for k in cands if speed[k] <= best + 0.25)
+    if r is not None and r <= g:
+        r = None
+    win = (g, r, win[2])
+    evidence["coupled_run_start"] = a
+    g, r, _ = win
+    evidence.update({"coupling": coupled.tolist(), "hand_velocity_px": np.round(vh, 3).tolist(),
+                     "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
+
+    # contact at the grasp frame: the hand over the object at rest, next to the first location
+    c2 = centres[g] if centres[g] is not None else (hint_c2 if hint_c2 is not None else centres[int(np.argmax(touching))])
+    if hint_c2 is not None:
+        c2 = hint_c2 if hint_frame is None or hint_frame <= g else _track_back_to(an, hint_c2, hint_frame, g)
+    region = an.contact_region(g, c2) if hint_idx is None else np.zeros((an.H, an.W), bool)
+    if hint_c2 is not None and hint_idx is None:
+        region = _disk_mask((an.H, an.W), c2, max(2.0, 0.75 * an.R)) & (an.rest.alpha > 0.05)
+        if not region.any():
+            region = _disk_mask((an.H, an.W), c2, 1.0)
+
+    # ---- how it moved: the 2D track of the contact over the grasp window
+    end = (T - 1) if r is None else r
+    track = np.tile(c2, (T, 1)).astype(np.float64)
+    for k in range(g, end):
+        v = vh[k] if not np.isnan(vh[k]).any() else (vo[k] if not np.isnan(vo[k]).any() else np.zeros(2))
+        track[k + 1] = track[k] + v
+    track[end + 1:] = track[end]
+    disp = track - track[g]
+    far = int(np.argmax(np.linalg.norm(disp, axis=1)))
+    d2 = disp[far]
+    body = _hand_body_direction(an, g, c2)
+    motion = float(np.linalg.norm(d2))
+    push_cos = float(np.dot(_unit(d2), body)) if motion > 0 and np.linalg.norm(body) > 0 else None
+    span = _interface_span(an, g, c2, end)
+    evidence.update({"contact_uv": c2.tolist(), "contact_motion_px": motion, "push_cos": push_cos,
+                     "hand_body_dir": body.tolist(), "interface_span": span})
+
+    # ---- type
+    if interaction_type is not None:
+        itype, conf, tsource = interaction_type, 1.0, "user"
+    else:
+        itype, conf = models.classifier(evidence, frames=frames)
+        tsource = "detected"
+    evidence["type_confidence"] = conf
+
+    # ---- 3D: contact particles, T0
+    cam_g = scene.camera.at(g)
+    rest_g = an.rest if an.static_camera else render_rest(scene.gaussians, cam_g, an.x0, an.spacing)
+    if hint_idx is not None:
+        idx = hint_idx
+        c3 = an.x0[idx].mean(0)
+        pix = None
+    else:
+        pix = pixel_centres(region) if region.any() else c2[None]
+        pts3 = back_project(rest_g, pix)
+        c3 = _robust_centre(pts3)
+        idx = particles_near(c3[None], an.x0, max(1.6 * an.spacing, _contact_radius_m(an, region, rest_g)),
+                             min_count=3)
+    z_c = float(rest_g.camera.world_to_camera(c3[None])[0, 2])
+    traj = np.empty((T, 3))
+    for k in range(T):
+        cam_k = scene.camera.at(k)
+        base = cam_k.unproject(c2[None], np.array([z_c]))[0]
+        traj[k] = c3 + (cam_k.unproject(track[k][None], np.array([z_c]))[0] - base)
+    contact = ExtractedContact(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
+                               release_frame=r, trajectory=traj, contact_point=c3, track_uv=track,
+                               pixels=pix, pixels_frame=g, confidence=conf,
+                               source="hint" if not (hint is None or hint.is_empty) else "extracted",
+                               label=f"{itype} ({tsource})")
+    push3 = None
+    if itype == "pointAdherent":
+        contact.indices = idx
+        contact.contact_point = an.x0[idx].mean(0)
+        contact.trajectory = traj - c3 + contact.contact_point
+    else:
+        outward = _outward_normal(an, c3, idx)
+        lateral = _unit(traj[far] - traj[g])
+        target = -outward
+        if itype == "surfaceNonAdherent":
+            gdir = _unit(np.asarray(scene.settings.gravity, float))
+            if np.linalg.norm(gdir) > 0 and np.dot(target, gdir) > np.cos(np.radians(40)):
+                target = gdir  # a palm pressing down: along gravity
+        push3 = _push_direction(lateral, c3, rest_g.camera, target) if motion > 1.0 else _unit(target)
+        evidence.update({"outward_normal": outward.tolist(), "push_direction": push3.tolist()})
+        if itype == "pointNonAdherent":
+            radius = _finger_radius(an, g, c2)
+            contact.radius = radius
+            # the sphere starts just clear of the object, on the outside of the contact
+            start = c3 + outward * (radius + 0.5 * an.spacing)
+            dmin = np.min(np.linalg.norm(an.x0 - start, axis=1))
+            if dmin < radius + 0.25 * an.spacing:
+                start = start + outward * (radius + 0.25 * an.spacing - dmin)
+        else:
+            normal = push3 if np.dot(push3, outward) < 0 else -push3
+            contact.normal = tuple(map(float, normal))
+            # the plane starts touching the object (no particle on its far side)
+            s_min = float(np.min((an.x0 - c3) @ normal))
+            start = c3 + normal * (s_min - 0.5 * an.spacing)
+        contact.trajectory = _lift_along(scene.camera, start, track, push3, g)
+        contact.contact_point = c3
+        contact.grasp_frame = 0
+        contact.release_frame = None
+    contacts = [contact]
+
+    # ---- supports
+    fixed_sets, motion_p, sup_ev = find_supports(an, exclude=idx if itype == "pointAdherent" else np.zeros(0, np.int64),
+                                                 contact_motion_px=motion, push_dir=push3)
+    evidence["supports"] = sup_ev
+    for i, s in enumerate(fixed_sets):
+        contacts.append(ExtractedContact(f"support{i}" if len(fixed_sets) > 1 else "support", "fixed", s,
+                                         contact_point=an.x0[s].mean(0), source="extracted", label="support"))
+    return ExtractionResult(contacts=contacts, hand_masks=an.hand, interaction_type=itype, type_source=tsource,
+                            grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,
+                            release_frame=r, evidence=evidence, notes=notes, frames=frames,
+                            object_masks=an.obj, support_motion=motion_p)
+
+
+# ------------------------------------------------------------------------------ pieces
+def _check_hint(hint, scene, T):
+    if hint is None or hint.is_empty:
+        return hint
+    P = len(scene.particles_positions)
+    if hint.particles is not None and len(hint.particles):
+        idx = np.asarray(hint.particles)
+        if not np.issubdtype(idx.dtype, np.integer):
+            raise InputError("--hint-particles", "particle indices must be integers")
+        if idx.min() < 0 or idx.max() >= P:
+            raise InputError("--hint-particles", f"particle indices must lie in [0, {P}) (the stage has {P} "
+                             "simulation particles)")
+        hint.particles = np.unique(idx.astype(np.int64))
+    if hint.pixel is not None:
+        k = 0 if hint.frame is None else hint.frame
+        if not (0 <= int(k) < T):
+            raise InputError("--hint-pixel", f"frame {k} is outside the video (0..{T - 1})")
+        u, v = map(float, hint.pixel)
+        W, H = scene.camera.width, scene.camera.height
+        if not (0 <= u < W and 0 <= v < H):
+            raise InputError("--hint-pixel", f"pixel ({u:g}, {v:g}) is outside the {W}x{H} frame")
+        hint.frame = int(k)
+    return hint
+
+
+def _hint_location(an: _Analysis, hint):
+    """(2D location, particle indices, frame) of the hint; Nones without one."""
+    if hint is None or hint.is_empty:
+        return None, None, None
+    if hint.particles is not None and len(hint.particles):
+        uv, _ = an.cam0.project(an.x0[hint.particles].mean(0)[None])
+        return uv[0], hint.particles, hint.frame
+    c = np.asarray(hint.pixel, np.float64)
+    k = hint.frame
+    on_obj = dilate(an.obj[k] | an.rest.silhouette | an.hand[k], max(2, int(round(an.R))))
+    if not sample(on_obj.astype(np.float32), c[None], order=0)[0]:
+        raise InputError("--hint-pixel", f"pixel ({c[0]:g}, {c[1]:g}) in frame {k} is not on or next to the "
+                         "object")
+    return c, None, k
+
+
+def _contact_centres(an: _Analysis, touching, hint_c2, hint_frame):
+    """Per frame, the centre of the hand-object contact region (None where the hand does not
+    touch). With a hint, the region next to the hint's location."""
+    centres = []
+    prev = hint_c2
+    for k in range(an.T):
+        if not touching[k] and hint_c2 is None:
+            centres.append(None)
+            continue
+        region = an.contact_region(k, prev)
+        if not region.any() and prev is not None:
+            region = an.contact_region(k) & _disk_mask((an.H, an.W), prev, 3 * an.R)
+        if not region.any():
+            centres.append(prev if hint_c2 is not None else None)
+            continue
+        c = pixel_centres(region).mean(0)
+        if hint_c2 is not None:
+            c = 0.5 * (c + prev)
+        centres.append(c)
+        prev = c
+    return centres
+
+
+def _track_back_to(an: _Analysis, c, k_from, k_to):
+    """A pixel of frame k_from carried back to frame k_to through the flow."""
+    tr = an.tracker.track(an.flows, np.asarray(c, np.float64)[None], start=k_from)
+    p = tr.uv[k_to, 0]
+    return p if np.isfinite(p).all() else np.asarray(c, np.float64)
+
+
+def _robust_centre(pts: np.ndarray) -> np.ndarray:
+    med = np.median(pts, 0)
+    d = np.linalg.norm(pts - med, axis=1)
+    keep = d <= np.percentile(d, 80) + 1e-12
+    return pts[keep].mean(0)
+
+
+def _contact_radius_m(an: _Analysis, region, view) -> float:
+    """Half the contact region's extent, in metres (at most 3 particle spacings)."""
+    if not region.any():
+        return an.spacing
+    ys, xs = np.nonzero(region)
+    ext_px = 0.5 * float(max(np.ptp(xs), np.ptp(ys)) + 1)
+    return float(np.clip(0.5 * ext_px / an.px_per_m, an.spacing, 3.0 * an.spacing))
+
+
+def _interface_span(an: _Analysis, g: int, c2, end: int) -> float:
+    """Length of the straight hand-object interface relative to the object's size along it
+    (a palm on a ball: ~0.5+; fingertips: ~0.1-0.3), the largest over the grasp window."""
+    best = 0.0
+    for k in range(g, min(end, an.T - 1) + 1):
+        a = an.hand[k] & dilate(an.obj[k], 2) & _disk_mask((an.H, an.W), c2, 0.6 * an.obj_size_px)
+        if a.sum() < 5:
+            continue
+        p = pixel_centres(a)
+        mu = p.mean(0)
+        w, V = np.linalg.eigh(np.cov((p - mu).T))
+        axis = V[:, -1]
+        proj = (p - mu) @ axis
+        length = float(np.ptp(proj))
+        thick = float(np.sqrt(max(w[0], 0)) * 4)
+        op = pixel_centres(an.obj[k] | (an.rest.silhouette & ~an.hand[k]))
+        size = float(np.ptp((op - mu) @ axis)) if len(op) else 1.0
+        straight = length / max(thick, 1.0)
+        if straight >= 3.0:
+            best = max(best, length / max(size, 1.0))
+    return best
+
+
+def _push_direction(lateral: np.ndarray, c3: np.ndarray, cam, target: np.ndarray) -> np.ndarray:
+    """The 3D push direction: the image says only its component across the view ray (`lateral`);
+    take the direction in the plane of `lateral` and the ray that is closest to `target` (into
+    the surface, or gravity for a palm), as long as it moves the image the observed way."""
+    ray = _unit(c3 - cam.position)
+    r2 = _unit(ray - np.dot(ray, lateral) * lateral)
+    t = np.dot(target, lateral) * lateral + np.dot(target, r2) * r2
+    if np.dot(t, lateral) <= 0 or np.linalg.norm(t) < 1e-9:
+        return lateral
+    return _unit(t)
+
+
+def _lift_along(camera, start: np.ndarray, track: np.ndarray, direction: np.ndarray, g: int) -> np.ndarray:
+    """Positions start + s_k direction whose projections follow the 2D track's displacement from
+    frame g (s_k by Gauss-Newton on the reprojection; s = 0 up to g)."""
+    T = len(track)
+    out = np.tile(start, (T, 1)).astype(np.float64)
+    uv0, _ = camera.at(g).project(start[None])
+    s = 0.0
+    for k in range(T):
+        if k <= g:
+            continue
+        cam = camera.at(k)
+        goal = uv0[0] + (track[k] - track[g])
+        for _ in range(6):
+            p = start + s * direction
+            uv, _ = cam.project(p[None])
+            eps = 1e-4
+            uv2, _ = cam.project((p + eps * direction)[None])
+            J = (uv2[0] - uv[0]) / eps
+            jj = float(J @ J)
+            if jj < 1e-12:
+                break
+            s -= float(J @ (uv[0] - goal)) / jj
+        out[k] = start + s * direction
+    return out
+
+
+def _outward_normal(an: _Analysis, c3, idx) -> np.ndarray:
+    """Outward surface normal at a contact point: away from the particles within a few spacings,
+    flipped toward the camera's side if it is ambiguous."""
+    d = np.linalg.norm(an.x0 - c3, axis=1)
+    near = an.x0[d < max(4 * an.spacing, np.sort(d)[min(len(d) - 1, 20)])]
+    n = _unit(c3 - near.mean(0))
+    if np.linalg.norm(n) == 0:
+        n = _unit(an.cam0.position - c3)
+    return n
+
+
+def _finger_radius(an: _Analysis, g: int, c2) -> float:
+    """The fingertip's half-width at the contact (distance transform of the hand mask), in metres."""
+    import cv2
+
+    hand = an.hand[g].astype(np.uint8)
+    if not hand.any():
+        return 1.5 * an.spacing
+    dt = cv2.distanceTransform(hand, cv2.DIST_L2, 3)
+    disk = _disk_mask(hand.shape, c2, 2 * an.R) & (hand > 0)
+    r_px = float(np.percentile(dt[disk], 75)) if disk.any() else float(dt.max())
+    return float(np.clip(r_px / an.px_per_m, 0.5 * an.spacing, 6 * an.spacing))
+
+
+# ------------------------------------------------------------------------------ supports
+def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_px: float = 0.0,
+                  push_dir=None, rel_threshold: float = 0.08, abs_threshold: float = 0.6):
+    """Particles that stay put while the object moves: connected still regions -> fixed sets.
+
+    Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
+    x0, h = an.x0, an.spacing
+    rest = an.rest
+    step = max(1, int(round(0.5 * an.spacing_px)))
+    sil = rest.silhouette & ~dilate(an.hand[0], 1)
+    ys, xs = np.nonzero(sil)
+    sel = (ys % step == 0) & (xs % step == 0)
+    seeds = np.stack([xs[sel] + 0.5, ys[sel] + 0.5], 1).astype(np.float64)
+    stop = np.stack([dilate(m, 1) for m in an.hand])
+    tr = an.tracker.track(an.flows, seeds, start=0, stop=stop)
+    if an.flows.grays is not None and hasattr(an.tracker, "_flow"):
+        # small motions from direct flows (no drift) where they pass their checks
+        from .track import direct_displacements
+
+        dr = direct_displacements(an.tracker, an.flows, seeds, 0, stop)
+        use = dr.valid & (~tr.valid | (np.linalg.norm(dr.uv - tr.uv, axis=2) < 3.0))
+        tr.uv = np.where(use[..., None], dr.uv, tr.uv)
+        tr.valid = tr.valid | dr.valid
+    seeds3 = back_project(rest, seeds)
+    # a seed is informative when it was watched while the object moved: tracked through the
+    # frames in which the object's motion reached half its largest (a seed lost early, when
+    # nothing had moved yet, tells nothing about stillness)
+    disp = np.linalg.norm(tr.uv - seeds[None], axis=2)
+    with np.errstate(invalid="ignore"):
+        M = np.array([np.nanpercentile(d[v], 90) if v.sum() >= 3 else 0.0 for d, v in zip(disp, tr.valid)])
+    seen_motion = np.array([M[tr.valid[:, i]].max() if tr.valid[:, i].any() else 0.0 for i in range(len(seeds))])
+    good = (seen_motion >= 0.5 * max(M.max(), 1e-9)) & (tr.valid.sum(0) >= 2)
+    ev = {"seeds": int(len(seeds)), "seeds_tracked": int(good.sum())}
+    P = len(x0)
+    if good.sum() < 6:
+        return [], np.full(P, np.nan), ev
+    D = (tr.uv - seeds[None])[:, good]          # (T, S, 2), nan where lost
+    S3 = seeds3[good]
+    motion = particle_motion(x0, S3, D, h)
+    moving = max(contact_motion_px, float(np.nanpercentile(motion, 95)))
+    thr = max(abs_threshold, rel_threshold * moving)
+    ev.update({"threshold_px": thr, "reference_motion_px": moving})
+    still = motion <= thr
+    still[np.asarray(exclude, np.int64)] = False
+    if moving < 3 * abs_threshold:
+        ev["note"] = "the object hardly moves: no support can be told from the motion"
+        return [], motion, ev
+    sets = _components(x0[still], 1.8 * h, np.where(still)[0])
+    sets = [s for s in sets if len(s) >= 2]
+    if not sets and push_dir is not None and np.linalg.norm(push_dir) > 0:
+        # pushed and not driven away: held on the far side along the push (a ball pressed onto
+        # an unseen stand)
+        d = np.asarray(push_dir, float) / np.linalg.norm(push_dir)
+        proj = x0 @ d
+        tip = x0[np.argmax(proj)]
+        lateral = np.linalg.norm((x0 - tip) - np.outer((x0 - tip) @ d, d), axis=1)
+        extent = float(np.max(np.ptp(x0, axis=0)))
+        sel = (proj >= proj.max() - 1.5 * h) & (lateral <= 0.3 * extent)
+        sel[np.asarray(exclude, np.int64)] = False
+        if sel.sum() >= 2:
+            sets = [np.where(sel)[0]]
+            ev["fallback"] = "far side along the push (no still region in view)"
+    if not sets:
+        # gravity: a still-standing object is held somewhere; take the stillest particles
+        order = np.argsort(motion)
+        order = order[~np.isin(order, exclude)]
+        sets = [order[: max(3, P // 50)]]
+        ev["fallback"] = "stillest particles (no still region)"
+    ev["sets"] = [int(len(s)) for s in sets]
+    return sets, motion, ev
+
+
+def particle_motion(x0: np.ndarray, seeds3: np.ndarray, D: np.ndarray, h: float, k_local: int = 6) -> np.ndarray:
+    """Largest image displacement over the video per particle (px), from tracked seed points
+    (rest positions seeds3 (S, 3), displacements D (T, S, 2), nan once lost).
+
+    A particle with seeds within 1.5 spacings takes their inverse-distance average frame by frame;
+    one the camera does not see (the far side, the inside, a part out of view) takes the
+    inverse-distance average of its nearest seeds' largest motions (a guess: see the gravity and
+    push rules in `find_supports`)."""
+    from scipy.spatial import cKDTree
+
+    T, S, _ = D.shape
+    valid = np.isfinite(D).all(-1)                # (T, S)
+    Dz = np.where(valid[..., None], D, 0.0)
+    tree = cKDTree(seeds3)
+    k = min(k_local, S)
+    dist, nn = tree.query(x0, k=k)
+    dist = dist.reshape(len(x0), k)
+    nn = nn.reshape(len(x0), k)
+    motion = np.zeros(len(x0))
+    near = dist[:, 0] <= 1.5 * h
+    # visible: inverse-distance weights over the seeds within 1.5 spacings, frame by frame
+    w = np.where(dist <= 1.5 * h, 1.0 / (dist + 0.5 * h), 0.0)           # (P, k)
+    wv = w[near][:, None, :] * valid[:, nn[near]].transpose(1, 0, 2)      # (Pn, T, k)
+    num = np.einsum("ptk,tpkc->ptc", wv, Dz[:, nn[near]])                 # (Pn, T, 2)
+    den = wv.sum(-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        disp = num / den[..., None]
+    motion[near] = np.nanmax(np.where(den[..., None] > 0, np.linalg.norm(disp, axis=-1)[..., None], np.nan)[..., 0], axis=1)
+    far = ~near
+    if far.any():
+        # hidden: the nearest seeds' largest motions, inverse-distance weighted
+        with np.errstate(invalid="ignore"):
+            smax = np.nan_to_num(np.nanmax(np.where(valid, np.linalg.norm(Dz, axis=-1), np.nan), axis=0))
+        w = 1.0 / (dist[far] + 0.5 * h)
+        motion[far] = np.sum(w * smax[nn[far]], 1) / np.sum(w, 1)
+    return np.nan_to_num(motion, nan=0.0)
+
+
+def _components(points, radius, ids):
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    if not len(points):
+        return []
+    tree = cKDTree(points)
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+
+    n = len(points)
+    A = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else coo_matrix((n, n))
+    nc, lab = connected_components(A, directed=False)
+    return [np.sort(ids[lab == i]).astype(np.int64) for i in range(nc)]

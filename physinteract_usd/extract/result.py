@@ -1,0 +1,122 @@
+"""What extraction returns: plain Python objects (no USD), and the user's hint."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+INTERACTION_TYPES = ("pointAdherent", "pointNonAdherent", "surfaceNonAdherent")
+CONTACT_NAMES = {"pointAdherent": "hand", "pointNonAdherent": "finger", "surfaceNonAdherent": "palm"}
+
+
+@dataclass
+class Hint:
+    """A user's hint that wins over detection: a pixel (u, v) (continuous coordinates, pixel
+    centres at +0.5) in frame `frame` where the hand touches the object, and/or the particles
+    (indices into SimParticles) the hand holds or pushes."""
+
+    frame: int | None = None
+    pixel: tuple | None = None
+    particles: np.ndarray | None = None
+
+    @property
+    def is_empty(self) -> bool:
+        return self.pixel is None and (self.particles is None or len(self.particles) == 0)
+
+
+@dataclass
+class ExtractedContact:
+    name: str
+    type: str                              # pointAdherent | pointNonAdherent | surfaceNonAdherent | fixed
+    indices: np.ndarray                    # particles (empty for colliders)
+    grasp_frame: int = 0
+    release_frame: int | None = None       # None: to the end
+    trajectory: np.ndarray | None = None   # (T, 3) world metres: contact centroid / collider centre / plane point
+    contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    radius: float = 0.0                    # pointNonAdherent sphere radius [m]
+    normal: tuple = (0.0, 1.0, 0.0)        # surfaceNonAdherent: plane normal, pointing to the object's side
+    friction: float = 0.5
+    track_uv: np.ndarray | None = None     # (T, 2) the 2D track the trajectory was lifted from
+    pixels: np.ndarray | None = None       # (N, 2) contact pixels (uv) in `pixels_frame`
+    pixels_frame: int = 0
+    confidence: float = 1.0
+    source: str = "extracted"              # extracted | hint | user
+    label: str = ""
+
+    def to_spec(self):
+        """The fit's ContactSpec."""
+        from ..fit.problem import ContactSpec
+
+        return ContactSpec(self.name, self.type, np.asarray(self.indices, np.int64), int(self.grasp_frame),
+                           None if self.release_frame is None else int(self.release_frame),
+                           None if self.trajectory is None else np.asarray(self.trajectory, np.float64),
+                           radius=float(self.radius), normal=tuple(map(float, self.normal)),
+                           friction=float(self.friction))
+
+
+@dataclass
+class ExtractionResult:
+    contacts: list                         # ExtractedContact: the interaction(s) first, then supports
+    hand_masks: np.ndarray                 # (T, H, W) bool
+    interaction_type: str
+    type_source: str                       # detected | user | stage
+    grasp_frame: int
+    release_frame: int | None
+    evidence: dict = field(default_factory=dict)   # the numbers the decisions were taken on
+    notes: list = field(default_factory=list)
+    frames: np.ndarray | None = None       # the frames (for the preview), not written
+    object_masks: np.ndarray | None = None
+    support_motion: np.ndarray | None = None  # (P,) per-particle motion measure [px]
+    outputs: dict = field(default_factory=dict)   # what `extract` wrote (paths, contact names)
+
+    @property
+    def interaction(self) -> list:
+        return [c for c in self.contacts if c.type != "fixed"]
+
+    @property
+    def supports(self) -> list:
+        return [c for c in self.contacts if c.type == "fixed"]
+
+    def to_specs(self) -> list:
+        return [c.to_spec() for c in self.contacts]
+
+    def summary(self) -> dict:
+        """A JSON-able summary (what `extract --json` prints)."""
+        out = {"interaction_type": self.interaction_type, "type_source": self.type_source,
+               "grasp_frame": int(self.grasp_frame),
+               "release_frame": None if self.release_frame is None else int(self.release_frame),
+               "contacts": [], "hand_pixels_per_frame": [int(m.sum()) for m in self.hand_masks],
+               "evidence": _jsonable(self.evidence), "notes": list(self.notes),
+               "outputs": _jsonable(self.outputs)}
+        for c in self.contacts:
+            d = {"name": c.name, "type": c.type, "particles": int(len(c.indices)), "source": c.source,
+                 "grasp_frame": int(c.grasp_frame),
+                 "release_frame": None if c.release_frame is None else int(c.release_frame),
+                 "contact_point": [round(float(x), 5) for x in c.contact_point],
+                 "confidence": round(float(c.confidence), 3)}
+            if c.type == "pointNonAdherent":
+                d["radius"] = round(float(c.radius), 5)
+            if c.type == "surfaceNonAdherent":
+                d["normal"] = [round(float(x), 4) for x in c.normal]
+            if c.trajectory is not None:
+                tr = np.asarray(c.trajectory)
+                d["displacement_m"] = [round(float(x), 5) for x in (tr.max(0) - tr.min(0))]
+            out["contacts"].append(d)
+        return out
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, (np.floating, float)):
+        return None if not np.isfinite(o) else round(float(o), 5)
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.bool_,)):
+        return bool(o)
+    return o
