@@ -57,8 +57,13 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     push = evidence.get("push_cos")
     moved = evidence.get("contact_motion_px", 0.0)
     surface = evidence.get("interface_span", 0.0)
+    approach, ap_speed = evidence.get("approach_cos"), evidence.get("approach_speed_px", 0.0)
     if push is None or moved < 1.0:
         return "pointAdherent", 0.3
+    if push < -0.6 and approach is not None and ap_speed >= 1.0 and approach < 0.0:
+        # it looks pushed away from the hand, but the hand came in and went back out the way it
+        # came: a pull toward the camera (depth is not seen)
+        return "pointAdherent", 0.5
     if push < -0.6:
         # the object only moved away from the hand: pushed. A long flat interface is a palm.
         if surface > 0.45:
@@ -177,6 +182,87 @@ def _coupling(vh: np.ndarray, vo: np.ndarray, eps: float) -> np.ndarray:
     return out
 
 
+def _approach_velocity(an: _Analysis, g: int, c2, frames: int = 3):
+    """The hand's mean image velocity (px / frame) over the frames before the contact starts,
+    near the contact (None when the hand is not seen there)."""
+    vs = []
+    for k in range(max(0, g - frames), g):
+        h = erode(an.hand[k], 1) & _disk_mask((an.H, an.W), c2, 4.0 * an.R)
+        v = _median_flow(an.flows.forward[k], h)
+        if v is not None:
+            vs.append(v)
+    return np.mean(vs, axis=0) if vs else None
+
+
+def _contact_period(near: np.ndarray) -> tuple[int, int]:
+    """The longest run of frames in which the hand touches the object (one-frame gaps bridged)."""
+    T = len(near)
+    n = near.copy()
+    for k in range(1, T - 1):
+        if not n[k] and near[k - 1] and near[k + 1]:
+            n[k] = True
+    best, k = (0, T - 1, -1), 0
+    while k < T:
+        if n[k]:
+            j = k
+            while j + 1 < T and n[j + 1]:
+                j += 1
+            if j - k > best[2]:
+                best = (k, j, j - k)
+            k = j + 1
+        else:
+            k += 1
+    return best[0], best[1]
+
+
+def _contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, coupled: np.ndarray, vh: np.ndarray) -> int:
+    """The frame the contact starts: a hand comes to (near) rest on the object before it pulls or
+    pushes. Within the contact period, the slowest frame of the first run of slow frames (speed at
+    most 30% of the period's peak); ties go to the later frame (a late start misses only the
+    first, slow motion; an early one would put the approach into T0). Where the hand never slows
+    before most of its motion, the start of the run in which the object follows the hand."""
+    T1 = len(speed)
+    ks = [k for k in range(p0, min(p1, T1 - 1) + 1) if np.isfinite(speed[k])]
+    if not ks:
+        return p0
+    sp = np.array([speed[k] for k in ks])
+    peak = float(sp.max())
+    slow = sp <= max(0.35, 0.3 * peak)
+    path = np.cumsum(sp)
+    if slow.any():
+        i = int(np.argmax(slow))
+        j = i
+        while j + 1 < len(ks) and slow[j + 1]:
+            j += 1
+        run = list(range(i, j + 1))
+        best = min(sp[run])
+        pick = max(q for q in run if sp[q] <= best + 0.25)
+        if path[pick] - sp[pick] <= 0.5 * path[-1]:
+            return ks[pick]
+    win = _grasp_window(near, coupled, vh)
+    return win[0] if win is not None else p0
+
+
+def _release(coupled: np.ndarray, near: np.ndarray, g: int):
+    """The first frame after the grasp from which the object stops following the hand (two
+    decoupled frame pairs in a row, or the hand no longer touching); None: held to the end."""
+    T1 = len(coupled)
+    for k in range(g + 1, T1):
+        if not near[k]:
+            return k
+        if coupled[k] < 0 and (k + 1 >= T1 or coupled[k + 1] < 0 or not near[k + 1]):
+            return k
+    return None
+
+
+def _coupled_share(coupled: np.ndarray, speed: np.ndarray, g: int, p1: int) -> float:
+    """Share of the hand's motion over the contact in which the object next to it follows."""
+    sl = slice(g, min(p1, len(coupled)))
+    sp = np.nan_to_num(speed[sl])
+    tot = float(sp.sum())
+    return float(sp[coupled[sl] > 0].sum() / tot) if tot > 0 else 0.0
+
+
 def _grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
     """The run of touching frames with coupled (or still) motion that carries the most motion.
     Returns (grasp, release or None, motion in px)."""
@@ -245,29 +331,12 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     vh, vo = _velocities(an, centres)
     coupled = _coupling(vh, vo, an.eps)
     near = touching | (np.array([c is not None for c in centres]) & (hint_c2 is not None))
-    win = _grasp_window(near, coupled, vh)
-    if win is None:
-        first = int(np.argmax(touching)) if touching.any() else (hint_frame or 0)
-        win = (first, None, 0.0)
-        notes.append("the object never moved with the hand: grasp taken at the first touch")
-    # the grasp: a hand comes to (near) rest on the object before it pulls or pushes, so within
-    # the touching frames just before the coupled run, the frame where the hand is slowest
-    # (ties go to the later frame: a late grasp only misses the first, slow motion; an early
-    # one would put the approach into T0)
-    a, r = win[0], win[1]
-    first_touch = int(np.argmax(near)) if near.any() else a
+    p0, p1 = _contact_period(near)
     speed = np.linalg.norm(vh, axis=1)
-    cands = [k for k in range(max(first_touch, a - 3), min(a + 1, T - 2) + 1) if near[k] and np.isfinite(speed[k])]
-    g = a
-    if cands:
-        best = min(speed[k] for k in cands)
-        g = max(k for k in cands if speed[k] <= best + 0.25)
-    if r is not None and r <= g:
-        r = None
-    win = (g, r, win[2])
-    evidence["coupled_run_start"] = a
-    g, r, _ = win
-    evidence.update({"coupling": coupled.tolist(), "hand_velocity_px": np.round(vh, 3).tolist(),
+    g = _contact_start(speed, near, p0, p1, coupled, vh)
+    r = _release(coupled, near, g)
+    evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
+                     "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
 
     # contact at the grasp frame: the hand over the object at rest, next to the first location
@@ -280,22 +349,29 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         if not region.any():
             region = _disk_mask((an.H, an.W), c2, 1.0)
 
-    # ---- how it moved: the 2D track of the contact over the grasp window
-    end = (T - 1) if r is None else r
-    track = np.tile(c2, (T, 1)).astype(np.float64)
-    for k in range(g, end):
-        v = vh[k] if not np.isnan(vh[k]).any() else (vo[k] if not np.isnan(vo[k]).any() else np.zeros(2))
-        track[k + 1] = track[k] + v
-    track[end + 1:] = track[end]
-    disp = track - track[g]
-    far = int(np.argmax(np.linalg.norm(disp, axis=1)))
-    d2 = disp[far]
+    # ---- how it moved: the hand's 2D track at the contact, from the contact's start on
+    hand_track = np.tile(c2, (T, 1)).astype(np.float64)
+    for k in range(g, T - 1):
+        v = vh[k] if not np.isnan(vh[k]).any() else (vo[k] if k < p1 and not np.isnan(vo[k]).any() else np.zeros(2))
+        hand_track[k + 1] = hand_track[k] + v
+    disp = hand_track - hand_track[g]
+    ext = np.linalg.norm(disp[: p1 + 1], axis=1)
+    far = int(np.argmax(ext))
+    motion = float(ext[far])
+    # the first main motion (half the largest extent) says push or pull: a poke is withdrawn
+    # afterwards, a pull may end anywhere
+    first_main = int(np.argmax(ext >= 0.5 * motion)) if motion > 0 else g
+    d2 = disp[first_main]
     body = _hand_body_direction(an, g, c2)
-    motion = float(np.linalg.norm(d2))
     push_cos = float(np.dot(_unit(d2), body)) if motion > 0 and np.linalg.norm(body) > 0 else None
-    span = _interface_span(an, g, c2, end)
+    span = _interface_span(an, g, c2, p1)
+    v_app = _approach_velocity(an, g, c2)
+    app_speed = float(np.linalg.norm(v_app)) if v_app is not None else 0.0
+    approach_cos = float(np.dot(_unit(v_app), _unit(d2))) if app_speed > 0 and motion > 0 else None
+    evidence.update({"approach_speed_px": app_speed, "approach_cos": approach_cos})
     evidence.update({"contact_uv": c2.tolist(), "contact_motion_px": motion, "push_cos": push_cos,
-                     "hand_body_dir": body.tolist(), "interface_span": span})
+                     "hand_body_dir": body.tolist(), "interface_span": span,
+                     "coupled_share": _coupled_share(coupled, speed, g, p1)})
 
     # ---- type
     if interaction_type is not None:
@@ -319,6 +395,13 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         idx = particles_near(c3[None], an.x0, max(1.6 * an.spacing, _contact_radius_m(an, region, rest_g)),
                              min_count=3)
     z_c = float(rest_g.camera.world_to_camera(c3[None])[0, 2])
+    # adherent: the grasped particles follow the hand while grasped; colliders are the hand
+    track = hand_track.copy()
+    if itype == "pointAdherent":
+        end = (T - 1) if r is None else r
+        track[end + 1:] = track[end]
+    else:
+        r = None
     traj = np.empty((T, 3))
     for k in range(T):
         cam_k = scene.camera.at(k)
@@ -336,7 +419,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         contact.trajectory = traj - c3 + contact.contact_point
     else:
         outward = _outward_normal(an, c3, idx)
-        lateral = _unit(traj[far] - traj[g])
+        lateral = _unit(traj[first_main] - traj[g])
         target = -outward
         if itype == "surfaceNonAdherent":
             gdir = _unit(np.asarray(scene.settings.gravity, float))
