@@ -238,9 +238,18 @@ def _contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, couple
         best = min(sp[run])
         pick = max(q for q in run if sp[q] <= best + 0.25)
         if path[pick] - sp[pick] <= 0.5 * path[-1]:
-            return ks[pick]
+            return _skip_approach(ks[pick], coupled, speed, p1)
     win = _grasp_window(near, coupled, vh)
-    return win[0] if win is not None else p0
+    return _skip_approach(win[0], coupled, speed, p1) if win is not None else p0
+
+
+def _skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: float = 0.35) -> int:
+    """A start frame in which the hand still moves and the object does not follow, followed by
+    one in which it does, is the end of the approach: start one later (at most twice)."""
+    for _ in range(2):
+        if g + 1 <= min(p1, len(coupled) - 1) and coupled[g] < 0 and coupled[g + 1] > 0 and speed[g] > eps:
+            g += 1
+    return g
 
 
 def _release(coupled: np.ndarray, near: np.ndarray, g: int):

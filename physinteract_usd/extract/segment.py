@@ -159,12 +159,20 @@ class ColourMotionSegmenter:
             fg, sigma, thr = self._foreground(f, bg, cover | hand)
             seeds = fg & outside & ~dilate_all(cover, 1) if masks_amodal or not have_masks else fg & outside
             seeds = np.stack([drop_small(open_close(c, 1, 0), min_area) for c in seeds])
-            boot = seeds | (outside & skin & ~dilate_all(cover, 1))
+            core = np.stack([erode(m, 1) for m in seeds])
+            if core.sum() >= max(30, 3 * min_area):
+                boot = core  # the moving hand teaches its own colours
+            else:
+                boot = core | (outside & skin & ~dilate_all(cover, 1))  # too little motion: a skin prior
             if boot.sum() < min_area:
                 hand = np.zeros((T, H, W), bool)
                 break
             h_hand = colour_histogram(f[boot])
-            bg_px = bg.reshape(-1, 3)[~skin_prior(bg).reshape(-1)]
+            # background colours, less the background estimate's skin-like pixels next to the
+            # moving hand (where a hand that stays put has leaked into the median)
+            near_hand = dilate(seeds.any(0), max(2, int(0.1 * max(H, W))))
+            leak = (skin_prior(bg) & near_hand).reshape(-1)
+            bg_px = bg.reshape(-1, 3)[~leak]
             h_bg = colour_histogram(bg_px if len(bg_px) else bg.reshape(-1, 3))
             lh = np.log(likelihood(h_hand, f) + eps)
             l_bg = np.log(likelihood(h_bg, f) + eps)
@@ -187,14 +195,16 @@ class ColourMotionSegmenter:
     def _foreground(self, f, bg, cover):
         """Foreground by a noise-scaled distance to the background (3x3 box-averaged)."""
         cv2 = _cv2()
-        d = f - bg[None]
-        d = np.stack([cv2.blur(x, (3, 3)) for x in d])
+        raw = f - bg[None]
+        d = np.stack([cv2.blur(x, (3, 3)) for x in raw])
         free = ~dilate_all(cover, 2)
         vals = d[free] if free.any() else d.reshape(-1, 3)
         sig = 1.4826 * np.median(np.abs(vals - np.median(vals, 0)), 0) + 1e-4
         dist = np.abs(d).max(-1)
         thr = max(self.min_threshold, self.noise_factor * float(sig.max()))
-        fg = np.stack([open_close(x > thr, 0, 1) for x in dist])
+        # the 3x3 average spreads a difference by a pixel: the pixel itself must differ too
+        fg = (dist > thr) & (np.abs(raw).max(-1) > 0.5 * thr)
+        fg = np.stack([open_close(x, 0, 1) for x in fg])
         return fg, float(sig.max()), thr
 
 

@@ -1,0 +1,196 @@
+"""Extraction on a small synthetic scene (hemp rope, 10 frames, gt/ moved away before extraction):
+the hand masks, type, timing, contact and supports against the ground truth; the written stage
+round-trips into the fit's contacts; hints, --type and the user's own contact sets win; bad hints
+are InputErrors naming the problem."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from pxr import Sdf, Usd, UsdValidation, Vt
+
+import physinteract_usd  # noqa: F401
+from physinteract_usd import api
+from physinteract_usd.errors import InputError
+from physinteract_usd.extract import Hint, extract, parse_hint
+from physinteract_usd.frames import read_mask
+from physinteract_usd.usd.extract_io import extract_dir
+from physinteract_usd.usd.stage import LayerPaths, read_stage
+
+SCENE = "hemp_rope"
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    from physinteract_usd.synth import generate
+
+    root = tmp_path_factory.mktemp("extract_synth")
+    cap = root / SCENE
+    generate(SCENE, cap, frames=10, log=lambda *a: None)
+    gt = root / "gt"
+    shutil.copytree(cap / "gt", gt)
+    shutil.rmtree(cap / "gt")  # extraction never sees the ground truth
+    return root, cap, gt
+
+
+def _stage(capture, name):
+    root, cap, gt = capture
+    g = json.loads((gt / "gt.json").read_text())["suggested_init"]
+    stage = root / name / "scene.usda"
+    stage.parent.mkdir()
+    api.init(stage, cap, grid=g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
+             max_poisson=g["max_poisson"], density=g["density"])
+    return stage
+
+
+@pytest.fixture(scope="module")
+def extracted(capture):
+    stage = _stage(capture, "auto")
+    result = extract(stage, log=lambda *a: None)
+    return stage, result
+
+
+def test_hand_masks_match_the_truth(capture, extracted):
+    _, _, gt = capture
+    _, result = extracted
+    T = len(result.hand_masks)
+    truth = np.stack([read_mask(gt / "hand_masks" / f"{k:06d}.png") for k in range(T)])
+    iou = (truth & result.hand_masks).sum() / (truth | result.hand_masks).sum()
+    assert iou > 0.9
+
+
+def test_type_timing_contact_and_supports(capture, extracted):
+    _, _, gt_dir = capture
+    stage, result = extracted
+    sd = read_stage(stage)
+    truth = api.contacts_from_gt(sd, gt_dir)
+    g = json.loads((gt_dir / "gt.json").read_text())["interaction"]
+    assert result.interaction_type == g["type"] == "pointAdherent"
+    assert abs(result.grasp_frame - g["grasp_frame"]) <= 1
+    assert abs(result.release_frame - g["release_frame"]) <= 2
+    h = sd.settings.particle_spacing
+    hand = result.interaction[0]
+    dist = np.linalg.norm(sd.particles_positions[hand.indices].mean(0) - sd.particles_positions[truth[0].indices].mean(0))
+    assert dist < 3 * h
+    fixed_true = set(truth[-1].indices.tolist())
+    fixed = set(np.concatenate([c.indices for c in result.supports]).tolist())
+    assert len(fixed_true & fixed) >= 0.8 * len(fixed_true)
+    assert not (fixed & set(hand.indices.tolist()))  # one pin per particle
+    # T0 follows the pull in the image (depth is not seen): within a few pixels
+    cam = sd.camera.at(0)
+    gf, rf = g["grasp_frame"], g["release_frame"]
+    tt = truth[0].trajectory
+    mine = hand.trajectory - hand.trajectory[gf] + tt[gf]
+    err = np.linalg.norm(cam.project(mine[gf:rf + 1])[0] - cam.project(tt[gf:rf + 1])[0], axis=1)
+    assert err.max() < 4.0
+
+
+def test_written_stage_round_trips(extracted):
+    stage, result = extracted
+    sd = read_stage(stage)
+    names = {c.name: c for c in sd.contacts}
+    assert names["hand"].contact_type == "pointAdherent" and names["hand"].source == "extracted"
+    assert any(c.contact_type == "fixed" for c in sd.contacts)
+    tr = [t for t in sd.trajectories if t.contact_set == "hand"]
+    assert len(tr) == 1 and tr[0].stage == "initial" and tr[0].positions.shape == (sd.n_frames, 3)
+    assert np.allclose(tr[0].positions, result.interaction[0].trajectory, atol=1e-6)
+    assert len(sd.hand_mask_assets) == sd.n_frames
+    hm = api._hand_masks(sd, sd.n_frames)
+    assert np.array_equal(hm, result.hand_masks)
+    assert (extract_dir(stage) / "preview.png").exists()
+    # the fit takes them as they are
+    specs = api.stage_contacts(sd)
+    assert {s.type for s in specs} == {"pointAdherent", "fixed"}
+    from physinteract_usd.sim import Contact, Control
+
+    Control([Contact(s.type, indices=s.indices, trajectory=s.trajectory, grasp_frame=s.grasp_frame,
+                     release_frame=s.release_frame) for s in specs], n_frames=sd.n_frames - 1)
+    # the composed stage still validates
+    ustage = Usd.Stage.Open(str(stage))
+    ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    errors = [e for e in ctx.Validate(ustage) if e.GetType() == UsdValidation.ValidationErrorType.Error]
+    assert not errors, [e.GetMessage() for e in errors]
+
+
+def test_rerun_replaces_its_contacts_and_keeps_the_rest(capture):
+    stage = _stage(capture, "rerun")
+    extract(stage, log=lambda *a: None)
+    # something else in the fit layer (a report of an earlier fit) must survive
+    lp = LayerPaths.of(stage)
+    layer = Sdf.Layer.FindOrOpen(str(lp.fit))
+    s = Usd.Stage.Open(layer)
+    rp = s.DefinePrim("/World/PhysInteract/FitReport_v1", "PhysInteractFitReport")
+    rp.GetAttribute("physinteract:version").Set(1)
+    layer.Save()
+    extract(stage, hint=Hint(particles=np.array([0, 1, 2])), log=lambda *a: None)
+    sd = read_stage(stage)
+    assert sorted(c.name for c in sd.contacts if c.contact_type != "fixed") == ["hand"]
+    assert [t.name for t in sd.trajectories] == ["hand_initial"]
+    assert [r["version"] for r in sd.reports] == [1]
+    assert sorted(next(c for c in sd.contacts if c.name == "hand").particle_indices.tolist()) == [0, 1, 2]
+
+
+def test_hints_and_type_win(capture):
+    stage = _stage(capture, "hints")
+    sd = read_stage(stage)
+    # a pixel: the contact is where it says, even far from the hand
+    top = int(np.argmax(sd.particles_positions[:, 1]))
+    uv, _ = sd.camera.at(0).project(sd.particles_positions[top][None])
+    res = extract(stage, hint=parse_hint(f"0,{uv[0, 0] - 0.5:.2f},{uv[0, 1] - 0.5:.2f}"), log=lambda *a: None)
+    c = res.interaction[0]
+    assert np.linalg.norm(sd.particles_positions[c.indices].mean(0) - sd.particles_positions[top]) < 2.5 * sd.settings.particle_spacing
+    assert c.source == "hint"
+    # particles win as they are; --type wins over detection
+    res = extract(stage, hint=Hint(particles=np.array([5, 6])), interaction_type="pointNonAdherent", log=lambda *a: None)
+    assert res.interaction_type == "pointNonAdherent" and res.type_source == "user"
+    sd = read_stage(stage)
+    finger = next(c for c in sd.contacts if c.contact_type == "pointNonAdherent")
+    assert finger.collider_radius > 0
+    specs = api.stage_contacts(sd)
+    assert next(s for s in specs if s.type == "pointNonAdherent").radius > 0
+
+
+def test_bad_hints_are_input_errors(capture):
+    stage = _stage(capture, "bad")
+    with pytest.raises(InputError, match="frame 99 is outside"):
+        extract(stage, hint=parse_hint("99,10,10"), log=lambda *a: None)
+    with pytest.raises(InputError, match="outside the 128x96 frame"):
+        extract(stage, hint=parse_hint("1,500,10"), log=lambda *a: None)
+    with pytest.raises(InputError, match="not on or next to the object"):
+        extract(stage, hint=parse_hint("0,1,1"), log=lambda *a: None)
+    with pytest.raises(InputError, match="--hint-particles"):
+        extract(stage, hint=Hint(particles=np.array([10 ** 6])), log=lambda *a: None)
+    with pytest.raises(InputError, match="--type"):
+        extract(stage, interaction_type="grab", log=lambda *a: None)
+    assert not read_stage(stage).contacts  # nothing written
+
+
+def test_the_users_contact_set_wins(capture):
+    stage = _stage(capture, "user")
+    root = Sdf.Layer.FindOrOpen(str(stage))
+    s = Usd.Stage.Open(root)
+    cp = s.DefinePrim("/World/PhysInteract/grip", "PhysInteractContactSet")
+    cp.GetAttribute("physinteract:particleIndices").Set(Vt.IntArray([3, 4, 5]))
+    cp.GetAttribute("physinteract:contactType").Set("pointAdherent")
+    cp.GetAttribute("physinteract:graspTime").Set(1.0)
+    cp.GetAttribute("physinteract:releaseTime").Set(5.0)
+    root.Save()
+    res = extract(stage, interaction_type="surfaceNonAdherent", log=lambda *a: None)
+    assert res.type_source == "stage" and res.interaction_type == "pointAdherent"
+    sd = read_stage(stage)
+    inter = [c for c in sd.contacts if c.contact_type != "fixed"]
+    assert [c.name for c in inter] == ["grip"]
+    assert [t.contact_set for t in sd.trajectories] == ["grip"]  # its T0 was added
+    fixed = set(np.concatenate([c.particle_indices for c in sd.contacts if c.contact_type == "fixed"]).tolist())
+    assert not fixed & {3, 4, 5}
+    assert len(api.stage_contacts(sd)) == len(sd.contacts)
+
+
+@pytest.mark.slow
+def test_fit_runs_extraction_when_the_stage_has_no_contacts(capture):
+    stage = _stage(capture, "fit")
+    api.fit(stage, iterations=1, progress=False, log=lambda *a: None)
+    sd = read_stage(stage)
+    assert any(c.source == "extracted" for c in sd.contacts)
+    assert sd.hand_mask_assets
