@@ -186,7 +186,7 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
     dkey = torch.zeros((n,), dtype=torch.float32, device=dev)
     if n:
         with _Scope(dev):
-            cam = R.make_cam(k, camera, settings)
+            cam = R.make_cam(k, camera, settings, wp.device_from_torch(dev))
             wp.launch(k.project, n, inputs=[_wp(means.contiguous(), k.vec3), _wp(cov6.contiguous(), k.vec6),
                                             _wp(opacities.to(dtype).contiguous(), scalar), cam],
                       outputs=[_wp(pack, k.vec8), _wp(rect, wp.vec4i), _wp(count, wp.int32), _wp(dkey, wp.float32)],

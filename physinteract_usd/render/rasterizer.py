@@ -47,13 +47,26 @@ FLOAT32_MAX = 3.0e38
 class RasterSettings:
     """Renderer cut-offs and tiling. The defaults are 3DGS's."""
 
-    tile_size: int = 16
+    tile_size: int | None = None   # None: 16 on CUDA (one 256-thread block per tile), 8 on CPU
     low_pass: float = 0.3          # px^2 added to the 2D covariance diagonal
     extent_sigma: float = 3.0      # Gaussians are cut at this Mahalanobis distance
     alpha_min: float = 1.0 / 255.0  # contributions below this alpha are skipped
     alpha_max: float = 0.99        # alpha is clamped to this
     t_min: float = 1e-4            # transmittance cut-off (the Gaussian that crosses it is left out)
     fov_clamp: float = 0.3         # J uses x/z clamped to (W - cx)/fx + fov_clamp * 0.5 W / fx (gsplat)
+    lockstep: bool | None = None   # backward: all pixels of a tile walk its list together (None: on CUDA)
+    backward: str = "pixel"        # "pixel": per-pixel atomics; "tiled": block reduction per Gaussian
+                                   # (launch_tiled; CUDA, or CPU with wp.config.enable_cpu_blocks)
+
+    def resolved_tile_size(self, device) -> int:
+        if self.tile_size is not None:
+            return int(self.tile_size)
+        return 16 if str(device).startswith("cuda") else 8
+
+    def resolved_lockstep(self, device) -> bool:
+        if self.lockstep is not None:
+            return bool(self.lockstep)
+        return str(device).startswith("cuda")
 
 
 # --------------------------------------------------------------------------------- kernels
@@ -205,7 +218,7 @@ def _build(scalar):
                           ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
                           out_rgb: wp.array(dtype=vec3), out_alpha: wp.array(dtype=scalar),
                           out_depth: wp.array(dtype=scalar), out_T: wp.array(dtype=scalar),
-                          out_last: wp.array(dtype=wp.int32)):
+                          out_last: wp.array(dtype=wp.int32), tile_last: wp.array(dtype=wp.int32)):
         tile, px, py = pixel_of(wp.tid(), cam)
         if px >= cam.width or py >= cam.height:
             return
@@ -242,11 +255,14 @@ def _build(scalar):
         out_depth[pix] = D
         out_T[pix] = T
         out_last[pix] = last
+        if last > r0:
+            wp.atomic_max(tile_last, tile, last)
 
     @wp.kernel(module=mod)
     def rasterize_backward(pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
                            ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
                            T_final: wp.array(dtype=scalar), last_idx: wp.array(dtype=wp.int32),
+                           tile_last: wp.array(dtype=wp.int32), lockstep: int,
                            g_rgb: wp.array(dtype=vec3), g_alpha: wp.array(dtype=scalar),
                            g_depth: wp.array(dtype=scalar),
                            g_pack: wp.array(dtype=vec8), g_colors: wp.array(dtype=vec3)):
@@ -256,7 +272,11 @@ def _build(scalar):
         pix = py * cam.width + px
         start = ranges[tile, 0]
         last = last_idx[pix]
-        if last <= start:
+        # lockstep: every pixel of the tile walks the same k (uniform loads and atomics on a GPU)
+        kmax = last
+        if lockstep != 0:
+            kmax = tile_last[tile]
+        if kmax <= start:
             return
         pxc = scalar(px) + scalar(0.5)
         pyc = scalar(py) + scalar(0.5)
@@ -267,8 +287,10 @@ def _build(scalar):
         gD = g_depth[pix]
         Sc = vec3(scalar(0.0))
         Sd = scalar(0.0)
-        for kk in range(last - start):
-            k = last - 1 - kk
+        for kk in range(kmax - start):
+            k = kmax - 1 - kk
+            if k >= last:
+                continue
             g = ids[k]
             p = pack[g]
             dx = p[0] - pxc
@@ -299,6 +321,83 @@ def _build(scalar):
             gv = gs2 * scalar(2.0) * (p[3] * dx + p[4] * dy)
             wp.atomic_add(g_pack, g, vec8(gu, gv, gs2 * dx * dx, gs2 * scalar(2.0) * dx * dy,
                                           gs2 * dy * dy, gop, gD * w, scalar(0.0)))
+
+    vec11 = wp.types.vector(11, scalar)
+
+    @wp.kernel(module=mod)
+    def rasterize_backward_tiled(pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
+                                 ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
+                                 T_final: wp.array(dtype=scalar), last_idx: wp.array(dtype=wp.int32),
+                                 tile_last: wp.array(dtype=wp.int32),
+                                 g_rgb: wp.array(dtype=vec3), g_alpha: wp.array(dtype=scalar),
+                                 g_depth: wp.array(dtype=scalar),
+                                 g_pack: wp.array(dtype=vec8), g_colors: wp.array(dtype=vec3)):
+        """One block per tile (block_dim = tile_size^2, launch_tiled): the block walks the tile's
+        list in lockstep and sums each Gaussian's gradient over its pixels with a block
+        reduction, then one thread adds it (one atomic per Gaussian and tile instead of one per
+        pixel). Same arithmetic as rasterize_backward."""
+        tile, lane = wp.tid()
+        ts = cam.tile_size
+        tyi = tile / cam.tiles_x
+        txi = tile - tyi * cam.tiles_x
+        px = txi * ts + lane % ts
+        py = tyi * ts + lane / ts
+        inside = px < cam.width and py < cam.height
+        pix = wp.min(py, cam.height - 1) * cam.width + wp.min(px, cam.width - 1)
+        start = ranges[tile, 0]
+        kmax = tile_last[tile]
+        last = start
+        Tf = scalar(0.0)
+        gC = vec3(scalar(0.0))
+        gA = scalar(0.0)
+        gD = scalar(0.0)
+        if inside:
+            last = last_idx[pix]
+            Tf = T_final[pix]
+            gC = g_rgb[pix]
+            gA = g_alpha[pix]
+            gD = g_depth[pix]
+        T = Tf
+        pxc = scalar(px) + scalar(0.5)
+        pyc = scalar(py) + scalar(0.5)
+        Sc = vec3(scalar(0.0))
+        Sd = scalar(0.0)
+        for kk in range(kmax - start):
+            k = kmax - 1 - kk
+            g = ids[k]
+            contrib = vec11(scalar(0.0))
+            if k < last:
+                p = pack[g]
+                dx = p[0] - pxc
+                dy = p[1] - pyc
+                s2 = p[2] * dx * dx + scalar(2.0) * p[3] * dx * dy + p[4] * dy * dy
+                if s2 <= cam.ext2:
+                    G = wp.exp(scalar(-0.5) * s2)
+                    ar = p[5] * G
+                    al = wp.min(cam.alpha_max, ar)
+                    if al >= cam.alpha_min:
+                        om = scalar(1.0) - al
+                        T = T / om
+                        w = al * T
+                        c = colors[g]
+                        z = p[6]
+                        dLda = wp.dot(gC, c * T - Sc / om) + gD * (z * T - Sd / om) + gA * Tf / om
+                        Sc += c * w
+                        Sd += z * w
+                        gop = scalar(0.0)
+                        gs2 = scalar(0.0)
+                        if ar <= cam.alpha_max:
+                            gop = dLda * G
+                            gs2 = scalar(-0.5) * dLda * p[5] * G
+                        contrib = vec11(gs2 * scalar(2.0) * (p[2] * dx + p[3] * dy),
+                                        gs2 * scalar(2.0) * (p[3] * dx + p[4] * dy),
+                                        gs2 * dx * dx, gs2 * scalar(2.0) * dx * dy, gs2 * dy * dy,
+                                        gop, gD * w, gC[0] * w, gC[1] * w, gC[2] * w, scalar(0.0))
+            tot = wp.tile_sum(wp.tile(contrib, preserve_type=True))
+            if lane == 0:
+                v = tot[0]
+                wp.atomic_add(g_pack, g, vec8(v[0], v[1], v[2], v[3], v[4], v[5], v[6], scalar(0.0)))
+                wp.atomic_add(g_colors, g, vec3(v[7], v[8], v[9]))
 
     @wp.kernel(module=mod)
     def project_backward(means: wp.array(dtype=vec3), cov6: wp.array(dtype=vec6), count: wp.array(dtype=wp.int32),
@@ -357,7 +456,10 @@ def _build(scalar):
     k.scalar, k.vec3, k.vec6, k.vec8, k.mat33, k.Cam = scalar, vec3, vec6, vec8, mat33, Cam
     k.project, k.gather_counts, k.emit_pairs, k.tile_ranges = project, gather_counts, emit_pairs, tile_ranges
     k.rasterize_forward, k.rasterize_backward, k.project_backward = rasterize_forward, rasterize_backward, project_backward
+    k.rasterize_backward_tiled = rasterize_backward_tiled
     k.module = mod
+    # our backward is hand-written: no Warp adjoints (halves the compile time)
+    wp.get_module(mod).options["enable_backward"] = False
     return k
 
 
@@ -372,7 +474,7 @@ def kernels(scalar):
 
 
 # ---------------------------------------------------------------------------- host side
-def make_cam(k, camera, settings: RasterSettings):
+def make_cam(k, camera, settings: RasterSettings, device="cpu"):
     """Fill the kernel camera struct from a static `camera.Camera`."""
     w2c = camera.w2c_cv()
     c = k.Cam()
@@ -390,7 +492,7 @@ def make_cam(k, camera, settings: RasterSettings):
     c.low_pass = settings.low_pass
     c.ext2 = settings.extent_sigma ** 2
     c.alpha_min, c.alpha_max, c.t_min = settings.alpha_min, settings.alpha_max, settings.t_min
-    ts = int(settings.tile_size)
+    ts = settings.resolved_tile_size(device)
     c.tile_size = ts
     c.tiles_x = (W + ts - 1) // ts
     c.tiles_y = (H + ts - 1) // ts
@@ -413,6 +515,9 @@ class ForwardState:
     ranges: object
     T: object
     last: object
+    tile_last: object
+    lockstep: bool
+    backward: str = "pixel"
 
 
 def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
@@ -426,7 +531,8 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     scalar = opacities.dtype
     k = kernels(scalar)
     dev = opacities.device
-    cam = make_cam(k, camera, settings)
+    cam = make_cam(k, camera, settings, dev)
+    lockstep = settings.resolved_lockstep(dev)
     n = int(opacities.shape[0])
     W, H = cam.width, cam.height
     n_tiles = cam.tiles_x * cam.tiles_y
@@ -456,9 +562,13 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
         wp.launch(k.tile_ranges, n_pairs, inputs=[keys, n_pairs], outputs=[ranges], device=dev)
     T = wp.empty(W * H, dtype=scalar, device=dev)
     last = wp.empty(W * H, dtype=wp.int32, device=dev)
+    tile_last = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
     wp.launch(k.rasterize_forward, n_tiles * ts2, inputs=[pack, colors, ids, ranges, cam],
-              outputs=[out_rgb, out_alpha, out_depth, T, last], device=dev)
-    return ForwardState(k, cam, dev, n, n_pairs, pack, rect, count, ids, ranges, T, last)
+              outputs=[out_rgb, out_alpha, out_depth, T, last, tile_last], device=dev)
+    if settings.backward not in ("pixel", "tiled"):
+        raise ValueError(f"backward must be 'pixel' or 'tiled', not {settings.backward!r}")
+    return ForwardState(k, cam, dev, n, n_pairs, pack, rect, count, ids, ranges, T, last, tile_last, lockstep,
+                        settings.backward)
 
 
 def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
@@ -470,14 +580,21 @@ def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
         return
     ts2 = cam.tile_size * cam.tile_size
     n_tiles = cam.tiles_x * cam.tiles_y
-    wp.launch(k.rasterize_backward, n_tiles * ts2,
-              inputs=[st.pack, colors, st.ids, st.ranges, cam, st.T, st.last, g_rgb, g_alpha, g_depth],
-              outputs=[g_pack, g_colors], device=dev)
+    if st.backward == "tiled":
+        wp.launch_tiled(k.rasterize_backward_tiled, dim=[n_tiles],
+                        inputs=[st.pack, colors, st.ids, st.ranges, cam, st.T, st.last, st.tile_last,
+                                g_rgb, g_alpha, g_depth],
+                        outputs=[g_pack, g_colors], block_dim=ts2, device=dev)
+    else:
+        wp.launch(k.rasterize_backward, n_tiles * ts2,
+                  inputs=[st.pack, colors, st.ids, st.ranges, cam, st.T, st.last, st.tile_last, int(st.lockstep),
+                          g_rgb, g_alpha, g_depth],
+                  outputs=[g_pack, g_colors], device=dev)
     wp.launch(k.project_backward, st.n, inputs=[means, cov6, st.count, st.pack, g_pack, cam],
               outputs=[g_means, g_cov6], device=dev)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _iota_kernel(a: wp.array(dtype=wp.int32)):
     i = wp.tid()
     a[i] = i
