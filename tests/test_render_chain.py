@@ -2,11 +2,22 @@
 the simulation parameters, match finite differences, and a few optimiser steps recover them."""
 
 import numpy as np
+import pytest
 import torch
 
 from physinteract_usd.camera import Camera
 from physinteract_usd.render import (GaussianBinding, covariance_from_scales_quats, l1_loss, render,
                                      silhouette_loss, ssim)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny tensors: torch's thread pool only adds overhead (a lot of it on a busy 2-core box)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
 
 
 class ToySim(torch.autograd.Function):
