@@ -216,3 +216,45 @@ def test_tiled_backward_matches_pixel_backward():
     for x, y in zip(*grads):
         assert float(x.abs().max()) > 0
         assert float((x - y).abs().max()) <= 1e-10 * float(x.abs().max())
+
+
+def test_alpha_clamp_and_fov_clamp_paths():
+    """Opaque Gaussians whose alpha hits the 0.99 clamp, and wide Gaussians outside the 1.3x
+    field of view whose footprint still reaches the image (J at the clamped x/z): forward and
+    gradients equal the reference's, and both paths are really taken."""
+    from render_reference import ALPHA_MAX, FOV_CLAMP, reference_project
+
+    cam = Camera.look_at([0.0, 0.0, 2.0], [0.0, 0.0, 0.0], width=32, height=32, fov_y_deg=40)
+    tan = 0.5 * cam.width / cam.fx
+    lim = (cam.width - cam.cx) / cam.fx + FOV_CLAMP * tan
+    means = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.05, 0.1],        # opaque, on axis
+                          [1.4 * lim * 2.0, 0.1, 0.0],               # right of the clamp limit
+                          [-0.1, -1.35 * lim * 2.0, 0.2]],           # below it
+                         dtype=torch.float64)
+    covs = torch.stack([torch.eye(3) * 0.08 ** 2, torch.eye(3) * 0.05 ** 2,
+                        torch.diag(torch.tensor([0.3, 0.2, 0.25])) ** 2,
+                        torch.diag(torch.tensor([0.25, 0.3, 0.2])) ** 2]).double()
+    cols = torch.tensor([[1.0, 0.2, 0.1], [0.1, 1.0, 0.3], [0.2, 0.3, 1.0], [0.9, 0.9, 0.1]], dtype=torch.float64)
+    op = torch.tensor([1.0, 0.995, 0.9, 0.9], dtype=torch.float64)
+    u, v, conic, z, _, _ = reference_project(means, covs, cam.w2c_cv(), cam.fx, cam.fy, cam.cx, cam.cy,
+                                             cam.width, cam.height)
+    w2c = torch.as_tensor(cam.w2c_cv())
+    pc = means @ w2c[:3, :3].T + w2c[:3, 3]
+    assert abs(float(pc[2, 0] / pc[2, 2])) > lim and abs(float(pc[3, 1] / pc[3, 2])) > lim  # outside the clamp
+    H, W = cam.height, cam.width
+    wr, wa, wd = _weights([(H, W, 3), (H, W), (H, W)], 9)
+    ours = [t.clone().requires_grad_(True) for t in (means, covs, cols, op)]
+    out = render(*ours, cam)
+    refs = [t.clone().requires_grad_(True) for t in (means, covs, cols, op)]
+    rr = reference_render_camera(*refs, cam)
+    for name, r in zip(["rgb", "alpha", "depth_acc"], rr):
+        assert float((out[name].detach() - r.detach()).abs().max()) < 1e-10, name
+    # the off-frustum Gaussians draw something, the opaque one saturates the clamp
+    only_side = reference_render_camera(means[2:], covs[2:], cols[2:], op[2:], cam)[1]
+    assert float(only_side.max()) > 0.05
+    assert abs(float(rr[1].max()) - ALPHA_MAX) < 1e-12 or float(rr[1].max()) > ALPHA_MAX
+    ((out["rgb"] * wr).sum() + (out["alpha"] * wa).sum() + (out["depth_acc"] * wd).sum()).backward()
+    ((rr[0] * wr).sum() + (rr[1] * wa).sum() + (rr[2] * wd).sum()).backward()
+    for name, a, b in zip(["means", "covs", "colors", "opacities"], ours, refs):
+        ok, rel = _grad_close(a.grad, b.grad)
+        assert ok, (name, rel)
