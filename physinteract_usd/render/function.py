@@ -189,7 +189,8 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
             cam = R.make_cam(k, camera, settings, wp.device_from_torch(dev))
             wp.launch(k.project, n, inputs=[_wp(means.contiguous(), k.vec3), _wp(cov6.contiguous(), k.vec6),
                                             _wp(opacities.to(dtype).contiguous(), scalar), cam],
-                      outputs=[_wp(pack, k.vec8), _wp(rect, wp.vec4i), _wp(count, wp.int32), _wp(dkey, wp.float32)],
+                      outputs=[_wp(pack, k.vec8), _wp(rect, wp.vec4i), _wp(count, wp.int32), _wp(dkey, wp.float32),
+                               _wp(torch.zeros((n,), dtype=torch.int32, device=dev), wp.int32)],
                       device=wp.device_from_torch(dev))
     w2c = torch.as_tensor(camera.w2c_cv(), dtype=dtype, device=dev)
     z = means @ w2c[2, :3] + w2c[2, 3]

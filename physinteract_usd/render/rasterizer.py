@@ -113,8 +113,9 @@ def _build(scalar):
     @wp.kernel(module=mod)
     def project(means: wp.array(dtype=vec3), cov6: wp.array(dtype=vec6), opac: wp.array(dtype=scalar),
                 cam: Cam, pack: wp.array(dtype=vec8), rect: wp.array(dtype=wp.vec4i),
-                count: wp.array(dtype=wp.int32), dkey: wp.array(dtype=wp.float32)):
+                count: wp.array(dtype=wp.int32), dkey: wp.array(dtype=wp.float32), order: wp.array(dtype=wp.int32)):
         i = wp.tid()
+        order[i] = i
         count[i] = 0
         dkey[i] = wp.float32(FLOAT32_MAX)
         pc = cam.R * means[i] + cam.t
@@ -202,6 +203,16 @@ def _build(scalar):
         elif keys[i + 1] != t:
             ranges[t, 1] = i + 1
 
+    @wp.kernel(module=mod)
+    def gather_pairs(ids: wp.array(dtype=wp.int32), pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
+                     pk: wp.array(dtype=vec8), pcol: wp.array(dtype=vec3)):
+        """Per-pair copies in tile/depth order: the per-pixel loops then read contiguous memory
+        with no dependent (indirect) load."""
+        i = wp.tid()
+        g = ids[i]
+        pk[i] = pack[g]
+        pcol[i] = colors[g]
+
     @wp.func
     def pixel_of(tid: int, cam: Cam):
         ts2 = cam.tile_size * cam.tile_size
@@ -214,8 +225,8 @@ def _build(scalar):
         return tile, px, py
 
     @wp.kernel(module=mod)
-    def rasterize_forward(pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
-                          ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
+    def rasterize_forward(pk: wp.array(dtype=vec8), pcol: wp.array(dtype=vec3),
+                          ranges: wp.array2d(dtype=wp.int32), cam: Cam,
                           out_rgb: wp.array(dtype=vec3), out_alpha: wp.array(dtype=scalar),
                           out_depth: wp.array(dtype=scalar), out_T: wp.array(dtype=scalar),
                           out_last: wp.array(dtype=wp.int32), tile_last: wp.array(dtype=wp.int32)):
@@ -232,8 +243,7 @@ def _build(scalar):
         D = scalar(0.0)
         last = r0
         for k in range(r0, r1):
-            g = ids[k]
-            p = pack[g]
+            p = pk[k]
             dx = p[0] - pxc
             dy = p[1] - pyc
             s2 = p[2] * dx * dx + scalar(2.0) * p[3] * dx * dy + p[4] * dy * dy
@@ -246,7 +256,7 @@ def _build(scalar):
             if Tn < cam.t_min:
                 break
             w = al * T
-            C += colors[g] * w
+            C += pcol[k] * w
             D += p[6] * w
             T = Tn
             last = k + 1
@@ -259,7 +269,7 @@ def _build(scalar):
             wp.atomic_max(tile_last, tile, last)
 
     @wp.kernel(module=mod)
-    def rasterize_backward(pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
+    def rasterize_backward(pk: wp.array(dtype=vec8), pcol: wp.array(dtype=vec3),
                            ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
                            T_final: wp.array(dtype=scalar), last_idx: wp.array(dtype=wp.int32),
                            tile_last: wp.array(dtype=wp.int32), lockstep: int,
@@ -291,8 +301,7 @@ def _build(scalar):
             k = kmax - 1 - kk
             if k >= last:
                 continue
-            g = ids[k]
-            p = pack[g]
+            p = pk[k]
             dx = p[0] - pxc
             dy = p[1] - pyc
             s2 = p[2] * dx * dx + scalar(2.0) * p[3] * dx * dy + p[4] * dy * dy
@@ -306,8 +315,9 @@ def _build(scalar):
             om = scalar(1.0) - al
             T = T / om
             w = al * T
-            c = colors[g]
+            c = pcol[k]
             z = p[6]
+            g = ids[k]
             wp.atomic_add(g_colors, g, gC * w)
             dLda = wp.dot(gC, c * T - Sc / om) + gD * (z * T - Sd / om) + gA * Tf / om
             Sc += c * w
@@ -325,7 +335,7 @@ def _build(scalar):
     vec11 = wp.types.vector(11, scalar)
 
     @wp.kernel(module=mod)
-    def rasterize_backward_tiled(pack: wp.array(dtype=vec8), colors: wp.array(dtype=vec3),
+    def rasterize_backward_tiled(pk: wp.array(dtype=vec8), pcol: wp.array(dtype=vec3),
                                  ids: wp.array(dtype=wp.int32), ranges: wp.array2d(dtype=wp.int32), cam: Cam,
                                  T_final: wp.array(dtype=scalar), last_idx: wp.array(dtype=wp.int32),
                                  tile_last: wp.array(dtype=wp.int32),
@@ -367,7 +377,7 @@ def _build(scalar):
             g = ids[k]
             contrib = vec11(scalar(0.0))
             if k < last:
-                p = pack[g]
+                p = pk[k]
                 dx = p[0] - pxc
                 dy = p[1] - pyc
                 s2 = p[2] * dx * dx + scalar(2.0) * p[3] * dx * dy + p[4] * dy * dy
@@ -379,7 +389,7 @@ def _build(scalar):
                         om = scalar(1.0) - al
                         T = T / om
                         w = al * T
-                        c = colors[g]
+                        c = pcol[k]
                         z = p[6]
                         dLda = wp.dot(gC, c * T - Sc / om) + gD * (z * T - Sd / om) + gA * Tf / om
                         Sc += c * w
@@ -455,6 +465,7 @@ def _build(scalar):
     k = K()
     k.scalar, k.vec3, k.vec6, k.vec8, k.mat33, k.Cam = scalar, vec3, vec6, vec8, mat33, Cam
     k.project, k.gather_counts, k.emit_pairs, k.tile_ranges = project, gather_counts, emit_pairs, tile_ranges
+    k.gather_pairs = gather_pairs
     k.rasterize_forward, k.rasterize_backward, k.project_backward = rasterize_forward, rasterize_backward, project_backward
     k.rasterize_backward_tiled = rasterize_backward_tiled
     k.module = mod
@@ -518,6 +529,8 @@ class ForwardState:
     tile_last: object
     lockstep: bool
     backward: str = "pixel"
+    pk: object = None     # per-pair copies of pack / colours, in tile and depth order
+    pcol: object = None
 
 
 def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
@@ -545,8 +558,8 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     ranges = wp.zeros((n_tiles, 2), dtype=wp.int32, device=dev)
     n_pairs = 0
     if n > 0:
-        wp.launch(k.project, n, inputs=[means, cov6, opacities, cam], outputs=[pack, rect, count, dkey], device=dev)
-        _iota(order, n, dev)
+        wp.launch(k.project, n, inputs=[means, cov6, opacities, cam], outputs=[pack, rect, count, dkey, order],
+                  device=dev)
         wp.utils.radix_sort_pairs(dkey, order, n)
         counts_sorted = wp.empty(n, dtype=wp.int32, device=dev)
         wp.launch(k.gather_counts, n, inputs=[order, count], outputs=[counts_sorted], device=dev)
@@ -560,15 +573,19 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
                   outputs=[keys, ids], device=dev)
         wp.utils.radix_sort_pairs(keys, ids, n_pairs, 0, max(1, int(n_tiles - 1).bit_length()))
         wp.launch(k.tile_ranges, n_pairs, inputs=[keys, n_pairs], outputs=[ranges], device=dev)
+    pk = wp.empty(max(n_pairs, 1), dtype=k.vec8, device=dev)
+    pcol = wp.empty(max(n_pairs, 1), dtype=k.vec3, device=dev)
+    if n_pairs > 0:
+        wp.launch(k.gather_pairs, n_pairs, inputs=[ids, pack, colors], outputs=[pk, pcol], device=dev)
     T = wp.empty(W * H, dtype=scalar, device=dev)
     last = wp.empty(W * H, dtype=wp.int32, device=dev)
     tile_last = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
-    wp.launch(k.rasterize_forward, n_tiles * ts2, inputs=[pack, colors, ids, ranges, cam],
+    wp.launch(k.rasterize_forward, n_tiles * ts2, inputs=[pk, pcol, ranges, cam],
               outputs=[out_rgb, out_alpha, out_depth, T, last, tile_last], device=dev)
     if settings.backward not in ("pixel", "tiled"):
         raise ValueError(f"backward must be 'pixel' or 'tiled', not {settings.backward!r}")
     return ForwardState(k, cam, dev, n, n_pairs, pack, rect, count, ids, ranges, T, last, tile_last, lockstep,
-                        settings.backward)
+                        settings.backward, pk, pcol)
 
 
 def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
@@ -582,26 +599,16 @@ def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
     n_tiles = cam.tiles_x * cam.tiles_y
     if st.backward == "tiled":
         wp.launch_tiled(k.rasterize_backward_tiled, dim=[n_tiles],
-                        inputs=[st.pack, colors, st.ids, st.ranges, cam, st.T, st.last, st.tile_last,
+                        inputs=[st.pk, st.pcol, st.ids, st.ranges, cam, st.T, st.last, st.tile_last,
                                 g_rgb, g_alpha, g_depth],
                         outputs=[g_pack, g_colors], block_dim=ts2, device=dev)
     else:
         wp.launch(k.rasterize_backward, n_tiles * ts2,
-                  inputs=[st.pack, colors, st.ids, st.ranges, cam, st.T, st.last, st.tile_last, int(st.lockstep),
+                  inputs=[st.pk, st.pcol, st.ids, st.ranges, cam, st.T, st.last, st.tile_last, int(st.lockstep),
                           g_rgb, g_alpha, g_depth],
                   outputs=[g_pack, g_colors], device=dev)
     wp.launch(k.project_backward, st.n, inputs=[means, cov6, st.count, st.pack, g_pack, cam],
               outputs=[g_means, g_cov6], device=dev)
-
-
-@wp.kernel(enable_backward=False)
-def _iota_kernel(a: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    a[i] = i
-
-
-def _iota(a, n, dev):
-    wp.launch(_iota_kernel, n, inputs=[a], device=dev)
 
 
 def tiles_for(width: int, height: int, tile_size: int) -> tuple[int, int]:
