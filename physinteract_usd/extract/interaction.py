@@ -252,16 +252,29 @@ def _skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps:
     return g
 
 
-def _release(coupled: np.ndarray, near: np.ndarray, g: int):
-    """The first frame after the grasp from which the object stops following the hand (two
-    decoupled frame pairs in a row, or the hand no longer touching); None: held to the end."""
+def _release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | None = None):
+    """The release: the object stops following the hand (two decoupled frame pairs in a row, or
+    the hand no longer touching) at some frame r_c; None: held to the end. A hand slows down
+    before it lets go and moves off after: with `speed`, the release is the frame after the
+    slowest of the frame pairs just before r_c (ties to the earlier: a late release would drag
+    the object along the hand's retreat)."""
     T1 = len(coupled)
+    r_c = None
     for k in range(g + 1, T1):
         if not near[k]:
-            return k
+            r_c = k
+            break
         if coupled[k] < 0 and (k + 1 >= T1 or coupled[k + 1] < 0 or not near[k + 1]):
-            return k
-    return None
+            r_c = k
+            break
+    if r_c is None or speed is None:
+        return r_c
+    ks = [k for k in range(max(g + 1, r_c - 3), min(r_c, T1 - 1) + 1) if np.isfinite(speed[k])]
+    if not ks:
+        return r_c
+    best = min(speed[k] for k in ks)
+    k_min = min(k for k in ks if speed[k] <= best + 0.1)
+    return k_min + 1
 
 
 def _coupled_share(coupled: np.ndarray, speed: np.ndarray, g: int, p1: int) -> float:
@@ -343,7 +356,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     p0, p1 = _contact_period(near)
     speed = np.linalg.norm(vh, axis=1)
     g = _contact_start(speed, near, p0, p1, coupled, vh)
-    r = _release(coupled, near, g)
+    r = _release(coupled, near, g, speed)
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
@@ -643,8 +656,15 @@ def _finger_radius(an: _Analysis, g: int, c2) -> float:
 
 # ------------------------------------------------------------------------------ supports
 def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_px: float = 0.0,
-                  push_dir=None, rel_threshold: float = 0.08, abs_threshold: float = 0.6):
+                  push_dir=None, rel_threshold: float = 0.08, abs_threshold: float = 0.6,
+                  core_rel: float = 0.0, core_abs: float = 0.0, margin: float = 1.2, core_frac: float = 0.5):
     """Particles that stay put while the object moves: connected still regions -> fixed sets.
+
+    Still: motion at most max(abs_threshold, rel_threshold x the contact's motion). Near a support
+    the motion grows with the distance from it, so of each connected still region only its core
+    (motion within `core_frac` of the way from the region's least to its median motion, or below
+    max(core_abs, core_rel x the contact's motion)) and `margin` spacings around it are kept:
+    fixing particles that do move a little would hide the material there from the fit.
 
     Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
     x0, h = an.x0, an.spacing
@@ -690,6 +710,20 @@ def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_p
         return [], motion, ev
     sets = _components(x0[still], 1.8 * h, np.where(still)[0])
     sets = [s for s in sets if len(s) >= 2]
+    # near a support the motion grows with the distance from it: keep each still region's core
+    # (motion at the noise floor, or its stillest quarter) and a margin of a spacing around it
+    low = max(core_abs, core_rel * moving)
+    cores = []
+    for s_ in sets:
+        m = motion[s_]
+        core = s_[m <= max(low, m.min() + core_frac * (np.median(m) - m.min()))]
+        if len(core) < 2:
+            core = s_[m <= np.percentile(m, 25)]
+        d = np.min(np.linalg.norm(x0[s_][:, None, :] - x0[core][None, :, :], axis=2), axis=1)
+        keep = s_[d <= margin * h]
+        cores.append(keep if len(keep) >= 3 else s_[np.argsort(m)[:3]])
+    sets = cores
+    ev["core_threshold_px"] = low
     if not sets and push_dir is not None and np.linalg.norm(push_dir) > 0:
         # pushed and not driven away: held on the far side along the push (a ball pressed onto
         # an unseen stand)
