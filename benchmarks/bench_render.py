@@ -153,6 +153,7 @@ def main(argv=None):
         torch.set_num_threads(a.torch_threads)
     import warp as wp
 
+    wp.config.quiet = True
     wp.init()
     print(f"device: {a.device}: {device_name(a.device)}; torch {torch.__version__}, warp {wp.__version__}, "
           f"python {platform.python_version()}, tile {settings.resolved_tile_size(a.device)}, "

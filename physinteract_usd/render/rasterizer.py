@@ -7,8 +7,8 @@ Pipeline (one static pinhole camera, see `camera.Camera` for the conventions):
    ``cov2d = J W Sigma W^T J^T + low_pass * I`` (J the perspective Jacobian, evaluated with the
    camera-frame x/z and y/z clamped to 1.3x the field of view as in 3DGS / gsplat), its inverse
    (the conic), the 2D mean ``u = fx x / z + cx`` (pixel (i, j)'s centre at (i + 0.5, j + 0.5)),
-   and the rectangle of 16x16 (``tile_size``) tiles covered by the bounding box of its cut-off
-   ellipse.
+   and the rectangle of tiles (``tile_size``: 16x16 on CUDA, one 256-thread block per tile; 8x8
+   on CPU) covered by the bounding box of its cut-off ellipse.
 2. Sort: Gaussians by float32 camera z (stable radix sort, ties by index), then the
    (tile, Gaussian) pairs, emitted in depth order, stably by tile id: each tile's list is front
    to back.
@@ -37,8 +37,6 @@ import math
 from dataclasses import dataclass
 
 import warp as wp
-
-wp.config.quiet = True
 
 FLOAT32_MAX = 3.0e38
 
