@@ -8,15 +8,16 @@ The method (docs/extract.md has the full account):
 2. segment the hand in every frame (`models.segmenter`) and compute optical flow (`models.tracker`);
 3. per frame, the contact region = hand pixels over the object at rest or next to its visible
    silhouette; per frame pair, the hand's and the object's velocities near it;
-4. timing: the grasp window is the longest run of frames in which the hand touches the object and
-   the object next to the contact moves with the hand (or both stand still); grasp = its first
-   frame, release = the first frame after it;
-5. type: a contact that only ever moves the object away from the hand's body is a push
-   (non-adherent); a long, straight hand-object interface is a surface (a palm); else adherent;
+4. timing: the contact period = the longest run of frames in which the hand touches the object;
+   the grasp is where the hand comes to (near) rest on the object before its main motion; the
+   release is the hand's slowest frame before the object stops following it;
+5. type: a contact whose first main motion moves the object away from the hand's body is a push
+   (non-adherent), unless the hand went back the way it came in (a pull in depth); a long,
+   straight hand-object interface is a surface (a palm); else adherent;
 6. contact particles: the contact pixels at the grasp frame back-projected with the rendered depth
    (X = T_c^-1 pi^-1(x, d)) and mapped to the particles within a radius;
-7. T0: the hand's velocity at the contact integrated over the grasp window, lifted to 3D at the
-   contact's depth;
+7. T0: the hand's velocity at the contact integrated from the grasp, lifted to 3D (at the
+   contact's depth for a pull, along the push direction for a collider);
 8. supports: particles that do not move while the rest does (tracked, interpolated to the ones
    the camera does not see), grouped into connected regions; gravity says a still object that
    would otherwise fall is held somewhere, so the stillest particles are taken when no region is.
@@ -76,11 +77,10 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
 class _Analysis:
     """Per-frame quantities shared by the steps."""
 
-    def __init__(self, scene, frames, masks, masks_amodal, models: Models, log):
+    def __init__(self, scene, frames, masks, masks_amodal, models: Models):
         self.scene = scene
         self.frames = np.asarray(frames, np.float32)
         self.T, self.H, self.W = self.frames.shape[:3]
-        self.log = log
         cam = scene.camera
         self.static_camera = cam.is_static or np.allclose(cam.c2w, cam.c2w[0:1], atol=1e-9)
         self.cam0 = cam.at(0)
@@ -180,6 +180,35 @@ def _coupling(vh: np.ndarray, vo: np.ndarray, eps: float) -> np.ndarray:
         else:
             out[k] = -1
     return out
+
+
+def _hand_scale(an: _Analysis, g: int, end: int, track: np.ndarray, max_step: float = 0.1) -> np.ndarray:
+    """Cumulative apparent scale of the hand from frame g (1 up to g, held after `end`): per frame
+    pair a similarity transform fitted (least median of squares) to the forward flow on the hand
+    component at the contact. Scale s means the hand came 1/s closer: depth_k = depth_g / S_k."""
+    import cv2
+
+    T = an.T
+    S = np.ones(T)
+    for k in range(g, min(end, T - 1)):
+        s = 1.0
+        hand = an.hand[k]
+        if hand.any():
+            n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+            near = lab[_disk_mask(hand.shape, track[k], 2.0 * an.R) & hand]
+            if (near > 0).any():
+                comp = lab == np.bincount(near[near > 0]).argmax()
+                m = erode(comp, 2)
+                ys, xs = np.nonzero(m)
+                if len(xs) >= 30:
+                    p = np.stack([xs + 0.5, ys + 0.5], 1).astype(np.float32)
+                    q = p + an.flows.forward[k][ys, xs]
+                    A, _ = cv2.estimateAffinePartial2D(p, q, method=cv2.LMEDS)
+                    if A is not None:
+                        s = float(np.clip(np.sqrt(abs(np.linalg.det(A[:, :2]))), 1 - max_step, 1 + max_step))
+        S[k + 1] = S[k] * s
+    S[min(end, T - 1) + 1:] = S[min(end, T - 1)]
+    return S
 
 
 def _approach_velocity(an: _Analysis, g: int, c2, frames: int = 3):
@@ -314,7 +343,7 @@ def _grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
 # ------------------------------------------------------------------------------ main entry
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
                         interaction_type: str | None = None, models: Models | None = None,
-                        user_contacts: list | None = None, log=print) -> ExtractionResult:
+                        log=print) -> ExtractionResult:
     """Extract the interaction from a video of the stage's object.
 
     scene: a `SceneData` (read_stage); frames (T, H, W, 3) float in [0, 1]; masks (T, H, W) bool
@@ -334,7 +363,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         raise InputError("--type", f"must be one of {', '.join(INTERACTION_TYPES)}, not {interaction_type!r}")
     hint = _check_hint(hint, scene, T)
     notes = []
-    an = _Analysis(scene, frames, masks, masks_amodal, models, log)
+    an = _Analysis(scene, frames, masks, masks_amodal, models)
     if not an.static_camera:
         notes.append("the camera moves: image-space motion cues (timing, supports) assume a static camera "
                      "and are unreliable")
@@ -424,11 +453,18 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         track[end + 1:] = track[end]
     else:
         r = None
+    # depth: a hand coming toward the camera looks bigger; its apparent scale (a similarity fit to
+    # its optical flow) gives the contact's depth over the grasp (pulls; colliders are lifted
+    # along their push direction below)
+    depth = np.full(T, z_c)
+    if itype == "pointAdherent":
+        scale = _hand_scale(an, g, end, track)
+        depth = z_c / scale
+        evidence["hand_scale"] = np.round(scale, 4).tolist()
     traj = np.empty((T, 3))
+    base = scene.camera.at(g).unproject(c2[None], np.array([z_c]))[0]
     for k in range(T):
-        cam_k = scene.camera.at(k)
-        base = cam_k.unproject(c2[None], np.array([z_c]))[0]
-        traj[k] = c3 + (cam_k.unproject(track[k][None], np.array([z_c]))[0] - base)
+        traj[k] = c3 + (scene.camera.at(k).unproject(track[k][None], np.array([depth[k]]))[0] - base)
     contact = ExtractedContact(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
                                release_frame=r, trajectory=traj, contact_point=c3, track_uv=track,
                                pixels=pix, pixels_frame=g, confidence=conf,
