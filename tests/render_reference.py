@@ -9,7 +9,9 @@ so it is only for small scenes. It applies the same cut-offs as the renderer, st
 - EWA: cov2d = J (R Sigma R^T) J^T + LOW_PASS * I, J the perspective Jacobian at the camera-frame
   point whose x/z (y/z) is clamped to [-(cx/fx + m tan_x), (W - cx)/fx + m tan_x] with
   tan_x = 0.5 W / fx and m = FOV_CLAMP (gsplat's rule; same for y);
-- a Gaussian touches a pixel only when sigma^2 = d^T cov2d^-1 d <= EXTENT_SIGMA^2 (3 sigma) and
+- floor "subtract" (the renderer's default): alpha = min(ALPHA_MAX, opacity exp(-sigma^2 / 2) -
+  ALPHA_MIN), sigma^2 = d^T cov2d^-1 d, and a Gaussian touches a pixel only where that is > 0;
+  floor "cut" (3DGS): only when sigma^2 <= EXTENT_SIGMA^2 (3 sigma) and
   alpha = min(ALPHA_MAX, opacity exp(-sigma^2 / 2)) >= ALPHA_MIN;
 - order: by float32 camera z, ties by index;
 - front to back, the first Gaussian that would take the transmittance below T_MIN stops the
@@ -70,7 +72,7 @@ def reference_project(means, cov, w2c, fx, fy, cx, cy, width, height):
 
 
 def reference_render(means, cov, colors, opacities, w2c, fx, fy, cx, cy, width, height,
-                     near=0.01, far=100.0, background=None):
+                     near=0.01, far=100.0, background=None, floor="subtract"):
     """Dense render. means (N,3), cov (N,3,3) or (N,6), colors (N,3), opacities (N,).
     Returns rgb (H,W,3), alpha (H,W), depth_acc (H,W); differentiable by torch autograd."""
     dt = means.dtype
@@ -82,9 +84,14 @@ def reference_render(means, cov, colors, opacities, w2c, fx, fy, cx, cy, width, 
     dx = u[None, :] - px
     dy = v[None, :] - py
     s2 = conic[:, 0] * dx * dx + 2.0 * conic[:, 1] * dx * dy + conic[:, 2] * dy * dy
-    ar = opacities[None, :] * torch.exp(-0.5 * s2)
-    al = torch.clamp(ar, max=ALPHA_MAX)
-    contrib = valid[None, :] & (s2 <= EXTENT_SIGMA ** 2) & (al >= ALPHA_MIN)
+    if floor == "subtract":  # continuous: alpha = opacity G - ALPHA_MIN where that is > 0
+        ar = opacities[None, :] * torch.exp(-0.5 * s2) - ALPHA_MIN
+        al = torch.clamp(ar, max=ALPHA_MAX)
+        contrib = valid[None, :] & (al > 0)
+    else:  # 3DGS's hard cut
+        ar = opacities[None, :] * torch.exp(-0.5 * s2)
+        al = torch.clamp(ar, max=ALPHA_MAX)
+        contrib = valid[None, :] & (s2 <= EXTENT_SIGMA ** 2) & (al >= ALPHA_MIN)
     al = torch.where(contrib, al, torch.zeros_like(al))
     order = torch.sort(z.detach().float(), stable=True).indices
     al = al[:, order]
@@ -103,11 +110,11 @@ def reference_render(means, cov, colors, opacities, w2c, fx, fy, cx, cy, width, 
     return rgb.reshape(height, width, 3), alpha.reshape(height, width), depth.reshape(height, width)
 
 
-def reference_render_camera(means, cov, colors, opacities, camera, background=None):
+def reference_render_camera(means, cov, colors, opacities, camera, background=None, floor="subtract"):
     """reference_render with the intrinsics and pose of a static physinteract_usd.camera.Camera."""
     return reference_render(means, cov, colors, opacities, camera.w2c_cv(), camera.fx, camera.fy,
                             camera.cx, camera.cy, camera.width, camera.height, camera.near, camera.far,
-                            background)
+                            background, floor)
 
 
 # ------------------------------------------------------------------------- test scenes

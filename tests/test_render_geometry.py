@@ -76,7 +76,7 @@ def test_isotropic_gaussian_lands_where_cv2_says(device):
     z = cam.world_to_camera(X[None])[0, 2]
     hit = alpha > 0
     assert np.abs(out["depth"].cpu().numpy()[hit] - z).max() < 1e-12
-    # pixel values: alpha = op exp(-d^T cov2d^-1 d / 2), cov2d = J W Sigma W^T J^T + 0.3 I (numpy here)
+    # pixel values: alpha = op exp(-d^T cov2d^-1 d / 2) - 1/255 (>= 0), cov2d = J W Sigma W^T J^T + 0.3 I (numpy here)
     w2c = cam.w2c_cv()
     x, y, zc = w2c[:3, :3] @ X + w2c[:3, 3]
     J = np.array([[cam.fx / zc, 0, -cam.fx * x / zc ** 2], [0, cam.fy / zc, -cam.fy * y / zc ** 2]])
@@ -84,7 +84,7 @@ def test_isotropic_gaussian_lands_where_cv2_says(device):
     cov2 = J @ Wr @ (np.eye(3) * sigma ** 2) @ Wr.T @ J.T + 0.3 * np.eye(2)
     d = np.stack([ii + 0.5 - u_cv, jj + 0.5 - v_cv], -1)
     s2 = np.einsum("hwi,ij,hwj->hw", d, np.linalg.inv(cov2), d)
-    expect = np.where((s2 <= 9) & (op * np.exp(-0.5 * s2) >= 1 / 255), op * np.exp(-0.5 * s2), 0.0)
+    expect = np.maximum(op * np.exp(-0.5 * s2) - 1 / 255, 0.0)  # the continuous floor (default)
     assert np.abs(alpha - expect).max() < 1e-12
     rgb = out["rgb"].cpu().numpy()
     assert np.abs(rgb - (expect[..., None] * col.numpy() + (1 - expect[..., None]) * bg.numpy())).max() < 1e-12
@@ -109,8 +109,7 @@ def test_anisotropic_footprint_follows_ewa(device):
     jj, ii = np.mgrid[0:cam.height, 0:cam.width]
     d = np.stack([ii + 0.5 - u, jj + 0.5 - v], -1)
     s2 = np.einsum("hwi,ij,hwj->hw", d, np.linalg.inv(cov2), d)
-    a = np.minimum(0.99, 0.95 * np.exp(-0.5 * s2))
-    expect = np.where((s2 <= 9) & (a >= 1 / 255), a, 0.0)
+    expect = np.clip(0.95 * np.exp(-0.5 * s2) - 1 / 255, 0.0, 0.99)  # the continuous floor (default)
     assert np.abs(alpha - expect).max() < 1e-12
     assert (alpha > 0).sum() > 20
 

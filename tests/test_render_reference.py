@@ -231,7 +231,7 @@ def test_alpha_clamp_and_fov_clamp_paths():
                           [1.4 * lim * 2.0, 0.1, 0.0],               # right of the clamp limit
                           [-0.1, -1.35 * lim * 2.0, 0.2]],           # below it
                          dtype=torch.float64)
-    covs = torch.stack([torch.eye(3) * 0.25 ** 2, torch.eye(3) * 0.05 ** 2,
+    covs = torch.stack([torch.eye(3) * 0.6 ** 2, torch.eye(3) * 0.05 ** 2,
                         torch.diag(torch.tensor([0.3, 0.2, 0.25])) ** 2,
                         torch.diag(torch.tensor([0.25, 0.3, 0.2])) ** 2]).double()
     cols = torch.tensor([[1.0, 0.2, 0.1], [0.1, 1.0, 0.3], [0.2, 0.3, 1.0], [0.9, 0.9, 0.1]], dtype=torch.float64)
