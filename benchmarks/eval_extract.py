@@ -251,7 +251,11 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=None, help="frames per scene (default: the small size's 20)")
     ap.add_argument("--fit", default="", help="comma-separated scenes to also fit from extracted and gt contacts")
     ap.add_argument("--iterations", type=int, default=20)
+    ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
+                    "masks; nothing is written to the stages)")
     ap.add_argument("--write", help="write the markdown report here (e.g. docs/benchmarks/extract.md)")
+    ap.add_argument("--append", action="store_true", help="with --write: add this table to the report as a "
+                    "further section instead of replacing it")
     ap.add_argument("--json", help="write the rows as JSON here")
     a = ap.parse_args(argv)
     names = a.scenes.split(",") if a.scenes else [*SCENES.keys()]
@@ -270,7 +274,15 @@ def main(argv=None):
         try:
             cap, gt_dir, stage, t_synth = prepare(name, work, a.frames, log)
             t0 = time.perf_counter()
-            res = extract(stage, log=lambda *m: None)
+            if a.no_masks:
+                # the same capture without its silhouette masks (extraction on the frames alone)
+                from physinteract_usd.extract import extract_interaction
+
+                sd = api.read_stage(stage)
+                obs = api.load_observations(sd)
+                res = extract_interaction(sd, obs.frames, None, log=lambda *m: None)
+            else:
+                res = extract(stage, log=lambda *m: None)
             row["extract_s"] = time.perf_counter() - t0
             row.update(compare(stage, gt_dir, res))
             row["synth_s"] = t_synth
@@ -303,6 +315,12 @@ def main(argv=None):
 def write_report(path: Path, rows, md, a):
     fit_md = fit_table(rows) if any("fit" in r for r in rows) else ""
     cmd = "python benchmarks/eval_extract.py " + " ".join(sys.argv[1:])
+    if a.append and path.exists():
+        title = "Without silhouette masks" if a.no_masks else "Further run"
+        path.write_text(path.read_text().rstrip() + f"\n\n## {title}\n\nCommand: `{cmd}`.\n\n{md}\n"
+                        + (f"\n{fit_md}\n" if fit_md else ""))
+        print(f"appended to {path}")
+        return
     text = f"""# Interaction extraction on the synthetic suite
 
 Measured by `benchmarks/eval_extract.py` on {machine()}, {time.strftime('%Y-%m-%d')}.

@@ -97,7 +97,8 @@ def test_written_stage_round_trips(extracted):
     assert np.allclose(tr[0].positions, result.interaction[0].trajectory, atol=1e-6)
     assert len(sd.hand_mask_assets) == sd.n_frames
     hm = api._hand_masks(sd, sd.n_frames)
-    assert np.array_equal(hm, result.hand_masks)
+    assert np.array_equal(hm, result.loss_masks)
+    assert (hm >= result.hand_masks).all() and hm.sum() > result.hand_masks.sum()
     assert (extract_dir(stage) / "preview.png").exists()
     # the fit takes them as they are
     specs = api.stage_contacts(sd)

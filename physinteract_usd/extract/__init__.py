@@ -120,7 +120,7 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
         taken.update(int(i) for i in c.indices)
     contacts = [c for c in contacts if c.type != "fixed" or len(c.indices)]
     img = preview_image(result, sd) if preview else None
-    out = write_extraction(stage_path, sd, contacts, result.hand_masks, trajectories_for=trajectories_for,
+    out = write_extraction(stage_path, sd, contacts, result.loss_masks, trajectories_for=trajectories_for,
                            preview_png=img)
     result.outputs = out
     for c in result.contacts:

@@ -34,6 +34,10 @@ from .result import CONTACT_NAMES, INTERACTION_TYPES, ExtractedContact, Extracti
 from .segment import dilate, erode
 
 
+RADIUS_SHARE = 0.35  # grasp radius as a share of the contact region's extent
+RADIUS_MAX = 3.0     # ... at most this many particle spacings
+
+
 # ------------------------------------------------------------------------------ small helpers
 def _disk_mask(shape, centre, radius) -> np.ndarray:
     H, W = shape
@@ -442,9 +446,9 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     else:
         pix = pixel_centres(region) if region.any() else c2[None]
         pts3 = back_project(rest_g, pix)
+        radius = _contact_radius_m(an, region)
         c3 = _robust_centre(pts3)
-        idx = particles_near(c3[None], an.x0, max(1.6 * an.spacing, _contact_radius_m(an, region, rest_g)),
-                             min_count=3)
+        idx = particles_near(c3[None], an.x0, radius, min_count=3)
     z_c = float(rest_g.camera.world_to_camera(c3[None])[0, 2])
     # adherent: the grasped particles follow the hand while grasped; colliders are the hand
     track = hand_track.copy()
@@ -596,13 +600,14 @@ def _robust_centre(pts: np.ndarray) -> np.ndarray:
     return pts[keep].mean(0)
 
 
-def _contact_radius_m(an: _Analysis, region, view) -> float:
-    """Half the contact region's extent, in metres (at most 3 particle spacings)."""
+def _contact_radius_m(an: _Analysis, region) -> float:
+    """The grasp's radius: a share of the contact region's extent, in metres, within
+    [1.6, 3] particle spacings."""
     if not region.any():
-        return an.spacing
+        return 1.6 * an.spacing
     ys, xs = np.nonzero(region)
-    ext_px = 0.5 * float(max(np.ptp(xs), np.ptp(ys)) + 1)
-    return float(np.clip(0.5 * ext_px / an.px_per_m, an.spacing, 3.0 * an.spacing))
+    ext_px = float(max(np.ptp(xs), np.ptp(ys)) + 1)
+    return float(np.clip(RADIUS_SHARE * ext_px / an.px_per_m, 1.6 * an.spacing, RADIUS_MAX * an.spacing))
 
 
 def _interface_span(an: _Analysis, g: int, c2, end: int) -> float:

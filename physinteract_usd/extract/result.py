@@ -70,6 +70,16 @@ class ExtractionResult:
     support_motion: np.ndarray | None = None  # (P,) per-particle motion measure [px]
     outputs: dict = field(default_factory=dict)   # what `extract` wrote (paths, contact names)
 
+    loss_margin_px: int = 1                # the written masks grow the hand by this much
+
+    @property
+    def loss_masks(self) -> np.ndarray:
+        """The masks the loss leaves out (written to the stage): the hand grown by
+        `loss_margin_px`, so that its anti-aliased rim (skin mixed into the object) is left out too."""
+        from .segment import dilate
+
+        return np.stack([dilate(m, self.loss_margin_px) for m in self.hand_masks])
+
     @property
     def interaction(self) -> list:
         return [c for c in self.contacts if c.type != "fixed"]
