@@ -186,12 +186,15 @@ def fill_from_gaussians(g: Gaussians, spacing: float, anchor=None) -> SimParticl
     d = np.einsum("nki,nki->nk", c[:, None, :] - samples[nb], normals[nb])
     dist = np.linalg.norm(c[:, None, :] - samples[nb], axis=2)
     votes = known[nb] & (dist <= 2.0 * spacing)
-    # keep a surface cell when its centre is behind the tangent plane of every nearby oriented
-    # sample (exact at convex edges, slightly conservative in concave creases), or when the
-    # surface is too thin there to tell a side (a sheet): then the cell itself is the material
-    behind_all = np.where(votes, d, -np.inf).max(1) <= 0
+    # keep a surface cell when its centre is behind the local tangent plane: the signed distances
+    # to the planes of the nearby oriented samples, averaged with weights that fall off over half
+    # a spacing (the nearest planes dominate, so curved surfaces keep their full volume); cells
+    # far from every sample must be behind all known planes (safe at sharp edges); where the
+    # surface is too thin to tell a side (a sheet), the cell itself is the material
+    w = np.where(votes, np.exp(-0.5 * (dist / (0.5 * spacing)) ** 2), 0.0)
+    side = (w * d).sum(1) / np.maximum(w.sum(1), 1e-300)
     behind_all_known = np.where(known[nb], d, -np.inf).max(1) <= 0
-    keep_shell = np.where(votes.any(1), behind_all,
+    keep_shell = np.where(votes.any(1), side <= -0.05 * spacing,  # a hair inside, to be safe
                           np.where(known[nb].any(1), behind_all_known, dist[:, 0] <= spacing))
     inside = solid & ~shell
     inside[tuple(idx_shell[keep_shell].T)] = True

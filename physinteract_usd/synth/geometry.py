@@ -192,20 +192,26 @@ class Shape:
         rng = np.random.default_rng(seed)
         meshes = [q.mesh() for q in self.parts]
         areas = np.array([m.area for m in meshes])
-        # oversample: some samples fall inside other parts
-        pts, lab = [], []
-        for i, m in enumerate(meshes):
-            k = max(8, int(round(1.3 * n * areas[i] / areas.sum())))
-            s, _ = trimesh.sample.sample_surface(m, k, seed=int(rng.integers(1 << 30)))
-            pts.append(s)
-            lab.append(np.full(len(s), i))
-        pts = np.concatenate(pts)
-        lab = np.concatenate(lab)
-        # keep points on the union's boundary: not inside any other part
-        others = np.stack([q.sdf(pts) for q in self.parts])
-        others[lab, np.arange(len(pts))] = np.inf
-        keep = others.min(0) > 1e-4
-        pts, lab = pts[keep], lab[keep]
+        over = 1.5  # oversample: internal faces and overlaps are dropped below
+        for _ in range(6):
+            pts, lab = [], []
+            for i, m in enumerate(meshes):
+                k = max(8, int(round(over * n * areas[i] / areas.sum())))
+                s, _ = trimesh.sample.sample_surface(m, k, seed=int(rng.integers(1 << 30)))
+                pts.append(s)
+                lab.append(np.full(len(s), i))
+            pts = np.concatenate(pts)
+            lab = np.concatenate(lab)
+            # keep points on the union's boundary: a part's mesh may hold internal faces (a tube's
+            # overlapping capsule ends) and parts overlap, so drop samples inside the union; then
+            # put the rest exactly on the surface (one Newton step on the SDF: meshes are polygonal)
+            tol = 1e-3 * float(np.max(np.ptp(pts, axis=0)))
+            keep = self.sdf(pts) > -tol
+            pts, lab = pts[keep], lab[keep]
+            if len(pts) >= n:
+                break
+            over *= 1.2 * n / max(len(pts), 1)
+        pts = pts - self.sdf(pts)[:, None] * self.normals(pts)
         if len(pts) > n:
             sel = np.sort(rng.choice(len(pts), n, replace=False))
             pts, lab = pts[sel], lab[sel]
