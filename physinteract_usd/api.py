@@ -173,6 +173,15 @@ def format_info(d: dict) -> str:
 
 
 # ------------------------------------------------------------------------------------------ fit
+def _cpu_threads(device: str) -> None:
+    """On the CPU, Warp runs single-threaded and the fit's torch ops are small: torch's thread
+    pool only adds synchronisation (8 ms per op measured on a busy 2-core machine)."""
+    if str(device) == "cpu":
+        import torch
+
+        torch.set_num_threads(1)
+
+
 def load_observations(sd):
     """Frames and masks a stage refers to, as arrays (the fit's observations)."""
     from .fit.problem import Observations
@@ -272,6 +281,7 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
     from .fit import fit as run_fit
     from .usd.stage import write_fit_layer
 
+    _cpu_threads(device)
     sd = read_stage(stage_path)
     obs = load_observations(sd)
     source = "extracted"
