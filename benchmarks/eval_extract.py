@@ -179,7 +179,10 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
     out = {}
     for label, stage, src in (("extracted", stage_ext, None), ("gt", stage_gt, gt_dir)):
         t0 = time.perf_counter()
-        api.fit(stage, iterations=iterations, contact_from=src, progress=False, log=lambda *a: None)
+        try:
+            api.fit(stage, iterations=iterations, contact_from=src, progress=False, log=lambda *a: None)
+        except Exception as exc:
+            raise RuntimeError(f"fit from {label} contacts: {type(exc).__name__}: {exc}") from exc
         ev = api.evaluate(stage, gt_dir)
         out[label] = {"ma": ev["ma"], "psnr": ev["psnr"], "iou": ev["iou"],
                       "position_error_m": ev["position_error_m"], "seconds": time.perf_counter() - t0}
@@ -231,6 +234,9 @@ def fit_table(rows: list[dict]) -> str:
              "PSNR extracted / gt | fit time extracted / gt [s] |", "|---|---|---|---|---|---|"]
     for r in rows:
         f = r.get("fit")
+        if r.get("fit_error"):
+            lines.append(f"| {r['scene']} | failed: {r['fit_error']} | | | | |")
+            continue
         if not f:
             continue
         e, g = f["extracted"], f["gt"]
@@ -291,7 +297,11 @@ def main(argv=None):
                 f"P {fmt(row['support_precision'])}, T0 {row['t0_err_m'] * 1000:.1f} mm / {row['t0_err_px']:.1f} px, "
                 f"hand IoU {row['hand_iou']:.3f} ({row['extract_s']:.1f} s)")
             if name in fits:
-                row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log)
+                try:
+                    row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log)
+                except Exception as exc:  # a failed fit is reported in the fit table
+                    row["fit_error"] = str(exc).splitlines()[0][:200]
+                    log(f"  fit FAILED {row['fit_error']}")
         except Exception as exc:  # a scene that fails is a row that says so
             row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:120]}"
             log(f"{name}: FAILED {row['error']}")
@@ -300,7 +310,7 @@ def main(argv=None):
     md = table(rows)
     print()
     print(md)
-    if any("fit" in r for r in rows):
+    if any("fit" in r or "fit_error" in r for r in rows):
         print()
         print(fit_table(rows))
     if a.json:
@@ -313,7 +323,7 @@ def main(argv=None):
 
 
 def write_report(path: Path, rows, md, a):
-    fit_md = fit_table(rows) if any("fit" in r for r in rows) else ""
+    fit_md = fit_table(rows) if any("fit" in r or "fit_error" in r for r in rows) else ""
     cmd = "python benchmarks/eval_extract.py " + " ".join(sys.argv[1:])
     if a.append and path.exists():
         title = "Without silhouette masks" if a.no_masks else "Further run"
