@@ -124,7 +124,7 @@ def test_rerun_replaces_its_contacts_and_keeps_the_rest(capture):
     rp = s.DefinePrim("/World/PhysInteract/FitReport_v1", "PhysInteractFitReport")
     rp.GetAttribute("physinteract:version").Set(1)
     layer.Save()
-    extract(stage, hint=Hint(particles=np.array([0, 1, 2])), log=lambda *a: None)
+    extract(stage, hint=Hint(particles=np.array([0, 1, 2])), interaction_type="pointAdherent", log=lambda *a: None)
     sd = read_stage(stage)
     assert sorted(c.name for c in sd.contacts if c.contact_type != "fixed") == ["hand"]
     assert [t.name for t in sd.trajectories] == ["hand_initial"]
