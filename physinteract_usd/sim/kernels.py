@@ -591,7 +591,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     pin_gain: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
-                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int,
+                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int, m_eps: T,
                     gv: wp.array(dtype=vec3)):
         # flat launch over the grid, ``chunk`` nodes per thread (the CPU pays per thread; chunk = 1
         # on CUDA); a node's index is decoded only where there is mass. Iterations are independent.
@@ -600,7 +600,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         for t in range(t0, wp.min(t0 + chunk, n)):
             m = gm[t]
             vel = vec3()
-            if m > T(0.0):
+            # nodes that only graze a particle's stencil edge (mass far below a particle's) are
+            # left empty: their velocity mv / m has an adjoint ~1/m that overflows to inf * 0 = NaN
+            if m > m_eps:
                 i = t / (res[1] * res[2])
                 j = (t / res[2]) % res[1]
                 k = t % res[2]
