@@ -88,12 +88,16 @@ def device_name(device: str) -> str:
     return f"{platform.processor() or platform.machine()} CPU, {os.cpu_count()} cores visible (Warp CPU: 1 thread)"
 
 
-def consistency_check(size=256, n=10000, out_png=None, cuda_settings=None):
+def consistency_check(size=256, n=10000, out_png=None, cuda_settings=None, cpu_ref=None, devices=("cpu", "cuda")):
     """One render forward+backward on CUDA (with `cuda_settings`) and on CPU (defaults), float32:
-    max abs differences."""
+    max abs differences. `cpu_ref`: an .npz of the CPU side saved earlier (a GPU host's Warp may
+    have no CPU compiler); devices=("cpu",) with cpu_ref saves it."""
     res = {}
     outs = {}
-    for dev in ("cpu", "cuda"):
+    if cpu_ref and "cpu" not in devices:
+        z = np.load(cpu_ref)
+        outs["cpu"] = {k: torch.as_tensor(z[k]) for k in z.files}
+    for dev in devices:
         means, cov6, colors, op, cam = probe_scene(n, size, dev)
         params = [x.clone().requires_grad_(True) for x in (means, cov6, colors, op)]
         o = render(*params, cam, background=torch.tensor([0.1, 0.1, 0.2], device=dev),
@@ -103,6 +107,9 @@ def consistency_check(size=256, n=10000, out_png=None, cuda_settings=None):
         ((o["rgb"] * w).sum() + o["alpha"].sum() + 0.1 * o["depth"].sum()).backward()
         outs[dev] = {k: v.detach().cpu() for k, v in o.items()}
         outs[dev].update({f"grad_{k}": p.grad.cpu() for k, p in zip(("means", "cov6", "colors", "opacities"), params)})
+    if "cuda" not in outs:
+        np.savez(cpu_ref, **{k: v.numpy() for k, v in outs["cpu"].items()})
+        return {}
     for k in outs["cpu"]:
         a, b = outs["cpu"][k], outs["cuda"][k]
         res[k] = {"max_abs": float((a - b).abs().max()), "max_ref": float(a.abs().max())}
@@ -146,6 +153,8 @@ def main(argv=None):
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--png", help="also save the rendered image of the first size here")
     ap.add_argument("--check-cpu", action="store_true", help="CPU vs this device: one fwd+bwd, max abs diff")
+    ap.add_argument("--cpu-ref", help="with --check-cpu: the CPU side from this .npz (saved with --save-cpu)")
+    ap.add_argument("--save-cpu", help="compute the CPU side of the consistency check only, save it here, exit")
     a = ap.parse_args(argv)
     settings = RasterSettings(tile_size=a.tile_size,
                               lockstep=None if a.lockstep is None else bool(a.lockstep), backward=a.backward)
@@ -181,8 +190,13 @@ def main(argv=None):
             o = render(means, cov6, colors, op, cam, background=torch.tensor([0.1, 0.1, 0.2], device=a.device))
         write_png(a.png, o["rgb"].cpu().numpy())
         print(f"saved {a.png}")
+    if a.save_cpu:
+        consistency_check(cpu_ref=a.save_cpu, devices=("cpu",))
+        print(f"saved the CPU reference to {a.save_cpu}")
+        return
     if a.check_cpu:
-        res = consistency_check(cuda_settings=settings)
+        res = consistency_check(cuda_settings=settings, cpu_ref=a.cpu_ref,
+                                devices=("cuda",) if a.cpu_ref else ("cpu", "cuda"))
         print(f"CPU vs CUDA (backward {a.backward} on CUDA), one forward+backward (10k Gaussians, 256^2, "
               "float32): max abs difference")
         for k, v in res.items():

@@ -95,15 +95,30 @@ def compare(a, b):
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--save-cpu", metavar="NPZ", help="run the CPU reference only and save it (for a GPU host "
+                    "whose Warp has no CPU compiler)")
+    ap.add_argument("--cpu-ref", metavar="NPZ", help="compare against a CPU reference saved with --save-cpu")
     args = ap.parse_args(argv)
     wp.init()
+    if args.save_cpu:
+        refs = {}
+        for dtype in ("float64", "float32"):
+            r = run(dtype, "cpu", graphs=False)
+            refs.update({f"{dtype}/{k}": v for k, v in r.items() if isinstance(v, np.ndarray)})
+        np.savez(args.save_cpu, **refs)
+        print(f"saved the CPU reference to {args.save_cpu}")
+        return 0
+    saved = np.load(args.cpu_ref) if args.cpu_ref else None
     dev = args.device
     name = "CPU" if dev == "cpu" else wp.get_device(dev).name
     print(f"CPU vs {dev} ({name}); warp {wp.__version__}, torch {torch.__version__}; {T} frames x {S} substeps")
     ok = True
     for dtype, gtol in (("float64", 1e-4), ("float32", 1e-2)):
         try:
-            ref = run(dtype, "cpu", graphs=False)
+            if saved is not None:
+                ref = {k.split("/", 1)[1]: saved[k] for k in saved.files if k.startswith(dtype + "/")}
+            else:
+                ref = run(dtype, "cpu", graphs=False)
             for graphs in (True, False):
                 o = run(dtype, dev, graphs=graphs)
                 res, disp = compare(ref, o)

@@ -44,7 +44,7 @@ fi
 log ""
 log "## physinteract_usd.render on CUDA (float32, fwd+bwd incl. all gradients)"
 timeout 100 $PY benchmarks/bench_render.py --device cuda --sizes 10000x256,10000x512,100000x256,100000x512,15000x512,2000x128 \
-  --reps 20 --warmup 3 --json --png "$OUT/render_cuda.png" --check-cpu > "$OUT/bench_cuda.md" 2>&1
+  --reps 20 --warmup 3 --json --png "$OUT/render_cuda.png" --check-cpu $([ -f .dev/probes/render_cpu_ref.npz ] && echo --cpu-ref .dev/probes/render_cpu_ref.npz) > "$OUT/bench_cuda.md" 2>&1
 echo "exit $?" >> "$OUT/bench_cuda.md"
 grep -E "^device|^\||saved|exit|Error|error|CPU vs CUDA|^  " "$OUT/bench_cuda.md" | tee -a "$S"
 
@@ -60,7 +60,7 @@ grep -E "^\||exit|Error|error" "$OUT/bench_cuda_nolockstep.md" | tee -a "$S"
 log ""
 log "## same, tiled backward (block reduction per Gaussian and tile)"
 timeout 60 $PY benchmarks/bench_render.py --device cuda --sizes 10000x256,10000x512,100000x256,100000x512,15000x512 \
-  --reps 20 --warmup 3 --backward tiled --check-cpu > "$OUT/bench_cuda_tiled.md" 2>&1
+  --reps 20 --warmup 3 --backward tiled --check-cpu $([ -f .dev/probes/render_cpu_ref.npz ] && echo --cpu-ref .dev/probes/render_cpu_ref.npz) > "$OUT/bench_cuda_tiled.md" 2>&1
 echo "exit $?" >> "$OUT/bench_cuda_tiled.md"
 grep -E "^\||exit|Error|error|grad_|rgb|alpha|depth" "$OUT/bench_cuda_tiled.md" | grep -v '^{' | tee -a "$S"
 

@@ -23,6 +23,6 @@ timeout 150 python3 benchmarks/bench_sim.py --device cuda --sizes 2000:32 15000:
     --reps 3 --probe "$PROBE" 2>&1 | tee "$OUT/bench_sim_cuda.txt"
 
 # 3. CPU vs CUDA consistency: a 100-substep rollout (and its gradients) on both devices
-timeout 120 python3 benchmarks/check_sim_cuda.py --device cuda:0 2>&1 | tee "$OUT/check_sim_cuda.txt"
+REF=.dev/probes/sim_cpu_ref.npz; timeout 120 python3 benchmarks/check_sim_cuda.py --device cuda:0 $([ -f $REF ] && echo --cpu-ref $REF) 2>&1 | tee "$OUT/check_sim_cuda.txt"
 
 ls -l "$OUT"
