@@ -55,8 +55,8 @@ class Size:
 
 
 SIZES = {
-    "small": Size("small", 1500, 128, 96, 20.0, 20, 40.0, 18, 0.3, (1e3, 6e4)),
-    "paper": Size("paper", 5000, 448, 336, 30.0, 45, 90.0, 100, 0.3, (1e3, 6e4)),
+    "small": Size("small", 1500, 128, 96, 20.0, 20, 60.0, 24, 0.3, (1e3, 6e4)),
+    "paper": Size("paper", 5000, 448, 336, 30.0, 45, 120.0, 100, 0.3, (1e3, 6e4)),
 }
 
 
@@ -211,7 +211,7 @@ class GroundTruth:
         # fit's dt under the suggested init settings; the ground truth steps at most half of it
         fit_dx = (1 + 2 * size.fit_padding) * ext / size.fit_grid
         fit_dt = stable_dt(fit_dx, size.fit_youngs[1], size.fit_poisson_max, spec.density)
-        gt_dt = min(stable_dt(dx, float(self.E.max()) * 2.0, float(self.nu.max()), spec.density, cfl=0.3),
+        gt_dt = min(stable_dt(dx, float(self.E.max()) * 2.0, float(self.nu.max()), spec.density, cfl=0.2),
                     0.5 * fit_dt)
         self.substeps = int(math.ceil(1.0 / (size.fps * gt_dt)))
         self.fit_dt = fit_dt

@@ -219,13 +219,16 @@ def _telephone_cable():
                   Capsule("plug_bottom", tuple(pts[-1]), tuple(pts[-1] + [0, -0.05, 0]), 0.016)])
 
 
+PULL = 0.6  # all hand paths are scaled by this: soft parts stretch a lot already at 60%
+
+
 def _arc(d1, d2):
-    d1, d2 = np.asarray(d1, float), np.asarray(d2, float)
+    d1, d2 = PULL * np.asarray(d1, float), PULL * np.asarray(d2, float)
     return lambda s: np.outer(_smooth(s), d1) + np.outer(np.sin(np.pi * np.clip(s, 0, 1)), d2)
 
 
 def _press(depth_vec):
-    d = np.asarray(depth_vec, float)
+    d = PULL * np.asarray(depth_vec, float)
     return lambda s: np.outer(np.sin(np.pi * np.clip(s, 0, 1)) ** 2, d)
 
 
