@@ -81,6 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
 
+    s = sub.add_parser("extract", help="find the hand's contact, timing, type, supports and initial trajectory")
+    s.add_argument("stage")
+    s.add_argument("--type", choices=["pointAdherent", "pointNonAdherent", "surfaceNonAdherent"],
+                   help="the interaction type (overrides detection)")
+    s.add_argument("--hint-pixel", metavar="K,U,V", help="the contact is at pixel column U, row V of frame K")
+    s.add_argument("--hint-particles", metavar="I,J,...", help="the contact holds these particles")
+    s.add_argument("--no-preview", action="store_true", help="skip the preview PNG")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+
     s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
     s.add_argument("stage")
     s.add_argument("--iterations", type=int, default=60, help="optimiser iterations (default 60)")
@@ -154,6 +163,17 @@ def _cmd_synth(a) -> int:
     return 0
 
 
+def _cmd_extract(a) -> int:
+    from .extract import extract, parse_hint
+
+    log = (lambda m: print(m, file=sys.stderr)) if a.json else print
+    r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles), interaction_type=a.type,
+                preview=not a.no_preview, log=log)
+    if a.json:
+        print(json.dumps(r.summary(), indent=2, default=str))
+    return 0
+
+
 def _cmd_fit(a) -> int:
     from . import api
 
@@ -222,7 +242,7 @@ def _cmd_export(a) -> int:
     return 0
 
 
-COMMANDS = {"simulate": _cmd_simulate, "export": _cmd_export, "init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
+COMMANDS = {"extract": _cmd_extract, "simulate": _cmd_simulate, "export": _cmd_export, "init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
 
 
 def main(argv=None) -> int:

@@ -52,6 +52,8 @@ class ContactSet:
     source: str = "user"
     collider_radius: float = 0.0
     contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    normal: tuple = (0.0, 1.0, 0.0)
+    friction: float = 0.5
 
 
 @dataclass

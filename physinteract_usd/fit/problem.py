@@ -59,7 +59,7 @@ class ContactSpec:
     def from_stage(c: ContactSet, trajectory: np.ndarray | None, n_frames: int) -> "ContactSpec":
         rel = None if c.release_time >= 1e8 or c.release_time >= n_frames else int(round(c.release_time))
         return ContactSpec(c.name, c.contact_type, np.asarray(c.particle_indices, np.int64),
-                           int(round(c.grasp_time)), rel, trajectory, c.collider_radius)
+                           int(round(c.grasp_time)), rel, trajectory, c.collider_radius, tuple(c.normal), c.friction)
 
 
 class FitProblem:

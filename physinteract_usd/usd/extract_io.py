@@ -167,9 +167,8 @@ def write_extraction(stage_path, scene, contacts, hand_masks, *, trajectories_fo
         ca("colliderRadius", float(c.radius))
         ca("contactPoint", Gf.Vec3f(*map(float, c.contact_point)))
         if c.type in ("pointNonAdherent", "surfaceNonAdherent"):
-            cp.CreateAttribute("physinteract:contactNormal", Sdf.ValueTypeNames.Vector3f, custom=True).Set(
-                Gf.Vec3f(*map(float, c.normal)))
-            cp.CreateAttribute("physinteract:friction", Sdf.ValueTypeNames.Float, custom=True).Set(float(c.friction))
+            ca("contactNormal", Gf.Vec3f(*map(float, c.normal)))
+            ca("friction", float(c.friction))
         if c.trajectory is not None:
             author_trajectory(c.name, cp.GetPath(), c.trajectory)
         written.append(c.name)

@@ -403,7 +403,8 @@ def read_stage(path) -> SceneData:
             idx = ca("particleIndices")
             contacts.append(ContactSet(child.GetName(), np.array(idx if idx is not None else [], dtype=np.int64),
                                        str(ca("contactType")), float(ca("graspTime")), float(ca("releaseTime")),
-                                       str(ca("source")), float(ca("colliderRadius")), np.array(ca("contactPoint"))))
+                                       str(ca("source")), float(ca("colliderRadius")), np.array(ca("contactPoint")),
+                                       tuple(float(x) for x in ca("contactNormal")), float(ca("friction"))))
         elif t == "PhysInteractTrajectory":
             pos_attr = child.GetAttribute("physinteract:position")
             times = pos_attr.GetTimeSamples()
@@ -478,6 +479,12 @@ def _open_or_new_fit_layer(lp: LayerPaths, fps: float, n: int):
                         Sdf.CopySpec(old, child.path, new, child.path)
                         attr = child.attributes.get("physinteract:version")
                         versions.append(int(attr.default) if attr is not None and attr.default is not None else 1)
+                # what extraction found besides contacts (the hand's pixels per frame) stays
+                hm = scene_spec.attributes.get("physinteract:handMasks")
+                if hm is not None and hm.default is not None:
+                    spec = new.GetPrimAtPath(SCENE) or Sdf.CreatePrimInLayer(new, SCENE)
+                    a = Sdf.AttributeSpec(spec, "physinteract:handMasks", Sdf.ValueTypeNames.AssetArray)
+                    a.default = hm.default
     return new, versions
 
 
@@ -546,6 +553,8 @@ def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, source: s
         cp.GetAttribute("physinteract:releaseTime").Set(float(c.release_frame) if c.release_frame is not None else 1e9)
         cp.GetAttribute("physinteract:source").Set(source)
         cp.GetAttribute("physinteract:colliderRadius").Set(float(c.radius))
+        cp.GetAttribute("physinteract:contactNormal").Set(Gf.Vec3f(*map(float, c.normal)))
+        cp.GetAttribute("physinteract:friction").Set(float(c.friction))
         if len(c.indices):
             cp.GetAttribute("physinteract:contactPoint").Set(Gf.Vec3f(*map(float, scene.particles_positions[c.indices].mean(0))))
         for stage_name, traj in (("initial", c.trajectory), ("fitted", result.trajectories.get(c.name))):
