@@ -347,24 +347,32 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
         raise InputError(gt_dir / "youngs_modulus.npy", f"{len(e_gt)} Gaussians, the stage has {len(anim['youngsModulus'])}")
     obs = load_observations(sd)
     T = min(len(anim["times"]), sd.n_frames)
+    hands = None
+    if (gt_dir / "hand_masks").is_dir():
+        from .frames import read_mask
+
+        hands = [read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(T)]
+    elif sd.hand_mask_assets:
+        hands = list(_hand_masks(sd, T))
     pos_gt = np.load(gt_dir / "gaussian_positions.npy").astype(np.float64)[:T]
     pos = np.stack(anim["positions"][:T])
     cover = obs.masks
-    bg = torch.as_tensor(estimate_background(obs.frames, cover, dilate=2) if cover is not None else
-                         np.median(obs.frames, axis=0), dtype=torch.float32)
+    dev = torch.device("cpu" if device == "cpu" else device)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)  # noqa: E731
+    bg = t(estimate_background(obs.frames, cover, dilate=2) if cover is not None else np.median(obs.frames, axis=0))
     g0 = sd.gaussians
-    col = torch.as_tensor(g0.colors, dtype=torch.float32)
-    op = torch.as_tensor(g0.opacities, dtype=torch.float32)
+    col = t(g0.colors)
+    op = t(g0.opacities)
     frames = []
     for k in range(T):
-        cov = covariance_from_scales_quats(torch.as_tensor(anim["scales"][k], dtype=torch.float32),
-                                           torch.as_tensor(anim["quats"][k], dtype=torch.float32))
+        cov = covariance_from_scales_quats(t(anim["scales"][k]), t(anim["quats"][k]))
         with torch.no_grad():
-            out = render(torch.as_tensor(pos[k], dtype=torch.float32), cov, col, op, sd.camera.at(k), background=bg)
+            out = render(t(pos[k]), cov, col, op, sd.camera.at(k), background=bg)
+        out = {n: v.cpu() for n, v in out.items()}
         pred = out["rgb"].numpy()
         sil = out["alpha"].numpy() > 0.5
         true_sil = obs.masks[k] if obs.masks is not None else sil
-        d = M.frame_metrics(pred, obs.frames[k], sil, true_sil)
+        d = M.frame_metrics(pred, obs.frames[k], sil, true_sil, None if hands is None else hands[k])
         d["frame"] = k
         frames.append(d)
     summary = M.summarize(frames)

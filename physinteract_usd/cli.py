@@ -105,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("evaluate", help="score a fitted stage against synthetic ground truth")
     s.add_argument("stage")
     s.add_argument("--gt", required=True, metavar="DIR/gt", help="the synth capture's gt/ folder")
+    s.add_argument("--device", default="cpu", help="cpu or cuda (rendering)")
     s.add_argument("--json", action="store_true", help="print JSON")
 
     from .api import INTERACTION_DOC
@@ -210,7 +211,7 @@ def _cmd_fit(a) -> int:
 def _cmd_evaluate(a) -> int:
     from . import api
 
-    d = api.evaluate(a.stage, a.gt)
+    d = api.evaluate(a.stage, a.gt, device=a.device)
     keys = ("ma", "psnr", "psnr_masked", "ssim", "iou", "position_error_m")
     if a.json:
         print(json.dumps({**{k: d[k] for k in keys}, "ma_best_uniform": d["ma_best_uniform"]}, indent=2))

@@ -100,8 +100,18 @@ def position_error_m(pred_xyz, true_xyz) -> float:
     return float(np.mean(d))
 
 
-def frame_metrics(pred_rgb, true_rgb, pred_sil, true_sil) -> dict:
-    """All image metrics of one frame."""
+def frame_metrics(pred_rgb, true_rgb, pred_sil, true_sil, exclude=None) -> dict:
+    """All image metrics of one frame. `exclude` (H, W) bool marks pixels no model of the object
+    can explain (the hand in front of it): they are left out of PSNR and IoU, and for SSIM the
+    prediction takes the video's values there (zero error)."""
+    pred_sil = np.asarray(pred_sil, bool)
+    true_sil = np.asarray(true_sil, bool)
+    if exclude is not None and np.asarray(exclude).any():
+        keep = ~np.asarray(exclude, bool)
+        pred_rgb = np.where(keep[..., None], pred_rgb, true_rgb)
+        return {"psnr": psnr(pred_rgb, true_rgb, keep),
+                "psnr_masked": psnr(pred_rgb, true_rgb, (pred_sil | true_sil) & keep),
+                "ssim": ssim(pred_rgb, true_rgb), "iou": iou(pred_sil & keep, true_sil & keep)}
     return {"psnr": psnr(pred_rgb, true_rgb), "psnr_masked": psnr_masked(pred_rgb, true_rgb, pred_sil, true_sil),
             "ssim": ssim(pred_rgb, true_rgb), "iou": iou(pred_sil, true_sil)}
 

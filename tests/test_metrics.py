@@ -61,3 +61,18 @@ def test_material_accuracy_and_best_uniform():
 def test_track_and_position_errors():
     assert M.track_error_px([[0, 0], [3, 4]], [[0, 0], [0, 0]]) == pytest.approx(2.5)
     assert M.position_error_m(np.ones((2, 3)), np.zeros((2, 3))) == pytest.approx(np.sqrt(3))
+
+
+def test_excluded_hand_pixels_do_not_count():
+    rng = np.random.default_rng(0)
+    true = rng.random((20, 24, 3))
+    pred = true.copy()
+    hand = np.zeros((20, 24), bool)
+    hand[5:10, 5:12] = True
+    pred[hand] = 0.0  # the model cannot render the hand
+    sil = np.zeros((20, 24), bool)
+    sil[3:15, 3:15] = True
+    d = M.frame_metrics(pred, true, sil, sil, exclude=hand)
+    assert d["psnr"] == float("inf") and d["psnr_masked"] == float("inf")
+    assert d["ssim"] == pytest.approx(1.0) and d["iou"] == 1.0
+    assert M.frame_metrics(pred, true, sil, sil)["psnr"] < 30

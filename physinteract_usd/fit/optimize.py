@@ -288,7 +288,8 @@ def frame_metrics(prob: FitProblem, renders: dict) -> list:
         sil = r["alpha"].cpu().numpy() > 0.5
         true = prob.obs.frames[k]
         true_sil = prob.obs.masks[k] if prob.obs.masks is not None else sil
-        d = M.frame_metrics(pred, true, sil, true_sil)
+        hand = prob.obs.hand_masks[k] if prob.obs.hand_masks is not None else None
+        d = M.frame_metrics(pred, true, sil, true_sil, hand)
         d["frame"] = int(k)
         out.append(d)
     return out
