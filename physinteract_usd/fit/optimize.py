@@ -29,11 +29,12 @@ from .problem import FitProblem
 @dataclass
 class FitSettings:
     iterations: int = 60
-    levels: tuple = (1, 6, 24)          # basis sizes, coarse to fine
-    level_share: tuple = (0.2, 0.35, 0.45)
-    lr_material: float = 0.05           # on the basis coefficients (logit space)
-    lr_poisson: float = 0.05
-    lr_trajectory: float = 0.001        # metres per step (Adam)
+    levels: tuple = (1, 8, 32)          # basis sizes, coarse to fine
+    level_share: tuple = (0.15, 0.35, 0.5)
+    lr_material: float = 0.1            # on the basis coefficients (logit space)
+    lr_poisson: float = 0.03
+    lr_trajectory: float = 3e-4         # metres per step (Adam)
+    trajectory_levels: int = 1          # the trajectory is fitted in the last this-many levels only
     weight_decay: float = 0.0
     joint: bool = True
     search_evals: int = 7               # golden-section steps for the uniform E
@@ -158,7 +159,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
             groups = [{"params": [mat.theta], "lr": s.lr_material}]
             if fit_nu:
                 groups.append({"params": [mat.w_nu], "lr": s.lr_poisson})
-            if s.joint and trajs:
+            fit_traj = s.joint and trajs and li >= len(s.levels) - s.trajectory_levels
+            if fit_traj:  # material first: T0 is a guide, and early trajectory noise hides E's signal
                 groups.append({"params": trajs, "lr": s.lr_trajectory})
             opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]

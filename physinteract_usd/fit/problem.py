@@ -39,6 +39,7 @@ class LossWeights:
     mask: float = 1.0
     smooth: float = 0.02
     trajectory: float = 1.0
+    depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
 
 
 @dataclass
@@ -129,6 +130,12 @@ class FitProblem:
         self.cameras = [scene.camera.at(k) for k in range(T)]
         scale = float(np.max(np.ptp(self.x0, axis=0)))
         self.traj_scale = max(0.05 * scale, 1e-3)
+        self.traj_rays = []
+        for _, t0 in self.traj_slots:
+            c = np.stack([self.cameras[k].position for k in range(T)])
+            r = t0.cpu().numpy() - c
+            r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
+            self.traj_rays.append(torch.as_tensor(r, dtype=self.tdtype, device=self.tdev))
 
     def _grid_covering(self, st, trajectories) -> GridSpec:
         """The stage's grid, grown (same dx, same node lattice) to hold the trajectories with a
@@ -189,6 +196,11 @@ class FitProblem:
         rec = total / max(len(ks), 1)
         reg = 0.0
         if trajectories is not None and self.weights.trajectory > 0:
-            for tr, (_, t0) in zip(trajectories, self.traj_slots):
-                reg = reg + self.weights.trajectory * (((tr - t0) / self.traj_scale) ** 2).mean()
+            for tr, (_, t0), rays in zip(trajectories, self.traj_slots, self.traj_rays):
+                d = (tr - t0) / self.traj_scale
+                along = (d * rays).sum(-1, keepdim=True)
+                across = d - along * rays
+                # T0's depth (along the camera ray) is far less certain than its image position
+                reg = reg + self.weights.trajectory * ((across ** 2).sum(-1) + self.weights.depth_prior
+                                                       * along[..., 0] ** 2).mean()
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}

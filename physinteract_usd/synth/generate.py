@@ -47,7 +47,7 @@ class Size:
     height: int
     fps: float
     frames: int
-    gt_cells: float      # ground-truth particle spacing = extent / gt_cells
+    gt_ratio: float      # ground-truth grid cell = gt_ratio x the suggested fit's cell (particles at half a cell)
     fit_grid: int        # the init --grid the README suggests for this size
     fit_padding: float
     fit_youngs: tuple    # the init --youngs-range suggested
@@ -55,8 +55,8 @@ class Size:
 
 
 SIZES = {
-    "small": Size("small", 1500, 128, 96, 20.0, 20, 60.0, 24, 0.3, (1e3, 6e4)),
-    "paper": Size("paper", 5000, 448, 336, 30.0, 45, 120.0, 100, 0.3, (1e3, 6e4)),
+    "small": Size("small", 1500, 128, 96, 20.0, 20, 0.7, 24, 0.3, (1e3, 6e4)),
+    "paper": Size("paper", 5000, 448, 336, 30.0, 45, 0.85, 100, 0.3, (1e3, 6e4)),
 }
 
 
@@ -153,7 +153,8 @@ class GroundTruth:
         lo, hi = shape.bounds()
         ext = float(np.max(hi - lo))
         self.extent = ext
-        h = ext / size.gt_cells * spacing_scale
+        fit_dx = (1 + 2 * size.fit_padding) * ext / size.fit_grid
+        h = 0.5 * size.gt_ratio * fit_dx * spacing_scale
         self.spacing = h
         x0 = shape.lattice(h)
         part = shape.part_of(x0)

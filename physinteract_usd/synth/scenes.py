@@ -389,3 +389,26 @@ def get_scene(name: str) -> SceneSpec:
     if name not in SCENES:
         raise KeyError(name)
     return SCENES[name]
+
+
+# ------------------------------------------------------------------------------ the bundled sample
+def _foam_bar():
+    """A thick foam bar: a stiff upper half (held by a clip at the top) over a soft lower half."""
+    return Shape([Capsule("stiff", (0, 0.08, 0), (0, 0.0, 0), 0.035),
+                  Capsule("soft", (0, 0.0, 0), (0, -0.08, 0), 0.035)])
+
+
+_add(SceneSpec(
+    name="foam_bar", paper_name="(bundled sample)", origin="synthetic", interaction="pointAdherent",
+    description="a thick foam bar clipped at its top: stiff upper half, soft lower half; the hand pulls "
+                "its lower end aside and lets go (small and compact: the CPU demo)",
+    shape=_foam_bar, youngs=lambda p, part: np.where(part == 0, STIFF, SOFT),
+    poisson={"stiff": 0.3, "soft": 0.3}, density=RHO,
+    texture=lambda p, part: np.where((part == 0)[:, None],
+                                     pattern_color(p, (0.15, 0.35, 0.75), (0.9, 0.9, 0.4), 0.014, "dots"),
+                                     pattern_color(p, (0.9, 0.5, 0.15), (0.35, 0.15, 0.05), 0.012, "stripes",
+                                                   axis=(0.3, 1.0, 0.2), freq=180.0)),
+    contact_point=(0.03, -0.09, 0.018), contact_radius=0.03, path=_arc((0.06, 0.03, 0.04), (0.0, 0.01, 0.02)),
+    hand_dir=(0.5, -0.6, 0.8), supports=[Support((0.0, 0.115, 0.0), 0.04, "clip")],
+    camera_eye=(0.2, 0.1, 0.6), camera_target=(0.01, -0.01, 0.0), phases=(0.1, 0.55),
+    hidden_effects=("damping", "plasticity")))
