@@ -16,8 +16,9 @@ from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 
 
-def rbf_basis(points: np.ndarray, k: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(P, K) partition-of-unity basis and its (K, 3) centres."""
+def rbf_basis(points: np.ndarray, k: int, seed: int = 0, width: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
+    """(P, K) partition-of-unity basis and its (K, 3) centres; each bump's sigma is `width` times the
+    median distance between neighbouring centres (small: nearly piecewise constant, sharp edges)."""
     P = len(points)
     if k <= 1:
         return np.ones((P, 1)), points.mean(0, keepdims=True)
@@ -26,7 +27,7 @@ def rbf_basis(points: np.ndarray, k: int, seed: int = 0) -> tuple[np.ndarray, np
     init = points[rng.choice(P, k, replace=False)]
     centres, _ = kmeans2(points, init, minit="matrix", seed=seed)
     d_cc = cKDTree(centres).query(centres, k=2)[0][:, 1]
-    sigma = 0.6 * float(np.median(d_cc)) + 1e-9
+    sigma = width * float(np.median(d_cc)) + 1e-9
     d2 = ((points[:, None, :] - centres[None]) ** 2).sum(-1)
     B = np.exp(-(d2 - d2.min(1, keepdims=True)) / (2 * sigma ** 2))
     B /= B.sum(1, keepdims=True)
@@ -40,7 +41,8 @@ def _logit(p):
 
 class MaterialField:
     def __init__(self, points: np.ndarray, e_range: tuple, nu_max: float, *, dtype=torch.float64,
-                 device="cpu", seed: int = 0):
+                 device="cpu", seed: int = 0, width: float = 0.6):
+        self.width = float(width)
         self.points = np.asarray(points, dtype=np.float64)
         self.lo, self.hi = float(np.log(e_range[0])), float(np.log(e_range[1]))
         self.nu_max = float(nu_max)
@@ -52,7 +54,7 @@ class MaterialField:
 
     # ------------------------------------------------------------------ basis
     def set_basis(self, k: int) -> None:
-        B, self.centres = rbf_basis(self.points, k, self.seed)
+        B, self.centres = rbf_basis(self.points, k, self.seed, self.width)
         self.B = torch.as_tensor(B, dtype=self.dtype, device=self.device)
         self.K = self.B.shape[1]
 

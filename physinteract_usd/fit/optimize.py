@@ -34,6 +34,7 @@ class FitSettings:
     lr_material: float = 0.1            # on the basis coefficients (logit space)
     lr_poisson: float = 0.03
     lr_trajectory: float = 3e-4         # metres per step (Adam)
+    basis_width: float = 0.6            # bump sigma / centre spacing (smaller: sharper material edges)
     trajectory_levels: int = 1          # the trajectory is fitted in the last this-many levels only
     weight_decay: float = 0.0
     joint: bool = True
@@ -114,7 +115,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     t0 = time.perf_counter()
     st = prob.scene.settings
     mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
-                        device=prob.tdev, seed=s.seed)
+                        device=prob.tdev, seed=s.seed, width=s.basis_width)
     mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
     trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
     if start is not None:
