@@ -6,9 +6,11 @@ Schedule (each part measured on the synthetic suite, see docs/fit.md):
 2. coarse-to-fine: AdamW on the basis coefficients of log E (and nu at the coarsest levels) and,
    jointly, on the trajectory (unless `joint=False`, the paper's "w/o JO"), with cosine-annealed
    learning rates inside each level; the best iterate (lowest total loss) is kept;
-3. per-particle confidence from the Gauss-Newton diagonal (Hutchinson probes of J^T J);
-4. per-frame metrics of the kept iterate.
-Ctrl-C stops the loop and keeps the best iterate so far.
+3. per-particle confidence from the Gauss-Newton diagonal (Hutchinson probes of J^T J), on the
+   finest basis of the schedule whichever level the kept iterate came from;
+4. per-frame metrics of the kept iterate; the final loss is its entry in the loss history.
+Ctrl-C stops the loop and keeps the best iterate so far (its confidence is still estimated). A
+resumed fit (`start`) spends all its iterations on the finest basis, from the field it was given.
 """
 
 from __future__ import annotations
@@ -118,7 +120,12 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                         device=prob.tdev, seed=s.seed, width=s.basis_width)
     mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
     trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
+    levels, shares = tuple(int(k) for k in s.levels), tuple(s.level_share)
     if start is not None:
+        # resume where the last fit ended: on the finest basis (a coarse one would flatten the
+        # field it left), all iterations there
+        levels, shares = levels[-1:], (1.0,)
+        mat.set_basis(levels[0])
         mat.set_values(np.asarray(start["youngs"]), np.asarray(start["poisson"]))
         for i, (slot, _) in enumerate(prob.traj_slots):
             name = prob.contacts[_contact_of_slot(prob, slot)].name
@@ -139,7 +146,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                     B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs])
 
     budget = max(int(s.iterations), 0)
-    per_level = _split(budget, s.level_share, len(s.levels))
+    per_level = _split(budget, shares, len(levels))
     bar = None
     if progress and budget:
         from tqdm import tqdm
@@ -147,7 +154,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         bar = tqdm(total=budget, desc="fit", unit="it", dynamic_ncols=True)
     it = 0
     try:
-        for li, (k, n_it) in enumerate(zip(s.levels, per_level)):
+        for li, (k, n_it) in enumerate(zip(levels, per_level)):
             if li > 0:
                 if "theta" in best:  # refine from the best iterate so far
                     mat.B, mat.nu_basis = best["B"], best["nu_basis"]
@@ -160,7 +167,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
             groups = [{"params": [mat.theta], "lr": s.lr_material}]
             if fit_nu:
                 groups.append({"params": [mat.w_nu], "lr": s.lr_poisson})
-            fit_traj = s.joint and trajs and li >= len(s.levels) - s.trajectory_levels
+            fit_traj = s.joint and trajs and li >= len(levels) - s.trajectory_levels
             if fit_traj:  # material first: T0 is a guide, and early trajectory noise hides E's signal
                 groups.append({"params": trajs, "lr": s.lr_trajectory})
             opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
@@ -216,15 +223,24 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         _restore(mat, trajs, best, s.joint)
     E = mat.youngs().detach()
     nu = mat.poisson().detach()
-    # final pass: renders, metrics, animation
+    # final pass: renders, metrics, animation; the loss as the history counts it (frames 1.., the
+    # smoothness term), so the reported final loss is the kept iterate's entry in the history
     with torch.no_grad():
         out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None,
-                        frames=range(0, prob.T), keep_renders=True)
-    final_loss = float(out["rec"] + out["reg_traj"])
-    x, F = out["x"], out["F"]
-    metrics = frame_metrics(prob, out["renders"])
+                        frames=range(1, prob.T), keep_renders=True)
+        reg = prob.weights.smooth * mat.smoothness(pairs) if len(pairs) and mat.K > 1 else 0.0
+        final_loss = float(out["rec"] + out["reg_traj"] + reg)
+        x, F = out["x"], out["F"]
+        renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
+    metrics = frame_metrics(prob, renders)
     conf = np.ones(len(prob.x0))
-    if s.confidence_probes > 0 and not interrupted:
+    if s.confidence_probes > 0:  # also after Ctrl-C: the kept iterate is written, with its confidence
+        if interrupted and log:
+            log("estimating the kept iterate's confidence (Ctrl-C again quits without writing)")
+        if mat.K < max(levels):
+            # the kept iterate may come from a coarse level (a uniform E has one uniform
+            # confidence): judge it at the finest resolution the schedule reaches
+            mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed)
     means, covs = [], []
     with torch.no_grad():
@@ -329,10 +345,10 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
                 sm = (torch.randint(0, 2, rm.shape, generator=gen) * 2 - 1).to(rm)
                 acc = acc + (sm * rm).sum()
                 if p == 0:
-                    rss += float((rm ** 2).sum())
+                    rss += float((rm.detach() ** 2).sum())
                     count += rm.numel()
             if p == 0:
-                rss += float((r ** 2).sum())
+                rss += float((r.detach() ** 2).sum())
                 count += r.numel()
         g, = torch.autograd.grad(acc, theta)
         diag += g.detach() ** 2
