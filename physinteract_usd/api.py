@@ -419,7 +419,7 @@ def _parse_interaction(path, sd):
         raise InputError(path, f"not valid JSON ({exc})") from None
     if not isinstance(spec, dict) or not isinstance(spec.get("contacts"), list) or not spec["contacts"]:
         raise InputError(path, "expected an object with a non-empty 'contacts' list (see `simulate --help`)")
-    n = int(spec.get("frames", sd.n_frames))
+    n = _spec_int(path, "'frames'", spec.get("frames", sd.n_frames))
     if n < 2:
         raise InputError(path, "'frames' must be at least 2")
     x0 = sd.particles_positions
@@ -427,6 +427,8 @@ def _parse_interaction(path, sd):
     out = []
     for i, c in enumerate(spec["contacts"]):
         where = f"contacts[{i}]"
+        if not isinstance(c, dict):
+            raise InputError(path, f"{where}: expected an object with a 'type'")
         t = c.get("type")
         if t not in ("pointAdherent", "pointNonAdherent", "surfaceNonAdherent", "fixed"):
             raise InputError(path, f"{where}: type must be pointAdherent, pointNonAdherent, surfaceNonAdherent or fixed")
@@ -436,8 +438,11 @@ def _parse_interaction(path, sd):
             if not isinstance(sel, dict):
                 raise InputError(path, f"{where}: needs 'select' (centre+radius, indices or contact)")
             if "indices" in sel:
-                idx = np.asarray(sel["indices"], np.int64)
-                if len(idx) == 0 or idx.min() < 0 or idx.max() >= len(x0):
+                raw = sel["indices"]
+                if not isinstance(raw, list) or not raw or not all(isinstance(v, int) and not isinstance(v, bool) for v in raw):
+                    raise InputError(path, f"{where}: 'indices' must be a non-empty list of integers")
+                idx = np.asarray(raw, np.int64)
+                if idx.min() < 0 or idx.max() >= len(x0):
                     raise InputError(path, f"{where}: indices must lie in [0, {len(x0)})")
             elif "contact" in sel:
                 if sel["contact"] not in by_name:
@@ -445,34 +450,58 @@ def _parse_interaction(path, sd):
                                      f"(it has {', '.join(by_name) or 'none'})")
                 idx = by_name[sel["contact"]].particle_indices
             elif "centre" in sel and "radius" in sel:
-                idx = np.where(np.linalg.norm(x0 - np.asarray(sel["centre"], float), axis=1) <= float(sel["radius"]))[0]
+                centre = _spec_vec3(path, f"{where}: 'centre'", sel["centre"])
+                radius = _spec_float(path, f"{where}: 'radius'", sel["radius"])
+                idx = np.where(np.linalg.norm(x0 - centre, axis=1) <= radius)[0]
                 if len(idx) == 0:
                     raise InputError(path, f"{where}: no particle within {sel['radius']} m of {sel['centre']}")
             else:
                 raise InputError(path, f"{where}: 'select' needs centre+radius, indices or contact")
-        g = int(c.get("grasp_frame", 0))
+        g = _spec_int(path, f"{where}: 'grasp_frame'", c.get("grasp_frame", 0))
         r = c.get("release_frame")
-        r = None if r is None else int(r)
+        r = None if r is None else _spec_int(path, f"{where}: 'release_frame'", r)
+        if not 0 <= g < n - 1:
+            raise InputError(path, f"{where}: grasp_frame must lie in [0, {n - 1}) for {n} frames")
+        if r is not None and not g < r <= n:
+            raise InputError(path, f"{where}: release_frame must lie in ({g}, {n}] (after grasp_frame)")
         traj = None
         if t != "fixed":
-            start = x0[idx].mean(0) if len(idx) else np.asarray(c.get("trajectory", [[0, 0, 0]])[0], float)
             if "trajectory" in c:
-                traj = np.asarray(c["trajectory"], float)
-                if traj.shape != (n, 3):
+                try:
+                    traj = np.asarray(c["trajectory"], float)
+                except (TypeError, ValueError):
+                    traj = None
+                if traj is None or traj.shape != (n, 3) or not np.isfinite(traj).all():
                     raise InputError(path, f"{where}: trajectory must be {n} positions [x, y, z]")
             elif "displacement" in c:
+                start = x0[idx].mean(0) if len(idx) else np.zeros(3)
+                d = _spec_vec3(path, f"{where}: 'displacement'", c["displacement"])
                 s = np.clip((np.arange(n) - g) / max((r if r is not None else n - 1) - g, 1), 0, 1)
                 s = s * s * (3 - 2 * s)
-                traj = start + s[:, None] * np.asarray(c["displacement"], float)
+                traj = start + s[:, None] * d
             elif "velocity" in c:
+                start = x0[idx].mean(0) if len(idx) else np.zeros(3)
+                v = _spec_vec3(path, f"{where}: 'velocity'", c["velocity"])
                 steps = np.clip(np.arange(n) - g, 0, (r if r is not None else n) - g)
-                traj = start + steps[:, None] / sd.fps * np.asarray(c["velocity"], float)
+                traj = start + steps[:, None] / sd.fps * v
             else:
                 raise InputError(path, f"{where}: give a trajectory, a displacement or a velocity")
-        out.append(ContactSpec(c.get("name", f"{t}{i}"), t, idx, g, r, traj, radius=float(c.get("radius", 0.0)),
-                               normal=tuple(c.get("normal", (0.0, 1.0, 0.0))), friction=float(c.get("friction", 0.5))))
+            if t in ("pointNonAdherent", "surfaceNonAdherent") and "trajectory" not in c:
+                raise InputError(path, f"{where}: a {t} collider needs a 'trajectory' (positions per frame)")
+        normal = _spec_vec3(path, f"{where}: 'normal'", c.get("normal", (0.0, 1.0, 0.0)))
+        if t == "surfaceNonAdherent" and not np.linalg.norm(normal) > 0:
+            raise InputError(path, f"{where}: 'normal' must be a non-zero vector")
+        out.append(ContactSpec(str(c.get("name", f"{t}{i}")), t, idx, g, r, traj,
+                               radius=_spec_float(path, f"{where}: 'radius'", c.get("radius", 0.0)),
+                               normal=tuple(normal), friction=_spec_float(path, f"{where}: 'friction'", c.get("friction", 0.5))))
         if t == "pointNonAdherent" and not out[-1].radius > 0:
             raise InputError(path, f"{where}: pointNonAdherent needs a radius > 0")
+    pinned = [c for c in out if c.type in ("pointAdherent", "fixed")]
+    for a in range(len(pinned)):
+        for b in range(a):
+            if np.intersect1d(pinned[a].indices, pinned[b].indices).size:
+                raise InputError(path, f"contacts '{pinned[b].name}' and '{pinned[a].name}' hold the same "
+                                 "particles (each particle follows one contact)")
     if spec.get("keep_supports", True):
         used = set(np.concatenate([c.indices for c in out])) if out else set()
         for c in sd.contacts:
@@ -481,6 +510,32 @@ def _parse_interaction(path, sd):
                 if len(keep):
                     out.append(ContactSpec(c.name, "fixed", keep))
     return spec, n, out
+
+
+def _spec_int(path, what, v) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise InputError(path, f"{what} must be an integer, not {_json_repr(v)}")
+    return int(v)
+
+
+def _spec_float(path, what, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise InputError(path, f"{what} must be a number, not {_json_repr(v)}")
+    return float(v)
+
+
+def _spec_vec3(path, what, v) -> np.ndarray:
+    if (not isinstance(v, (list, tuple)) or len(v) != 3
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v)):
+        raise InputError(path, f"{what} must be three numbers [x, y, z], not {_json_repr(v)}")
+    return np.asarray(v, float)
+
+
+def _json_repr(v) -> str:
+    import json
+
+    s = json.dumps(v)
+    return s if len(s) <= 40 else s[:37] + "..."
 
 
 def simulate(stage_path, interaction, *, name=None, device="cpu", log=print) -> dict:
@@ -507,7 +562,10 @@ def simulate(stage_path, interaction, *, name=None, device="cpu", log=print) -> 
     if sd.reports:
         for e, p in sd.reports[-1].get("effect_parameters", {}).items():
             effects.setdefault(e, {}).update(p)
-    prob = FitProblem(sd_n, obs, contacts, effects=effects, device=device)
+    try:
+        prob = FitProblem(sd_n, obs, contacts, effects=effects, device=device)
+    except ValueError as exc:  # what the spec's checks above did not catch (the simulator's own)
+        raise InputError(interaction, str(exc)) from None
     E = torch.as_tensor(sd.youngs_modulus, dtype=prob.tdtype)
     nu = torch.as_tensor(np.minimum(sd.poisson_ratio, sd.settings.poisson_max), dtype=prob.tdtype)
     with torch.no_grad():
@@ -530,13 +588,14 @@ def export(stage_path, out_path, *, ply_sequence=None) -> dict:
     """Flatten the stage into one self-contained USD file; optionally a 3DGS PLY per frame."""
     from .usd.stage import export_stage, read_splat_animation
 
+    if ply_sequence:  # checked before anything is written
+        out_dir = Path(ply_sequence)
+        if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+            raise InputError(out_dir, "exists and is not empty")
     result = {"usd": export_stage(stage_path, out_path)}
     if ply_sequence:
         from .gaussians import Gaussians, write_ply
 
-        out_dir = Path(ply_sequence)
-        if out_dir.exists() and any(out_dir.iterdir()):
-            raise InputError(out_dir, "exists and is not empty")
         out_dir.mkdir(parents=True, exist_ok=True)
         sd = read_stage(stage_path)
         anim = read_splat_animation(stage_path)

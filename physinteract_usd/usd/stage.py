@@ -679,9 +679,12 @@ def export_stage(stage_path, out_path) -> str:
     if not out.parent.exists():
         raise InputError(out.parent, "output folder does not exist")
     src = Path(stage_path).resolve()
-    if out.resolve() in {p.resolve() for p in (src, *LayerPaths.of(src).__dict__.values()) if isinstance(p, Path)}:
-        raise InputError(out, "would overwrite a layer of the stage itself")
     stage = open_stage(stage_path)
+    # every layer the stage is made of (a simulation view's layer too), and the ones it will have
+    own = {p.resolve() for p in (src, *LayerPaths.of(src).__dict__.values()) if isinstance(p, Path)}
+    own |= {Path(lay.realPath).resolve() for lay in stage.GetUsedLayers() if lay.realPath}
+    if out.resolve() in own:
+        raise InputError(out, "would overwrite a layer of the stage itself")
     flat = stage.Flatten()
     src_dir = src.parent
     out_dir = out.resolve().parent
