@@ -31,8 +31,8 @@ from .problem import FitProblem
 @dataclass
 class FitSettings:
     iterations: int = 60
-    levels: tuple = (1, 8, 32)          # basis sizes, coarse to fine
-    level_share: tuple = (0.15, 0.35, 0.5)
+    levels: tuple = (1, 8)              # basis sizes, coarse to fine (foam_bar: (1, 8) MA 0.45 vs
+    level_share: tuple = (0.25, 0.75)   # (1, 8, 32) 0.33 and (1, 4, 8) 0.26: finer bases fit discretisation error)
     lr_material: float = 0.1            # on the basis coefficients (logit space)
     lr_poisson: float = 0.03
     lr_trajectory: float = 3e-4         # metres per step (Adam)
@@ -162,6 +162,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                         mat.theta = best["theta"].clone().requires_grad_(True)
                         mat.w_nu = best["w_nu"].clone().requires_grad_(True)
                     trajs = [t.clone().requires_grad_(s.joint) for t in best["trajs"]]
+                mat.refine(k, refine_nu=False)
+            elif k != mat.K:  # a schedule that starts above one basis function
                 mat.refine(k, refine_nu=False)
             fit_nu = li < s.fit_poisson_levels
             groups = [{"params": [mat.theta], "lr": s.lr_material}]
