@@ -171,6 +171,17 @@ def test_material_recovery_from_a_wrong_start(scene):
     assert r.loss_history[-1] < r.loss_history[0]
 
 
+def test_a_schedule_may_start_above_one_basis_function(scene):
+    sd = read_stage(scene["stage"])
+    prob = FitProblem(sd, api.load_observations(sd), api.contacts_from_gt(sd, scene["gt"]))
+    ks = []
+    s = FitSettings(iterations=2, levels=(4,), level_share=(1.0,), search_evals=2, joint=False,
+                    confidence_probes=0, seed=0)
+    r = run_fit(prob, s, progress=False, on_iteration=lambda it, lv, mat, tr: ks.append(mat.K))
+    assert ks == [4, 4]
+    assert len(np.unique(r.youngs)) > 1  # a field, not one value
+
+
 def test_confidence_low_where_held_high_where_bending(fitted):
     """Particles the support holds never strain: the video says nothing about their E, so their
     confidence must be low; where the bar bends it must be high."""
