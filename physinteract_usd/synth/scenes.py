@@ -120,7 +120,7 @@ def _hemp_rope():
 
 
 def _hemp_rope_E(p, part):
-    # stiff, tightly twisted top half grading into a soft frayed end: 8x over the length
+    # stiff, tightly twisted top grading log-linearly into a soft frayed end: 5x over the length
     s = np.clip((0.16 - p[:, 1]) / 0.32, 0, 1)
     return np.exp(np.log(STIFF) + s * (np.log(SOFT) - np.log(STIFF)))
 
@@ -137,7 +137,8 @@ def _glove():
     xs = [-0.045, -0.015, 0.015, 0.045]
     lens = [0.06, 0.07, 0.068, 0.055]
     for i, (x, L) in enumerate(zip(xs, lens)):
-        parts.append(Capsule(f"finger{i}", (x, -0.06, 0), (x, -0.06 - L, 0), 0.016))
+        # fanned out a little, so that the fingers are apart (not a mitten) in the frames
+        parts.append(Capsule(f"finger{i}", (x, -0.06, 0), (1.45 * x, -0.06 - L, 0), 0.014))
     parts.append(Capsule("thumb", (-0.055, 0.0, 0), (-0.1, -0.05, 0), 0.017))
     return Shape(parts)
 
@@ -150,8 +151,10 @@ def _balloon_dog():
         Capsule("leg_fr", (0.07, 0.0, -0.025), (0.07, -0.09, -0.035), r),
         Capsule("leg_bl", (-0.07, 0.0, 0.025), (-0.07, -0.09, 0.035), r),
         Capsule("leg_br", (-0.07, 0.0, -0.025), (-0.07, -0.09, -0.035), r),
-        Capsule("neck", (0.08, 0.0, 0), (0.11, 0.09, 0), r),
-        Capsule("head", (0.11, 0.09, 0), (0.17, 0.085, 0), r),
+        # neck near upright and a short, raised head: a longer, level head on this soft neck sagged
+        # ~7 cm under its own weight, more than the hand's pull
+        Capsule("neck", (0.08, 0.0, 0), (0.095, 0.085, 0), r),
+        Capsule("head", (0.095, 0.085, 0), (0.145, 0.1, 0), r),
         Capsule("tail", (-0.08, 0.0, 0), (-0.12, 0.06, 0), 0.017),
         Ellipsoid("knot_front", (0.08, 0.0, 0), (0.028, 0.028, 0.028)),
         Ellipsoid("knot_back", (-0.08, 0.0, 0), (0.028, 0.028, 0.028)),
@@ -171,13 +174,15 @@ def _balloon_E(p, part):
 
 
 def _flower():
-    parts = [Capsule("stem", (0, -0.09, 0), (0, 0.04, 0), 0.018),
+    # the stem is thick enough to hold the head up: at 18 mm radius the head's weight was near the
+    # stem's Euler buckling load and the flower fell over after the pull
+    parts = [Capsule("stem", (0, -0.09, 0), (0, 0.04, 0), 0.024),
              Ellipsoid("centre", (0, 0.05, 0), (0.028, 0.018, 0.028))]
     for i in range(5):
         a = 2 * np.pi * i / 5 + 0.3
         d = np.array([np.cos(a), 0.0, np.sin(a)])
         R = np.stack([d, np.array([0.0, 1.0, 0.0]), np.cross(d, [0.0, 1.0, 0.0])], 1)
-        parts.append(Ellipsoid(f"petal{i}", tuple(np.array([0, 0.055, 0]) + 0.058 * d), (0.045, 0.014, 0.028), R))
+        parts.append(Ellipsoid(f"petal{i}", tuple(np.array([0, 0.055, 0]) + 0.058 * d), (0.045, 0.012, 0.028), R))
     return Shape(parts)
 
 
@@ -186,8 +191,14 @@ def _basketball():
 
 
 def _basketball_E(p, part):
+    # a rubber shell over a soft core (1.5e4); the shell is worn soft where it is pressed: 3.75e4
+    # where it sits on the stand grading log-linearly to 7.5e3 at the top. The grading is what
+    # makes the field vary over the surface, where the Gaussians (and MA) are: a shell of one E
+    # would let a uniform E score MA 1.
     r = np.linalg.norm(p, axis=1)
-    return np.where(r > 0.08, STIFF, SOFT)  # a stiff rubber shell over a soft core: 5x
+    s = np.clip((p[:, 1] + 0.11) / 0.22, 0, 1)
+    shell = np.exp(np.log(STIFF) + s * (np.log(SOFT) - np.log(STIFF)))
+    return np.where(r > 0.08, shell, MID)
 
 
 def _knit_cap():
@@ -212,11 +223,29 @@ def _toy_rope():
     return Shape(parts)
 
 
+# The coil is a helical spring of soft foam (E / rho = 50 m^2/s^2): its sag under its own weight
+# between the two held plugs grows as D^4 n^2 / d^2 (coil diameter D, n turns, wire diameter d).
+# A phone-cord-like 9 cm coil of 5 turns of 22 mm wire would sag metres: it collapses, its turns
+# collide and the ground truth goes non-finite. 3 turns of 6 cm over 28 mm wire sag ~1 cm, and the
+# wire is ~4.5 ground-truth particles thick.
+COIL_TOP, COIL_R, COIL_PITCH, COIL_TURNS, COIL_WIRE, PLUG_LEN = 0.07, 0.03, 0.045, 3.0, 0.014, 0.05
+
+
+def _coil_points(t=None):
+    if t is None:
+        return helix((0, COIL_TOP, 0), COIL_R, COIL_PITCH, COIL_TURNS, n_per_turn=20)
+    return np.array([COIL_R * np.cos(t), COIL_TOP - COIL_PITCH * t / (2 * np.pi), COIL_R * np.sin(t)])
+
+
 def _telephone_cable():
-    pts = helix((0, 0.13, 0), 0.045, 0.05, 5.0, n_per_turn=20)
-    return Shape([Tube("coil", pts, 0.011),
-                  Capsule("plug_top", (0.045, 0.13, 0), (0.045, 0.18, 0), 0.016),
-                  Capsule("plug_bottom", tuple(pts[-1]), tuple(pts[-1] + [0, -0.05, 0]), 0.016)])
+    pts = _coil_points()
+    return Shape([Tube("coil", pts, COIL_WIRE),
+                  Capsule("plug_top", tuple(pts[0]), tuple(pts[0] + [0, PLUG_LEN, 0]), 0.016),
+                  Capsule("plug_bottom", tuple(pts[-1]), tuple(pts[-1] + [0, -PLUG_LEN, 0]), 0.016)])
+
+
+_POKE_T = 4 * np.pi - 0.4   # the poked point: mid-height, the coil's outer side facing the image's right
+_POKE_AT = _coil_points(_POKE_T) + COIL_WIRE * np.array([np.cos(_POKE_T), 0.0, np.sin(_POKE_T)])
 
 
 PULL = 0.6  # all hand paths are scaled by this: soft parts stretch a lot already at 60%
@@ -294,7 +323,7 @@ _add(SceneSpec(
     youngs=lambda p, part: np.where(part == 0, STIFF, SOFT),
     poisson={"palm": 0.35, **{f"finger{i}": 0.3 for i in range(4)}, "thumb": 0.3}, density=RHO,
     texture=lambda p, part: pattern_color(p, (0.2, 0.45, 0.7), (0.9, 0.9, 0.85), 0.012, "checker"),
-    contact_point=(0.015, -0.12, 0.016), contact_radius=0.025, path=_arc((0.06, 0.03, 0.06), (0.0, 0.01, 0.02)),
+    contact_point=(0.021, -0.12, 0.014), contact_radius=0.025, path=_arc((0.06, 0.03, 0.06), (0.0, 0.01, 0.02)),
     hand_dir=(0.3, -0.5, 1.0), supports=[Support((0.0, 0.075, 0.0), 0.05, "wrist clip")],
     camera_eye=(0.35, 0.2, 0.65), camera_target=(0.0, 0.05, 0.0), hidden_effects=("plasticity", "damping")))
 
@@ -302,11 +331,11 @@ _add(SceneSpec(
     name="balloon_dog", paper_name="balloon dog", origin="synthetic", interaction="pointAdherent",
     description="a balloon dog standing on an unseen table (feet held); the hand pulls its head up and lets go",
     shape=_balloon_dog,
-    youngs=lambda p, part: np.where(part >= 8, STIFF, SOFT),
+    youngs=lambda p, part: np.where(part >= 8, STIFF, np.where((part == 5) | (part == 6), MID, SOFT)),
     poisson={**{k: 0.4 for k in ("body", "leg_fl", "leg_fr", "leg_bl", "leg_br", "neck", "head", "tail")},
              "knot_front": 0.4, "knot_back": 0.4}, density=RHO,
     texture=lambda p, part: pattern_color(p, (0.9, 0.15, 0.45), (1.0, 0.7, 0.85), 0.03, "noise"),
-    contact_point=(0.17, 0.095, 0.015), contact_radius=0.025, path=_arc((0.04, 0.07, 0.03), (0.0, 0.0, 0.03)),
+    contact_point=(0.165, 0.105, 0.015), contact_radius=0.025, path=_arc((0.04, 0.07, 0.03), (0.0, 0.0, 0.03)),
     hand_dir=(1.0, 0.5, 0.6),
     supports=[Support((0.07, -0.1, 0.035), 0.02, "foot"), Support((0.07, -0.1, -0.035), 0.02, "foot"),
               Support((-0.07, -0.1, 0.035), 0.02, "foot"), Support((-0.07, -0.1, -0.035), 0.02, "foot")],
@@ -331,7 +360,7 @@ _add(SceneSpec(
                                      np.where((part == 1)[:, None], pattern_color(p, (0.95, 0.8, 0.1), (0.5, 0.3, 0.05), 0.006, "dots"),
                                               pattern_color(p, (0.95, 0.45, 0.6), (1.0, 0.9, 0.95), 0.012, "stripes", axis=(1, 0, 1), freq=160.0))),
     contact_point=(0.095, 0.06, 0.03), contact_radius=0.022, path=_arc((0.03, -0.05, 0.03), (0.0, 0.0, 0.02)),
-    hand_dir=(1.0, 0.6, 0.7), supports=[Support((0.0, -0.1, 0.0), 0.035, "pot")],
+    hand_dir=(1.0, 0.6, 0.7), supports=[Support((0.0, -0.1, 0.0), 0.045, "pot")],
     camera_eye=(0.3, 0.35, 0.6), camera_target=(0.02, -0.01, 0.0), hidden_effects=("plasticity", "damping")))
 
 _add(SceneSpec(
@@ -376,12 +405,12 @@ _add(SceneSpec(
     shape=_telephone_cable,
     youngs=lambda p, part: np.where(part == 0, SOFT, STIFF),
     poisson={"coil": 0.4, "plug_top": 0.4, "plug_bottom": 0.4}, density=RHO,
-    texture=lambda p, part: np.where((part == 0)[:, None], pattern_color(p, (0.85, 0.85, 0.8), (0.55, 0.55, 0.5), 0.01, "noise"),
+    texture=lambda p, part: np.where((part == 0)[:, None], pattern_color(p, (0.9, 0.82, 0.62), (0.45, 0.38, 0.25), 0.01, "noise"),
                                      pattern_color(p, (0.15, 0.15, 0.15), (0.4, 0.4, 0.4), 0.01, "checker")),
-    contact_point=(0.06, -0.02, 0.035), contact_radius=0.018, path=_press((-0.05, 0.0, -0.03)),
-    hand_dir=(1.0, 0.0, 0.6), supports=[Support((0.045, 0.18, 0.0), 0.03, "socket"),
-                                        Support(tuple(helix((0, 0.13, 0), 0.045, 0.05, 5.0, n_per_turn=20)[-1] + [0, -0.05, 0]), 0.03, "handset")],
-    camera_eye=(0.3, 0.1, 0.7), camera_target=(0.0, -0.03, 0.0), phases=(0.05, 0.75),
+    contact_point=tuple(_POKE_AT), contact_radius=0.015, path=_press((-0.055, 0.0, 0.024)),
+    hand_dir=(0.92, 0.1, -0.39), supports=[Support(tuple(_coil_points(0.0) + [0, PLUG_LEN, 0]), 0.03, "socket"),
+                                        Support(tuple(_coil_points()[-1] + [0, -PLUG_LEN, 0]), 0.03, "handset")],
+    camera_eye=(0.3, 0.1, 0.7), camera_target=(0.0, 0.0, 0.0), phases=(0.05, 0.75),
     hidden_effects=("damping", "viscoelasticity")))
 
 
