@@ -17,7 +17,9 @@ echo "|---|---|---|---|---|---|---|---|---|---|---|---|" >> "$OUT/paper.md"
 for S in $SCENES; do
   L="$OUT/paper_$S.log"
   t0=$(date +%s)
+  if [ -f "$W/$S/gt/gt.json" ]; then echo "reusing $W/$S" > "$L"; else
   timeout 240 python3 -m physinteract_usd synth "$S" "$W/$S" --size paper --device cuda --force > "$L" 2>&1 || { echo "synth $S failed" | tee -a "$L"; continue; }
+  fi
   t1=$(date +%s)
   rm -f $W/$S.usda $W/$S.init.usdc $W/$S.fit.usdc
   python3 -m physinteract_usd init "$W/$S.usda" --capture "$W/$S" --grid 100 --padding 0.3 --youngs-range 1e3,6e4 \

@@ -5,15 +5,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 . .venv/bin/activate
-SAMPLE=samples/bow_tie
+SAMPLE=samples/foam_bar   # regenerate with: physinteract-usd synth foam_bar samples/foam_bar --frames 14 --force
 OUT=out/demo
 mkdir -p "$OUT"
 rm -f "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc
-# the capture's own README.txt names the suggested init settings (grid, E range, density)
-physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 0.3 \
+# the capture's README.txt suggests grid 24; 20 keeps the CPU fit near 5 minutes (docs/benchmarks/fit.md)
+physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 20 --padding 0.3 \
   --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
-physinteract-usd fit "$OUT/scene.usda" --contact-from "$SAMPLE/gt" "$@"
+# no contact sets on the stage yet: fit extracts the hand, contact, supports and T0 from the video
+physinteract-usd fit "$OUT/scene.usda" "$@"
 physinteract-usd evaluate "$OUT/scene.usda" --gt "$SAMPLE/gt"
 physinteract-usd info "$OUT/scene.usda"
-physinteract-usd export "$OUT/scene.usda" "$OUT/bow_tie_twin.usdc"
-echo "demo done: open $OUT/scene.usda (or $OUT/bow_tie_twin.usdc in Blender)"
+physinteract-usd export "$OUT/scene.usda" "$OUT/foam_bar_twin.usdc"
+echo "demo done: open $OUT/scene.usda (or $OUT/foam_bar_twin.usdc in Blender)"
