@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -45,15 +43,9 @@ def device_name(device: str) -> str:
             return torch.cuda.get_device_name(0)
         except Exception:  # noqa: BLE001
             return device
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu} ({os.cpu_count()} cores)"
+    from eval_extract import machine  # benchmarks/: the CPU's model name and core count
+
+    return machine()
 
 
 def one(scene: str, a, work: Path) -> dict:
