@@ -316,6 +316,42 @@ def frame_metrics(prob: FitProblem, renders: dict) -> list:
     return out
 
 
+def residual_correlation(residuals: list) -> float:
+    """How many pixels one independent residual spans: the integral of the residuals' normalised
+    spatial autocorrelation (pixels) times that of their frame-to-frame correlation (frames), both
+    >= 1. Independent pixel noise gives ~1; a smooth, persistent model error gives its blob area
+    times the number of frames it persists over. The Fisher information, which counts pixels, is
+    divided by this (a sandwich-style correction for correlated residuals)."""
+    if not residuals:
+        return 1.0
+    R = np.stack(residuals).astype(np.float64)          # (T, H, W)
+    R = R - R.mean()
+    var = float((R ** 2).mean())
+    if var <= 0:
+        return 1.0
+    T, H, W = R.shape
+    f = np.fft.rfft2(R, s=(2 * H, 2 * W))               # zero-padded: linear, not circular
+    ac = np.fft.irfft2((f * np.conj(f)).sum(0), s=(2 * H, 2 * W))
+    ac /= max(ac[0, 0], 1e-30)
+    # positive lobe around zero lag (a noisy tail would sum to anything): lags within the region
+    # where the correlation stays above zero along both axes
+    lim_y = int(np.argmax(ac[:H, 0] <= 0)) or H
+    lim_x = int(np.argmax(ac[0, :W] <= 0)) or W
+    core = np.concatenate([ac[:lim_y], ac[-lim_y + 1:]] if lim_y > 1 else [ac[:1]], axis=0)
+    core = np.concatenate([core[:, :lim_x], core[:, -lim_x + 1:]] if lim_x > 1 else [core[:, :1]], axis=1)
+    area = max(float(np.clip(core, 0, None).sum()), 1.0)
+    frames = 1.0
+    if T > 1:
+        flat = R.reshape(T, -1)
+        norms = np.linalg.norm(flat, axis=1)
+        ok = (norms[:-1] > 0) & (norms[1:] > 0)
+        if ok.any():
+            rho = float(np.mean((flat[:-1] * flat[1:]).sum(1)[ok] / (norms[:-1] * norms[1:])[ok]))
+            rho = min(max(rho, 0.0), 0.99)
+            frames = min((1 + rho) / (1 - rho), float(T))   # AR(1) integrated correlation time
+    return area * frames
+
+
 def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
                tol: float = math.log(1.2)) -> np.ndarray:
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
@@ -323,13 +359,18 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
 
     diag(J^T J) is estimated with Rademacher probes s: E[(J^T s)^2] = diag(J^T J), J the
     Jacobian of the weighted pixel residuals (RGB and silhouette) w.r.t. the coefficients; the
-    noise variance is the mean squared residual. sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
+    noise variance is the mean squared residual, inflated by the residuals' correlation (see
+    `residual_correlation`): what is left after a fit is mostly model error (discretisation, missing
+    effects), smooth in space and persistent in time, not independent pixel noise, and counting
+    every pixel as independent evidence claims a precision the data do not hold.
+    sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
     """
     gen = torch.Generator(device="cpu").manual_seed(seed + 11)
     theta = mat.theta.detach().clone().requires_grad_(True)
     mat.theta = theta
     diag = torch.zeros_like(theta)
     rss, count = 0.0, 0
+    residuals = []
     tr = [t.detach() for t in trajs] if trajs else None
     nu = mat.poisson().detach()
     for p in range(probes):
@@ -352,10 +393,11 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
             if p == 0:
                 rss += float((r.detach() ** 2).sum())
                 count += r.numel()
+                residuals.append(r.detach().float().mean(-1).cpu().numpy())
         g, = torch.autograd.grad(acc, theta)
         diag += g.detach() ** 2
     diag /= probes
-    noise_var = max(rss / max(count, 1), 1e-8)
+    noise_var = max(rss / max(count, 1), 1e-8) * residual_correlation(residuals)
     sigma_theta = torch.sqrt(noise_var / diag.clamp_min(1e-30))
     with torch.no_grad():
         s = torch.sigmoid(mat.B @ theta)
