@@ -157,7 +157,8 @@ def format_info(d: dict) -> str:
     if d["contacts"]:
         for ct in d["contacts"]:
             lines.append(f"contact     {ct['name']}: {ct['type']}, {ct['particles']} particles, "
-                         f"frames {ct['grasp']:g}..{min(ct['release'], 1e8):g} ({ct['source']})")
+                         + (f"frames {ct['grasp']:g}..{ct['release']:g}" if ct['release'] < 1e7 else f"from frame {ct['grasp']:g} on")
+                         + f" ({ct['source']})")
     else:
         lines.append("contact     none yet (`physinteract-usd extract` finds them; `fit` runs it)")
     for t in d["trajectories"]:
