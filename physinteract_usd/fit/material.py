@@ -6,6 +6,13 @@ partition-of-unity basis of K normalised Gaussian bumps on k-means centres of th
 Coarse-to-fine: K = 1 (uniform), then more centres; each refinement starts from the projection of
 the current field. nu is one value per basis function too, nu = nu_max * sigmoid(w), fitted at
 the coarsest levels only (it is weakly observable).
+
+Appearance prior (optional): objects are made of parts, and a material change usually shows as a
+change of colour. With per-particle appearance features (the local mean colour of the nearby
+Gaussians), centres and bumps live in a joint space, position plus `appearance` x extent x colour,
+so a bump does not spread across a colour edge and the field can jump there; the smoothness term
+weighs neighbour pairs by their colour difference (edge-aware). Where colour does not change,
+nothing changes.
 """
 
 from __future__ import annotations
@@ -16,16 +23,43 @@ from scipy.cluster.vq import kmeans2
 from scipy.spatial import cKDTree
 
 
-def rbf_basis(points: np.ndarray, k: int, seed: int = 0, width: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
-    """(P, K) partition-of-unity basis and its (K, 3) centres; each bump's sigma is `width` times the
-    median distance between neighbouring centres (small: nearly piecewise constant, sharp edges)."""
+def particle_appearance(points: np.ndarray, gaussian_means: np.ndarray, gaussian_colors: np.ndarray,
+                        k: int = 16) -> np.ndarray:
+    """(P, 3) local mean colour of the `k` Gaussians nearest each particle (interior particles take
+    the colour of the surface nearest them; averaging over k washes out fine texture)."""
+    g = np.asarray(gaussian_means, np.float64)
+    c = np.clip(np.asarray(gaussian_colors, np.float64)[:, :3], 0.0, 1.0)
+    k = int(min(k, len(g)))
+    _, idx = cKDTree(g).query(np.asarray(points, np.float64), k=k)
+    idx = idx.reshape(len(points), k)
+    return c[idx].mean(1)
+
+
+def joint_space(points: np.ndarray, features: np.ndarray | None, appearance: float) -> np.ndarray:
+    """Positions, with the appearance features appended in metres: a full colour change counts as
+    `appearance` times the object's extent."""
+    points = np.asarray(points, np.float64)
+    if features is None or appearance <= 0:
+        return points
+    ext = float(np.max(np.ptp(points, axis=0))) if len(points) > 1 else 1.0
+    return np.concatenate([points, appearance * ext * np.asarray(features, np.float64)], axis=1)
+
+
+def rbf_basis(points: np.ndarray, k: int, seed: int = 0, width: float = 0.6,
+              centre_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(P, K) partition-of-unity basis and its (K, D) centres; each bump's sigma is `width` times the
+    median distance between neighbouring centres (small: nearly piecewise constant, sharp edges).
+    `points` may carry appearance columns (see `joint_space`). Centres are placed among the points
+    where `centre_mask` is true (all by default): held particles, whose E the video cannot see,
+    get no bump of their own and take the value of the free material next to them."""
     P = len(points)
     if k <= 1:
         return np.ones((P, 1)), points.mean(0, keepdims=True)
-    k = min(k, P)
+    cand = points if centre_mask is None or not np.any(centre_mask) else points[np.asarray(centre_mask, bool)]
+    k = min(k, len(cand))
     rng = np.random.default_rng(seed)
-    init = points[rng.choice(P, k, replace=False)]
-    centres, _ = kmeans2(points, init, minit="matrix", seed=seed)
+    init = cand[rng.choice(len(cand), k, replace=False)]
+    centres, _ = kmeans2(cand, init, minit="matrix", seed=seed)
     d_cc = cKDTree(centres).query(centres, k=2)[0][:, 1]
     sigma = width * float(np.median(d_cc)) + 1e-9
     d2 = ((points[:, None, :] - centres[None]) ** 2).sum(-1)
@@ -39,11 +73,24 @@ def _logit(p):
     return np.log(p) - np.log1p(-p)
 
 
+def appearance_transfer_weights(weight: np.ndarray, index: np.ndarray, gaussian_features: np.ndarray,
+                                particle_features: np.ndarray, tolerance: float = 0.1) -> np.ndarray:
+    """A Gaussian's weights over its bound particles (N, k), tilted toward the particles of its own
+    colour, so that a Gaussian at a material edge reports its own part's value rather than an
+    average across the edge. Falls back to the plain weights where no bound particle matches."""
+    d2 = ((np.asarray(gaussian_features)[:, None, :] - np.asarray(particle_features)[index]) ** 2).sum(-1)
+    w = np.asarray(weight) * np.exp(-d2 / (2 * tolerance ** 2))
+    s = w.sum(1, keepdims=True)
+    return np.where(s > 1e-6, w / np.maximum(s, 1e-300), weight)
+
+
 class MaterialField:
     def __init__(self, points: np.ndarray, e_range: tuple, nu_max: float, *, dtype=torch.float64,
-                 device="cpu", seed: int = 0, width: float = 0.6):
+                 device="cpu", seed: int = 0, width: float = 0.6, features: np.ndarray | None = None,
+                 appearance: float = 0.0, centre_mask: np.ndarray | None = None):
         self.width = float(width)
-        self.points = np.asarray(points, dtype=np.float64)
+        self.centre_mask = centre_mask
+        self.points = joint_space(points, features, appearance)
         self.lo, self.hi = float(np.log(e_range[0])), float(np.log(e_range[1]))
         self.nu_max = float(nu_max)
         self.dtype, self.device, self.seed = dtype, device, seed
@@ -54,7 +101,7 @@ class MaterialField:
 
     # ------------------------------------------------------------------ basis
     def set_basis(self, k: int) -> None:
-        B, self.centres = rbf_basis(self.points, k, self.seed, self.width)
+        B, self.centres = rbf_basis(self.points, k, self.seed, self.width, self.centre_mask)
         self.B = torch.as_tensor(B, dtype=self.dtype, device=self.device)
         self.K = self.B.shape[1]
 
@@ -99,10 +146,12 @@ class MaterialField:
                 w, *_ = np.linalg.lstsq(self.nu_basis.cpu().numpy(), _logit(np.asarray(nu) / self.nu_max), rcond=None)
                 self.w_nu = torch.as_tensor(w, dtype=self.dtype, device=self.device).requires_grad_(True)
 
-    def smoothness(self, neighbours: torch.Tensor) -> torch.Tensor:
-        """Mean squared log-E difference over neighbour pairs (P_pairs, 2): the |grad Theta| term."""
+    def smoothness(self, neighbours: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """Mean squared log-E difference over neighbour pairs (P_pairs, 2): the |grad Theta| term
+        (weighted per pair when `weights` is given: edge-aware)."""
         le = self.log_e()
-        return ((le[neighbours[:, 0]] - le[neighbours[:, 1]]) ** 2).mean()
+        d2 = (le[neighbours[:, 0]] - le[neighbours[:, 1]]) ** 2
+        return d2.mean() if weights is None else (weights * d2).mean()
 
     def state(self) -> dict:
         return {"theta": self.theta.detach().cpu().numpy(), "w_nu": self.w_nu.detach().cpu().numpy(),
@@ -112,3 +161,15 @@ class MaterialField:
 def neighbour_pairs(points: np.ndarray, radius: float) -> np.ndarray:
     pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
     return pairs.astype(np.int64) if len(pairs) else np.zeros((0, 2), np.int64)
+
+
+def pair_weights(points: np.ndarray, pairs: np.ndarray, features: np.ndarray | None, appearance: float,
+                 tolerance: float = 0.05) -> np.ndarray:
+    """Edge-aware smoothness weights: exp(-d^2 / (2 tolerance^2)) with d the pair's colour distance
+    (RGB in [0, 1]): ~1 within a part (texture noise after averaging is a few hundredths), ~0
+    across a colour edge. All ones without features or with the prior off."""
+    if features is None or appearance <= 0 or len(pairs) == 0:
+        return np.ones(len(pairs))
+    f = np.asarray(features, np.float64)
+    d2 = ((f[pairs[:, 0]] - f[pairs[:, 1]]) ** 2).sum(1)
+    return np.exp(-d2 / (2 * tolerance ** 2))

@@ -24,7 +24,7 @@ import torch
 
 from .. import metrics as M
 from ..errors import SimulationError
-from .material import MaterialField, neighbour_pairs
+from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
 
 
@@ -37,6 +37,8 @@ class FitSettings:
     lr_poisson: float = 0.03
     lr_trajectory: float = 3e-4         # metres per step (Adam)
     basis_width: float = 0.6            # bump sigma / centre spacing (smaller: sharper material edges)
+    appearance: float = 1.0             # appearance prior: a full colour change counts as this many object
+                                        # extents in the basis and smoothness (0: position only)
     trajectory_levels: int = 1          # the trajectory is fitted in the last this-many levels only
     weight_decay: float = 0.0
     joint: bool = True
@@ -116,8 +118,10 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     _seed(s.seed)
     t0 = time.perf_counter()
     st = prob.scene.settings
+    feats = prob.particle_appearance() if s.appearance > 0 else None
     mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
-                        device=prob.tdev, seed=s.seed, width=s.basis_width)
+                        device=prob.tdev, seed=s.seed, width=s.basis_width, features=feats,
+                        appearance=s.appearance, centre_mask=~prob.held_particles())
     mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
     trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
     levels, shares = tuple(int(k) for k in s.levels), tuple(s.level_share)
@@ -136,7 +140,10 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     else:
         e_uniform = golden_uniform_search(prob, mat, s.search_evals, log)
         mat.set_uniform(e_uniform)
-    pairs = torch.as_tensor(neighbour_pairs(prob.x0, 1.6 * st.particle_spacing), device=prob.tdev)
+    pairs_np = neighbour_pairs(prob.x0, 1.6 * st.particle_spacing)
+    pairs = torch.as_tensor(pairs_np, device=prob.tdev)
+    pair_w = torch.as_tensor(pair_weights(prob.x0, pairs_np, feats, s.appearance),
+                             dtype=prob.tdtype, device=prob.tdev)
     history: list[float] = []
     best = {"loss": float("inf")}
     interrupted = False
@@ -191,7 +198,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                     _restore(mat, trajs, best, s.joint)
                     it += 1
                     continue
-                reg = prob.weights.smooth * mat.smoothness(pairs) if len(pairs) and mat.K > 1 else 0.0
+                reg = prob.weights.smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
                 total = out["rec"] + out["reg_traj"] + reg
                 lv = float(total.detach())
                 history.append(lv)
@@ -230,7 +237,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     with torch.no_grad():
         out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None,
                         frames=range(1, prob.T), keep_renders=True)
-        reg = prob.weights.smooth * mat.smoothness(pairs) if len(pairs) and mat.K > 1 else 0.0
+        reg = prob.weights.smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
         final_loss = float(out["rec"] + out["reg_traj"] + reg)
         x, F = out["x"], out["F"]
         renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
@@ -252,6 +259,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
             covs.append(c.cpu().numpy())
     w = prob.binding.weight.cpu().numpy()
     idx = prob.binding.index.cpu().numpy()
+    if feats is not None:  # material values per Gaussian from the particles of its own colour
+        w = appearance_transfer_weights(w, idx, prob.gaussian_appearance(), feats)
     En = E.cpu().numpy()
     nun = nu.cpu().numpy()
     names = [prob.contacts[_contact_of_slot(prob, slot)].name for slot, _ in prob.traj_slots]

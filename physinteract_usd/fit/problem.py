@@ -152,6 +152,30 @@ class FitProblem:
         res = tuple(int(round(r)) for r in (hi - lo) / st.cell_size)
         return GridSpec(tuple(lo), st.cell_size, res)
 
+    def held_particles(self) -> np.ndarray:
+        """(P,) True for particles a fixed support holds from the first frame (the video cannot
+        see their material)."""
+        held = np.zeros(len(self.x0), bool)
+        for c in self.contacts:
+            if c.type == "fixed" and c.grasp_frame <= 0:
+                held[np.asarray(c.indices, np.int64)] = True
+        return held
+
+    def particle_appearance(self, k: int = 16) -> np.ndarray:
+        """(P, 3) each particle's local mean colour from the stage's Gaussians (the fit's
+        appearance prior: material parts tend to differ in colour)."""
+        from .material import particle_appearance
+
+        g = self.scene.gaussians
+        return particle_appearance(self.x0, g.means, g.colors, k=k)
+
+    def gaussian_appearance(self, k: int = 16) -> np.ndarray:
+        """(N, 3) each Gaussian's local mean colour (the same measure as `particle_appearance`)."""
+        from .material import particle_appearance
+
+        g = self.scene.gaussians
+        return particle_appearance(g.means, g.means, g.colors, k=k)
+
     def _silhouettes_at_rest(self) -> np.ndarray:
         with torch.no_grad():
             out = render(torch.as_tensor(self.scene.gaussians.means, dtype=self.tdtype, device=self.tdev), self.cov0,
