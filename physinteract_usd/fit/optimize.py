@@ -246,9 +246,12 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     if s.confidence_probes > 0:  # also after Ctrl-C: the kept iterate is written, with its confidence
         if interrupted and log:
             log("estimating the kept iterate's confidence (Ctrl-C again quits without writing)")
-        if mat.K < max(levels):
+        if mat.K < max(levels) or mat.centre_mask is not None:
             # the kept iterate may come from a coarse level (a uniform E has one uniform
-            # confidence): judge it at the finest resolution the schedule reaches
+            # confidence): judge it at the finest resolution the schedule reaches, with bumps on
+            # held particles too (the fit gives them none, so they share their free neighbours'
+            # value; what the video says about them alone is what the confidence reports)
+            mat.centre_mask = None
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed)
     means, covs = [], []

@@ -37,7 +37,7 @@ class Observations:
 class LossWeights:
     ssim: float = 0.2
     mask: float = 1.0
-    smooth: float = 0.02
+    smooth: float = 3.0        # edge-aware (see fit.material.pair_weights): strong within a colour part, ~0 across
     trajectory: float = 1.0
     depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
 
