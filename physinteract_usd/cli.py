@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     s.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable)")
     s.add_argument("--resume", action="store_true", help="start from the stage's last fit")
+    s.add_argument("--appearance", type=float, default=None, metavar="W",
+                   help="weight of the appearance prior (material parts follow colour edges; default 1, "
+                        "0 turns it off: for objects whose colour says nothing about their material)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     s = sub.add_parser("evaluate", help="score a fitted stage against synthetic ground truth")
@@ -179,8 +182,11 @@ def _cmd_fit(a) -> int:
     from . import api
 
     log = (lambda m: print(m, file=sys.stderr)) if a.json else print
+    if a.appearance is not None and a.appearance < 0:
+        raise InputError(a.stage, f"--appearance must be >= 0, got {a.appearance}")
+    over = {"appearance": a.appearance} if a.appearance is not None else None
     result, info = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
-                           device=a.device, seed=a.seed, resume=a.resume, log=log)
+                           device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over)
     import numpy as np
 
     fm = result.frame_metrics

@@ -297,6 +297,19 @@ def test_no_joint_leaves_the_trajectory_at_t0(scene, tmp_path, monkeypatch, caps
     assert sd.reports[0]["settings"]["joint"] is False
 
 
+def test_appearance_flag_reaches_the_fit_and_is_recorded(scene, tmp_path, monkeypatch, capsys):
+    stage = fs.copy_scene(scene["root"], tmp_path / "noappearance")
+    _cli_settings(monkeypatch, confidence_probes=0)
+    code = main(["fit", str(stage), "--appearance", "0", "--iterations", "2", "--contact-from",
+                 str(stage.parent / "gt"), "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert read_stage(stage).reports[0]["settings"]["appearance"] == 0.0
+    code = main(["fit", str(stage), "--appearance", "-1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--appearance must be >= 0" in err and len(err.strip().splitlines()) == 1
+
+
 def test_ctrl_c_keeps_and_writes_the_best_iterate(scene, tmp_path, monkeypatch, capsys):
     """A KeyboardInterrupt in the 3rd optimiser step: the fit stops, the best of the 2 iterates so
     far (not the last: the large step overshoots) is written, and the CLI exits 130 saying so."""
