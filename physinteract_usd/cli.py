@@ -102,7 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true", help="start from the stage's last fit")
     s.add_argument("--appearance", type=float, default=None, metavar="W",
                    help="weight of the appearance prior (material parts follow colour edges; default 1, "
-                        "0 turns it off: for objects whose colour says nothing about their material)")
+                        "0 turns it off, with the smoothness back to its weak edge-blind 0.02: for objects whose "
+                        "colour says nothing about their material)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     s = sub.add_parser("evaluate", help="score a fitted stage against synthetic ground truth")

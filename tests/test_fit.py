@@ -263,7 +263,7 @@ def test_resume_starts_from_a_varying_field(scene):
     with torch.no_grad():
         out = prob.loss(E, nu, prob.initial_trajectories())
         pairs = torch.as_tensor(neighbour_pairs(prob.x0, 1.6 * st.particle_spacing))
-        want = float(out["rec"] + out["reg_traj"] + prob.weights.smooth * field.smoothness(pairs))
+        want = float(out["rec"] + out["reg_traj"] + prob.weights.smooth_plain * field.smoothness(pairs))
     s = FitSettings(iterations=1, levels=(1, 6), level_share=(0.5, 0.5), confidence_probes=0, seed=0,
                     appearance=0.0)
     r = run_fit(prob, s, progress=False, start={"youngs": E.numpy(), "poisson": nu.numpy(), "trajectories": {}})

@@ -60,13 +60,13 @@ def test_smoothness_pairs_are_weak_across_a_colour_edge():
     p, means, colors = _two_colour_bar()
     f = particle_appearance(p, means, colors, k=32)
     pairs = neighbour_pairs(p, 0.016)
-    w = pair_weights(p, pairs, f, 1.0)
+    w = pair_weights(pairs, f, 1.0)
     across = (p[pairs[:, 0], 1] < 0) != (p[pairs[:, 1], 1] < 0)
     far = np.abs(p[pairs[:, 0], 1]) > 0.03
     assert across.any() and far.any()
     assert np.percentile(w[far], 5) > 0.8
     assert w[across].max() < 0.1
-    np.testing.assert_array_equal(pair_weights(p, pairs, None, 1.0), 1.0)
+    np.testing.assert_array_equal(pair_weights(pairs, None, 1.0), 1.0)
 
 
 def test_a_two_part_field_is_representable_only_with_the_prior():

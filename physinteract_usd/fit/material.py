@@ -163,7 +163,7 @@ def neighbour_pairs(points: np.ndarray, radius: float) -> np.ndarray:
     return pairs.astype(np.int64) if len(pairs) else np.zeros((0, 2), np.int64)
 
 
-def pair_weights(points: np.ndarray, pairs: np.ndarray, features: np.ndarray | None, appearance: float,
+def pair_weights(pairs: np.ndarray, features: np.ndarray | None, appearance: float,
                  tolerance: float = 0.05) -> np.ndarray:
     """Edge-aware smoothness weights: exp(-d^2 / (2 tolerance^2)) with d the pair's colour distance
     (RGB in [0, 1]): ~1 within a part (texture noise after averaging is a few hundredths), ~0

@@ -142,8 +142,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         mat.set_uniform(e_uniform)
     pairs_np = neighbour_pairs(prob.x0, 1.6 * st.particle_spacing)
     pairs = torch.as_tensor(pairs_np, device=prob.tdev)
-    pair_w = torch.as_tensor(pair_weights(prob.x0, pairs_np, feats, s.appearance),
-                             dtype=prob.tdtype, device=prob.tdev)
+    pair_w = torch.as_tensor(pair_weights(pairs_np, feats, s.appearance), dtype=prob.tdtype, device=prob.tdev)
+    lam_smooth = prob.weights.smooth if feats is not None else prob.weights.smooth_plain
     history: list[float] = []
     best = {"loss": float("inf")}
     interrupted = False
@@ -198,7 +198,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                     _restore(mat, trajs, best, s.joint)
                     it += 1
                     continue
-                reg = prob.weights.smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
+                reg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
                 total = out["rec"] + out["reg_traj"] + reg
                 lv = float(total.detach())
                 history.append(lv)
@@ -237,7 +237,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     with torch.no_grad():
         out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None,
                         frames=range(1, prob.T), keep_renders=True)
-        reg = prob.weights.smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
+        reg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
         final_loss = float(out["rec"] + out["reg_traj"] + reg)
         x, F = out["x"], out["F"]
         renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}

@@ -38,6 +38,8 @@ class LossWeights:
     ssim: float = 0.2
     mask: float = 1.0
     smooth: float = 3.0        # edge-aware (see fit.material.pair_weights): strong within a colour part, ~0 across
+    smooth_plain: float = 0.02  # with the appearance prior off: edge-blind smoothing blurs material edges, so
+                                # it stays weak (0.02 measured best without the prior on foam_bar; x15: worse)
     trajectory: float = 1.0
     depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
 
