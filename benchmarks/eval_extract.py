@@ -185,10 +185,11 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
                     device=device)
         except Exception as exc:
             raise RuntimeError(f"fit from {label} contacts: {type(exc).__name__}: {exc}") from exc
-        ev = api.evaluate(stage, gt_dir)
-        out[label] = {"ma": ev["ma"], "psnr": ev["psnr"], "iou": ev["iou"],
+        ev = api.evaluate(stage, gt_dir, device=device)
+        out[label] = {"ma": ev["ma"], "psnr": ev["psnr"], "psnr_masked": ev["psnr_masked"], "iou": ev["iou"],
                       "position_error_m": ev["position_error_m"], "seconds": time.perf_counter() - t0}
-        log(f"  fit from {label} contacts: MA {ev['ma']:.3f}, PSNR {ev['psnr']:.2f} ({out[label]['seconds']:.0f} s)")
+        log(f"  fit from {label} contacts: MA {ev['ma']:.3f}, masked PSNR {ev['psnr_masked']:.2f} "
+            f"({out[label]['seconds']:.0f} s)", flush=True)
     out["ma_best_uniform"] = ev.get("ma_best_uniform")
     return out
 
@@ -233,7 +234,7 @@ def table(rows: list[dict]) -> str:
 
 def fit_table(rows: list[dict]) -> str:
     lines = ["| scene | MA from extracted contacts | MA from ground-truth contacts | difference | "
-             "PSNR extracted / gt | fit time extracted / gt [s] |", "|---|---|---|---|---|---|"]
+             "masked PSNR extracted / gt | fit time extracted / gt [s] |", "|---|---|---|---|---|---|"]
     for r in rows:
         f = r.get("fit")
         if r.get("fit_error"):
@@ -243,7 +244,8 @@ def fit_table(rows: list[dict]) -> str:
             continue
         e, g = f["extracted"], f["gt"]
         lines.append(f"| {r['scene']} | {e['ma']:.3f} | {g['ma']:.3f} | {e['ma'] - g['ma']:+.3f} | "
-                     f"{e['psnr']:.2f} / {g['psnr']:.2f} | {e['seconds']:.0f} / {g['seconds']:.0f} |")
+                     f"{e.get('psnr_masked', e['psnr']):.2f} / {g.get('psnr_masked', g['psnr']):.2f} | "
+                     f"{e['seconds']:.0f} / {g['seconds']:.0f} |")
     return "\n".join(lines)
 
 
@@ -256,10 +258,10 @@ def main(argv=None):
     ap.add_argument("--work", help="work folder (default: a temp folder, removed unless --keep); "
                     "captures already there are reused")
     ap.add_argument("--keep", action="store_true")
-    ap.add_argument("--device", default="cpu", help="where the ground truth is generated (cpu or cuda); "
-                    "extraction itself runs on the CPU")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda: where the ground truth is generated, "
+                    "the object's depth rendered for extraction, and the fits run")
     ap.add_argument("--frames", type=int, default=None, help="frames per scene (default: the small size's 20)")
-    ap.add_argument("--fit", default="", help="comma-separated scenes to also fit from extracted and gt contacts")
+    ap.add_argument("--fit", default="", help="comma-separated scenes (or 'all') to also fit from extracted and gt contacts")
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
                     "masks; nothing is written to the stages)")
@@ -272,7 +274,7 @@ def main(argv=None):
     for n in EXTRA:
         if not a.scenes and n not in names:
             names.append(n)
-    fits = [s for s in a.fit.split(",") if s]
+    fits = list(names) if a.fit == "all" else [s for s in a.fit.split(",") if s]
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="eval_extract_"))
     work.mkdir(parents=True, exist_ok=True)
     log = print
@@ -290,9 +292,9 @@ def main(argv=None):
 
                 sd = api.read_stage(stage)
                 obs = api.load_observations(sd)
-                res = extract_interaction(sd, obs.frames, None, log=lambda *m: None)
+                res = extract_interaction(sd, obs.frames, None, log=lambda *m: None, device=a.device)
             else:
-                res = extract(stage, log=lambda *m: None)
+                res = extract(stage, log=lambda *m: None, device=a.device)
             row["extract_s"] = time.perf_counter() - t0
             row.update(compare(stage, gt_dir, res))
             row["synth_s"] = t_synth
@@ -311,6 +313,8 @@ def main(argv=None):
             log(f"{name}: FAILED {row['error']}")
             traceback.print_exc(file=sys.stderr)
         rows.append(row)
+        if a.json:  # after every scene: a run cut short keeps what it measured
+            Path(a.json).write_text(json.dumps(rows, indent=1, default=float))
     md = table(rows)
     print()
     print(md)

@@ -300,7 +300,7 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
             from .extract import extract as run_extract
 
             log("no contact sets on the stage: running extraction first")
-            run_extract(stage_path, log=log)
+            run_extract(stage_path, log=log, device=device)
             sd = read_stage(stage_path)
             contacts = stage_contacts(sd)
         obs.hand_masks = _hand_masks(sd, sd.n_frames)

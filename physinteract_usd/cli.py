@@ -88,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--hint-pixel", metavar="K,U,V", help="the contact is at pixel column U, row V of frame K")
     s.add_argument("--hint-particles", metavar="I,J,...", help="the contact holds these particles")
     s.add_argument("--no-preview", action="store_true", help="skip the preview PNG")
+    s.add_argument("--device", default="cpu", help="cpu or cuda (rendering the object's depth; default cpu)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
@@ -173,7 +174,7 @@ def _cmd_extract(a) -> int:
 
     log = (lambda m: print(m, file=sys.stderr)) if a.json else print
     r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles), interaction_type=a.type,
-                preview=not a.no_preview, log=log)
+                preview=not a.no_preview, log=log, device=a.device)
     if a.json:
         print(json.dumps(r.summary(), indent=2, default=str))
     return 0

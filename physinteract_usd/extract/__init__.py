@@ -56,7 +56,7 @@ def parse_hint(pixel: str | None = None, particles: str | None = None) -> Hint |
 
 
 def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | None = None, log=print,
-            preview: bool = True, models: Models | None = None) -> ExtractionResult:
+            preview: bool = True, models: Models | None = None, device: str = "cpu") -> ExtractionResult:
     """Extract the interaction from the stage's video and write it into the stage.
 
     Writes contact sets, initial trajectories (T0) and hand masks into `<stem>.fit.usdc` and
@@ -64,7 +64,8 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
     win: an interaction contact of theirs is kept (extraction only adds its T0 if it has none),
     fixed sets of theirs replace the detected supports. `hint` (a pixel in a frame, or particle
     indices) and `interaction_type` win over detection. Returns the `ExtractionResult` (its
-    `summary()` is what `extract --json` prints; `outputs` says what was written)."""
+    `summary()` is what `extract --json` prints; `outputs` says what was written). `device`: where
+    the object at rest is rendered (cpu or cuda)."""
     from ..api import load_observations
     from ..usd.extract_io import user_contact_names, write_extraction
     from ..usd.stage import read_stage
@@ -91,7 +92,7 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
                 hint = Hint(frame=0, pixel=(float(uv[0, 0]), float(uv[0, 1])))
     log(f"extracting the interaction from {sd.n_frames} frames ({sd.image_size[0]}x{sd.image_size[1]})")
     result = extract_interaction(sd, obs.frames, obs.masks, masks_amodal=sd.masks_amodal, hint=hint,
-                                 interaction_type=interaction_type, models=models, log=log)
+                                 interaction_type=interaction_type, models=models, log=log, device=device)
     result.notes = notes + result.notes
     contacts = list(result.contacts)
     if user_inter:

@@ -28,21 +28,24 @@ class RestView:
         return self.alpha > 0.5
 
 
-def render_rest(gaussians, camera, particles: np.ndarray | None = None, spacing: float = 0.0) -> RestView:
-    """Render the Gaussians at rest through `camera` (static). With `particles`, also project them
-    and mark the ones on the visible surface (within 1.5 particle spacings of the rendered depth)."""
+def render_rest(gaussians, camera, particles: np.ndarray | None = None, spacing: float = 0.0,
+                device: str = "cpu") -> RestView:
+    """Render the Gaussians at rest through `camera` (static) on `device` (cpu or cuda). With
+    `particles`, also project them and mark the ones on the visible surface (within 1.5 particle
+    spacings of the rendered depth)."""
     import torch
 
     from ..render import covariance_from_scales_quats, render
 
-    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    dev = torch.device("cpu" if str(device) == "cpu" else device)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)  # noqa: E731
     cov = covariance_from_scales_quats(t(gaussians.scales), t(gaussians.quats))
     colours = t(gaussians.sh) if gaussians.sh.shape[1] > 1 else t(gaussians.colors)
     with torch.no_grad():
         out = render(t(gaussians.means), cov, colours, t(gaussians.opacities), camera)
-    alpha = out["alpha"].numpy().astype(np.float64)
-    depth = out["depth"].numpy().astype(np.float64)
-    rgb = out["rgb"].numpy().astype(np.float64)
+    alpha = out["alpha"].cpu().numpy().astype(np.float64)
+    depth = out["depth"].cpu().numpy().astype(np.float64)
+    rgb = out["rgb"].cpu().numpy().astype(np.float64)
     if particles is None:
         particles = np.zeros((0, 3))
     uv, z = camera.project(np.asarray(particles, np.float64))

@@ -82,8 +82,9 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
 class _Analysis:
     """Per-frame quantities shared by the steps."""
 
-    def __init__(self, scene, frames, masks, masks_amodal, models: Models):
+    def __init__(self, scene, frames, masks, masks_amodal, models: Models, device: str = "cpu"):
         self.scene = scene
+        self.device = device
         self.frames = np.asarray(frames, np.float32)
         self.T, self.H, self.W = self.frames.shape[:3]
         cam = scene.camera
@@ -91,7 +92,7 @@ class _Analysis:
         self.cam0 = cam.at(0)
         self.x0 = np.asarray(scene.particles_positions, np.float64)
         self.spacing = float(scene.settings.particle_spacing)
-        self.rest = render_rest(scene.gaussians, self.cam0, self.x0, self.spacing)
+        self.rest = render_rest(scene.gaussians, self.cam0, self.x0, self.spacing, device)
         if not self.rest.silhouette.any():
             raise InputError(scene.path, "the object is not in the camera's view at frame 0 (its rendered "
                              "silhouette is empty): check the camera")
@@ -356,12 +357,13 @@ def _grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
 # ------------------------------------------------------------------------------ main entry
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
                         interaction_type: str | None = None, models: Models | None = None,
-                        log=print) -> ExtractionResult:
+                        log=print, device: str = "cpu") -> ExtractionResult:
     """Extract the interaction from a video of the stage's object.
 
     scene: a `SceneData` (read_stage); frames (T, H, W, 3) float in [0, 1]; masks (T, H, W) bool
     object silhouettes or None. `hint` and `interaction_type` win over detection. Returns an
-    `ExtractionResult` (contacts with the fit's fields, hand masks, evidence)."""
+    `ExtractionResult` (contacts with the fit's fields, hand masks, evidence). `device` (cpu or
+    cuda) is where the object at rest is rendered for depth; the rest runs on the CPU."""
     models = models or Models()
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 4 or frames.shape[-1] != 3:
@@ -376,7 +378,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         raise InputError("--type", f"must be one of {', '.join(INTERACTION_TYPES)}, not {interaction_type!r}")
     hint = _check_hint(hint, scene, T)
     notes = []
-    an = _Analysis(scene, frames, masks, masks_amodal, models)
+    an = _Analysis(scene, frames, masks, masks_amodal, models, device)
     if not an.static_camera:
         notes.append("the camera moves: image-space motion cues (timing, supports) assume a static camera "
                      "and are unreliable")
@@ -447,7 +449,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
 
     # ---- 3D: contact particles, T0
     cam_g = scene.camera.at(g)
-    rest_g = an.rest if an.static_camera else render_rest(scene.gaussians, cam_g, an.x0, an.spacing)
+    rest_g = an.rest if an.static_camera else render_rest(scene.gaussians, cam_g, an.x0, an.spacing, an.device)
     if hint_idx is not None:
         idx = hint_idx
         c3 = an.x0[idx].mean(0)
