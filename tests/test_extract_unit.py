@@ -153,3 +153,17 @@ def test_contact_period_and_release():
     near = np.ones(10, bool)
     assert _release(coupled, near, 1) == 5
     assert _release(np.ones(9, np.int8), near, 1) is None
+
+
+def test_log_split_separates_held_particles_from_their_slowly_moving_neighbours():
+    from physinteract_usd.extract.interaction import _log_split
+
+    rng = np.random.default_rng(0)
+    held = rng.uniform(0.005, 0.05, 60)        # at the tracking noise
+    near = rng.uniform(0.3, 1.0, 40)           # a little motion next to the support
+    t = _log_split(np.concatenate([held, near]))
+    assert held.max() < t < near.min()
+    # the groups' sizes do not move the split out of the gap
+    t2 = _log_split(np.concatenate([held[:10], near]))
+    assert held.max() < t2 < near.min()
+    assert _log_split(np.array([0.1, 0.2])) == 0.2    # too few to split: keep all
