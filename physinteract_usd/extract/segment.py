@@ -176,7 +176,9 @@ class ColourMotionSegmenter:
             h_bg = colour_histogram(bg_px if len(bg_px) else bg.reshape(-1, 3))
             lh = np.log(likelihood(h_hand, f) + eps)
             l_bg = np.log(likelihood(h_bg, f) + eps)
-            l_rest = l_bg if l_obj is None else np.maximum(l_bg, l_obj)
+            # with visible masks the object is inside them: outside, a pixel is hand or background
+            # (an object colour there says nothing: a fingertip as beige as the coil it presses)
+            l_rest = l_bg if l_obj is None or (have_masks and not masks_amodal) else np.maximum(l_bg, l_obj)
             # motion and colour agree, or colour alone is decisive next to such pixels
             sure = outside & fg & (lh > l_rest)
             strong = outside & (lh > l_rest + 2.0)
