@@ -174,11 +174,14 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
 
 
 def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, iterations: int, log,
-             device: str = "cpu") -> dict:
+             device: str = "cpu", sources=("extracted", "gt")) -> dict:
     stage_gt = work / f"{name}.gtfit" / "scene.usda"
-    init_stage(cap, gt_dir, stage_gt)
+    if "gt" in sources:
+        init_stage(cap, gt_dir, stage_gt)
     out = {}
     for label, stage, src in (("extracted", stage_ext, None), ("gt", stage_gt, gt_dir)):
+        if label not in sources:
+            continue
         t0 = time.perf_counter()
         try:
             api.fit(stage, iterations=iterations, contact_from=src, progress=False, log=lambda *a: None,
@@ -240,7 +243,7 @@ def fit_table(rows: list[dict]) -> str:
         if r.get("fit_error"):
             lines.append(f"| {r['scene']} | failed: {r['fit_error']} | | | | |")
             continue
-        if not f:
+        if not f or "extracted" not in f or "gt" not in f:
             continue
         e, g = f["extracted"], f["gt"]
         lines.append(f"| {r['scene']} | {e['ma']:.3f} | {g['ma']:.3f} | {e['ma'] - g['ma']:+.3f} | "
@@ -263,6 +266,8 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=None, help="frames per scene (default: the small size's 20)")
     ap.add_argument("--fit", default="", help="comma-separated scenes (or 'all') to also fit from extracted and gt contacts")
     ap.add_argument("--iterations", type=int, default=20)
+    ap.add_argument("--fit-sources", default="extracted,gt", help="which fits --fit runs: extracted, gt or both "
+                    "(default both)")
     ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
                     "masks; nothing is written to the stages)")
     ap.add_argument("--write", help="write the markdown report here (e.g. docs/benchmarks/extract.md)")
@@ -304,7 +309,8 @@ def main(argv=None):
                 f"hand IoU {row['hand_iou']:.3f} ({row['extract_s']:.1f} s)")
             if name in fits:
                 try:
-                    row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log, a.device)
+                    row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log, a.device,
+                                          tuple(a.fit_sources.split(",")))
                 except Exception as exc:  # a failed fit is reported in the fit table
                     row["fit_error"] = str(exc).splitlines()[0][:200]
                     log(f"  fit FAILED {row['fit_error']}")

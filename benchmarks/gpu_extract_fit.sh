@@ -13,5 +13,5 @@ LIMIT="${1:-560}"
 SCENES="${2:?scenes}"
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | sed 's/^/device: /'
 timeout "$LIMIT" python3 benchmarks/eval_extract.py --device cuda --work /tmp/eval_extract_gpu --keep \
-  --scenes "$SCENES" --fit all --iterations 60 --json "$OUT/rows_${SCENES%%,*}.json" 2>&1 | grep -v "^|"
+  --scenes "$SCENES" --fit all --iterations 60 --fit-sources "${SOURCES:-extracted,gt}" --json "$OUT/rows_${SCENES%%,*}.json" 2>&1 | grep -v "^|"
 echo "exit ${PIPESTATUS[0]}"
