@@ -178,7 +178,7 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
     stage_gt = work / f"{name}.gtfit" / "scene.usda"
     if "gt" in sources:
         init_stage(cap, gt_dir, stage_gt)
-    out = {}
+    out, ev = {}, {}
     for label, stage, src in (("extracted", stage_ext, None), ("gt", stage_gt, gt_dir)):
         if label not in sources:
             continue
@@ -194,6 +194,81 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
         log(f"  fit from {label} contacts: MA {ev['ma']:.3f}, masked PSNR {ev['psnr_masked']:.2f} "
             f"({out[label]['seconds']:.0f} s)", flush=True)
     out["ma_best_uniform"] = ev.get("ma_best_uniform")
+    return out
+
+
+MIX_PARTS = ("support", "hand", "timing", "trajectory", "masks")
+
+
+def mixed_contacts(ex: list, gt: list, part: str, x0: np.ndarray) -> list:
+    """The extracted contacts with one part taken from the ground truth: `support` (the fixed
+    sets), `hand` (the grasped particles, or a collider's radius), `timing` (grasp and release
+    frames), `trajectory` (T0 and its timing; a grasp's T0 moved onto the extracted particles)."""
+    ei = [c for c in ex if c.type != "fixed"][0]
+    gi = [c for c in gt if c.type != "fixed"][0]
+    ef = [c for c in ex if c.type == "fixed"]
+    gf = [c for c in gt if c.type == "fixed"]
+    adherent = ei.type == "pointAdherent" and len(ei.indices) and len(gi.indices)
+    if part == "support":
+        taken = set(ei.indices.tolist()) if ei.type == "pointAdherent" else set()
+        gf = [dataclasses.replace(c, indices=np.array([i for i in c.indices if int(i) not in taken], np.int64))
+              for c in gf]
+        return [ei] + [c for c in gf if len(c.indices)]
+    if part == "hand":
+        if adherent:
+            shift = x0[gi.indices].mean(0) - x0[ei.indices].mean(0)
+            traj = None if ei.trajectory is None else ei.trajectory + shift
+            ei = dataclasses.replace(ei, indices=gi.indices, trajectory=traj)
+            ef = [dataclasses.replace(c, indices=np.setdiff1d(c.indices, gi.indices)) for c in ef]
+        else:
+            ei = dataclasses.replace(ei, radius=gi.radius)
+        return [ei] + [c for c in ef if len(c.indices)]
+    if part == "timing":
+        return [dataclasses.replace(ei, grasp_frame=gi.grasp_frame, release_frame=gi.release_frame)] + ef
+    if part == "trajectory":
+        traj = gi.trajectory
+        if adherent:
+            g = gi.grasp_frame
+            traj = traj - traj[g] + x0[ei.indices].mean(0)
+        return [dataclasses.replace(ei, trajectory=traj, grasp_frame=gi.grasp_frame,
+                                    release_frame=gi.release_frame)] + ef
+    if part == "masks":
+        return list(ex)
+    raise ValueError(part)
+
+
+def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, iterations: int, log,
+              device: str = "cpu") -> dict:
+    """Fit from the extracted contacts with one part from the ground truth (`mixed_contacts`; `masks`:
+    the true hand masks in the loss); the stage is a copy of the extracted one."""
+    from physinteract_usd.fit import FitProblem, FitSettings
+    from physinteract_usd.fit import fit as run_fit
+    from physinteract_usd.frames import read_mask
+    from physinteract_usd.usd.stage import write_fit_layer
+
+    t0 = time.perf_counter()
+    d = work / f"{name}.mix-{part}"
+    shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(stage_ext.parent, d)
+    stage = d / stage_ext.name
+    sd = api.read_stage(stage)
+    obs = api.load_observations(sd)
+    ex = api.stage_contacts(sd)
+    gt = api.contacts_from_gt(sd, gt_dir)
+    if part == "masks":
+        obs.hand_masks = np.stack([read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(sd.n_frames)])
+    else:
+        obs.hand_masks = api._hand_masks(sd, sd.n_frames)
+    contacts = mixed_contacts(ex, gt, part, sd.particles_positions)
+    effects = {n: {k: v for k, v in p.items() if k != "fit"} for n, p in sd.effects.items()}
+    prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
+    result = run_fit(prob, FitSettings(iterations=iterations), progress=False, log=lambda *a: None)
+    write_fit_layer(stage, sd, result, contacts, source="extracted")
+    ev = api.evaluate(stage, gt_dir, device=device)
+    out = {"ma": ev["ma"], "psnr": ev["psnr"], "psnr_masked": ev["psnr_masked"], "iou": ev["iou"],
+           "position_error_m": ev["position_error_m"], "seconds": time.perf_counter() - t0}
+    log(f"  fit from extracted contacts with the true {part}: MA {ev['ma']:.3f}, masked PSNR "
+        f"{ev['psnr_masked']:.2f} ({out['seconds']:.0f} s)", flush=True)
     return out
 
 
@@ -268,6 +343,8 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--fit-sources", default="extracted,gt", help="which fits --fit runs: extracted, gt or both "
                     "(default both)")
+    ap.add_argument("--mix", default="", help="with --fit: also fit from the extracted contacts with one part "
+                    f"from the truth, comma-separated parts of {','.join(MIX_PARTS)} (which part costs the MA)")
     ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
                     "masks; nothing is written to the stages)")
     ap.add_argument("--write", help="write the markdown report here (e.g. docs/benchmarks/extract.md)")
@@ -310,7 +387,10 @@ def main(argv=None):
             if name in fits:
                 try:
                     row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log, a.device,
-                                          tuple(a.fit_sources.split(",")))
+                                          tuple(s for s in a.fit_sources.split(",") if s))
+                    for part in [p for p in a.mix.split(",") if p]:
+                        row["fit"][f"mix_{part}"] = fit_mixed(name, work, gt_dir, stage, part, a.iterations, log,
+                                                              a.device)
                 except Exception as exc:  # a failed fit is reported in the fit table
                     row["fit_error"] = str(exc).splitlines()[0][:200]
                     log(f"  fit FAILED {row['fit_error']}")
