@@ -254,10 +254,23 @@ def _cmd_export(a) -> int:
 COMMANDS = {"extract": _cmd_extract, "simulate": _cmd_simulate, "export": _cmd_export, "init": _cmd_init, "info": _cmd_info, "synth": _cmd_synth, "fit": _cmd_fit, "evaluate": _cmd_evaluate}
 
 
+def _check_device(device) -> None:
+    """--device cuda on a machine without a usable GPU: one line, not a traceback."""
+    if device is None or str(device) == "cpu":
+        return
+    if not str(device).startswith("cuda"):
+        raise InputError("--device", f"must be cpu or cuda, not {device!r}")
+    import torch
+
+    if not torch.cuda.is_available():
+        raise InputError("--device", "cuda was asked for, but this torch has no usable CUDA GPU: use --device cpu")
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        _check_device(getattr(args, "device", None))
         return COMMANDS[args.verb](args)
     except InputError as exc:
         print(f"physinteract-usd {args.verb}: error: {exc.oneline()}", file=sys.stderr)

@@ -151,3 +151,16 @@ def test_info_on_a_stage_from_another_tool(tmp_path, capsys):
     (tmp_path / "junk.usda").write_text("#usda 1.0\n(\n garbage")
     code, _, err = run(["info", tmp_path / "junk.usda"], capsys)
     assert code == 2 and "junk.usda" in err and err.strip().count("\n") == 0
+
+
+def test_a_device_that_is_not_there_is_a_one_line_error(capsys):
+    import torch
+
+    from physinteract_usd import cli
+
+    assert cli.main(["fit", "missing.usda", "--device", "tpu"]) == 2
+    assert "--device: must be cpu or cuda" in capsys.readouterr().err
+    if not torch.cuda.is_available():
+        assert cli.main(["extract", "missing.usda", "--device", "cuda"]) == 2
+        err = capsys.readouterr().err
+        assert "no usable CUDA GPU" in err and len(err.strip().splitlines()) == 1
