@@ -722,8 +722,8 @@ def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_p
     the motion grows with the distance from it, so of each connected still region only its core
     (motion at most the split between the held particles' noise and their neighbours' small motion,
     `_log_split`, or at most max(core_abs, core_rel x the contact's motion)) and `margin` spacings
-    around it are kept:
-    fixing particles that do move a little would hide the material there from the fit. The default
+    around it are kept: fixing particles that do move a little would hide the material there from
+    the fit. The default
     margin (0.9, under one spacing) keeps the core alone: a layer more (1.2, the earlier default)
     held 120 particles of foam_bar for the truth's 96, shortened the free bar, and the fit made
     the stiff half 20% too soft to make up for it.
