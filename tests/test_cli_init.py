@@ -164,3 +164,13 @@ def test_a_device_that_is_not_there_is_a_one_line_error(capsys):
         assert cli.main(["extract", "missing.usda", "--device", "cuda"]) == 2
         err = capsys.readouterr().err
         assert "no usable CUDA GPU" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_corrupt_stage_file_says_where_it_is_broken(tmp_path, capsys):
+    bad = tmp_path / "scene.usda"
+    bad.write_text("#usda 1.0\n( garbage\n")
+    assert main(["info", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "scene.usda:2" in err and "Expected" in err and "()" not in err
+    assert bad.read_text() == "#usda 1.0\n( garbage\n"    # nothing the user wrote is touched

@@ -336,6 +336,18 @@ def _rel(p, root_dir: Path) -> str:
 
 
 # ----------------------------------------------------------------------------------------- read
+def _usd_error_text(exc) -> str:
+    """The first message of a USD (Tf) error, without its C++ location: "x.usda:2:3: Expected ) ..."."""
+    for line in str(exc).splitlines():
+        line = line.strip()
+        if not line:
+            continue
+        if " : '" in line:
+            line = line.split(" : '", 1)[1].rstrip("'").strip()
+        return line
+    return type(exc).__name__
+
+
 def open_stage(path) -> Usd.Stage:
     path = Path(path)
     if not path.exists():
@@ -343,7 +355,7 @@ def open_stage(path) -> Usd.Stage:
     try:
         stage = Usd.Stage.Open(str(path))
     except Exception as exc:  # Tf errors surface as RuntimeError-ish
-        raise InputError(path, f"cannot be opened as a USD stage ({str(exc).splitlines()[0]})") from None
+        raise InputError(path, f"cannot be opened as a USD stage ({_usd_error_text(exc)})") from None
     if stage is None:
         raise InputError(path, "cannot be opened as a USD stage")
     prim = stage.GetPrimAtPath(SCENE)
