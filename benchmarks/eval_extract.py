@@ -391,6 +391,8 @@ def main(argv=None):
                     for part in [p for p in a.mix.split(",") if p]:
                         row["fit"][f"mix_{part}"] = fit_mixed(name, work, gt_dir, stage, part, a.iterations, log,
                                                               a.device)
+                        if a.json:  # after every mixed fit too (they are the slow part)
+                            Path(a.json).write_text(json.dumps(rows + [row], indent=1, default=float))
                 except Exception as exc:  # a failed fit is reported in the fit table
                     row["fit_error"] = str(exc).splitlines()[0][:200]
                     log(f"  fit FAILED {row['fit_error']}")
