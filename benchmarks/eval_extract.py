@@ -174,7 +174,7 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
 
 
 def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, iterations: int, log,
-             device: str = "cpu", sources=("extracted", "gt")) -> dict:
+             device: str = "cpu", sources=("extracted", "gt"), seed: int = 0) -> dict:
     stage_gt = work / f"{name}.gtfit" / "scene.usda"
     if "gt" in sources:
         init_stage(cap, gt_dir, stage_gt)
@@ -185,7 +185,7 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
         t0 = time.perf_counter()
         try:
             api.fit(stage, iterations=iterations, contact_from=src, progress=False, log=lambda *a: None,
-                    device=device)
+                    device=device, seed=seed)
         except Exception as exc:
             raise RuntimeError(f"fit from {label} contacts: {type(exc).__name__}: {exc}") from exc
         ev = api.evaluate(stage, gt_dir, device=device)
@@ -238,7 +238,7 @@ def mixed_contacts(ex: list, gt: list, part: str, x0: np.ndarray) -> list:
 
 
 def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, iterations: int, log,
-              device: str = "cpu") -> dict:
+              device: str = "cpu", seed: int = 0) -> dict:
     """Fit from the extracted contacts with one part from the ground truth (`mixed_contacts`; `masks`:
     the true hand masks in the loss); the stage is a copy of the extracted one."""
     from physinteract_usd.fit import FitProblem, FitSettings
@@ -262,7 +262,7 @@ def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, i
     contacts = mixed_contacts(ex, gt, part, sd.particles_positions)
     effects = {n: {k: v for k, v in p.items() if k != "fit"} for n, p in sd.effects.items()}
     prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
-    result = run_fit(prob, FitSettings(iterations=iterations), progress=False, log=lambda *a: None)
+    result = run_fit(prob, FitSettings(iterations=iterations, seed=seed), progress=False, log=lambda *a: None)
     write_fit_layer(stage, sd, result, contacts, source="extracted")
     ev = api.evaluate(stage, gt_dir, device=device)
     out = {"ma": ev["ma"], "psnr": ev["psnr"], "psnr_masked": ev["psnr_masked"], "iou": ev["iou"],
@@ -343,6 +343,8 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--fit-sources", default="extracted,gt", help="which fits --fit runs: extracted, gt or both "
                     "(default both)")
+    ap.add_argument("--seed", type=int, default=0, help="the fits' seed (their material basis): another seed "
+                    "shows how much MA moves between equally good fits")
     ap.add_argument("--mix", default="", help="with --fit: also fit from the extracted contacts with one part "
                     f"from the truth, comma-separated parts of {','.join(MIX_PARTS)} (which part costs the MA)")
     ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
@@ -387,10 +389,10 @@ def main(argv=None):
             if name in fits:
                 try:
                     row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log, a.device,
-                                          tuple(s for s in a.fit_sources.split(",") if s))
+                                          tuple(s for s in a.fit_sources.split(",") if s), a.seed)
                     for part in [p for p in a.mix.split(",") if p]:
                         row["fit"][f"mix_{part}"] = fit_mixed(name, work, gt_dir, stage, part, a.iterations, log,
-                                                              a.device)
+                                                              a.device, a.seed)
                         if a.json:  # after every mixed fit too (they are the slow part)
                             Path(a.json).write_text(json.dumps(rows + [row], indent=1, default=float))
                 except Exception as exc:  # a failed fit is reported in the fit table
