@@ -87,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the interaction type (overrides detection)")
     s.add_argument("--hint-pixel", metavar="K,U,V", help="the contact is at pixel column U, row V of frame K")
     s.add_argument("--hint-particles", metavar="I,J,...", help="the contact holds these particles")
+    s.add_argument("--support-pixel", metavar="K,U,V", action="append",
+                   help="the object is held still at pixel column U, row V of frame K (repeat for several "
+                        "supports): keeps the still region detected there, or holds the particles within 3 cm of "
+                        "that point; detected supports elsewhere are dropped")
+    s.add_argument("--support-particles", metavar="I,J,...", help="these particles are held still (the one "
+                   "support; replaces the detected ones)")
     s.add_argument("--no-preview", action="store_true", help="skip the preview PNG")
     s.add_argument("--device", default="cpu", help="cpu or cuda (rendering the object's depth; default cpu)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -173,7 +179,7 @@ def _cmd_extract(a) -> int:
     from .extract import extract, parse_hint
 
     log = (lambda m: print(m, file=sys.stderr)) if a.json else print
-    r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles), interaction_type=a.type,
+    r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles, a.support_pixel, a.support_particles), interaction_type=a.type,
                 preview=not a.no_preview, log=log, device=a.device)
     if a.json:
         print(json.dumps(r.summary(), indent=2, default=str))

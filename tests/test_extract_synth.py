@@ -205,3 +205,49 @@ def test_fit_runs_extraction_when_the_stage_has_no_contacts(fitted):
 @pytest.mark.slow
 def test_hand_masks_survive_a_fit(fitted):
     assert read_stage(fitted).hand_mask_assets
+
+
+def test_support_hints_win(capture):
+    _, _, gt = capture
+    stage = _stage(capture, "support_hints")
+    sd = read_stage(stage)
+    x0, h = sd.particles_positions, sd.settings.particle_spacing
+    truth = next(c for c in api.contacts_from_gt(sd, gt) if c.type == "fixed").indices
+    hand = next(c for c in api.contacts_from_gt(sd, gt) if c.type != "fixed").indices
+    cam = sd.camera.at(0)
+
+    def pixel(p):
+        uv, _ = cam.project(np.asarray(p, float)[None])
+        return f"0,{uv[0, 0] - 0.5:.2f},{uv[0, 1] - 0.5:.2f}"
+
+    def supports(res):
+        return [c for c in res.contacts if c.type == "fixed"]
+
+    # pointing at the true support keeps the still region detected there
+    res = extract(stage, hint=parse_hint(support_pixels=[pixel(x0[truth].mean(0))]), log=lambda *a: None)
+    (s,) = supports(res)
+    assert s.source == "hint"
+    assert np.linalg.norm(x0[s.indices].mean(0) - x0[truth].mean(0)) < 2.0 * h
+    assert len(np.intersect1d(s.indices, truth)) >= 0.8 * len(truth)
+    # pointing where nothing is still (half way down the rope) holds the particles there instead
+    mid = x0[np.argmin(np.linalg.norm(x0 - 0.5 * (x0[truth].mean(0) + x0[hand].mean(0)), axis=1))]
+    res = extract(stage, hint=parse_hint(support_pixels=[pixel(mid)]), log=lambda *a: None)
+    (s,) = supports(res)
+    assert np.linalg.norm(x0[s.indices].mean(0) - mid) < 0.03 + h
+    assert not len(np.intersect1d(s.indices, truth))
+    assert np.all(np.linalg.norm(x0[s.indices] - x0[s.indices].mean(0), axis=1) < 0.03 + 2 * h)
+    # particles win as they are, and are what the stage holds
+    res = extract(stage, hint=parse_hint(support_particles=",".join(map(str, truth[:5]))), log=lambda *a: None)
+    (s,) = supports(res)
+    assert sorted(s.indices.tolist()) == sorted(truth[:5].tolist())
+    fixed = [c for c in read_stage(stage).contacts if c.contact_type == "fixed"]
+    assert len(fixed) == 1 and sorted(fixed[0].particle_indices.tolist()) == sorted(truth[:5].tolist())
+    # bad support hints are one-line input errors naming the flag
+    with pytest.raises(InputError, match="--support-pixel.*outside the 128x96 frame"):
+        extract(stage, hint=parse_hint(support_pixels=["0,500,10"]), log=lambda *a: None)
+    with pytest.raises(InputError, match="--support-pixel.*not on the object"):
+        extract(stage, hint=parse_hint(support_pixels=["0,1,1"]), log=lambda *a: None)
+    with pytest.raises(InputError, match="--support-particles"):
+        extract(stage, hint=parse_hint(support_particles="1000000"), log=lambda *a: None)
+    with pytest.raises(InputError, match="--support-particles"):
+        parse_hint(support_particles="a,b")

@@ -25,33 +25,49 @@ __all__ = ["extract", "extract_interaction", "parse_hint", "Hint", "Models", "Ex
            "ExtractedContact", "INTERACTION_TYPES", "classify_interaction"]
 
 
-def parse_hint(pixel: str | None = None, particles: str | None = None) -> Hint | None:
+def _parse_pixel(text: str, flag: str) -> tuple[int, tuple[float, float]]:
+    parts = [p.strip() for p in str(text).split(",")]
+    if len(parts) != 3:
+        raise InputError(flag, f"expected K,U,V (frame, column, row), got {text!r}")
+    try:
+        k = int(parts[0])
+        u, v = float(parts[1]), float(parts[2])
+    except ValueError:
+        raise InputError(flag, f"expected an integer frame and two numbers, got {text!r}") from None
+    if not (np.isfinite(u) and np.isfinite(v)):
+        raise InputError(flag, f"pixel coordinates must be finite, got {text!r}")
+    return k, (u + 0.5, v + 0.5)
+
+
+def _parse_indices(text: str, flag: str) -> np.ndarray:
+    try:
+        idx = [int(p) for p in str(text).replace(" ", "").split(",") if p != ""]
+    except ValueError:
+        raise InputError(flag, f"expected comma-separated particle indices, got {text!r}") from None
+    if not idx:
+        raise InputError(flag, "no particle index given")
+    return np.asarray(idx, np.int64)
+
+
+def parse_hint(pixel: str | None = None, particles: str | None = None, support_pixels=None,
+               support_particles: str | None = None) -> Hint | None:
     """The CLI's hint flags: `--hint-pixel K,U,V` (frame K, pixel column U and row V as an image
-    viewer shows them, 0-based; the pixel's centre is used) and `--hint-particles I,J,...`
-    (SimParticles indices). None when neither is given; InputError naming the flag otherwise."""
-    if pixel is None and particles is None:
+    viewer shows them, 0-based; the pixel's centre is used), `--hint-particles I,J,...`
+    (SimParticles indices), `--support-pixel K,U,V` (a list: where the object is held) and
+    `--support-particles I,J,...`. None when none is given; InputError naming the flag otherwise."""
+    if isinstance(support_pixels, str):
+        support_pixels = [support_pixels]
+    if pixel is None and particles is None and not support_pixels and support_particles is None:
         return None
     hint = Hint()
     if pixel is not None:
-        parts = [p.strip() for p in str(pixel).split(",")]
-        if len(parts) != 3:
-            raise InputError("--hint-pixel", f"expected K,U,V (frame, column, row), got {pixel!r}")
-        try:
-            k = int(parts[0])
-            u, v = float(parts[1]), float(parts[2])
-        except ValueError:
-            raise InputError("--hint-pixel", f"expected an integer frame and two numbers, got {pixel!r}") from None
-        if not (np.isfinite(u) and np.isfinite(v)):
-            raise InputError("--hint-pixel", f"pixel coordinates must be finite, got {pixel!r}")
-        hint.frame, hint.pixel = k, (u + 0.5, v + 0.5)
+        hint.frame, hint.pixel = _parse_pixel(pixel, "--hint-pixel")
     if particles is not None:
-        try:
-            idx = [int(p) for p in str(particles).replace(" ", "").split(",") if p != ""]
-        except ValueError:
-            raise InputError("--hint-particles", f"expected comma-separated particle indices, got {particles!r}") from None
-        if not idx:
-            raise InputError("--hint-particles", "no particle index given")
-        hint.particles = np.asarray(idx, np.int64)
+        hint.particles = _parse_indices(particles, "--hint-particles")
+    if support_pixels:
+        hint.support_pixels = [_parse_pixel(t, "--support-pixel") for t in support_pixels]
+    if support_particles is not None:
+        hint.support_particles = _parse_indices(support_particles, "--support-particles")
     return hint
 
 
@@ -63,7 +79,7 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
     `<stem>.extract/` (hand_masks/, preview.png). Contact sets the user authored in the root layer
     win: an interaction contact of theirs is kept (extraction only adds its T0 if it has none),
     fixed sets of theirs replace the detected supports. `hint` (a pixel in a frame, or particle
-    indices) and `interaction_type` win over detection. Returns the `ExtractionResult` (its
+    indices, for the contact and / or the supports) and `interaction_type` win over detection. Returns the `ExtractionResult` (its
     `summary()` is what `extract --json` prints; `outputs` says what was written). `device`: where
     the object at rest is rendered (cpu or cuda)."""
     from ..api import load_observations
@@ -85,11 +101,15 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
         if (hint is not None and not hint.is_empty) or interaction_type is not None:
             notes.append(f"the stage's own contact set {u.name} wins over the hint / --type given")
         interaction_type = u.contact_type
-        hint = Hint(particles=np.asarray(u.particle_indices, np.int64)) if len(u.particle_indices) else None
+        support_hint = {} if hint is None else {"support_pixels": hint.support_pixels,
+                                                 "support_particles": hint.support_particles}
+        hint = Hint(particles=np.asarray(u.particle_indices, np.int64), **support_hint) if len(u.particle_indices) else None
         if hint is None and np.any(u.contact_point):
             uv, _ = sd.camera.at(0).project(np.asarray(u.contact_point, float)[None])
             if np.isfinite(uv).all() and 0 <= uv[0, 0] < sd.camera.width and 0 <= uv[0, 1] < sd.camera.height:
-                hint = Hint(frame=0, pixel=(float(uv[0, 0]), float(uv[0, 1])))
+                hint = Hint(frame=0, pixel=(float(uv[0, 0]), float(uv[0, 1])), **support_hint)
+        if hint is None and support_hint:
+            hint = Hint(**support_hint)
     log(f"extracting the interaction from {sd.n_frames} frames ({sd.image_size[0]}x{sd.image_size[1]})")
     result = extract_interaction(sd, obs.frames, obs.masks, masks_amodal=sd.masks_amodal, hint=hint,
                                  interaction_type=interaction_type, models=models, log=log, device=device)

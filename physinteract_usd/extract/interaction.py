@@ -37,6 +37,7 @@ from .segment import dilate, erode
 RADIUS_SHARE = 0.35  # grasp radius as a share of the contact region's extent
 GRASP_RADIUS_M = 0.03   # a hand's grasp (thumb and fingertips, ~6 cm across; the median of the suite's hands): the least it holds
 GRASP_MAX_SHARE = 0.3   # ... and at most this share of the object's extent (something stays free)
+SUPPORT_HINT_RADIUS_M = 0.03  # a support the user points at where none was detected: a clamp's or a hand's size
 
 
 # ------------------------------------------------------------------------------ small helpers
@@ -524,9 +525,15 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     fixed_sets, motion_p, sup_ev = find_supports(an, exclude=idx if itype == "pointAdherent" else np.zeros(0, np.int64),
                                                  contact_motion_px=motion, push_dir=push3)
     evidence["supports"] = sup_ev
+    sup_source = "extracted"
+    if hint is not None and hint.has_support:
+        fixed_sets = _hinted_supports(an, scene, hint, fixed_sets,
+                                      idx if itype == "pointAdherent" else np.zeros(0, np.int64))
+        sup_source = "hint"
+        sup_ev["hint"] = [int(len(s)) for s in fixed_sets]
     for i, s in enumerate(fixed_sets):
         contacts.append(ExtractedContact(f"support{i}" if len(fixed_sets) > 1 else "support", "fixed", s,
-                                         contact_point=an.x0[s].mean(0), source="extracted", label="support"))
+                                         contact_point=an.x0[s].mean(0), source=sup_source, label="support"))
     return ExtractionResult(contacts=contacts, hand_masks=an.hand, interaction_type=itype, type_source=tsource,
                             grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,
                             release_frame=r, evidence=evidence, notes=notes, frames=frames,
@@ -534,10 +541,29 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
 
 
 # ------------------------------------------------------------------------------ pieces
+def _check_pixel(k, uv, scene, T, flag):
+    if not (0 <= int(k) < T):
+        raise InputError(flag, f"frame {k} is outside the video (0..{T - 1})")
+    u, v = map(float, uv)
+    W, H = scene.camera.width, scene.camera.height
+    if not (0 <= u < W and 0 <= v < H):
+        raise InputError(flag, f"pixel ({u - 0.5:g}, {v - 0.5:g}) is outside the {W}x{H} frame")
+
+
 def _check_hint(hint, scene, T):
-    if hint is None or hint.is_empty:
+    if hint is None:
         return hint
     P = len(scene.particles_positions)
+    if hint.support_particles is not None and len(hint.support_particles):
+        idx = np.asarray(hint.support_particles)
+        if not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0 or idx.max() >= P:
+            raise InputError("--support-particles", f"particle indices must be integers in [0, {P}) (the stage "
+                             f"has {P} simulation particles)")
+        hint.support_particles = np.unique(idx.astype(np.int64))
+    for k, uv in hint.support_pixels or []:
+        _check_pixel(k, uv, scene, T, "--support-pixel")
+    if hint.is_empty:
+        return hint
     if hint.particles is not None and len(hint.particles):
         idx = np.asarray(hint.particles)
         if not np.issubdtype(idx.dtype, np.integer):
@@ -548,14 +574,39 @@ def _check_hint(hint, scene, T):
         hint.particles = np.unique(idx.astype(np.int64))
     if hint.pixel is not None:
         k = 0 if hint.frame is None else hint.frame
-        if not (0 <= int(k) < T):
-            raise InputError("--hint-pixel", f"frame {k} is outside the video (0..{T - 1})")
-        u, v = map(float, hint.pixel)
-        W, H = scene.camera.width, scene.camera.height
-        if not (0 <= u < W and 0 <= v < H):
-            raise InputError("--hint-pixel", f"pixel ({u:g}, {v:g}) is outside the {W}x{H} frame")
+        _check_pixel(k, hint.pixel, scene, T, "--hint-pixel")
         hint.frame = int(k)
     return hint
+
+
+def _hinted_supports(an: _Analysis, scene, hint, detected: list, exclude) -> list:
+    """The supports the user's hint asks for (see `Hint`): their particles as they are, or per
+    support pixel the detected still region there (within 2 spacings of the pixel's surface point)
+    or else the particles within SUPPORT_HINT_RADIUS_M of it. Detected regions no pixel points at
+    are dropped."""
+    exclude = np.asarray(exclude, np.int64)
+    if hint.support_particles is not None and len(hint.support_particles):
+        return [np.setdiff1d(hint.support_particles, exclude)]
+    sets, used = [], set()
+    for k, uv in hint.support_pixels:
+        rest_k = an.rest if an.static_camera else render_rest(scene.gaussians, scene.camera.at(k), an.x0,
+                                                                an.spacing, an.device)
+        c = np.asarray(uv, np.float64)[None]
+        if not sample(dilate(rest_k.silhouette, 1).astype(np.float32), c, order=0)[0]:
+            raise InputError("--support-pixel", f"pixel ({c[0, 0] - 0.5:g}, {c[0, 1] - 0.5:g}) is not on the "
+                             "object at rest")
+        p3 = back_project(rest_k, c)[0]
+        near = [i for i, s_ in enumerate(detected)
+                if np.min(np.linalg.norm(an.x0[s_] - p3, axis=1)) <= 2.0 * an.spacing]
+        if near:
+            for i in near:
+                if i not in used:
+                    used.add(i)
+                    sets.append(detected[i])
+            continue
+        idx = particles_near(p3[None], an.x0, max(SUPPORT_HINT_RADIUS_M, 1.6 * an.spacing), min_count=3)
+        sets.append(np.setdiff1d(idx, exclude))
+    return [s_ for s_ in sets if len(s_)]
 
 
 def _hint_location(an: _Analysis, hint):

@@ -14,15 +14,26 @@ CONTACT_NAMES = {"pointAdherent": "hand", "pointNonAdherent": "finger", "surface
 class Hint:
     """A user's hint that wins over detection: a pixel (u, v) (continuous coordinates, pixel
     centres at +0.5) in frame `frame` where the hand touches the object, and/or the particles
-    (indices into SimParticles) the hand holds or pushes."""
+    (indices into SimParticles) the hand holds or pushes. For the supports: `support_pixels`, a
+    list of (frame, (u, v)) where the object is held (each keeps the detected still region there,
+    or makes a support of the particles within SUPPORT_HINT_RADIUS_M of that point when none was
+    detected there; detected regions elsewhere are dropped), or `support_particles`, the particles
+    held still (exactly those)."""
 
     frame: int | None = None
     pixel: tuple | None = None
     particles: np.ndarray | None = None
+    support_pixels: list | None = None
+    support_particles: np.ndarray | None = None
 
     @property
     def is_empty(self) -> bool:
+        """No hint on the hand's contact (support hints aside)."""
         return self.pixel is None and (self.particles is None or len(self.particles) == 0)
+
+    @property
+    def has_support(self) -> bool:
+        return bool(self.support_pixels) or (self.support_particles is not None and len(self.support_particles) > 0)
 
 
 @dataclass
