@@ -526,6 +526,11 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                                                  contact_motion_px=motion, push_dir=push3)
     evidence["supports"] = sup_ev
     sup_source = "extracted"
+    shell = sum(len(s_) for s_ in fixed_sets) - sum(sup_ev.get("core_particles", []))
+    if fixed_sets and "core_particles" in sup_ev and shell > 0 and not (hint is not None and hint.has_support):
+        notes.append(f"supports: {sum(len(s_) for s_ in fixed_sets)} particles held, {shell} of them the shell around "
+                     "the stillest core (the video cannot tell whether a support's outer layer moves a little); if "
+                     "the preview shows the support wrong, --support-pixel or --support-particles sets it")
     if hint is not None and hint.has_support:
         fixed_sets = _hinted_supports(an, scene, hint, fixed_sets,
                                       idx if itype == "pointAdherent" else np.zeros(0, np.int64))
@@ -834,7 +839,7 @@ def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_p
     # region's motion (F1 0.72 vs 0.57 mean).
     low = max(core_abs, core_rel * moving)
     split = _log_split(motion[np.concatenate(sets)]) if sets else 0.0
-    cores = []
+    cores, n_core = [], []
     for s_ in sets:
         m = motion[s_]
         core = s_[m <= max(low, split)]
@@ -843,7 +848,9 @@ def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_p
         d = np.min(np.linalg.norm(x0[s_][:, None, :] - x0[core][None, :, :], axis=2), axis=1)
         keep = s_[d <= margin * h]
         cores.append(keep if len(keep) >= 3 else s_[np.argsort(m)[:3]])
+        n_core.append(int(min(len(core), len(cores[-1]))))
     sets = cores
+    ev["core_particles"] = n_core   # the rest of each set is the shell around its core (uncertain)
     ev["core_threshold_px"] = max(low, split)
     if not sets and push_dir is not None and np.linalg.norm(push_dir) > 0:
         # pushed and not driven away: held on the far side along the push (a ball pressed onto
