@@ -526,8 +526,10 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                                                  contact_motion_px=motion, push_dir=push3)
     evidence["supports"] = sup_ev
     sup_source = "extracted"
-    shell = sum(len(s_) for s_ in fixed_sets) - sum(sup_ev.get("core_particles", []))
-    if fixed_sets and "core_particles" in sup_ev and shell > 0 and not (hint is not None and hint.has_support):
+    cores = sup_ev.get("core_particles", [])
+    shell = sum(len(s_) for s_ in fixed_sets) - sum(cores)
+    if (fixed_sets and len(cores) == len(fixed_sets) and "fallback" not in sup_ev and shell > 0
+            and not (hint is not None and hint.has_support)):
         notes.append(f"supports: {sum(len(s_) for s_ in fixed_sets)} particles held, {shell} of them the shell around "
                      "the stillest core (the video cannot tell whether a support's outer layer moves a little); if "
                      "the preview shows the support wrong, --support-pixel or --support-particles sets it")
@@ -536,6 +538,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                                       idx if itype == "pointAdherent" else np.zeros(0, np.int64))
         sup_source = "hint"
         sup_ev["hint"] = [int(len(s)) for s in fixed_sets]
+        if not fixed_sets:
+            notes.append("the support hint leaves no particle outside the hand's grasp: no support is set")
     for i, s in enumerate(fixed_sets):
         contacts.append(ExtractedContact(f"support{i}" if len(fixed_sets) > 1 else "support", "fixed", s,
                                          contact_point=an.x0[s].mean(0), source=sup_source, label="support"))
@@ -591,7 +595,8 @@ def _hinted_supports(an: _Analysis, scene, hint, detected: list, exclude) -> lis
     are dropped."""
     exclude = np.asarray(exclude, np.int64)
     if hint.support_particles is not None and len(hint.support_particles):
-        return [np.setdiff1d(hint.support_particles, exclude)]
+        held = np.setdiff1d(hint.support_particles, exclude)
+        return [held] if len(held) else []
     sets, used = [], set()
     for k, uv in hint.support_pixels:
         rest_k = an.rest if an.static_camera else render_rest(scene.gaussians, scene.camera.at(k), an.x0,
