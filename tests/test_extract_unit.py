@@ -167,3 +167,19 @@ def test_log_split_separates_held_particles_from_their_slowly_moving_neighbours(
     t2 = _log_split(np.concatenate([held[:10], near]))
     assert held.max() < t2 < near.min()
     assert _log_split(np.array([0.1, 0.2])) == 0.2    # too few to split: keep all
+
+
+def test_contact_start_takes_the_stillest_frame_and_only_noise_level_ties():
+    from physinteract_usd.extract.interaction import _contact_start
+
+    vh = np.zeros((12, 2))
+    near = np.ones(12, bool)
+    # the hand arrives (3.6 px) and rests at frame 2; the pull starts slowly (0.56 px, then faster):
+    # the start is frame 2, not the slowly moving frame after it (balloon's measured speeds)
+    speed = np.array([np.nan, 3.56, 0.40, 0.56, 1.08, 1.49, 1.79, 1.94, 1.82, 1.46, 1.2, 1.0])
+    coupled = np.array([0, -1, 1, -1, 1, 1, 1, 1, 1, 1, 1, 1])
+    assert _contact_start(speed, near, 1, 11, coupled, vh) == 2
+    # two frames as still as each other (within the tracking noise): the later one
+    speed2 = speed.copy()
+    speed2[3] = 0.45
+    assert _contact_start(speed2, near, 1, 11, np.ones(12), vh) == 3
