@@ -174,7 +174,7 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
 
 
 def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, iterations: int, log,
-             device: str = "cpu", sources=("extracted", "gt"), seed: int = 0) -> dict:
+             device: str = "cpu", sources=("extracted", "gt"), seed: int = 0, overrides=None) -> dict:
     stage_gt = work / f"{name}.gtfit" / "scene.usda"
     if "gt" in sources:
         init_stage(cap, gt_dir, stage_gt)
@@ -185,7 +185,7 @@ def fit_pair(name: str, work: Path, cap: Path, gt_dir: Path, stage_ext: Path, it
         t0 = time.perf_counter()
         try:
             api.fit(stage, iterations=iterations, contact_from=src, progress=False, log=lambda *a: None,
-                    device=device, seed=seed)
+                    device=device, seed=seed, settings_overrides=overrides)
         except Exception as exc:
             raise RuntimeError(f"fit from {label} contacts: {type(exc).__name__}: {exc}") from exc
         ev = api.evaluate(stage, gt_dir, device=device)
@@ -203,7 +203,13 @@ MIX_PARTS = ("support", "hand", "timing", "trajectory", "masks")
 def mixed_contacts(ex: list, gt: list, part: str, x0: np.ndarray) -> list:
     """The extracted contacts with one part taken from the ground truth: `support` (the fixed
     sets), `hand` (the grasped particles, or a collider's radius), `timing` (grasp and release
-    frames), `trajectory` (T0 and its timing; a grasp's T0 moved onto the extracted particles)."""
+    frames), `trajectory` (T0 and its timing; a grasp's T0 moved onto the extracted particles).
+    Parts joined by `+` are taken one after the other (`hand+trajectory+support`: the whole
+    interaction from the truth)."""
+    if "+" in part:
+        for p in part.split("+"):
+            ex = mixed_contacts(ex, gt, p, x0)
+        return ex
     ei = [c for c in ex if c.type != "fixed"][0]
     gi = [c for c in gt if c.type != "fixed"][0]
     ef = [c for c in ex if c.type == "fixed"]
@@ -238,7 +244,7 @@ def mixed_contacts(ex: list, gt: list, part: str, x0: np.ndarray) -> list:
 
 
 def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, iterations: int, log,
-              device: str = "cpu", seed: int = 0) -> dict:
+              device: str = "cpu", seed: int = 0, overrides=None) -> dict:
     """Fit from the extracted contacts with one part from the ground truth (`mixed_contacts`; `masks`:
     the true hand masks in the loss); the stage is a copy of the extracted one."""
     from physinteract_usd.fit import FitProblem, FitSettings
@@ -255,20 +261,34 @@ def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, i
     obs = api.load_observations(sd)
     ex = api.stage_contacts(sd)
     gt = api.contacts_from_gt(sd, gt_dir)
-    if part == "masks":
+    if "masks" in part.split("+"):
         obs.hand_masks = np.stack([read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(sd.n_frames)])
     else:
         obs.hand_masks = api._hand_masks(sd, sd.n_frames)
     contacts = mixed_contacts(ex, gt, part, sd.particles_positions)
     effects = {n: {k: v for k, v in p.items() if k != "fit"} for n, p in sd.effects.items()}
     prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
-    result = run_fit(prob, FitSettings(iterations=iterations, seed=seed), progress=False, log=lambda *a: None)
+    result = run_fit(prob, dataclasses.replace(FitSettings(iterations=iterations, seed=seed), **(overrides or {})), progress=False, log=lambda *a: None)
     write_fit_layer(stage, sd, result, contacts, source="extracted")
     ev = api.evaluate(stage, gt_dir, device=device)
     out = {"ma": ev["ma"], "psnr": ev["psnr"], "psnr_masked": ev["psnr_masked"], "iou": ev["iou"],
            "position_error_m": ev["position_error_m"], "seconds": time.perf_counter() - t0}
     log(f"  fit from extracted contacts with the true {part}: MA {ev['ma']:.3f}, masked PSNR "
         f"{ev['psnr_masked']:.2f} ({out['seconds']:.0f} s)", flush=True)
+    return out
+
+
+def parse_overrides(text: str) -> dict:
+    """`key=value,...` into FitSettings overrides, each value cast to the field's type."""
+    from physinteract_usd.fit import FitSettings
+
+    fields = {f.name: f for f in dataclasses.fields(FitSettings)}
+    out = {}
+    for item in [t for t in text.split(",") if t]:
+        k, _, v = item.partition("=")
+        if k not in fields:
+            raise SystemExit(f"--fit-settings: {k!r} is not a FitSettings field ({', '.join(fields)})")
+        out[k] = type(getattr(FitSettings(), k))(float(v) if isinstance(getattr(FitSettings(), k), float) else int(v))
     return out
 
 
@@ -347,6 +367,8 @@ def main(argv=None):
                     "shows how much MA moves between equally good fits")
     ap.add_argument("--mix", default="", help="with --fit: also fit from the extracted contacts with one part "
                     f"from the truth, comma-separated parts of {','.join(MIX_PARTS)} (which part costs the MA)")
+    ap.add_argument("--fit-settings", default="", help="FitSettings overrides for every fit, e.g. "
+                    "lr_trajectory=1e-3,trajectory_levels=2 (an experiment; the reports name them)")
     ap.add_argument("--no-masks", action="store_true", help="extract from the frames alone (no silhouette "
                     "masks; nothing is written to the stages)")
     ap.add_argument("--write", help="write the markdown report here (e.g. docs/benchmarks/extract.md)")
@@ -354,6 +376,7 @@ def main(argv=None):
                     "further section instead of replacing it")
     ap.add_argument("--json", help="write the rows as JSON here")
     a = ap.parse_args(argv)
+    overrides = parse_overrides(a.fit_settings)
     names = a.scenes.split(",") if a.scenes else [*SCENES.keys()]
     for n in EXTRA:
         if not a.scenes and n not in names:
@@ -389,10 +412,10 @@ def main(argv=None):
             if name in fits:
                 try:
                     row["fit"] = fit_pair(name, work, cap, gt_dir, stage, a.iterations, log, a.device,
-                                          tuple(s for s in a.fit_sources.split(",") if s), a.seed)
+                                          tuple(s for s in a.fit_sources.split(",") if s), a.seed, overrides)
                     for part in [p for p in a.mix.split(",") if p]:
                         row["fit"][f"mix_{part}"] = fit_mixed(name, work, gt_dir, stage, part, a.iterations, log,
-                                                              a.device, a.seed)
+                                                              a.device, a.seed, overrides)
                         if a.json:  # after every mixed fit too (they are the slow part)
                             Path(a.json).write_text(json.dumps(rows + [row], indent=1, default=float))
                 except Exception as exc:  # a failed fit is reported in the fit table

@@ -5,7 +5,7 @@
 # (captures kept while the machine stays warm, so a later call reuses them) and writes the rows
 # to $OUT/rows_<first scene>.json after every scene (a call cut short keeps what it measured).
 # SOURCES picks the fits (default extracted,gt; "" for none), MIX adds --mix parts (e.g. support,hand),
-# SEED the fits' seed.
+# SEED the fits' seed, FIT_SETTINGS FitSettings overrides (key=value,...).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy on PYTHONPATH.
 set -u
 OUT="${OUT:-out/gpu_extract}"
@@ -15,5 +15,5 @@ LIMIT="${1:-560}"
 SCENES="${2:?scenes}"
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | sed 's/^/device: /'
 timeout "$LIMIT" python3 benchmarks/eval_extract.py --device cuda --work /tmp/eval_extract_gpu --keep \
-  --scenes "$SCENES" --fit all --iterations 60 --fit-sources "${SOURCES-extracted,gt}" --mix "${MIX:-}" --seed "${SEED:-0}" --json "$OUT/rows_${SCENES%%,*}${MIX:+_mix}${SEED:+_seed$SEED}.json" 2>&1 | grep -v "^|"
+  --scenes "$SCENES" --fit all --iterations 60 --fit-sources "${SOURCES-extracted,gt}" --mix "${MIX:-}" --seed "${SEED:-0}" --fit-settings "${FIT_SETTINGS:-}" --json "$OUT/rows_${SCENES%%,*}${MIX:+_mix}${SEED:+_seed$SEED}${FIT_SETTINGS:+_fs}.json" 2>&1 | grep -v "^|"
 echo "exit ${PIPESTATUS[0]}"
