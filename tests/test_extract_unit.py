@@ -183,3 +183,21 @@ def test_contact_start_takes_the_stillest_frame_and_only_noise_level_ties():
     speed2 = speed.copy()
     speed2[3] = 0.45
     assert _contact_start(speed2, near, 1, 11, np.ones(12), vh) == 3
+
+
+def test_grasp_centre_moves_onto_the_material_only_when_off_it():
+    from physinteract_usd.extract.interaction import _onto_particles
+
+    h = 0.01
+    g = np.arange(-3, 4) * h
+    x0 = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)  # a sheet at z = 0
+    # 4 spacings above the particle at (h, 0, 0): moved straight down to one spacing above it
+    np.testing.assert_allclose(_onto_particles(np.array([h, 0.0, 4 * h]), x0, h), [h, 0.0, h], atol=1e-12)
+    # beyond the sheet's edge, diagonally: toward the corner particle, ending one spacing from it
+    c = np.array([6 * h, 6 * h, 0.0])
+    out = _onto_particles(c, x0, h)
+    np.testing.assert_allclose(np.linalg.norm(out - [3 * h, 3 * h, 0]), h, atol=1e-12)
+    np.testing.assert_allclose(out[:2] - 3 * h, [h / np.sqrt(2)] * 2, atol=1e-12)
+    # already within a spacing of the material: unchanged
+    c = np.array([0.5 * h, 0.2 * h, 0.6 * h])
+    np.testing.assert_array_equal(_onto_particles(c, x0, h), c)

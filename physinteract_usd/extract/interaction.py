@@ -463,6 +463,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         pts3 = back_project(rest_g, pix)
         radius = _contact_radius_m(an, region)
         c3 = _robust_centre(pts3)
+        if itype == "pointAdherent":
+            c3 = _onto_particles(c3, an.x0, an.spacing)
         idx = particles_near(c3[None], an.x0, radius, min_count=3)
     z_c = float(rest_g.camera.world_to_camera(c3[None])[0, 2])
     # adherent: the grasped particles follow the hand while grasped; colliders are the hand
@@ -666,6 +668,18 @@ def _track_back_to(an: _Analysis, c, k_from, k_to):
     tr = an.tracker.track(an.flows, np.asarray(c, np.float64)[None], start=k_from)
     p = tr.uv[k_to, 0]
     return p if np.isfinite(p).all() else np.asarray(c, np.float64)
+
+
+def _onto_particles(c3: np.ndarray, x0: np.ndarray, spacing: float) -> np.ndarray:
+    """A hand holds material: a grasp centre more than a particle spacing from every particle (the
+    rendered surface it was back-projected from is the splats' edge, which lies well outside the
+    particles of a fuzzy or thin object, and at a silhouette's rim the depth is the background's
+    fill) moves straight toward its nearest particle until it is one spacing away."""
+    d = np.linalg.norm(x0 - c3, axis=1)
+    j = int(np.argmin(d))
+    if d[j] <= spacing:
+        return c3
+    return x0[j] + (c3 - x0[j]) * (spacing / d[j])
 
 
 def _robust_centre(pts: np.ndarray) -> np.ndarray:
