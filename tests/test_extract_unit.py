@@ -201,3 +201,22 @@ def test_grasp_centre_moves_onto_the_material_only_when_off_it():
     # already within a spacing of the material: unchanged
     c = np.array([0.5 * h, 0.2 * h, 0.6 * h])
     np.testing.assert_array_equal(_onto_particles(c, x0, h), c)
+
+
+def test_support_core_keeps_the_still_core_and_only_the_hidden_part_of_its_shell():
+    from physinteract_usd.extract.interaction import support_core
+
+    h = 0.01
+    x0 = np.stack([np.zeros(8), np.arange(8) * h, np.zeros(8)], 1)      # a line of particles
+    ids = np.arange(2, 8)                                                  # a still region: 2..7
+    motion = np.array([0.01, 0.02, 0.03, 0.4, 0.5, 0.6])                  # 2..4 held, 5.. move a little
+    keep, n = support_core(x0, ids, motion, limit=0.1, h=h)
+    assert set(keep) == {2, 3, 4, 5} and n == 3                           # the core and its one shell
+    visible = np.array([True, True, True, True, True, True])
+    keep, n = support_core(x0, ids, motion, 0.1, h, visible=visible)
+    assert set(keep) == {2, 3, 4}                                          # a seen shell is not held
+    visible[3] = False                                                     # particle 5 hidden
+    keep, _ = support_core(x0, ids, motion, 0.1, h, visible=visible)
+    assert set(keep) == {2, 3, 4, 5}
+    keep, n = support_core(x0, ids, np.full(6, 0.5), 0.1, h)               # nothing below the limit
+    assert len(keep) >= 3 and n >= 1
