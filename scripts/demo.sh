@@ -9,7 +9,7 @@ SAMPLE=samples/foam_bar   # regenerate with: physinteract-usd synth foam_bar sam
 OUT=out/demo
 mkdir -p "$OUT"
 rm -f "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc
-# the capture's README.txt suggests grid 24: ~9 minutes on 2 CPU cores, MA 0.94 (grid 20: ~5 minutes,
+# the capture's README.txt suggests grid 24: ~10 minutes on 2 CPU cores, MA 0.93 (grid 20: ~5 minutes,
 # MA 0.84; docs/benchmarks/fit.md)
 physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 0.3 \
   --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
