@@ -280,8 +280,6 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
 
     from .fit import FitProblem, FitSettings
     from .fit import fit as run_fit
-    from .fit.optimize import select_grasp
-    from .fit.problem import grasp_variants
     from .usd.stage import write_fit_layer
 
     _cpu_threads(device)
@@ -316,25 +314,11 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
             raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
         start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
                  "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
-    def make_problem(cs):
-        try:
-            return FitProblem(sd, obs, cs, effects=effects, device=device)
-        except ValueError as exc:
-            raise InputError(stage_path, str(exc)) from None
-
-    grasp = [c.name for c in sd.contacts if c.contact_type == "pointAdherent" and c.source == "extracted"]
-    uniform_e = None
-    if settings.select_grasp and contact_from is None and start is None and not sd.reports and len(grasp) == 1:
-        # the grasp's size: the first fit of an extracted grasp tries one layer less and one more
-        # (a refit keeps what the first one chose, which the fit layer records)
-        variants = grasp_variants(sd.particles_positions, sd.settings.particle_spacing, contacts, grasp[0])
-        k, prob, uniform_e, _ = select_grasp(make_problem, variants, settings, log=log)
-        contacts = variants[k][1]
-        n = len(next(c for c in contacts if c.name == grasp[0]).indices)
-        log(f"grasp {grasp[0]}: {variants[k][0]} ({n} particles), the lowest loss of {len(variants)} sizes")
-    else:
-        prob = make_problem(contacts)
-    result = run_fit(prob, settings, progress=progress, log=log, start=start, uniform_e=uniform_e)
+    try:
+        prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
+    except ValueError as exc:
+        raise InputError(stage_path, str(exc)) from None
+    result = run_fit(prob, settings, progress=progress, log=log, start=start)
     info = write_fit_layer(stage_path, sd, result, contacts, source=source)
     return result, info
 

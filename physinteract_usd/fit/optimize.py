@@ -46,8 +46,6 @@ class FitSettings:
     confidence_probes: int = 4
     seed: int = 0
     fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
-    select_grasp: bool = True           # an extracted grasp's size: one layer less, as found or one more,
-                                        # whichever renders the lowest loss at its best uniform E
 
 
 @dataclass
@@ -79,9 +77,8 @@ def _seed(s):
     np.random.seed(s)
 
 
-def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None, with_loss: bool = False):
-    """Golden-section search of the reconstruction loss over a uniform log E (no gradients): the
-    best E (and, `with_loss`, its loss)."""
+def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None) -> float:
+    """Golden-section search of the reconstruction loss over a uniform log E (no gradients)."""
     lo, hi = mat.lo, mat.hi
     g = (math.sqrt(5) - 1) / 2
     cache = {}
@@ -111,37 +108,12 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
             d = a + g * (b - a)
             fd = f(d)
     best = min(cache, key=cache.get)
-    return (math.exp(best), cache[best]) if with_loss else math.exp(best)
-
-
-def select_grasp(make_problem, candidates: list, settings: FitSettings, log=None, margin: float = 0.01):
-    """Choose among candidate contact lists (`candidates`: [(label, contacts)], the extraction's
-    own first) the one whose best uniform E renders the lowest reconstruction loss: a grasp that
-    holds too much material drags particles the hand does not hold and shows as a residual, one
-    that holds too little lets the held material sag away from the hand. Another candidate
-    replaces the first only with a loss lower by more than `margin` (relative): a tie is noise,
-    and the extraction's own guess stands. `make_problem(contacts)` builds a FitProblem. Returns
-    (index, problem, uniform E, [loss per candidate])."""
-    best, losses = None, []
-    for i, (label, contacts) in enumerate(candidates):
-        prob = make_problem(contacts)
-        st = prob.scene.settings
-        mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
-                            device=prob.tdev)
-        mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
-        e, loss = golden_uniform_search(prob, mat, settings.search_evals, with_loss=True)
-        losses.append(loss)
-        if log:
-            log(f"grasp {label}: loss {loss:.5f} at uniform E {e:.4g} Pa")
-        if best is None or loss < best[3] * (1.0 - margin):
-            best = (i, prob, e, loss)
-    return best[0], best[1], best[2], losses
+    return math.exp(best)
 
 
 def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
-        start: dict | None = None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
-    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from.
-    `uniform_e`: the uniform E to start from when a search already found it (`select_grasp`)."""
+        start: dict | None = None, on_iteration=None) -> FitResult:
+    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from."""
     s = settings or FitSettings()
     _seed(s.seed)
     t0 = time.perf_counter()
@@ -166,7 +138,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
                                            device=prob.tdev).requires_grad_(s.joint)
         e_uniform = float(np.exp(np.mean(np.log(start["youngs"]))))
     else:
-        e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log)
+        e_uniform = golden_uniform_search(prob, mat, s.search_evals, log)
         mat.set_uniform(e_uniform)
     pairs_np = neighbour_pairs(prob.x0, 1.6 * st.particle_spacing)
     pairs = torch.as_tensor(pairs_np, device=prob.tdev)

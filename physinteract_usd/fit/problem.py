@@ -230,39 +230,3 @@ class FitProblem:
                 reg = reg + self.weights.trajectory * ((across ** 2).sum(-1) + self.weights.depth_prior
                                                        * along[..., 0] ** 2).mean()
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
-
-
-def grasp_variants(x0: np.ndarray, spacing: float, contacts: list, name: str) -> list:
-    """The contact list with the pointAdherent set `name` as found, one layer of particles
-    smaller and one larger: [("as found", ...), ("one layer less", ...), ("one layer more", ...)].
-    A layer: the set's particles within 1.05 spacings of a particle outside it (less; at least 3
-    stay), or the particles outside it within 1.05 spacings of it that no other adherent or fixed
-    contact holds (more). The video shows where a hand grasps, not how much of the material it
-    holds; the fit tells the sizes apart by what they render (`optimize.select_grasp`)."""
-    import dataclasses
-
-    from scipy.spatial import cKDTree
-
-    P = len(x0)
-    tree = cKDTree(x0)
-    i = next(j for j, c in enumerate(contacts) if c.name == name)
-    g = np.asarray(contacts[i].indices, np.int64)
-    inside = np.zeros(P, bool)
-    inside[g] = True
-    other = np.zeros(P, bool)
-    for j, c in enumerate(contacts):
-        if j != i and c.type in ("pointAdherent", "fixed"):
-            other[np.asarray(c.indices, np.int64)] = True
-    nb = tree.query_ball_point(x0[g], 1.05 * spacing)
-    edge = np.array([bool((~inside[np.asarray(n, np.int64)]).any()) for n in nb], bool)
-    less = g[~edge] if (~edge).sum() >= 3 else g
-    grown = np.zeros(P, bool)
-    grown[np.unique(np.concatenate([np.asarray(n, np.int64) for n in nb]))] = True
-    more = np.where(inside | (grown & ~other))[0].astype(np.int64)
-    out = [("as found", contacts)]
-    for label, idx in (("one layer less", less), ("one layer more", more)):
-        if len(idx) != len(g):
-            cs = list(contacts)
-            cs[i] = dataclasses.replace(contacts[i], indices=np.sort(idx))
-            out.append((label, cs))
-    return out
