@@ -52,20 +52,15 @@ def _job(args):
             api.fit(stage, iterations=iterations, contact_from=gt, progress=False, log=lambda *a: None,
                     device=device, seed=seed, settings_overrides=overrides)
         ev = api.evaluate(stage, gt, device=device)
-        grasp = [len(c.particle_indices) for c in api.read_stage(stage).contacts if c.contact_type == "pointAdherent"]
+        sd = api.read_stage(stage)
         return {"scene": name, "source": source, "seed": seed, "ma": ev["ma"], "ma_best_uniform": ev["ma_best_uniform"],
                 "psnr_masked": ev["psnr_masked"], "psnr": ev["psnr"], "position_error_m": ev["position_error_m"],
-                "final_loss": _final_loss(stage), "grasp_particles": grasp, "seconds": time.perf_counter() - t0}
+                "final_loss": float(sd.reports[-1]["final_loss"]) if sd.reports else None,
+                "grasp_particles": [len(c.particle_indices) for c in sd.contacts if c.contact_type == "pointAdherent"],
+                "seconds": time.perf_counter() - t0}
     except Exception as exc:  # a failed fit is a row, not the end of the run
         return {"scene": name, "source": source, "seed": seed, "error": f"{type(exc).__name__}: {exc}",
                 "trace": traceback.format_exc(limit=3), "seconds": time.perf_counter() - t0}
-
-
-def _final_loss(stage):
-    from physinteract_usd import api
-
-    sd = api.read_stage(stage)
-    return float(sd.reports[-1]["final_loss"]) if sd.reports else None
 
 
 def table(rows, key: str = "extracted") -> str:

@@ -811,8 +811,9 @@ def find_supports(an: _Analysis, exclude=np.zeros(0, np.int64), contact_motion_p
     sharp hook (hemp_rope, toy_rope) lose by the extra shell, which holds particles that move.
     `shell_hidden_only` (default): of the shell, only the particles the camera does not see are
     kept (`support_core`): the blur is the hidden particles', whose motion comes from the nearest
-    seeds, while a seen particle is measured where it is. Fit bar on 8 of 13 scenes instead of 7 (toy_rope passes,
-    glove 0.315 -> 0.367, tow_rope 0.563 -> 0.502, the rest within 0.03; H100, 2026-11-24).
+    seeds, while a seen particle is measured where it is. Fit bar on 8 of 13 scenes instead of 7
+    (toy_rope passes, glove 0.315 -> 0.367, tow_rope 0.563 -> 0.502, the rest within 0.03; H100,
+    2026-11-24).
 
     Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
     x0, h = an.x0, an.spacing
@@ -910,10 +911,10 @@ def support_core(x0: np.ndarray, ids: np.ndarray, motion: np.ndarray, limit: flo
     if len(core) < 2:
         core = ids[motion <= np.percentile(motion, 25)]
     d = np.min(np.linalg.norm(x0[ids][:, None, :] - x0[core][None, :, :], axis=2), axis=1)
-    in_shell = d <= margin * h
+    keep_mask = d <= margin * h
     if visible is not None:
-        in_shell &= (d <= 1e-12) | ~np.asarray(visible, bool)
-    keep = ids[in_shell]
+        keep_mask &= np.isin(ids, core) | ~np.asarray(visible, bool)
+    keep = ids[keep_mask]
     if len(keep) < 3:
         keep = ids[np.argsort(motion)[:3]]
     return keep, int(min(len(core), len(keep)))
