@@ -39,12 +39,13 @@ def _job(args):
     d = work / f"{name}.pool-{source}-s{seed}"
     shutil.rmtree(d, ignore_errors=True)
     t0 = time.perf_counter()
+    lines = []
     try:
         if source.startswith("extracted"):
             # extracted: DIR/<scene>.stage; extracted-X: an alternative extraction in DIR/<scene>.stage-X
             shutil.copytree(work / f"{name}.stage{source[len('extracted'):]}", d)
             stage = d / "scene.usda"
-            api.fit(stage, iterations=iterations, progress=False, log=lambda *a: None, device=device, seed=seed,
+            api.fit(stage, iterations=iterations, progress=False, log=lambda m, *a: lines.append(str(m)), device=device, seed=seed,
                     settings_overrides=overrides)
         else:
             stage = d / "scene.usda"
@@ -57,6 +58,8 @@ def _job(args):
                 "psnr_masked": ev["psnr_masked"], "psnr": ev["psnr"], "position_error_m": ev["position_error_m"],
                 "final_loss": float(sd.reports[-1]["final_loss"]) if sd.reports else None,
                 "grasp_particles": [len(c.particle_indices) for c in sd.contacts if c.contact_type == "pointAdherent"],
+                "support_particles": int(sum(len(c.particle_indices) for c in sd.contacts if c.contact_type == "fixed")),
+                "support_log": [m for m in lines if m.startswith("supports")],
                 "seconds": time.perf_counter() - t0}
     except Exception as exc:  # a failed fit is a row, not the end of the run
         return {"scene": name, "source": source, "seed": seed, "error": f"{type(exc).__name__}: {exc}",

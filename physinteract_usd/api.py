@@ -206,6 +206,7 @@ def load_observations(sd):
 def contacts_from_gt(sd, gt_dir):
     """Contacts, supports and the initial trajectory from a synthetic capture's gt/ (the truth:
     for experiments before extraction exists, `fit --contact-from DIR/gt`)."""
+    import dataclasses
     import json
 
     from .fit.problem import ContactSpec
@@ -243,7 +244,7 @@ def contacts_from_gt(sd, gt_dir):
         fixed[contacts[0].indices] = False
     if fixed.any():
         contacts.append(ContactSpec("support", "fixed", np.where(fixed)[0]))
-    return contacts
+    return [dataclasses.replace(c, source="groundTruth") for c in contacts]
 
 
 def _hand_masks(sd, n):
@@ -280,6 +281,7 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
 
     from .fit import FitProblem, FitSettings
     from .fit import fit as run_fit
+    from .fit.optimize import select_supports
     from .usd.stage import write_fit_layer
 
     _cpu_threads(device)
@@ -314,11 +316,26 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
             raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
         start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
                  "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
-    try:
-        prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
-    except ValueError as exc:
-        raise InputError(stage_path, str(exc)) from None
-    result = run_fit(prob, settings, progress=progress, log=log, start=start)
+    def make_problem(cs):
+        try:
+            return FitProblem(sd, obs, cs, effects=effects, device=device)
+        except ValueError as exc:
+            raise InputError(stage_path, str(exc)) from None
+
+    uniform_e = None
+    if (settings.select_supports and contact_from is None and start is None and not sd.reports
+            and any(c.type == "fixed" and c.source == "extracted" and c.guessed for c in contacts)):
+        # the first fit of a guessed support (no still region was in view) sizes it by what it
+        # renders (a refit keeps the size the fit layer recorded)
+        contacts, prob, uniform_e, tried = select_supports(make_problem, contacts, sd.particles_positions,
+                                                           sd.settings.particle_spacing, settings, log=log)
+        chosen = sum(len(c.indices) for c in contacts if c.type == "fixed")
+        if chosen != tried[0][1]:
+            log(f"supports: {chosen} particles held ({tried[0][1]} as extracted): the lowest loss of "
+                f"{len(tried)} sizes")
+    else:
+        prob = make_problem(contacts)
+    result = run_fit(prob, settings, progress=progress, log=log, start=start, uniform_e=uniform_e)
     info = write_fit_layer(stage_path, sd, result, contacts, source=source)
     return result, info
 

@@ -54,6 +54,7 @@ class ContactSet:
     contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
     normal: tuple = (0.0, 1.0, 0.0)
     friction: float = 0.5
+    extent_guessed: bool = False   # fixed: a guess (no still region in view), sized by the first fit
 
 
 @dataclass

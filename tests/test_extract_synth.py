@@ -103,6 +103,9 @@ def test_written_stage_round_trips(extracted):
     # the fit takes them as they are
     specs = api.stage_contacts(sd)
     assert {s.type for s in specs} == {"pointAdherent", "fixed"}
+    # the hook was seen holding the rope still: a measured support, not a guess the fit may resize
+    assert all(not s.guessed and s.source == "extracted" for s in specs if s.type == "fixed")
+    assert not any(c.extent_guessed for c in sd.contacts)
     from physinteract_usd.sim import Contact, Control
 
     Control([Contact(s.type, indices=s.indices, trajectory=s.trajectory, grasp_frame=s.grasp_frame,
@@ -242,6 +245,8 @@ def test_support_hints_win(capture):
     assert sorted(s.indices.tolist()) == sorted(truth[:5].tolist())
     fixed = [c for c in read_stage(stage).contacts if c.contact_type == "fixed"]
     assert len(fixed) == 1 and sorted(fixed[0].particle_indices.tolist()) == sorted(truth[:5].tolist())
+    # the hinted set is the user's choice on the stage: no fit resizes it
+    assert fixed[0].source == "user" and not fixed[0].extent_guessed
     # bad support hints are one-line input errors naming the flag
     with pytest.raises(InputError, match="--support-pixel.*outside the 128x96 frame"):
         extract(stage, hint=parse_hint(support_pixels=["0,500,10"]), log=lambda *a: None)

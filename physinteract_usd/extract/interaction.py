@@ -545,9 +545,14 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         sup_ev["hint"] = [int(len(s)) for s in fixed_sets]
         if not fixed_sets:
             notes.append("the support hint leaves no particle outside the hand's grasp: no support is set")
+    guessed = "fallback" in sup_ev and sup_source == "extracted"
+    if guessed:
+        notes.append(f"supports: a guess, {sup_ev['fallback']}; the first fit sizes it by what it renders; "
+                     "--support-pixel or --support-particles sets it")
     for i, s in enumerate(fixed_sets):
         contacts.append(ExtractedContact(f"support{i}" if len(fixed_sets) > 1 else "support", "fixed", s,
-                                         contact_point=an.x0[s].mean(0), source=sup_source, label="support"))
+                                         contact_point=an.x0[s].mean(0), source=sup_source, label="support",
+                                         guessed=guessed))
     return ExtractionResult(contacts=contacts, hand_masks=an.hand, interaction_type=itype, type_source=tsource,
                             grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,
                             release_frame=r, evidence=evidence, notes=notes, frames=frames,

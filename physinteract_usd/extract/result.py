@@ -54,6 +54,7 @@ class ExtractedContact:
     confidence: float = 1.0
     source: str = "extracted"              # extracted | hint | user
     label: str = ""
+    guessed: bool = False                  # fixed: no still region was in view; the set is a guess
 
     def to_spec(self):
         """The fit's ContactSpec."""
@@ -63,7 +64,7 @@ class ExtractedContact:
                            None if self.release_frame is None else int(self.release_frame),
                            None if self.trajectory is None else np.asarray(self.trajectory, np.float64),
                            radius=float(self.radius), normal=tuple(map(float, self.normal)),
-                           friction=float(self.friction))
+                           friction=float(self.friction), guessed=bool(self.guessed))
 
 
 @dataclass

@@ -57,12 +57,15 @@ class ContactSpec:
     radius: float = 0.0
     normal: tuple = (0.0, 1.0, 0.0)
     friction: float = 0.5
+    source: str = "extracted"             # extracted | user | groundTruth (the stage's token)
+    guessed: bool = False                 # fixed: no still region was in view (`support_layer` resizes it)
 
     @staticmethod
     def from_stage(c: ContactSet, trajectory: np.ndarray | None, n_frames: int) -> "ContactSpec":
         rel = None if c.release_time >= 1e8 or c.release_time >= n_frames else int(round(c.release_time))
         return ContactSpec(c.name, c.contact_type, np.asarray(c.particle_indices, np.int64),
-                           int(round(c.grasp_time)), rel, trajectory, c.collider_radius, tuple(c.normal), c.friction)
+                           int(round(c.grasp_time)), rel, trajectory, c.collider_radius, tuple(c.normal), c.friction,
+                           str(c.source or "extracted"), bool(c.extent_guessed))
 
 
 class FitProblem:
@@ -230,3 +233,45 @@ class FitProblem:
                 reg = reg + self.weights.trajectory * ((across ** 2).sum(-1) + self.weights.depth_prior
                                                        * along[..., 0] ** 2).mean()
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
+
+
+def support_layer(x0: np.ndarray, spacing: float, contacts: list, direction: str) -> list | None:
+    """The contact list with every guessed `fixed` set (extracted, `guessed`: no still region was in
+    view, e.g. a ball on a stand the camera never sees) one layer of particles larger (`direction`
+    "more": the particles within 1.05 spacings of the set that no other contact holds) or smaller
+    ("less": less the set's particles within 1.05 spacings of a particle outside it; a set keeps at
+    least 3). Measured supports, and sets from the user or the ground truth, stay as they are.
+    None when no set changes. The fit tells the sizes apart by what they render
+    (`optimize.select_supports`)."""
+    import dataclasses
+
+    from scipy.spatial import cKDTree
+
+    if direction not in ("more", "less"):
+        raise ValueError(f"direction must be 'more' or 'less', not {direction!r}")
+    P = len(x0)
+    tree = cKDTree(x0)
+    held_by = np.full(P, -1, np.int64)
+    for j, c in enumerate(contacts):
+        if c.type in ("pointAdherent", "fixed"):
+            held_by[np.asarray(c.indices, np.int64)] = j
+    out, changed = list(contacts), False
+    for j, c in enumerate(contacts):
+        if c.type != "fixed" or c.source != "extracted" or not c.guessed or len(c.indices) == 0:
+            continue
+        g = np.asarray(c.indices, np.int64)
+        nb = tree.query_ball_point(x0[g], 1.05 * spacing)
+        if direction == "more":
+            near = np.unique(np.concatenate([np.asarray(n, np.int64) for n in nb]))
+            new = near[held_by[near] < 0]
+            idx = np.union1d(g, new)
+        else:
+            inside = np.zeros(P, bool)
+            inside[g] = True
+            edge = np.array([bool((~inside[np.asarray(n, np.int64)]).any()) for n in nb], bool)
+            idx = np.sort(g[~edge]) if (~edge).sum() >= 3 else g
+        if len(idx) != len(g):
+            out[j] = dataclasses.replace(c, indices=np.sort(idx).astype(np.int64))
+            held_by[idx] = j
+            changed = True
+    return out if changed else None

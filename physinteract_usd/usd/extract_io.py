@@ -163,8 +163,10 @@ def write_extraction(stage_path, scene, contacts, hand_masks, *, trajectories_fo
         ca("contactType", c.type)
         ca("graspTime", float(c.grasp_frame))
         ca("releaseTime", float(c.release_frame) if c.release_frame is not None else 1e9)
-        ca("source", "extracted")
+        ca("source", "user" if c.source == "hint" else "extracted")  # a hinted set is the user's choice
         ca("colliderRadius", float(c.radius))
+        if c.type == "fixed":
+            ca("extentGuessed", bool(getattr(c, "guessed", False)))
         ca("contactPoint", Gf.Vec3f(*map(float, c.contact_point)))
         if c.type in ("pointNonAdherent", "surfaceNonAdherent"):
             ca("contactNormal", Gf.Vec3f(*map(float, c.normal)))

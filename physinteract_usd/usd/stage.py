@@ -416,7 +416,8 @@ def read_stage(path) -> SceneData:
             contacts.append(ContactSet(child.GetName(), np.array(idx if idx is not None else [], dtype=np.int64),
                                        str(ca("contactType")), float(ca("graspTime")), float(ca("releaseTime")),
                                        str(ca("source")), float(ca("colliderRadius")), np.array(ca("contactPoint")),
-                                       tuple(float(x) for x in ca("contactNormal")), float(ca("friction"))))
+                                       tuple(float(x) for x in ca("contactNormal")), float(ca("friction")),
+                                       bool(ca("extentGuessed"))))
         elif t == "PhysInteractTrajectory":
             pos_attr = child.GetAttribute("physinteract:position")
             times = pos_attr.GetTimeSamples()
@@ -563,10 +564,14 @@ def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, source: s
         cp.GetAttribute("physinteract:contactType").Set(c.type)
         cp.GetAttribute("physinteract:graspTime").Set(float(c.grasp_frame))
         cp.GetAttribute("physinteract:releaseTime").Set(float(c.release_frame) if c.release_frame is not None else 1e9)
-        cp.GetAttribute("physinteract:source").Set(source)
+        # each contact keeps where it came from (a user's set stays the user's); a fit from the
+        # ground truth marks all of them
+        cp.GetAttribute("physinteract:source").Set(source if source != "extracted" else getattr(c, "source", source))
         cp.GetAttribute("physinteract:colliderRadius").Set(float(c.radius))
         cp.GetAttribute("physinteract:contactNormal").Set(Gf.Vec3f(*map(float, c.normal)))
         cp.GetAttribute("physinteract:friction").Set(float(c.friction))
+        if c.type == "fixed":
+            cp.GetAttribute("physinteract:extentGuessed").Set(bool(getattr(c, "guessed", False)))
         if len(c.indices):
             cp.GetAttribute("physinteract:contactPoint").Set(Gf.Vec3f(*map(float, scene.particles_positions[c.indices].mean(0))))
         for stage_name, traj in (("initial", c.trajectory), ("fitted", result.trajectories.get(c.name))):
