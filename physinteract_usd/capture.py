@@ -88,7 +88,10 @@ def _load_mesh(path: Path):
     try:
         scene_or_mesh = trimesh.load(str(path), process=False)
     except Exception as exc:
-        raise InputError(path, f"cannot be read as a mesh ({exc.__class__.__name__}: {exc})") from None
+        from .gaussians import ply_truncation
+
+        cut = ply_truncation(path) if path.suffix.lower() == ".ply" else None
+        raise InputError(path, cut or f"cannot be read as a mesh ({exc.__class__.__name__}: {exc})") from None
     if isinstance(scene_or_mesh, trimesh.Scene):
         geoms = [g for g in scene_or_mesh.dump() if isinstance(g, trimesh.Trimesh)]
         if not geoms:

@@ -159,6 +159,47 @@ def is_gaussian_ply(path: str | os.PathLike) -> bool:
     return all(p in props for p in _REQUIRED)
 
 
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def ply_truncation(path: str | os.PathLike) -> str | None:
+    """What is wrong with a PLY cut short, or None when it is not (or that cannot be told: an
+    ASCII body, list properties). Reads the header and the file's size only."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536)
+        size = os.path.getsize(path)
+    except OSError:
+        return None
+    if not head.startswith(b"ply"):
+        return None
+    end = head.find(b"end_header")
+    if end < 0:
+        return "the PLY header ends before end_header (the file is truncated)"
+    body_start = head.find(b"\n", end) + 1
+    lines = head[:end].decode("ascii", "replace").splitlines()
+    if not any(ln.startswith("format binary") for ln in lines):
+        return None
+    need, count, row = 0, None, 0
+    for ln in lines + ["element _end 0"]:
+        w = ln.split()
+        if not w:
+            continue
+        if w[0] == "element":
+            if count is not None:
+                need += count * row
+            count, row = int(w[2]) if len(w) > 2 and w[2].isdigit() else 0, 0
+        elif w[0] == "property" and count is not None:
+            if w[1] == "list" or w[1] not in _PLY_SIZES:
+                return None
+            row += _PLY_SIZES[w[1]]
+    have = size - body_start
+    if have < need:
+        return f"the PLY is truncated: its header declares {need} bytes of data, the file holds {have}"
+    return None
+
+
 def read_ply(path: str | os.PathLike) -> Gaussians:
     """Read a 3DGS PLY (INRIA layout) into decoded `Gaussians`. Raises InputError on bad files."""
     import trimesh
@@ -170,7 +211,8 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         with open(path, "rb") as f:
             loaded = trimesh.exchange.ply.load_ply(f)
     except Exception as exc:  # trimesh raises many kinds
-        raise InputError(path, f"not a readable PLY file ({exc.__class__.__name__}: {exc})") from None
+        cut = ply_truncation(path)
+        raise InputError(path, cut or f"not a readable PLY file ({exc.__class__.__name__}: {exc})") from None
     raw = (loaded.get("metadata") or {}).get("_ply_raw") or {}
     vert = raw.get("vertex", {}).get("data")
     if vert is None or vert.dtype.names is None:

@@ -76,6 +76,12 @@ def _corrupt(kind, cap):
         hdr = "ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
         (cap / "object.ply").write_bytes(hdr.encode() + pts.tobytes())
         return cap / "object.ply", "neither the 3D Gaussian properties"
+    if kind in ("ply cut in its header", "ply cut in its data"):
+        b = (cap / "object.ply").read_bytes()
+        cut = b.find(b"end_header") - 20 if kind == "ply cut in its header" else len(b) - 13
+        (cap / "object.ply").write_bytes(b[:cut])
+        return cap / "object.ply", ("header ends before end_header" if kind == "ply cut in its header"
+                                    else "the PLY is truncated: its header declares")
     if kind == "video cannot be decoded":
         shutil.rmtree(cap / "frames")
         (cap / "video.mp4").write_bytes(b"this is not a video" * 100)
@@ -110,7 +116,7 @@ def _corrupt(kind, cap):
     raise KeyError(kind)
 
 
-BAD = ["missing object", "ply without gaussians", "video cannot be decoded", "transforms without intrinsics",
+BAD = ["missing object", "ply without gaussians", "ply cut in its header", "ply cut in its data", "video cannot be decoded", "transforms without intrinsics",
        "mask count differs", "mask size differs", "no fps", "frame of another size", "corrupt json"]
 
 
