@@ -46,7 +46,7 @@ class FitSettings:
     confidence_probes: int = 4
     seed: int = 0
     fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
-    select_supports: bool = True        # the first fit of extracted supports sizes them by the loss
+    select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
 

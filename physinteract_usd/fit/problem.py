@@ -264,14 +264,14 @@ def support_layer(x0: np.ndarray, spacing: float, contacts: list, direction: str
         if direction == "more":
             near = np.unique(np.concatenate([np.asarray(n, np.int64) for n in nb]))
             new = near[held_by[near] < 0]
-            idx = np.union1d(g, new)
+            idx = np.union1d(g, new)          # sorted
         else:
             inside = np.zeros(P, bool)
             inside[g] = True
             edge = np.array([bool((~inside[np.asarray(n, np.int64)]).any()) for n in nb], bool)
-            idx = np.sort(g[~edge]) if (~edge).sum() >= 3 else g
+            idx = g[~edge] if (~edge).sum() >= 3 else g
         if len(idx) != len(g):
             out[j] = dataclasses.replace(c, indices=np.sort(idx).astype(np.int64))
-            held_by[idx] = j
+            held_by[idx] = j                  # a later set does not grow into it
             changed = True
     return out if changed else None

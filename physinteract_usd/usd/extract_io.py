@@ -166,7 +166,7 @@ def write_extraction(stage_path, scene, contacts, hand_masks, *, trajectories_fo
         ca("source", "user" if c.source == "hint" else "extracted")  # a hinted set is the user's choice
         ca("colliderRadius", float(c.radius))
         if c.type == "fixed":
-            ca("extentGuessed", bool(getattr(c, "guessed", False)))
+            ca("extentGuessed", bool(c.guessed))
         ca("contactPoint", Gf.Vec3f(*map(float, c.contact_point)))
         if c.type in ("pointNonAdherent", "surfaceNonAdherent"):
             ca("contactNormal", Gf.Vec3f(*map(float, c.normal)))

@@ -566,12 +566,12 @@ def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, source: s
         cp.GetAttribute("physinteract:releaseTime").Set(float(c.release_frame) if c.release_frame is not None else 1e9)
         # each contact keeps where it came from (a user's set stays the user's); a fit from the
         # ground truth marks all of them
-        cp.GetAttribute("physinteract:source").Set(source if source != "extracted" else getattr(c, "source", source))
+        cp.GetAttribute("physinteract:source").Set(source if source != "extracted" else c.source)
         cp.GetAttribute("physinteract:colliderRadius").Set(float(c.radius))
         cp.GetAttribute("physinteract:contactNormal").Set(Gf.Vec3f(*map(float, c.normal)))
         cp.GetAttribute("physinteract:friction").Set(float(c.friction))
         if c.type == "fixed":
-            cp.GetAttribute("physinteract:extentGuessed").Set(bool(getattr(c, "guessed", False)))
+            cp.GetAttribute("physinteract:extentGuessed").Set(bool(c.guessed))
         if len(c.indices):
             cp.GetAttribute("physinteract:contactPoint").Set(Gf.Vec3f(*map(float, scene.particles_positions[c.indices].mean(0))))
         for stage_name, traj in (("initial", c.trajectory), ("fitted", result.trajectories.get(c.name))):
