@@ -93,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "that point; detected supports elsewhere are dropped")
     s.add_argument("--support-particles", metavar="I,J,...", help="these particles are held still (the one "
                    "support; replaces the detected ones)")
+    s.add_argument("--grasp-radius", type=float, metavar="R", help="the hand holds the particles within R metres "
+                   "of the contact (a fingertip's radius for a poke); the video shows where the hand grasps, not "
+                   "how much it holds (default: a 3 cm pinch, more when the contact region is larger)")
     s.add_argument("--no-preview", action="store_true", help="skip the preview PNG")
     s.add_argument("--device", default="cpu", help="cpu or cuda (rendering the object's depth; default cpu)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -179,7 +182,8 @@ def _cmd_extract(a) -> int:
     from .extract import extract, parse_hint
 
     log = (lambda m: print(m, file=sys.stderr)) if a.json else print
-    r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles, a.support_pixel, a.support_particles), interaction_type=a.type,
+    r = extract(a.stage, hint=parse_hint(a.hint_pixel, a.hint_particles, a.support_pixel, a.support_particles,
+                                           a.grasp_radius), interaction_type=a.type,
                 preview=not a.no_preview, log=log, device=a.device)
     if a.json:
         print(json.dumps(r.summary(), indent=2, default=str))

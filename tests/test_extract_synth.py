@@ -155,6 +155,34 @@ def test_hints_and_type_win(capture):
     assert next(s for s in specs if s.type == "pointNonAdherent").radius > 0
 
 
+def test_grasp_radius_sets_how_much_the_hand_holds(capture, extracted):
+    """The video shows where the hand grasps, not how much it holds: by default the grasp is a
+    pinch (3 cm) and the extraction says so; --grasp-radius sets it, the centre staying put."""
+    _, auto = extracted
+    x0 = read_stage(extracted[0]).particles_positions
+    assert auto.evidence["grasp_radius_source"] == "pinch" and auto.evidence["grasp_radius_m"] == pytest.approx(0.03)
+    assert any(n.startswith("grasp:") and "--grasp-radius" in n for n in auto.notes)
+    default = auto.interaction[0].indices
+    stage = _stage(capture, "grasp_radius")
+    sizes = {}
+    for r in (0.02, 0.045):
+        res = extract(stage, hint=parse_hint(grasp_radius=r), log=lambda *a: None)
+        c = res.interaction[0]
+        assert res.evidence["grasp_radius_source"] == "user" and res.evidence["grasp_radius_m"] == r
+        assert not any(n.startswith("grasp:") for n in res.notes)
+        # a ball of that radius: no two grasped particles further apart than its diameter
+        d = np.linalg.norm(x0[c.indices][:, None] - x0[c.indices][None], axis=2)
+        assert d.max() <= 2 * r + 1e-9
+        assert c.source == "extracted"  # where it grasps is still the extraction's
+        sizes[r] = set(c.indices.tolist())
+        stored = next(s for s in read_stage(stage).contacts if s.contact_type == "pointAdherent")
+        assert set(stored.particle_indices.tolist()) == sizes[r]
+    assert len(sizes[0.02]) < len(default) < len(sizes[0.045])
+    assert sizes[0.02] < set(default.tolist()) < sizes[0.045]
+    with pytest.raises(InputError, match="--grasp-radius.*object's extent"):
+        extract(stage, hint=parse_hint(grasp_radius=3.0), log=lambda *a: None)
+
+
 def test_bad_hints_are_input_errors(capture):
     stage = _stage(capture, "bad")
     with pytest.raises(InputError, match="frame 99 is outside"):

@@ -106,6 +106,11 @@ def test_parse_hint():
     for bad in ("1,x", ","):
         with pytest.raises(InputError, match="--hint-particles"):
             parse_hint(particles=bad)
+    assert parse_hint(grasp_radius=0.02).grasp_radius == 0.02
+    assert parse_hint(grasp_radius=0.02).is_empty  # a size, not a place
+    for bad in (0.0, -0.01, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="--grasp-radius"):
+            parse_hint(grasp_radius=bad)
 
 
 def test_check_hint_names_the_problem():

@@ -50,16 +50,23 @@ def _parse_indices(text: str, flag: str) -> np.ndarray:
 
 
 def parse_hint(pixel: str | None = None, particles: str | None = None, support_pixels=None,
-               support_particles: str | None = None) -> Hint | None:
+               support_particles: str | None = None, grasp_radius: float | None = None) -> Hint | None:
     """The CLI's hint flags: `--hint-pixel K,U,V` (frame K, pixel column U and row V as an image
     viewer shows them, 0-based; the pixel's centre is used), `--hint-particles I,J,...`
     (SimParticles indices), `--support-pixel K,U,V` (a list: where the object is held) and
-    `--support-particles I,J,...`. None when none is given; InputError naming the flag otherwise."""
+    `--support-particles I,J,...`, `--grasp-radius R` (metres). None when none is given; InputError
+    naming the flag otherwise."""
     if isinstance(support_pixels, str):
         support_pixels = [support_pixels]
-    if pixel is None and particles is None and not support_pixels and support_particles is None:
+    if (pixel is None and particles is None and not support_pixels and support_particles is None
+            and grasp_radius is None):
         return None
     hint = Hint()
+    if grasp_radius is not None:
+        r = float(grasp_radius)
+        if not np.isfinite(r) or r <= 0:
+            raise InputError("--grasp-radius", f"must be a positive length in metres, got {grasp_radius}")
+        hint.grasp_radius = r
     if pixel is not None:
         hint.frame, hint.pixel = _parse_pixel(pixel, "--hint-pixel")
     if particles is not None:
@@ -102,7 +109,8 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
             notes.append(f"the stage's own contact set {u.name} wins over the hint / --type given")
         interaction_type = u.contact_type
         support_hint = {} if hint is None else {"support_pixels": hint.support_pixels,
-                                                 "support_particles": hint.support_particles}
+                                                 "support_particles": hint.support_particles,
+                                                 "grasp_radius": hint.grasp_radius}
         hint = Hint(particles=np.asarray(u.particle_indices, np.int64), **support_hint) if len(u.particle_indices) else None
         if hint is None and np.any(u.contact_point):
             uv, _ = sd.camera.at(0).project(np.asarray(u.contact_point, float)[None])

@@ -461,7 +461,10 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     else:
         pix = pixel_centres(region) if region.any() else c2[None]
         pts3 = back_project(rest_g, pix)
-        radius = _contact_radius_m(an, region)
+        radius, radius_why = _contact_radius_m(an, region, with_reason=True)
+        if hint is not None and hint.grasp_radius is not None:
+            radius, radius_why = float(hint.grasp_radius), "user"
+        evidence.update({"grasp_radius_m": radius, "grasp_radius_source": radius_why})
         c3 = _robust_centre(pts3)
         if itype == "pointAdherent":
             c3 = _onto_particles(c3, an.x0, an.spacing)
@@ -493,6 +496,10 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                                label=f"{itype} ({tsource})")
     push3 = None
     if itype == "pointAdherent":
+        if hint_idx is None and evidence.get("grasp_radius_source") == "pinch":
+            notes.append(f"grasp: {len(idx)} particles within {100 * radius:.1f} cm of the contact, the least a pinch "
+                         "holds (the video shows where the hand grasps, not how much it holds); --grasp-radius "
+                         "sets it")
         contact.indices = idx
         contact.contact_point = an.x0[idx].mean(0)
         contact.trajectory = traj - c3 + contact.contact_point
@@ -508,6 +515,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         evidence.update({"outward_normal": outward.tolist(), "push_direction": push3.tolist()})
         if itype == "pointNonAdherent":
             radius = _finger_radius(an, g, c2)
+            if hint is not None and hint.grasp_radius is not None:
+                radius = float(hint.grasp_radius)
             contact.radius = radius
             # the sphere starts just clear of the object, on the outside of the contact
             start = c3 + outward * (radius + 0.5 * an.spacing)
@@ -581,6 +590,11 @@ def _check_hint(hint, scene, T):
         hint.support_particles = np.unique(idx.astype(np.int64))
     for k, uv in hint.support_pixels or []:
         _check_pixel(k, uv, scene, T, "--support-pixel")
+    if hint.grasp_radius is not None:
+        ext = float(np.max(np.ptp(np.asarray(scene.particles_positions, float), axis=0)))
+        if not np.isfinite(hint.grasp_radius) or not 0 < hint.grasp_radius <= ext:
+            raise InputError("--grasp-radius", f"must be a length in metres in (0, {ext:.3g}] (the object's "
+                             f"extent), got {hint.grasp_radius}")
     if hint.is_empty:
         return hint
     if hint.particles is not None and len(hint.particles):
@@ -694,20 +708,26 @@ def _robust_centre(pts: np.ndarray) -> np.ndarray:
     return pts[keep].mean(0)
 
 
-def _contact_radius_m(an: _Analysis, region) -> float:
+def _contact_radius_m(an: _Analysis, region, with_reason: bool = False):
     """The grasp's radius in metres: a hand holds a region of physical size, not of pixels, so at
     least GRASP_RADIUS_M (a pinch), more when the contact region seen is larger (RADIUS_SHARE of
     its extent), at most GRASP_MAX_SHARE of the object's extent and never under 1.6 particle
     spacings. (At low resolution the region the hand covers is a few pixels and says little:
     sized from pixels, the foam_bar sample's grasp held 11 particles for the truth's 47, and the
-    fit stiffened the soft half to carry the pull.)"""
+    fit stiffened the soft half to carry the pull.) With `with_reason`, (radius, what decided it:
+    "pinch" | "contact region" | "object size" | "spacing")."""
     ext_obj = float(np.max(np.ptp(an.x0, axis=0)))
-    r = GRASP_RADIUS_M
+    r, why = GRASP_RADIUS_M, "pinch"
     if region.any():
         ys, xs = np.nonzero(region)
         ext_px = float(max(np.ptp(xs), np.ptp(ys)) + 1)
-        r = max(r, RADIUS_SHARE * ext_px / an.px_per_m)
-    return float(max(min(r, GRASP_MAX_SHARE * ext_obj), 1.6 * an.spacing))
+        if RADIUS_SHARE * ext_px / an.px_per_m > r:
+            r, why = RADIUS_SHARE * ext_px / an.px_per_m, "contact region"
+    if r > GRASP_MAX_SHARE * ext_obj:
+        r, why = GRASP_MAX_SHARE * ext_obj, "object size"
+    if r < 1.6 * an.spacing:
+        r, why = 1.6 * an.spacing, "spacing"
+    return (float(r), why) if with_reason else float(r)
 
 
 def _interface_span(an: _Analysis, g: int, c2, end: int) -> float:

@@ -18,17 +18,20 @@ class Hint:
     list of (frame, (u, v)) where the object is held (each keeps the detected still region there,
     or makes a support of the particles within SUPPORT_HINT_RADIUS_M of that point when none was
     detected there; detected regions elsewhere are dropped), or `support_particles`, the particles
-    held still (exactly those)."""
+    held still (exactly those). `grasp_radius` [m]: how much the hand holds, the particles within
+    it of the contact (pointAdherent), or the fingertip's radius (pointNonAdherent): the video
+    shows where a hand grasps but not how much material it holds."""
 
     frame: int | None = None
     pixel: tuple | None = None
     particles: np.ndarray | None = None
     support_pixels: list | None = None
     support_particles: np.ndarray | None = None
+    grasp_radius: float | None = None
 
     @property
     def is_empty(self) -> bool:
-        """No hint on the hand's contact (support hints aside)."""
+        """No hint on where the hand touches (support and grasp-size hints aside)."""
         return self.pixel is None and (self.particles is None or len(self.particles) == 0)
 
     @property
