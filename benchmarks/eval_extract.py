@@ -75,7 +75,8 @@ def machine() -> str:
     return f"{cpu} ({os.cpu_count()} cores), Python {platform.python_version()}"
 
 
-def prepare(name: str, work: Path, frames: int | None, log, device: str = "cpu") -> tuple[Path, Path, Path, float]:
+def prepare(name: str, work: Path, frames: int | None, log, device: str = "cpu",
+            size: str = "small") -> tuple[Path, Path, Path, float]:
     """synth + init; gt/ copied to <work>/<name>.gt and removed from the capture."""
     from physinteract_usd.synth import generate
 
@@ -83,7 +84,7 @@ def prepare(name: str, work: Path, frames: int | None, log, device: str = "cpu")
     t0 = time.perf_counter()
     if not (gt / "gt.json").exists():
         shutil.rmtree(cap, ignore_errors=True)
-        generate(name, cap, frames=frames, device=device, log=lambda *a: None)
+        generate(name, cap, size=size, frames=frames, device=device, log=lambda *a: None)
         shutil.rmtree(gt, ignore_errors=True)
         shutil.copytree(cap / "gt", gt)
         shutil.rmtree(cap / "gt")
@@ -358,6 +359,8 @@ def main(argv=None):
     ap.add_argument("--keep", action="store_true")
     ap.add_argument("--device", default="cpu", help="cpu or cuda: where the ground truth is generated, "
                     "the object's depth rendered for extraction, and the fits run")
+    ap.add_argument("--size", default="small", choices=["small", "paper"], help="the synthetic captures' size "
+                    "(paper: 448x336, 45 frames; generate it with --device cuda)")
     ap.add_argument("--frames", type=int, default=None, help="frames per scene (default: the small size's 20)")
     ap.add_argument("--fit", default="", help="comma-separated scenes (or 'all') to also fit from extracted and gt contacts")
     ap.add_argument("--iterations", type=int, default=20)
@@ -391,7 +394,7 @@ def main(argv=None):
     for name in names:
         row = {"scene": name}
         try:
-            cap, gt_dir, stage, t_synth = prepare(name, work, a.frames, log, a.device)
+            cap, gt_dir, stage, t_synth = prepare(name, work, a.frames, log, a.device, a.size)
             t0 = time.perf_counter()
             if a.no_masks:
                 # the same capture without its silhouette masks (extraction on the frames alone)
