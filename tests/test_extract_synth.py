@@ -151,6 +151,12 @@ def test_hints_and_type_win(capture):
     sd = read_stage(stage)
     finger = next(c for c in sd.contacts if c.contact_type == "pointNonAdherent")
     assert finger.collider_radius > 0
+    assert res.evidence["finger_radius_source"] == "measured" and "grasp_radius_m" not in res.evidence
+    # --grasp-radius is the fingertip's radius for a poke
+    res = extract(stage, hint=parse_hint(grasp_radius=0.012), interaction_type="pointNonAdherent", log=lambda *a: None)
+    assert res.interaction[0].radius == 0.012 and res.evidence["finger_radius_source"] == "user"
+    finger = next(c for c in read_stage(stage).contacts if c.contact_type == "pointNonAdherent")
+    assert finger.collider_radius == pytest.approx(0.012)
     specs = api.stage_contacts(sd)
     assert next(s for s in specs if s.type == "pointNonAdherent").radius > 0
 

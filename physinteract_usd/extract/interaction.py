@@ -464,7 +464,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         radius, radius_why = _contact_radius_m(an, region, with_reason=True)
         if hint is not None and hint.grasp_radius is not None:
             radius, radius_why = float(hint.grasp_radius), "user"
-        evidence.update({"grasp_radius_m": radius, "grasp_radius_source": radius_why})
+        if itype == "pointAdherent":
+            evidence.update({"grasp_radius_m": radius, "grasp_radius_source": radius_why})
         c3 = _robust_centre(pts3)
         if itype == "pointAdherent":
             c3 = _onto_particles(c3, an.x0, an.spacing)
@@ -515,8 +516,11 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         evidence.update({"outward_normal": outward.tolist(), "push_direction": push3.tolist()})
         if itype == "pointNonAdherent":
             radius = _finger_radius(an, g, c2)
+            evidence["finger_radius_source"] = "measured"
             if hint is not None and hint.grasp_radius is not None:
                 radius = float(hint.grasp_radius)
+                evidence["finger_radius_source"] = "user"
+            evidence["finger_radius_m"] = radius
             contact.radius = radius
             # the sphere starts just clear of the object, on the outside of the contact
             start = c3 + outward * (radius + 0.5 * an.spacing)
