@@ -324,7 +324,7 @@ def fit(stage_path, *, iterations=60, joint=True, contact_from=None, device="cpu
 
     uniform_e = None
     if (settings.select_supports and contact_from is None and start is None and not sd.reports
-            and any(c.type == "fixed" and c.source == "extracted" and c.guessed for c in contacts)):
+            and any(c.sized_by_fit for c in contacts)):
         # the first fit of a guessed support (no still region was in view) sizes it by what it
         # renders (a refit keeps the size the fit layer recorded)
         contacts, prob, uniform_e, tried = select_supports(make_problem, contacts, sd.particles_positions,

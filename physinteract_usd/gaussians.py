@@ -159,8 +159,10 @@ def is_gaussian_ply(path: str | os.PathLike) -> bool:
     return all(p in props for p in _REQUIRED)
 
 
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+# PLY scalar types -> numpy type codes (the names first, then their sized aliases); write_ply uses the names
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
+              "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+              "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
 
 
 def ply_truncation(path: str | os.PathLike) -> str | None:
@@ -191,9 +193,9 @@ def ply_truncation(path: str | os.PathLike) -> str | None:
                 need += count * row
             count, row = int(w[2]) if len(w) > 2 and w[2].isdigit() else 0, 0
         elif w[0] == "property" and count is not None:
-            if w[1] == "list" or w[1] not in _PLY_SIZES:
+            if w[1] == "list" or w[1] not in _PLY_TYPES:
                 return None
-            row += _PLY_SIZES[w[1]]
+            row += np.dtype(_PLY_TYPES[w[1]]).itemsize
     have = size - body_start
     if have < need:
         return f"the PLY is truncated: its header declares {need} bytes of data, the file holds {have}"
@@ -280,8 +282,7 @@ def write_ply(g: Gaussians, path: str | os.PathLike) -> None:
         arr[f"rot_{i}"] = g.quats[:, i]
     for k in extra:
         arr[k] = g.extra[k]
-    plytype = {"f4": "float", "f8": "double", "u1": "uchar", "i1": "char", "u2": "ushort",
-               "i2": "short", "u4": "uint", "i4": "int"}
+    plytype = {code: name for name, code in reversed(_PLY_TYPES.items())}  # the first name of each code
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     for k, t in dtype:
         header.append(f"property {plytype[np.dtype(t).str[1:]]} {k}")

@@ -596,7 +596,7 @@ def _check_hint(hint, scene, T):
         _check_pixel(k, uv, scene, T, "--support-pixel")
     if hint.grasp_radius is not None:
         ext = float(np.max(np.ptp(np.asarray(scene.particles_positions, float), axis=0)))
-        if not np.isfinite(hint.grasp_radius) or not 0 < hint.grasp_radius <= ext:
+        if not 0 < hint.grasp_radius <= ext:  # nan fails the comparison too
             raise InputError("--grasp-radius", f"must be a length in metres in (0, {ext:.3g}] (the object's "
                              f"extent), got {hint.grasp_radius}")
     if hint.is_empty:

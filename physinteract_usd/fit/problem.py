@@ -60,6 +60,12 @@ class ContactSpec:
     source: str = "extracted"             # extracted | user | groundTruth (the stage's token)
     guessed: bool = False                 # fixed: no still region was in view (`support_layer` resizes it)
 
+    @property
+    def sized_by_fit(self) -> bool:
+        """A support the extraction guessed (no still region was in view): the first fit sizes it
+        (`support_layer`, `optimize.select_supports`); measured, user and true sets stay as they are."""
+        return self.type == "fixed" and self.source == "extracted" and self.guessed
+
     @staticmethod
     def from_stage(c: ContactSet, trajectory: np.ndarray | None, n_frames: int) -> "ContactSpec":
         rel = None if c.release_time >= 1e8 or c.release_time >= n_frames else int(round(c.release_time))
@@ -257,7 +263,7 @@ def support_layer(x0: np.ndarray, spacing: float, contacts: list, direction: str
             held_by[np.asarray(c.indices, np.int64)] = j
     out, changed = list(contacts), False
     for j, c in enumerate(contacts):
-        if c.type != "fixed" or c.source != "extracted" or not c.guessed or len(c.indices) == 0:
+        if not c.sized_by_fit or len(c.indices) == 0:
             continue
         g = np.asarray(c.indices, np.int64)
         nb = tree.query_ball_point(x0[g], 1.05 * spacing)
