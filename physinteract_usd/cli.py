@@ -29,8 +29,15 @@ def _e_range(s: str):
     return lo, hi
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad flags are one line on stderr (exit 2), like every other bad input; `-h` shows the usage."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="physinteract-usd",
+    p = _Parser(prog="physinteract-usd",
                                 description="Fit a simulation-ready digital twin of a soft object from a "
                                             "video of a hand handling it, stored in OpenUSD.")
     p.add_argument("--version", action="version", version=f"physinteract-usd {__version__}")

@@ -180,3 +180,17 @@ def test_a_corrupt_stage_file_says_where_it_is_broken(tmp_path, capsys):
     assert len(err.splitlines()) == 1
     assert "scene.usda:2" in err and "Expected" in err and "()" not in err
     assert bad.read_text() == "#usda 1.0\n( garbage\n"    # nothing the user wrote is touched
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["extract", "s.usda", "--grasp-radius", "abc"], "argument --grasp-radius: invalid float value: 'abc'"),
+    (["fit", "s.usda", "--iterations", "x"], "argument --iterations: invalid int value: 'x'"),
+    (["extract"], "the following arguments are required: stage"),
+    (["bogus"], "invalid choice: 'bogus'"),
+])
+def test_a_malformed_flag_is_one_line(argv, says, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1 and "-h)" in err
