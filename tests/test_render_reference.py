@@ -7,19 +7,11 @@ import torch
 
 from physinteract_usd.camera import Camera
 from physinteract_usd.render import RasterSettings, render
+from render_helpers import DEVICES
 from render_reference import make_scene, reference_render_camera
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors: torch's thread pool only adds overhead (a lot of it on a busy 2-core box)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def cameras():

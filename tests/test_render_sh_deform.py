@@ -11,14 +11,7 @@ from physinteract_usd.render import (GaussianBinding, covariance_from_scales_qua
                                      scales_quats_from_covariance, sh_basis, sh_to_color)
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny tensors: torch's thread pool only adds overhead (a lot of it on a busy 2-core box)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _fibonacci_sphere(n):

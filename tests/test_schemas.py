@@ -21,7 +21,8 @@ def test_every_schema_is_registered():
         assert reg.IsConcrete(t)
     for api in API_SCHEMAS:
         assert reg.FindAppliedAPIPrimDefinition(api) is not None, api
-        assert reg.GetAPISchemaTypeName(api) or True
+        assert reg.GetAPISchemaTypeName(api) == api, api  # an API schema under its own name ('' for a typed one)
+        assert reg.IsAppliedAPISchema(api) and not reg.IsMultipleApplyAPISchema(api), api  # apiSchemaType = "singleApply"
     assert set(EFFECT_APIS) == {"damping", "plasticity", "ground", "viscoelasticity"}
 
 
