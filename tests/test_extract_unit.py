@@ -11,8 +11,10 @@ from physinteract_usd.camera import Camera
 from physinteract_usd.errors import InputError
 from physinteract_usd.extract import Hint, classify_interaction, parse_hint
 from physinteract_usd.extract.geometry import back_project, particles_near, render_rest
-from physinteract_usd.extract.interaction import _check_hint, _components, _contact_period, _release
-from physinteract_usd.extract.segment import ColourMotionSegmenter
+from physinteract_usd.extract.hints import check_hint
+from physinteract_usd.extract.segmentation import ColourMotionSegmenter
+from physinteract_usd.extract.supports import components
+from physinteract_usd.extract.timing import contact_period, release
 from physinteract_usd.gaussians import Gaussians
 
 
@@ -116,14 +118,14 @@ def test_parse_hint():
 def test_check_hint_names_the_problem():
     scene = SimpleNamespace(particles_positions=np.zeros((10, 3)), camera=_camera())
     with pytest.raises(InputError, match="frame 12 is outside the video"):
-        _check_hint(Hint(frame=12, pixel=(5.0, 5.0)), scene, 8)
+        check_hint(Hint(frame=12, pixel=(5.0, 5.0)), scene, 8)
     with pytest.raises(InputError, match="outside the 64x48 frame"):
-        _check_hint(Hint(frame=1, pixel=(70.0, 5.0)), scene, 8)
+        check_hint(Hint(frame=1, pixel=(70.0, 5.0)), scene, 8)
     with pytest.raises(InputError, match=r"must lie in \[0, 10\)"):
-        _check_hint(Hint(particles=np.array([3, 10])), scene, 8)
+        check_hint(Hint(particles=np.array([3, 10])), scene, 8)
     with pytest.raises(InputError, match="integers"):
-        _check_hint(Hint(particles=np.array([1.5])), scene, 8)
-    ok = _check_hint(Hint(particles=np.array([3, 3, 1])), scene, 8)
+        check_hint(Hint(particles=np.array([1.5])), scene, 8)
+    ok = check_hint(Hint(particles=np.array([3, 3, 1])), scene, 8)
     assert list(ok.particles) == [1, 3]
 
 
@@ -147,35 +149,35 @@ def test_particles_near_and_components():
     assert sorted(idx.tolist()) == sorted(np.where(np.linalg.norm(x, axis=1) <= 0.0101)[0].tolist())
     assert len(particles_near(np.array([[1.0, 1.0, 1.0]]), x, 0.001, min_count=3)) == 3
     a, b = x[x[:, 0] == 0], x[x[:, 0] == 0.04]
-    comps = _components(np.concatenate([a, b]), 0.015, np.arange(len(a) + len(b)))
+    comps = components(np.concatenate([a, b]), 0.015, np.arange(len(a) + len(b)))
     assert sorted(len(c) for c in comps) == [25, 25]
 
 
 def test_contact_period_and_release():
     near = np.array([0, 1, 1, 0, 1, 1, 1, 1, 0, 0], bool)
-    assert _contact_period(near) == (1, 7)  # the one-frame gap is bridged
+    assert contact_period(near) == (1, 7)  # the one-frame gap is bridged
     coupled = np.array([-1, 1, 1, 1, 1, -1, -1, 0, 0], np.int8)
     near = np.ones(10, bool)
-    assert _release(coupled, near, 1) == 5
-    assert _release(np.ones(9, np.int8), near, 1) is None
+    assert release(coupled, near, 1) == 5
+    assert release(np.ones(9, np.int8), near, 1) is None
 
 
 def test_log_split_separates_held_particles_from_their_slowly_moving_neighbours():
-    from physinteract_usd.extract.interaction import _log_split
+    from physinteract_usd.extract.supports import log_split
 
     rng = np.random.default_rng(0)
     held = rng.uniform(0.005, 0.05, 60)        # at the tracking noise
     near = rng.uniform(0.3, 1.0, 40)           # a little motion next to the support
-    t = _log_split(np.concatenate([held, near]))
+    t = log_split(np.concatenate([held, near]))
     assert held.max() < t < near.min()
     # the groups' sizes do not move the split out of the gap
-    t2 = _log_split(np.concatenate([held[:10], near]))
+    t2 = log_split(np.concatenate([held[:10], near]))
     assert held.max() < t2 < near.min()
-    assert _log_split(np.array([0.1, 0.2])) == 0.2    # too few to split: keep all
+    assert log_split(np.array([0.1, 0.2])) == 0.2    # too few to split: keep all
 
 
 def test_contact_start_takes_the_stillest_frame_and_only_noise_level_ties():
-    from physinteract_usd.extract.interaction import _contact_start
+    from physinteract_usd.extract.timing import contact_start
 
     vh = np.zeros((12, 2))
     near = np.ones(12, bool)
@@ -183,33 +185,33 @@ def test_contact_start_takes_the_stillest_frame_and_only_noise_level_ties():
     # the start is frame 2, not the slowly moving frame after it (balloon's measured speeds)
     speed = np.array([np.nan, 3.56, 0.40, 0.56, 1.08, 1.49, 1.79, 1.94, 1.82, 1.46, 1.2, 1.0])
     coupled = np.array([0, -1, 1, -1, 1, 1, 1, 1, 1, 1, 1, 1])
-    assert _contact_start(speed, near, 1, 11, coupled, vh) == 2
+    assert contact_start(speed, near, 1, 11, coupled, vh) == 2
     # two frames as still as each other (within the tracking noise): the later one
     speed2 = speed.copy()
     speed2[3] = 0.45
-    assert _contact_start(speed2, near, 1, 11, np.ones(12), vh) == 3
+    assert contact_start(speed2, near, 1, 11, np.ones(12), vh) == 3
 
 
 def test_grasp_centre_moves_onto_the_material_only_when_off_it():
-    from physinteract_usd.extract.interaction import _onto_particles
+    from physinteract_usd.extract.contact import onto_particles
 
     h = 0.01
     g = np.arange(-3, 4) * h
     x0 = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)  # a sheet at z = 0
     # 4 spacings above the particle at (h, 0, 0): moved straight down to one spacing above it
-    np.testing.assert_allclose(_onto_particles(np.array([h, 0.0, 4 * h]), x0, h), [h, 0.0, h], atol=1e-12)
+    np.testing.assert_allclose(onto_particles(np.array([h, 0.0, 4 * h]), x0, h), [h, 0.0, h], atol=1e-12)
     # beyond the sheet's edge, diagonally: toward the corner particle, ending one spacing from it
     c = np.array([6 * h, 6 * h, 0.0])
-    out = _onto_particles(c, x0, h)
+    out = onto_particles(c, x0, h)
     np.testing.assert_allclose(np.linalg.norm(out - [3 * h, 3 * h, 0]), h, atol=1e-12)
     np.testing.assert_allclose(out[:2] - 3 * h, [h / np.sqrt(2)] * 2, atol=1e-12)
     # already within a spacing of the material: unchanged
     c = np.array([0.5 * h, 0.2 * h, 0.6 * h])
-    np.testing.assert_array_equal(_onto_particles(c, x0, h), c)
+    np.testing.assert_array_equal(onto_particles(c, x0, h), c)
 
 
 def test_support_core_keeps_the_still_core_and_only_the_hidden_part_of_its_shell():
-    from physinteract_usd.extract.interaction import support_core
+    from physinteract_usd.extract.supports import support_core
 
     h = 0.01
     x0 = np.stack([np.zeros(8), np.arange(8) * h, np.zeros(8)], 1)      # a line of particles

@@ -5,14 +5,14 @@ numpy, scipy) and need no weights and no GPU; a VLM / grounding model / SAM / 4D
 can replace any of them by implementing the same call:
 
 - `HandSegmenter`: frames (T, H, W, 3) float in [0, 1], object silhouettes (T, H, W) bool or None
-  -> `segment.Segmentation` (hand and object masks per frame, background). Default:
-  `segment.ColourMotionSegmenter` (background subtraction + learned colour models).
+  -> `segmentation.Segmentation` (hand and object masks per frame, background). Default:
+  `segmentation.ColourMotionSegmenter` (background subtraction + learned colour models).
 - `PointTracker`: `flows(frames) -> track.Flows` and `track(flows, points, start, stop) ->
   track.Tracks`. Default: `track.DenseFlowTracker` (DIS optical flow, chained, forward-backward
   checked). A learned point tracker only needs `track`; `flows` may return dense flow estimated
   from anything.
 - `InteractionClassifier`: the evidence dict extraction computes (see docs/extract.md) ->
-  (type, confidence). Default: `interaction.classify_interaction` (rules on the push/pull and
+  (type, confidence). Default: `interaction_type.classify_interaction` (rules on the push/pull and
   surface evidence). A VLM that looks at the frames can implement it from the frames instead
   (the `frames` keyword is passed).
 
@@ -51,7 +51,7 @@ class InteractionClassifier(Protocol):
 
 
 def _default_segmenter():
-    from .segment import ColourMotionSegmenter
+    from .segmentation import ColourMotionSegmenter
 
     return ColourMotionSegmenter()
 
@@ -63,7 +63,7 @@ def _default_tracker():
 
 
 def _default_classifier():
-    from .interaction import classify_interaction
+    from .interaction_type import classify_interaction
 
     return classify_interaction
 

@@ -1,0 +1,120 @@
+"""How the hand interacts: pointAdherent (a grasp that pulls), pointNonAdherent (a fingertip that
+pushes) or surfaceNonAdherent (a palm). The evidence (`type_evidence`: which way the object moved
+against the hand's body, how the hand came in, how long and straight the hand-object interface
+is) and the default rules on it (`classify_interaction`, replaceable through `Models.classifier`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .analysis import Analysis, disk_mask, median_flow, unit
+from .geometry import pixel_centres
+from .lifting import HandTrack
+from .models import Models
+from .segmentation import dilate, erode
+from .timing import Timing, coupled_share
+
+
+def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
+    """The default rules (see `pipeline`'s doc, step 5). Returns (type, confidence in [0, 1])."""
+    push = evidence.get("push_cos")
+    moved = evidence.get("contact_motion_px", 0.0)
+    surface = evidence.get("interface_span", 0.0)
+    approach, ap_speed = evidence.get("approach_cos"), evidence.get("approach_speed_px", 0.0)
+    if push is None or moved < 1.0:
+        return "pointAdherent", 0.3
+    if push < -0.6 and approach is not None and ap_speed >= 1.0 and approach < 0.0:
+        # it looks pushed away from the hand, but the hand came in and went back out the way it
+        # came: a pull toward the camera (depth is not seen)
+        return "pointAdherent", 0.5
+    if push < -0.6:
+        # the object only moved away from the hand: pushed. A long flat interface is a palm.
+        if surface > 0.45:
+            return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
+        return "pointNonAdherent", float(min(1.0, -push))
+    return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
+
+
+# ------------------------------------------------------------------------------ step
+def classify(an: Analysis, timing: Timing, c2, hand: HandTrack, evidence: dict, models: Models,
+             interaction_type: str | None = None, frames=None) -> tuple[str, float, str]:
+    """Step 5: the type evidence into `evidence`, then the type: the user's (`interaction_type`)
+    or the classifier's. Returns (type, confidence, source: "user" | "detected")."""
+    evidence.update(type_evidence(an, timing, c2, hand))
+    if interaction_type is not None:
+        itype, conf, tsource = interaction_type, 1.0, "user"
+    else:
+        itype, conf = models.classifier(evidence, frames=frames)
+        tsource = "detected"
+    evidence["type_confidence"] = conf
+    return itype, conf, tsource
+
+
+def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
+    """What the rules read: the first main motion against the direction to the hand's body
+    (`push_cos`), the hand's approach against it (`approach_cos`, `approach_speed_px`), the
+    interface's straight span (`interface_span`), the contact's motion and the coupled share."""
+    g, p1 = timing.grasp, timing.period[1]
+    motion, d2 = hand.motion, hand.first_move
+    body = hand_body_direction(an, g, c2)
+    push_cos = float(np.dot(unit(d2), body)) if motion > 0 and np.linalg.norm(body) > 0 else None
+    span = interface_span(an, g, c2, p1)
+    v_app = approach_velocity(an, g, c2)
+    app_speed = float(np.linalg.norm(v_app)) if v_app is not None else 0.0
+    approach_cos = float(np.dot(unit(v_app), unit(d2))) if app_speed > 0 and motion > 0 else None
+    return {"approach_speed_px": app_speed, "approach_cos": approach_cos,
+            "contact_uv": c2.tolist(), "contact_motion_px": motion, "push_cos": push_cos,
+            "hand_body_dir": body.tolist(), "interface_span": span,
+            "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1)}
+
+
+# ------------------------------------------------------------------------------ evidence
+def hand_body_direction(an: Analysis, k: int, c2: np.ndarray) -> np.ndarray:
+    """Unit 2D vector from the contact to the hand's body (the centroid of the hand component
+    that touches the object)."""
+    import cv2
+
+    hand = an.hand[k]
+    if not hand.any():
+        return np.zeros(2)
+    n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+    near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
+    comp = np.bincount(near[near > 0], minlength=n).argmax() if (near > 0).any() else 0
+    m = lab == comp if comp > 0 else hand
+    pts = pixel_centres(m)
+    return unit(pts.mean(0) - c2)
+
+
+def approach_velocity(an: Analysis, g: int, c2, frames: int = 3):
+    """The hand's mean image velocity (px / frame) over the frames before the contact starts,
+    near the contact (None when the hand is not seen there)."""
+    vs = []
+    for k in range(max(0, g - frames), g):
+        h = erode(an.hand[k], 1) & disk_mask((an.H, an.W), c2, 4.0 * an.R)
+        v = median_flow(an.flows.forward[k], h)
+        if v is not None:
+            vs.append(v)
+    return np.mean(vs, axis=0) if vs else None
+
+
+def interface_span(an: Analysis, g: int, c2, end: int) -> float:
+    """Length of the straight hand-object interface relative to the object's size along it
+    (a palm on a ball: ~0.5+; fingertips: ~0.1-0.3), the largest over the grasp window."""
+    best = 0.0
+    for k in range(g, min(end, an.T - 1) + 1):
+        a = an.hand[k] & dilate(an.obj[k], 2) & disk_mask((an.H, an.W), c2, 0.6 * an.obj_size_px)
+        if a.sum() < 5:
+            continue
+        p = pixel_centres(a)
+        mu = p.mean(0)
+        w, V = np.linalg.eigh(np.cov((p - mu).T))
+        axis = V[:, -1]
+        proj = (p - mu) @ axis
+        length = float(np.ptp(proj))
+        thick = float(np.sqrt(max(w[0], 0)) * 4)
+        op = pixel_centres(an.obj[k] | (an.rest.silhouette & ~an.hand[k]))
+        size = float(np.ptp((op - mu) @ axis)) if len(op) else 1.0
+        straight = length / max(thick, 1.0)
+        if straight >= 3.0:
+            best = max(best, length / max(size, 1.0))
+    return best

@@ -1,0 +1,198 @@
+"""How the contact moves: the hand's 2D track at the contact (`track_hand`), lifted to the 3D
+initial trajectory T0 (`lift_trajectory`): a grasp at a depth that follows the hand's apparent
+scale (`hand_scale`), a collider along its push direction (`push_direction`, `lift_along`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..contacts import ContactSet
+from .analysis import Analysis, disk_mask, unit
+from .contact import Contact3D, GraspContact, finger_radius, outward_normal
+from .result import CONTACT_NAMES
+from .segmentation import erode
+from .timing import Timing
+
+
+@dataclass
+class HandTrack:
+    """The hand's 2D track at the contact (`track_hand`)."""
+    uv: np.ndarray          # (T, 2) px: the contact's centre up to the grasp, then the hand's flow integrated
+    motion: float           # px: the track's largest extent from the grasp over the contact period
+    first_main: int         # the frame the track first reaches half that extent (the first main motion)
+    first_move: np.ndarray  # (2,) px: the displacement from the grasp to `first_main`
+
+
+@dataclass
+class Lifted:
+    """What `lift_trajectory` made."""
+    contact: ContactSet                # the interaction contact, with its T0
+    push_dir: np.ndarray | None        # (3,) a collider's push direction (None for a grasp)
+    track_uv: np.ndarray               # (T, 2) the 2D track lifted (a grasp's held after its release)
+    release: int | None                # the release frame (None for colliders: they follow the whole video)
+
+
+def track_hand(timing: Timing, c2) -> HandTrack:
+    """The hand's velocity at the contact (the object's next to it where the hand is not seen,
+    within the contact period) integrated from the grasp frame."""
+    vh, vo = timing.hand_velocity, timing.object_velocity
+    g, p1 = timing.grasp, timing.period[1]
+    T = len(vh) + 1
+    hand_track = np.tile(c2, (T, 1)).astype(np.float64)
+    for k in range(g, T - 1):
+        v = vh[k] if not np.isnan(vh[k]).any() else (vo[k] if k < p1 and not np.isnan(vo[k]).any() else np.zeros(2))
+        hand_track[k + 1] = hand_track[k] + v
+    disp = hand_track - hand_track[g]
+    ext = np.linalg.norm(disp[: p1 + 1], axis=1)
+    far = int(np.argmax(ext))
+    motion = float(ext[far])
+    # the first main motion (half the largest extent) says push or pull: a poke is withdrawn
+    # afterwards, a pull may end anywhere
+    first_main = int(np.argmax(ext >= 0.5 * motion)) if motion > 0 else g
+    return HandTrack(hand_track, motion, first_main, disp[first_main])
+
+
+def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: GraspContact, hand: HandTrack,
+                    c3d: Contact3D, evidence: dict) -> Lifted:
+    """Step 7: the interaction contact with its T0. A grasp holds the contact particles from the
+    grasp to the release, its track held after it and lifted at a depth that follows the hand's
+    apparent scale; a collider follows the hand over the whole video, lifted along its push
+    direction, a sphere of the fingertip's radius starting just clear of the surface or a plane
+    starting touching the object."""
+    scene = an.scene
+    T = an.T
+    g, r = timing.grasp, timing.release
+    c2, c3, idx, rest_g = grasp.uv, c3d.point, c3d.particles, c3d.rest
+    motion, first_main = hand.motion, hand.first_main
+    z_c = float(rest_g.camera.world_to_camera(c3[None])[0, 2])
+    # adherent: the grasped particles follow the hand while grasped; colliders are the hand
+    track = hand.uv.copy()
+    if itype == "pointAdherent":
+        end = (T - 1) if r is None else r
+        track[end + 1:] = track[end]
+    else:
+        r = None
+    # depth: a hand coming toward the camera looks bigger; its apparent scale (a similarity fit to
+    # its optical flow) gives the contact's depth over the grasp (pulls; colliders are lifted
+    # along their push direction below)
+    depth = np.full(T, z_c)
+    if itype == "pointAdherent":
+        scale = hand_scale(an, g, end, track)
+        depth = z_c / scale
+        evidence["hand_scale"] = np.round(scale, 4).tolist()
+    traj = np.empty((T, 3))
+    base = scene.camera.at(g).unproject(c2[None], np.array([z_c]))[0]
+    for k in range(T):
+        traj[k] = c3 + (scene.camera.at(k).unproject(track[k][None], np.array([depth[k]]))[0] - base)
+    contact = ContactSet(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
+                         release_frame=r, trajectory=traj, contact_point=c3,
+                         source="user" if not (hint is None or hint.is_empty) else "extracted")
+    push3 = None
+    if itype == "pointAdherent":
+        contact.indices = idx
+        contact.contact_point = an.x0[idx].mean(0)
+        contact.trajectory = traj - c3 + contact.contact_point
+    else:
+        outward = outward_normal(an, c3, idx)
+        lateral = unit(traj[first_main] - traj[g])
+        target = -outward
+        if itype == "surfaceNonAdherent":
+            gdir = unit(np.asarray(scene.settings.gravity, float))
+            if np.linalg.norm(gdir) > 0 and np.dot(target, gdir) > np.cos(np.radians(40)):
+                target = gdir  # a palm pressing down: along gravity
+        push3 = push_direction(lateral, c3, rest_g.camera, target) if motion > 1.0 else unit(target)
+        evidence.update({"outward_normal": outward.tolist(), "push_direction": push3.tolist()})
+        if itype == "pointNonAdherent":
+            radius = finger_radius(an, g, c2)
+            evidence["finger_radius_source"] = "measured"
+            if hint is not None and hint.grasp_radius is not None:
+                radius = float(hint.grasp_radius)
+                evidence["finger_radius_source"] = "user"
+            evidence["finger_radius_m"] = radius
+            contact.radius = radius
+            # the sphere starts just clear of the object, on the outside of the contact
+            start = c3 + outward * (radius + 0.5 * an.spacing)
+            dmin = np.min(np.linalg.norm(an.x0 - start, axis=1))
+            if dmin < radius + 0.25 * an.spacing:
+                start = start + outward * (radius + 0.25 * an.spacing - dmin)
+        else:
+            normal = push3 if np.dot(push3, outward) < 0 else -push3
+            contact.normal = tuple(map(float, normal))
+            # the plane starts touching the object (no particle on its far side)
+            s_min = float(np.min((an.x0 - c3) @ normal))
+            start = c3 + normal * (s_min - 0.5 * an.spacing)
+        contact.trajectory = lift_along(scene.camera, start, track, push3, g)
+        contact.contact_point = c3
+        contact.grasp_frame = 0
+        contact.release_frame = None
+    return Lifted(contact, push3, track, r)
+
+
+# ------------------------------------------------------------------------------ pieces
+def hand_scale(an: Analysis, g: int, end: int, track: np.ndarray, max_step: float = 0.1) -> np.ndarray:
+    """Cumulative apparent scale of the hand from frame g (1 up to g, held after `end`): per frame
+    pair a similarity transform fitted (least median of squares) to the forward flow on the hand
+    component at the contact. Scale s means the hand came 1/s closer: depth_k = depth_g / S_k."""
+    import cv2
+
+    T = an.T
+    S = np.ones(T)
+    for k in range(g, min(end, T - 1)):
+        s = 1.0
+        hand = an.hand[k]
+        if hand.any():
+            n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+            near = lab[disk_mask(hand.shape, track[k], 2.0 * an.R) & hand]
+            if (near > 0).any():
+                comp = lab == np.bincount(near[near > 0]).argmax()
+                m = erode(comp, 2)
+                ys, xs = np.nonzero(m)
+                if len(xs) >= 30:
+                    p = np.stack([xs + 0.5, ys + 0.5], 1).astype(np.float32)
+                    q = p + an.flows.forward[k][ys, xs]
+                    A, _ = cv2.estimateAffinePartial2D(p, q, method=cv2.LMEDS)
+                    if A is not None:
+                        s = float(np.clip(np.sqrt(abs(np.linalg.det(A[:, :2]))), 1 - max_step, 1 + max_step))
+        S[k + 1] = S[k] * s
+    S[min(end, T - 1) + 1:] = S[min(end, T - 1)]
+    return S
+
+
+def push_direction(lateral: np.ndarray, c3: np.ndarray, cam, target: np.ndarray) -> np.ndarray:
+    """The 3D push direction: the image says only its component across the view ray (`lateral`);
+    take the direction in the plane of `lateral` and the ray that is closest to `target` (into
+    the surface, or gravity for a palm), as long as it moves the image the observed way."""
+    ray = unit(c3 - cam.position)
+    r2 = unit(ray - np.dot(ray, lateral) * lateral)
+    t = np.dot(target, lateral) * lateral + np.dot(target, r2) * r2
+    if np.dot(t, lateral) <= 0 or np.linalg.norm(t) < 1e-9:
+        return lateral
+    return unit(t)
+
+
+def lift_along(camera, start: np.ndarray, track: np.ndarray, direction: np.ndarray, g: int) -> np.ndarray:
+    """Positions start + s_k direction whose projections follow the 2D track's displacement from
+    frame g (s_k by Gauss-Newton on the reprojection; s = 0 up to g)."""
+    T = len(track)
+    out = np.tile(start, (T, 1)).astype(np.float64)
+    uv0, _ = camera.at(g).project(start[None])
+    s = 0.0
+    for k in range(T):
+        if k <= g:
+            continue
+        cam = camera.at(k)
+        goal = uv0[0] + (track[k] - track[g])
+        for _ in range(6):
+            p = start + s * direction
+            uv, _ = cam.project(p[None])
+            eps = 1e-4
+            uv2, _ = cam.project((p + eps * direction)[None])
+            J = (uv2[0] - uv[0]) / eps
+            jj = float(J @ J)
+            if jj < 1e-12:
+                break
+            s -= float(J @ (uv[0] - goal)) / jj
+        out[k] = start + s * direction
+    return out

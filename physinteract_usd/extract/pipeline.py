@@ -1,0 +1,107 @@
+"""Interaction extraction from a video: where the hand touches the object, when it grasps and lets
+go, how (interaction type), how it moves (the initial trajectory T0), and what holds the object
+still (supports). numpy / OpenCV / scipy only; no USD (the stage I/O is `usd.extract_io`).
+
+The method (docs/extract.md has the full account), one module per question:
+
+1. render the object at rest through the camera (silhouette, depth, particle visibility)
+   (`analysis.Analysis`, `geometry.render_rest`);
+2. segment the hand in every frame (`models.segmenter`, default `segmentation.ColourMotionSegmenter`)
+   and compute optical flow (`models.tracker`, default `track.DenseFlowTracker`) (`analysis.Analysis`);
+3. per frame, the contact region = hand pixels over the object at rest or next to its visible
+   silhouette (`contact.find_contact`); per frame pair, the hand's and the object's velocities
+   near it (`timing.velocities`, `timing.coupling`);
+4. timing (`timing.find_timing`): the contact period = the longest run of frames in which the hand
+   touches the object; the grasp is where the hand comes to (near) rest on the object before its
+   main motion; the release is the hand's slowest frame before the object stops following it;
+5. type (`interaction_type.classify`, rules in `interaction_type.classify_interaction`): a contact
+   whose first main motion moves the object away from the hand's body is a push (non-adherent),
+   unless the hand went back the way it came in (a pull in depth); a long, straight hand-object
+   interface is a surface (a palm); else adherent;
+6. contact particles (`contact.contact_at_grasp`, `contact.contact_particles`): the contact pixels
+   at the grasp frame back-projected with the rendered depth (X = T_c^-1 pi^-1(x, d)) and mapped
+   to the particles within a radius;
+7. T0 (`lifting.track_hand`, `lifting.lift_trajectory`): the hand's velocity at the contact
+   integrated from the grasp, lifted to 3D (at the contact's depth for a pull, along the push
+   direction for a collider);
+8. supports (`supports.support_contacts`, `supports.find_supports`): particles that do not move
+   while the rest does (tracked, interpolated to the ones the camera does not see), grouped into
+   connected regions; gravity says a still object that would otherwise fall is held somewhere, so
+   the stillest particles are taken when no region is.
+
+The user's hints (`hints.parse_hint`, checked by `hints.check_hint`) and `interaction_type` win
+over detection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .analysis import Analysis
+from .contact import contact_at_grasp, contact_particles, find_contact
+from .hints import check_hint
+from .interaction_type import classify
+from .lifting import lift_trajectory, track_hand
+from .models import Models
+from .result import INTERACTION_TYPES, ExtractionResult, Hint
+from .supports import support_contacts
+from .timing import find_timing
+
+
+def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
+                        interaction_type: str | None = None, models: Models | None = None,
+                        log=print, device: str = "cpu") -> ExtractionResult:
+    """Extract the interaction from a video of the stage's object.
+
+    scene: a `SceneData` (read_stage); frames (T, H, W, 3) float in [0, 1]; masks (T, H, W) bool
+    object silhouettes or None. `hint` and `interaction_type` win over detection. Returns an
+    `ExtractionResult` (contacts with the fit's fields, hand masks, evidence). `device` (cpu or
+    cuda) is where the object at rest is rendered for depth; the rest runs on the CPU."""
+    models = models or Models()
+    frames = check_inputs(scene, frames, interaction_type)
+    hint = check_hint(hint, scene, len(frames))
+    notes = []
+    an = Analysis(scene, frames, masks, masks_amodal, models, device)                       # 1, 2
+    if not an.static_camera:
+        notes.append("the camera moves: image-space motion cues (timing, supports) assume a static camera "
+                     "and are unreliable")
+    evidence = {"spacing_px": an.spacing_px, "object_size_px": an.obj_size_px, "radius_px": an.R,
+                "hand_pixels": int(an.hand.sum()), "models": models.describe()}
+
+    seen = find_contact(an, hint, evidence)                                                 # 3: where
+    timing = find_timing(an, seen, evidence)                                                # 4: when
+    g = timing.grasp
+    grasp = contact_at_grasp(an, seen, g)
+    hand = track_hand(timing, grasp.uv)
+    itype, conf, tsource = classify(an, timing, grasp.uv, hand, evidence, models,           # 5: how
+                                    interaction_type, frames)
+    c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
+    lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
+    held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
+    supports, motion_p = support_contacts(an, hint, held, hand.motion, lifted.push_dir,     # 8: supports
+                                          evidence, notes)
+    contact = lifted.contact
+    return ExtractionResult(contacts=[contact] + supports, hand_masks=an.hand, interaction_type=itype,
+                            type_source=tsource,
+                            grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,
+                            release_frame=lifted.release, evidence=evidence, notes=notes, frames=frames,
+                            object_masks=an.obj, support_motion=motion_p, track_uv=lifted.track_uv,
+                            contact_pixels=c3d.pixels, type_confidence=conf)
+
+
+def check_inputs(scene, frames, interaction_type: str | None) -> np.ndarray:
+    """The frames as (T, H, W, 3) float32, checked against the camera (at least 3 of them), and
+    the type the user gave; InputError otherwise."""
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim != 4 or frames.shape[-1] != 3:
+        raise InputError(scene.path, "frames must be (T, H, W, 3)")
+    T = len(frames)
+    if T < 3:
+        raise InputError(scene.path, f"extraction needs at least 3 frames, the stage has {T}")
+    if (frames.shape[2], frames.shape[1]) != (scene.camera.width, scene.camera.height):
+        raise InputError(scene.path, f"frames are {frames.shape[2]}x{frames.shape[1]}, the camera "
+                         f"{scene.camera.width}x{scene.camera.height}")
+    if interaction_type is not None and interaction_type not in INTERACTION_TYPES:
+        raise InputError("--type", f"must be one of {', '.join(INTERACTION_TYPES)}, not {interaction_type!r}")
+    return frames
