@@ -91,7 +91,7 @@ class ExtractionResult:
     def loss_masks(self) -> np.ndarray:
         """The masks the loss leaves out (written to the stage): the hand grown by
         `loss_margin_px`, so that its anti-aliased rim (skin mixed into the object) is left out too."""
-        from .segment import dilate
+        from .segmentation import dilate
 
         return np.stack([dilate(m, self.loss_margin_px) for m in self.hand_masks])
 
