@@ -78,13 +78,11 @@ def machine() -> str:
 def prepare(name: str, work: Path, frames: int | None, log, device: str = "cpu",
             size: str = "small") -> tuple[Path, Path, Path, float]:
     """synth + init; gt/ copied to <work>/<name>.gt and removed from the capture."""
-    from physinteract_usd.synth import generate
-
     cap, gt, stage = work / name, work / f"{name}.gt", work / f"{name}.stage" / "scene.usda"
     t0 = time.perf_counter()
     if not (gt / "gt.json").exists():
         shutil.rmtree(cap, ignore_errors=True)
-        generate(name, cap, size=size, frames=frames, device=device, log=lambda *a: None)
+        api.synth(name, cap, size=size, frames=frames, device=device, log=lambda *a: None)
         shutil.rmtree(gt, ignore_errors=True)
         shutil.copytree(cap / "gt", gt)
         shutil.rmtree(cap / "gt")
@@ -102,8 +100,8 @@ def init_stage(cap: Path, gt: Path, stage: Path):
 
 
 def compare(stage: Path, gt_dir: Path, result) -> dict:
-    sd = api.read_stage(stage)
-    gtc = api.contacts_from_gt(sd, gt_dir)
+    sd = api.read_scene(stage)
+    gtc = api.true_contacts(sd, gt_dir)
     g = json.loads((gt_dir / "gt.json").read_text())
     it = g["interaction"]
     x0, h = sd.particles_positions, sd.settings.particle_spacing
@@ -248,29 +246,20 @@ def fit_mixed(name: str, work: Path, gt_dir: Path, stage_ext: Path, part: str, i
               device: str = "cpu", seed: int = 0, overrides=None) -> dict:
     """Fit from the extracted contacts with one part from the ground truth (`mixed_contacts`; `masks`:
     the true hand masks in the loss); the stage is a copy of the extracted one."""
-    from physinteract_usd.fit import FitProblem, FitSettings
-    from physinteract_usd.fit import fit as run_fit
-    from physinteract_usd.frames import read_mask
-    from physinteract_usd.usd.stage import write_fit_layer
-
     t0 = time.perf_counter()
     d = work / f"{name}.mix-{part}"
     shutil.rmtree(d, ignore_errors=True)
     shutil.copytree(stage_ext.parent, d)
     stage = d / stage_ext.name
-    sd = api.read_stage(stage)
-    obs = api.load_observations(sd)
+    sd = api.read_scene(stage)
     ex = api.stage_contacts(sd)
-    gt = api.contacts_from_gt(sd, gt_dir)
+    gt = api.true_contacts(sd, gt_dir)
+    masks = None
     if "masks" in part.split("+"):
-        obs.hand_masks = np.stack([read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(sd.n_frames)])
-    else:
-        obs.hand_masks = api._hand_masks(sd, sd.n_frames)
-    contacts = mixed_contacts(ex, gt, part, sd.particles_positions)
-    effects = {n: {k: v for k, v in p.items() if k != "fit"} for n, p in sd.effects.items()}
-    prob = FitProblem(sd, obs, contacts, effects=effects, device=device)
-    result = run_fit(prob, dataclasses.replace(FitSettings(iterations=iterations, seed=seed), **(overrides or {})), progress=False, log=lambda *a: None)
-    write_fit_layer(stage, sd, result, contacts, source="extracted")
+        masks = np.stack([read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(sd.n_frames)])
+    api.fit(stage, contacts=mixed_contacts(ex, gt, part, sd.particles_positions), hand_masks=masks,
+            iterations=iterations, seed=seed, device=device, settings_overrides=overrides, progress=False,
+            log=lambda *a: None)
     ev = api.evaluate(stage, gt_dir, device=device)
     out = {"ma": ev["ma"], "psnr": ev["psnr"], "psnr_masked": ev["psnr_masked"], "iou": ev["iou"],
            "position_error_m": ev["position_error_m"], "seconds": time.perf_counter() - t0}
@@ -389,7 +378,7 @@ def main(argv=None):
     work.mkdir(parents=True, exist_ok=True)
     log = print
     rows = []
-    from physinteract_usd.extract import extract
+    extract = api.extract
 
     for name in names:
         row = {"scene": name}
@@ -400,8 +389,8 @@ def main(argv=None):
                 # the same capture without its silhouette masks (extraction on the frames alone)
                 from physinteract_usd.extract import extract_interaction
 
-                sd = api.read_stage(stage)
-                obs = api.load_observations(sd)
+                sd = api.read_scene(stage)
+                obs = api.load_observations(sd, with_hand_masks=False)
                 res = extract_interaction(sd, obs.frames, None, log=lambda *m: None, device=a.device)
             else:
                 res = extract(stage, log=lambda *m: None, device=a.device)

@@ -53,7 +53,7 @@ def _job(args):
             api.fit(stage, iterations=iterations, contact_from=gt, progress=False, log=lambda *a: None,
                     device=device, seed=seed, settings_overrides=overrides)
         ev = api.evaluate(stage, gt, device=device)
-        sd = api.read_stage(stage)
+        sd = api.read_scene(stage)
         return {"scene": name, "source": source, "seed": seed, "ma": ev["ma"], "ma_best_uniform": ev["ma_best_uniform"],
                 "psnr_masked": ev["psnr_masked"], "psnr": ev["psnr"], "position_error_m": ev["position_error_m"],
                 "final_loss": float(sd.reports[-1]["final_loss"]) if sd.reports else None,

@@ -142,9 +142,10 @@ def main(argv=None):
     ap.add_argument("--out", default="out/suite")
     ap.add_argument("--write", default=None, help="markdown file to (re)write with the table")
     a = ap.parse_args(argv)
-    from physinteract_usd.synth.generate import list_scenes
 
-    names = a.scenes.split(",") if a.scenes else [s[0] for s in list_scenes()]
+    from physinteract_usd import api
+
+    names = a.scenes.split(",") if a.scenes else [s[0] for s in api.synth_scenes()]
     work = Path(a.out)
     work.mkdir(parents=True, exist_ok=True)
     jl = work / "results.jsonl"

@@ -11,8 +11,9 @@ particles on a lattice of spacing ``h`` aligned with the simulation grid (``h = 
 - from a watertight mesh: the same shell + flood fill, with the surface cells decided exactly by
   `trimesh`'s inside test (non-watertight meshes fall back to the Gaussian path on surface samples).
 
-Every Gaussian is then bound to its nearest particle (`binding`): it follows that particle's motion
-and deformation gradient. Volumes are the lattice cell volume, so the total is the filled volume.
+Volumes are the lattice cell volume, so the total is the filled volume. (How the Gaussians follow
+the particles is the simulation's business: `simulation.build_simulation` binds each to its nearest
+few particles.)
 """
 
 from __future__ import annotations
@@ -36,7 +37,6 @@ class SimParticles:
     volumes: np.ndarray     # (P,) rest volumes, m^3
     is_surface: np.ndarray  # (P,) bool: the particle's lattice cell touches the surface
     spacing: float          # lattice spacing h, metres
-    binding: np.ndarray     # (N_gaussians,) particle index each Gaussian follows
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -198,10 +198,10 @@ def fill_from_gaussians(g: Gaussians, spacing: float, anchor=None) -> SimParticl
                           np.where(known[nb].any(1), behind_all_known, dist[:, 0] <= spacing))
     inside = solid & ~shell
     inside[tuple(idx_shell[keep_shell].T)] = True
-    return _particles_from_mask(inside, shell, lat, g.means)
+    return _particles_from_mask(inside, shell, lat)
 
 
-def fill_from_mesh(mesh, spacing: float, gaussians: Gaussians | None = None, anchor=None) -> SimParticles:
+def fill_from_mesh(mesh, spacing: float, anchor=None) -> SimParticles:
     """Particles filling a mesh's volume. Watertight: exact inside test on the surface cells.
     Otherwise the surface is sampled and filled like Gaussians (a thin open surface becomes a shell)."""
     import trimesh
@@ -209,10 +209,7 @@ def fill_from_mesh(mesh, spacing: float, gaussians: Gaussians | None = None, anc
     if not mesh.is_watertight:
         pts, _ = trimesh.sample.sample_surface_even(mesh, _sample_count(mesh.area, spacing), seed=0)
         g = Gaussians.from_colors(pts, (0.5, 0.5, 0.5), spacing * 0.5)
-        parts = fill_from_gaussians(g, spacing, anchor)
-        if gaussians is not None:
-            parts.binding = _bind(gaussians.means, parts.positions)
-        return parts
+        return fill_from_gaussians(g, spacing, anchor)
     lat = Lattice.around(mesh.bounds[0], mesh.bounds[1], spacing, anchor)
     pts, _ = trimesh.sample.sample_surface(mesh, _sample_count(mesh.area, spacing), seed=0)
     samples = np.concatenate([pts, mesh.vertices])
@@ -223,8 +220,7 @@ def fill_from_mesh(mesh, spacing: float, gaussians: Gaussians | None = None, anc
     inside = solid & ~shell
     contained = mesh.contains(lat.centres(idx_shell))
     inside[tuple(idx_shell[contained].T)] = True
-    means = gaussians.means if gaussians is not None else pts
-    parts = _particles_from_mask(inside, shell, lat, means)
+    parts = _particles_from_mask(inside, shell, lat)
     parts.volumes *= float(mesh.volume) / parts.volumes.sum()  # the mesh knows its true volume
     return parts
 
@@ -233,18 +229,13 @@ def _sample_count(area: float, spacing: float) -> int:
     return int(min(max(4 * area / (0.5 * spacing) ** 2, 1000), 2_000_000))
 
 
-def _bind(gaussian_means: np.ndarray, particles: np.ndarray) -> np.ndarray:
-    return cKDTree(particles).query(gaussian_means, k=1)[1].astype(np.int64)
-
-
-def _particles_from_mask(inside, shell, lat: Lattice, gaussian_means) -> SimParticles:
+def _particles_from_mask(inside, shell, lat: Lattice) -> SimParticles:
     idx = np.argwhere(inside)
     if len(idx) == 0:
         raise ValueError("the object encloses no lattice cell at this spacing: use a finer grid")
     pos = lat.centres(idx)
     return SimParticles(positions=pos, volumes=np.full(len(pos), lat.spacing ** 3),
-                        is_surface=shell[tuple(idx.T)], spacing=lat.spacing,
-                        binding=_bind(gaussian_means, pos))
+                        is_surface=shell[tuple(idx.T)], spacing=lat.spacing)
 
 
 def gaussians_from_mesh(mesh, count: int, seed: int = 0) -> Gaussians:

@@ -144,6 +144,17 @@ _REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
              "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
+def scales_quats_from_covariance(cov) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3, 3) covariances -> (scales (N, 3) linear, quats (N, 4) w x y z, w >= 0), numpy, for
+    writing deformed Splats (eigen-decomposition; eigenvalues clamped at 0)."""
+    c = cov.detach().cpu().numpy() if hasattr(cov, "detach") else np.asarray(cov)
+    c = 0.5 * (c + np.swapaxes(c, -1, -2)).astype(np.float64)
+    evals, evecs = np.linalg.eigh(c)
+    det = np.linalg.det(evecs)
+    evecs[det < 0, :, 0] *= -1.0
+    return np.sqrt(np.maximum(evals, 0.0)), rotmat_to_quat(evecs)
+
+
 def is_gaussian_ply(path: str | os.PathLike) -> bool:
     """True when the PLY's vertex element carries the 3DGS properties (reads the header only)."""
     try:

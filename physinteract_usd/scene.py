@@ -5,7 +5,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -43,24 +43,9 @@ class SimSettings:
 
 
 @dataclass
-class ContactSet:
-    name: str
-    particle_indices: np.ndarray
-    contact_type: str = "pointAdherent"
-    grasp_time: float = 0.0
-    release_time: float = 1e9
-    source: str = "user"
-    collider_radius: float = 0.0
-    contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    normal: tuple = (0.0, 1.0, 0.0)
-    friction: float = 0.5
-    extent_guessed: bool = False   # fixed: a guess (no still region in view), sized by the first fit
-
-
-@dataclass
 class Trajectory:
     name: str
-    contact_set: str              # name of the ContactSet it moves
+    contact_set: str              # name of the contact set it moves
     frames: np.ndarray            # (T,) frame indices
     positions: np.ndarray         # (T, 3)
     velocities: np.ndarray | None = None
@@ -81,7 +66,6 @@ class SceneData:
     particles_positions: np.ndarray
     particles_volumes: np.ndarray
     particles_surface: np.ndarray
-    binding: np.ndarray
     youngs_modulus: np.ndarray
     poisson_ratio: np.ndarray
     confidence: np.ndarray | None
@@ -92,8 +76,8 @@ class SceneData:
     masks_amodal: bool
     hand_mask_assets: list
     effects: dict
-    contacts: list
-    trajectories: list
+    contacts: list                # contacts.ContactSet, each with its initial trajectory (T0) if any
+    trajectories: list            # Trajectory: every trajectory prim (initial and fitted)
     reports: list
     generator: str
     object_kind: str

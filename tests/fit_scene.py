@@ -73,14 +73,14 @@ def camera() -> Camera:
 
 def contacts(sd, *, lift=LIFT):
     """The hand (pointAdherent, grasping the free end at frame 0) and the support (fixed)."""
-    from physinteract_usd.fit import ContactSpec
+    from physinteract_usd.contacts import ContactSet
 
     hand, support = _selections(sd.particles_positions)
     s = np.linspace(0.0, 1.0, sd.n_frames)
     s = s * s * (3 - 2 * s)
     traj = sd.particles_positions[hand].mean(0) + s[:, None] * np.asarray(lift, float)
-    return [ContactSpec("hand", "pointAdherent", hand, 0, None, traj),
-            ContactSpec("support", "fixed", support)]
+    return [ContactSet("hand", "pointAdherent", hand, 0, None, traj),
+            ContactSet("support", "fixed", support)]
 
 
 def _selections(x0):

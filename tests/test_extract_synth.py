@@ -13,10 +13,11 @@ from pxr import Sdf, Usd, UsdValidation, Vt
 import physinteract_usd  # noqa: F401
 from physinteract_usd import api
 from physinteract_usd.errors import InputError
-from physinteract_usd.extract import Hint, extract, parse_hint
+from physinteract_usd.api import Hint, extract, parse_hint
 from physinteract_usd.frames import read_mask
 from physinteract_usd.usd.extract_io import extract_dir
-from physinteract_usd.usd.stage import LayerPaths, read_stage
+from physinteract_usd.usd.layout import LayerPaths
+from physinteract_usd.usd.stage import read_stage
 
 SCENE = "hemp_rope"
 
@@ -64,7 +65,7 @@ def test_type_timing_contact_and_supports(capture, extracted):
     _, _, gt_dir = capture
     stage, result = extracted
     sd = read_stage(stage)
-    truth = api.contacts_from_gt(sd, gt_dir)
+    truth = api.true_contacts(sd, gt_dir)
     g = json.loads((gt_dir / "gt.json").read_text())["interaction"]
     assert result.interaction_type == g["type"] == "pointAdherent"
     assert abs(result.grasp_frame - g["grasp_frame"]) <= 1
@@ -90,13 +91,13 @@ def test_written_stage_round_trips(extracted):
     stage, result = extracted
     sd = read_stage(stage)
     names = {c.name: c for c in sd.contacts}
-    assert names["hand"].contact_type == "pointAdherent" and names["hand"].source == "extracted"
-    assert any(c.contact_type == "fixed" for c in sd.contacts)
+    assert names["hand"].type == "pointAdherent" and names["hand"].source == "extracted"
+    assert any(c.type == "fixed" for c in sd.contacts)
     tr = [t for t in sd.trajectories if t.contact_set == "hand"]
     assert len(tr) == 1 and tr[0].stage == "initial" and tr[0].positions.shape == (sd.n_frames, 3)
     assert np.allclose(tr[0].positions, result.interaction[0].trajectory, atol=1e-6)
     assert len(sd.hand_mask_assets) == sd.n_frames
-    hm = api._hand_masks(sd, sd.n_frames)
+    hm = api.load_observations(sd).hand_masks
     assert np.array_equal(hm, result.loss_masks)
     assert (hm >= result.hand_masks).all() and hm.sum() > result.hand_masks.sum()
     assert (extract_dir(stage) / "preview.png").exists()
@@ -105,7 +106,7 @@ def test_written_stage_round_trips(extracted):
     assert {s.type for s in specs} == {"pointAdherent", "fixed"}
     # the hook was seen holding the rope still: a measured support, not a guess the fit may resize
     assert all(not s.guessed and s.source == "extracted" for s in specs if s.type == "fixed")
-    assert not any(c.extent_guessed for c in sd.contacts)
+    assert not any(c.guessed for c in sd.contacts)
     from physinteract_usd.sim import Contact, Control
 
     Control([Contact(s.type, indices=s.indices, trajectory=s.trajectory, grasp_frame=s.grasp_frame,
@@ -129,10 +130,10 @@ def test_rerun_replaces_its_contacts_and_keeps_the_rest(capture):
     layer.Save()
     extract(stage, hint=Hint(particles=np.array([0, 1, 2])), interaction_type="pointAdherent", log=lambda *a: None)
     sd = read_stage(stage)
-    assert sorted(c.name for c in sd.contacts if c.contact_type != "fixed") == ["hand"]
+    assert sorted(c.name for c in sd.contacts if c.type != "fixed") == ["hand"]
     assert [t.name for t in sd.trajectories] == ["hand_initial"]
     assert [r["version"] for r in sd.reports] == [1]
-    assert sorted(next(c for c in sd.contacts if c.name == "hand").particle_indices.tolist()) == [0, 1, 2]
+    assert sorted(next(c for c in sd.contacts if c.name == "hand").indices.tolist()) == [0, 1, 2]
 
 
 def test_hints_and_type_win(capture):
@@ -144,19 +145,19 @@ def test_hints_and_type_win(capture):
     res = extract(stage, hint=parse_hint(f"0,{uv[0, 0] - 0.5:.2f},{uv[0, 1] - 0.5:.2f}"), log=lambda *a: None)
     c = res.interaction[0]
     assert np.linalg.norm(sd.particles_positions[c.indices].mean(0) - sd.particles_positions[top]) < 2.5 * sd.settings.particle_spacing
-    assert c.source == "hint"
+    assert c.source == "user"  # a hinted contact is the user's choice (the stage's token)
     # particles win as they are; --type wins over detection
     res = extract(stage, hint=Hint(particles=np.array([5, 6])), interaction_type="pointNonAdherent", log=lambda *a: None)
     assert res.interaction_type == "pointNonAdherent" and res.type_source == "user"
     sd = read_stage(stage)
-    finger = next(c for c in sd.contacts if c.contact_type == "pointNonAdherent")
-    assert finger.collider_radius > 0
+    finger = next(c for c in sd.contacts if c.type == "pointNonAdherent")
+    assert finger.radius > 0
     assert res.evidence["finger_radius_source"] == "measured" and "grasp_radius_m" not in res.evidence
     # --grasp-radius is the fingertip's radius for a poke
     res = extract(stage, hint=parse_hint(grasp_radius=0.012), interaction_type="pointNonAdherent", log=lambda *a: None)
     assert res.interaction[0].radius == 0.012 and res.evidence["finger_radius_source"] == "user"
-    finger = next(c for c in read_stage(stage).contacts if c.contact_type == "pointNonAdherent")
-    assert finger.collider_radius == pytest.approx(0.012)
+    finger = next(c for c in read_stage(stage).contacts if c.type == "pointNonAdherent")
+    assert finger.radius == pytest.approx(0.012)
     specs = api.stage_contacts(sd)
     assert next(s for s in specs if s.type == "pointNonAdherent").radius > 0
 
@@ -181,8 +182,8 @@ def test_grasp_radius_sets_how_much_the_hand_holds(capture, extracted):
         assert d.max() <= 2 * r + 1e-9
         assert c.source == "extracted"  # where it grasps is still the extraction's
         sizes[r] = set(c.indices.tolist())
-        stored = next(s for s in read_stage(stage).contacts if s.contact_type == "pointAdherent")
-        assert set(stored.particle_indices.tolist()) == sizes[r]
+        stored = next(s for s in read_stage(stage).contacts if s.type == "pointAdherent")
+        assert set(stored.indices.tolist()) == sizes[r]
     assert len(sizes[0.02]) < len(default) < len(sizes[0.045])
     assert sizes[0.02] < set(default.tolist()) < sizes[0.045]
     with pytest.raises(InputError, match="--grasp-radius.*object's extent"):
@@ -217,10 +218,10 @@ def test_the_users_contact_set_wins(capture):
     res = extract(stage, interaction_type="surfaceNonAdherent", log=lambda *a: None)
     assert res.type_source == "stage" and res.interaction_type == "pointAdherent"
     sd = read_stage(stage)
-    inter = [c for c in sd.contacts if c.contact_type != "fixed"]
+    inter = [c for c in sd.contacts if c.type != "fixed"]
     assert [c.name for c in inter] == ["grip"]
     assert [t.contact_set for t in sd.trajectories] == ["grip"]  # its T0 was added
-    fixed = set(np.concatenate([c.particle_indices for c in sd.contacts if c.contact_type == "fixed"]).tolist())
+    fixed = set(np.concatenate([c.indices for c in sd.contacts if c.type == "fixed"]).tolist())
     assert not fixed & {3, 4, 5}
     assert len(api.stage_contacts(sd)) == len(sd.contacts)
 
@@ -236,7 +237,7 @@ def fitted(capture):
 def test_fit_runs_extraction_when_the_stage_has_no_contacts(fitted):
     sd = read_stage(fitted)
     assert any(c.source == "extracted" for c in sd.contacts)
-    assert {c.contact_type for c in sd.contacts} == {"pointAdherent", "fixed"}
+    assert {c.type for c in sd.contacts} == {"pointAdherent", "fixed"}
 
 
 @pytest.mark.slow
@@ -249,8 +250,8 @@ def test_support_hints_win(capture):
     stage = _stage(capture, "support_hints")
     sd = read_stage(stage)
     x0, h = sd.particles_positions, sd.settings.particle_spacing
-    truth = next(c for c in api.contacts_from_gt(sd, gt) if c.type == "fixed").indices
-    hand = next(c for c in api.contacts_from_gt(sd, gt) if c.type != "fixed").indices
+    truth = next(c for c in api.true_contacts(sd, gt) if c.type == "fixed").indices
+    hand = next(c for c in api.true_contacts(sd, gt) if c.type != "fixed").indices
     cam = sd.camera.at(0)
 
     def pixel(p):
@@ -263,7 +264,7 @@ def test_support_hints_win(capture):
     # pointing at the true support keeps the still region detected there
     res = extract(stage, hint=parse_hint(support_pixels=[pixel(x0[truth].mean(0))]), log=lambda *a: None)
     (s,) = supports(res)
-    assert s.source == "hint"
+    assert s.source == "user"  # a hinted support is the user's choice
     assert np.linalg.norm(x0[s.indices].mean(0) - x0[truth].mean(0)) < 2.0 * h
     assert len(np.intersect1d(s.indices, truth)) >= 0.8 * len(truth)
     # pointing where nothing is still (half way down the rope) holds the particles there instead
@@ -277,10 +278,10 @@ def test_support_hints_win(capture):
     res = extract(stage, hint=parse_hint(support_particles=",".join(map(str, truth[:5]))), log=lambda *a: None)
     (s,) = supports(res)
     assert sorted(s.indices.tolist()) == sorted(truth[:5].tolist())
-    fixed = [c for c in read_stage(stage).contacts if c.contact_type == "fixed"]
-    assert len(fixed) == 1 and sorted(fixed[0].particle_indices.tolist()) == sorted(truth[:5].tolist())
+    fixed = [c for c in read_stage(stage).contacts if c.type == "fixed"]
+    assert len(fixed) == 1 and sorted(fixed[0].indices.tolist()) == sorted(truth[:5].tolist())
     # the hinted set is the user's choice on the stage: no fit resizes it
-    assert fixed[0].source == "user" and not fixed[0].extent_guessed
+    assert fixed[0].source == "user" and not fixed[0].guessed
     # bad support hints are one-line input errors naming the flag
     with pytest.raises(InputError, match="--support-pixel.*outside the 128x96 frame"):
         extract(stage, hint=parse_hint(support_pixels=["0,500,10"]), log=lambda *a: None)

@@ -56,8 +56,10 @@ def test_fill_from_gaussians(name):
     g = gaussians_from_mesh(mesh, 20000, seed=1)
     parts = fill_from_gaussians(g, h)
     _check(parts, mesh, h, vol)
-    # every Gaussian is bound to a particle within a few spacings
-    d = np.linalg.norm(parts.positions[parts.binding] - g.means, axis=1)
+    # every Gaussian has a particle within a few spacings (what it follows in a simulation)
+    from scipy.spatial import cKDTree
+
+    d = cKDTree(parts.positions).query(g.means)[0]
     assert d.max() < 2.0 * h
 
 

@@ -22,15 +22,18 @@ from physinteract_usd.cli import main
 from physinteract_usd.errors import InputError
 from physinteract_usd.fit import FitProblem, FitSettings
 from physinteract_usd.fit import fit as run_fit
-from physinteract_usd.usd.stage import LayerPaths, read_stage
+from physinteract_usd.usd.layout import LayerPaths
+from physinteract_usd.usd.stage import read_stage
 
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
 def _fit(stage, gt, **kw):
+    """(FitResult, {"version", "layer"}) of a quiet fit from the ground truth's contacts."""
     overrides = {**fs.SMOKE_SETTINGS, **kw.pop("overrides", {})}
-    return api.fit(stage, iterations=kw.pop("iterations", fs.SMOKE_ITERATIONS), contact_from=gt,
-                   settings_overrides=overrides, **QUIET, **kw)
+    out = api.fit(stage, iterations=kw.pop("iterations", fs.SMOKE_ITERATIONS), contact_from=gt,
+                  settings_overrides=overrides, **QUIET, **kw)
+    return out.result, {"version": out.version, "layer": out.layer}
 
 
 def _files(stage):
@@ -105,7 +108,7 @@ def test_fit_layer_holds_material_confidence_trajectory_animation(fitted):
     np.testing.assert_allclose(trajs["hand_initial"].positions, gt, atol=1e-6)
     np.testing.assert_allclose(trajs["hand_fitted"].positions, r.trajectories["hand"], atol=1e-6)
     assert trajs["hand_fitted"].frames.tolist() == list(range(T))
-    assert {c.name: c.contact_type for c in sd.contacts} == {"hand": "pointAdherent", "support": "fixed"}
+    assert {c.name: c.type for c in sd.contacts} == {"hand": "pointAdherent", "support": "fixed"}
 
     # the report
     rep = s.GetPrimAtPath("/World/PhysInteract/FitReport_v1")
@@ -159,7 +162,7 @@ def test_material_recovery_from_a_wrong_start(scene):
     """Started at 3x the true E (no uniform search), gradient steps bring E within 20% of it."""
     sd = read_stage(scene["stage"])
     obs = api.load_observations(sd)
-    prob = FitProblem(sd, obs, api.contacts_from_gt(sd, scene["gt"]))
+    prob = FitProblem(sd, obs, api.true_contacts(sd, scene["gt"]))
     P = len(sd.particles_positions)
     s = FitSettings(iterations=10, levels=(1,), level_share=(1.0,), lr_material=0.25, lr_poisson=0.03,
                     joint=False, confidence_probes=0, seed=0)
@@ -173,7 +176,7 @@ def test_material_recovery_from_a_wrong_start(scene):
 
 def test_a_schedule_may_start_above_one_basis_function(scene):
     sd = read_stage(scene["stage"])
-    prob = FitProblem(sd, api.load_observations(sd), api.contacts_from_gt(sd, scene["gt"]))
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, scene["gt"]))
     ks = []
     s = FitSettings(iterations=2, levels=(4,), level_share=(1.0,), search_evals=2, joint=False,
                     confidence_probes=0, seed=0)
@@ -190,7 +193,7 @@ def test_confidence_low_where_held_high_where_bending(fitted):
     sv = np.linalg.svd(r.deformation.astype(np.float64), compute_uv=False)   # (T, P, 3)
     strain = np.abs(sv - 1.0).max(axis=(0, 2))
     support = np.zeros(len(strain), bool)
-    support[next(c for c in sd.contacts if c.contact_type == "fixed").particle_indices] = True
+    support[next(c for c in sd.contacts if c.type == "fixed").indices] = True
     held = support & (strain < 1e-3)
     bending = strain > 0.05
     assert held.sum() >= 20 and bending.sum() >= 40
@@ -199,7 +202,9 @@ def test_confidence_low_where_held_high_where_bending(fitted):
     # absolute levels: the residuals' correlation discounts the pixel count (measured: ~0.21 vs 0.006)
     assert np.median(c[bending]) > 0.15 and np.median(c[held]) < 0.05
     # per Gaussian: interpolated from the particles, so the same split shows
-    gb = np.asarray(sd.binding)
+    from scipy.spatial import cKDTree
+
+    gb = cKDTree(sd.particles_positions).query(sd.gaussians.means)[1]  # each Gaussian's nearest particle
     assert np.median(r.confidence_gaussian[bending[gb]]) > 3 * np.median(r.confidence_gaussian[held[gb]])
 
 
@@ -227,9 +232,10 @@ def test_resume_continues_from_the_last_fit(fitted, tmp_path):
     a = fitted["result"]
     stage = fs.copy_scene(fitted["stage"].parent, tmp_path / "resume")
     logs = []
-    b, info = api.fit(stage, iterations=3, contact_from=stage.parent / "gt", resume=True, progress=False,
-                      log=logs.append, settings_overrides=fs.SMOKE_SETTINGS)
-    assert info["version"] == 2
+    out = api.fit(stage, iterations=3, contact_from=stage.parent / "gt", resume=True, progress=False,
+                  log=logs.append, settings_overrides=fs.SMOKE_SETTINGS)
+    b = out.result
+    assert out.version == 2
     assert not any("uniform E" in m for m in logs)  # no fresh uniform search
     # it starts where v1 ended (the best iterate), not from scratch
     assert b.loss_history[0] == pytest.approx(min(a.loss_history), rel=0.02)
@@ -249,7 +255,7 @@ def test_resume_starts_from_a_varying_field(scene):
     from physinteract_usd.fit.material import MaterialField, neighbour_pairs
 
     sd = read_stage(scene["stage"])
-    prob = FitProblem(sd, api.load_observations(sd), api.contacts_from_gt(sd, scene["gt"]))
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, scene["gt"]))
     st = sd.settings
     # the basis the fit builds without the appearance prior (no bumps centred on held particles)
     field = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype, seed=0,

@@ -6,7 +6,8 @@ import pytest
 from capture_factory import make_capture, sphere_gaussians
 from physinteract_usd import api
 from physinteract_usd.gaussians import Gaussians, read_ply, sigmoid, write_ply
-from physinteract_usd.usd.stage import LayerPaths, read_splats, read_stage
+from physinteract_usd.usd.layout import LayerPaths
+from physinteract_usd.usd.stage import read_splats, read_stage
 from pxr import Usd, UsdValidation, UsdVol
 
 
@@ -99,8 +100,10 @@ def test_composed_stage_validates_and_has_the_layout(tmp_path):
     assert errors == [], [e.GetMessage() for e in errors]
     sd = read_stage(lp.root)
     assert sd.n_frames == 4 and sd.fps == 24.0
-    assert len(sd.binding) == len(sd.gaussians)
-    assert sd.binding.max() < len(sd.particles_positions)
+    from scipy.spatial import cKDTree
+
+    # every Gaussian has a particle next to it (the simulation binds each to its nearest ones)
+    assert cKDTree(sd.particles_positions).query(sd.gaussians.means)[0].max() < 2 * sd.settings.particle_spacing
 
 
 def test_mesh_object_keeps_its_mesh(tmp_path):

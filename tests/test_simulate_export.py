@@ -15,7 +15,9 @@ import physinteract_usd  # noqa: F401  (registers the schemas)
 from physinteract_usd import api
 from physinteract_usd.cli import main
 from physinteract_usd.gaussians import read_ply
-from physinteract_usd.usd.stage import LayerPaths, read_splat_animation, read_stage
+from physinteract_usd.usd.fit_io import read_splat_animation
+from physinteract_usd.usd.layout import LayerPaths
+from physinteract_usd.usd.stage import read_stage
 
 PARTICLES = "/World/Object/SimParticles"
 SPLATS = "/World/Object/Splats"
@@ -83,7 +85,7 @@ def test_simulate_pulls_what_it_selects_and_the_supports_hold(stage, capsys):
         assert _points(view, SPLATS, name)[0] == list(range(6)), name
     # the pulled particles follow the commanded displacement; the support's stay put
     hand = np.where(np.linalg.norm(x0 - fs.HAND_CENTRE, axis=1) <= fs.HAND_RADIUS)[0]
-    support = next(c for c in sd.contacts if c.contact_type == "fixed").particle_indices
+    support = next(c for c in sd.contacts if c.type == "fixed").indices
     # grasped at frame 1: free before (the free end drops under gravity), then moved by the
     # displacement from where it was grasped
     assert (pts[1][hand, 1] - x0[hand, 1]).mean() < -3e-3
@@ -109,12 +111,12 @@ def test_simulate_velocity_on_a_stage_contact_without_supports(stage, capsys):
     times, pts = _points(stage.with_name("scene.sim.push_back.usda"))
     assert times == list(range(4))
     sd = read_stage(stage)
-    hand = next(c for c in sd.contacts if c.name == "hand").particle_indices
+    hand = next(c for c in sd.contacts if c.name == "hand").indices
     x0 = sd.particles_positions
     # 3 frames at 0.24 m/s and 24 fps: 3 cm back
     np.testing.assert_allclose(pts[-1][hand].mean(0) - x0[hand].mean(0), [0, 0, -0.03], atol=0.004)
     # no support kept: the held end sags under gravity now
-    support = next(c for c in sd.contacts if c.contact_type == "fixed").particle_indices
+    support = next(c for c in sd.contacts if c.type == "fixed").indices
     assert (pts[-1][support, 1] - x0[support, 1]).mean() < -1e-3
 
 

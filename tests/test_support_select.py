@@ -11,7 +11,8 @@ import pytest
 
 import fit_scene as fs
 from physinteract_usd import api
-from physinteract_usd.fit import ContactSpec, FitProblem, FitSettings
+from physinteract_usd.contacts import ContactSet
+from physinteract_usd.fit import FitProblem, FitSettings
 from physinteract_usd.fit.optimize import select_supports
 from physinteract_usd.fit.problem import support_layer
 
@@ -31,8 +32,8 @@ def test_a_layer_more_or_less_is_one_slab_and_never_takes_the_hand():
     x0, h = _cube()
     hand = np.where(x0[:, 0] >= 4.5 * h)[0]                   # slab x = 5h
     support = np.where(x0[:, 0] <= 1.5 * h)[0]                # slabs x = 0, h
-    cs = [ContactSpec("hand", "pointAdherent", hand, trajectory=np.zeros((2, 3))),
-          ContactSpec("s", "fixed", support, guessed=True)]
+    cs = [ContactSet("hand", "pointAdherent", hand, trajectory=np.zeros((2, 3))),
+          ContactSet("s", "fixed", support, guessed=True)]
     more = support_layer(x0, h, cs, "more")
     less = support_layer(x0, h, cs, "less")
     assert _layers(x0, h, more, "s") == {0, 1, 2} and _layers(x0, h, less, "s") == {0}
@@ -46,19 +47,19 @@ def test_a_layer_more_or_less_is_one_slab_and_never_takes_the_hand():
 def test_measured_user_and_ground_truth_supports_stay_as_they_are():
     x0, h = _cube()
     support = np.where(x0[:, 0] <= 1.5 * h)[0]
-    assert support_layer(x0, h, [ContactSpec("s", "fixed", support)], "more") is None
+    assert support_layer(x0, h, [ContactSet("s", "fixed", support)], "more") is None
     for source in ("user", "groundTruth"):
-        cs = [ContactSpec("s", "fixed", support, source=source, guessed=True)]
+        cs = [ContactSet("s", "fixed", support, source=source, guessed=True)]
         assert support_layer(x0, h, cs, "more") is None
         assert support_layer(x0, h, cs, "less") is None
     with pytest.raises(ValueError):
-        support_layer(x0, h, [ContactSpec("s", "fixed", support)], "sideways")
+        support_layer(x0, h, [ContactSet("s", "fixed", support)], "sideways")
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
     built = fs.build(tmp_path_factory.mktemp("support") / "base")
-    sd = api.read_stage(built["stage"])
+    sd = api.read_scene(built["stage"])
     obs = api.load_observations(sd)
     return sd, obs, [dataclasses.replace(c, guessed=c.type == "fixed") for c in fs.contacts(sd)]
 
@@ -94,29 +95,28 @@ def test_a_support_a_layer_off_is_brought_back(case, start):
 def test_the_first_fit_sizes_a_guessed_support_on_the_stage_and_a_refit_keeps_it(tmp_path):
     """Through the API: an extraction that guessed the support a layer short; `fit` grows it, the
     fit layer records the size it chose, and a second fit keeps that size."""
-    from physinteract_usd.extract.result import ExtractedContact
     from physinteract_usd.usd.extract_io import write_extraction
 
     built = fs.build(tmp_path / "api")
-    sd = api.read_stage(built["stage"])
+    sd = api.read_scene(built["stage"])
     x0, h = sd.particles_positions, sd.settings.particle_spacing
     hand, support = fs.contacts(sd)
     short = support_layer(x0, h, [hand, dataclasses.replace(support, guessed=True)], "less")[1]
     write_extraction(built["stage"], sd, [
-        ExtractedContact("hand", "pointAdherent", hand.indices, trajectory=hand.trajectory),
-        ExtractedContact("support", "fixed", short.indices, guessed=True)],
+        ContactSet("hand", "pointAdherent", hand.indices, trajectory=hand.trajectory),
+        ContactSet("support", "fixed", short.indices, guessed=True)],
         np.zeros((sd.n_frames, fs.HEIGHT, fs.WIDTH), bool))
     settings = {**fs.SMOKE_SETTINGS, "search_evals": 6}
     lines = []
     api.fit(built["stage"], iterations=1, progress=False, log=lines.append, settings_overrides=settings)
-    after = {c.name: c for c in api.read_stage(built["stage"]).contacts}
-    held = set(after["support"].particle_indices.tolist())
+    after = {c.name: c for c in api.read_scene(built["stage"]).contacts}
+    held = set(after["support"].indices.tolist())
     true = set(support.indices.tolist())
     assert len(held ^ true) < len(set(short.indices.tolist()) ^ true), lines
-    assert after["support"].extent_guessed and after["support"].source == "extracted"
+    assert after["support"].guessed and after["support"].source == "extracted"
     assert any(m.startswith("supports 1 layer more") for m in lines)
     lines.clear()
     api.fit(built["stage"], iterations=1, progress=False, log=lines.append, settings_overrides=settings)
-    again = {c.name: c for c in api.read_stage(built["stage"]).contacts}
-    assert set(again["support"].particle_indices.tolist()) == held
+    again = {c.name: c for c in api.read_scene(built["stage"]).contacts}
+    assert set(again["support"].indices.tolist()) == held
     assert not any(m.startswith("supports") for m in lines)

@@ -5,12 +5,16 @@ helpers the steps share."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..errors import InputError
 from .geometry import render_rest
-from .models import Models
 from .segmentation import dilate
+
+if TYPE_CHECKING:  # the models registry imports the default steps; only its type is needed here
+    from .models import Models
 
 
 def disk_mask(shape, centre, radius) -> np.ndarray:
@@ -38,7 +42,7 @@ def unit(v):
 class Analysis:
     """Per-frame quantities shared by the steps."""
 
-    def __init__(self, scene, frames, masks, masks_amodal, models: Models, device: str = "cpu"):
+    def __init__(self, scene, frames, masks, masks_amodal, models: "Models", device: str = "cpu"):
         self.scene = scene
         self.device = device
         self.frames = np.asarray(frames, np.float32)

@@ -35,9 +35,10 @@ def render_rest(gaussians, camera, particles: np.ndarray | None = None, spacing:
     spacings of the rendered depth)."""
     import torch
 
+    from ..devices import torch_device
     from ..render import covariance_from_scales_quats, render
 
-    dev = torch.device("cpu" if str(device) == "cpu" else device)
+    dev = torch_device(device)
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)  # noqa: E731
     cov = covariance_from_scales_quats(t(gaussians.scales), t(gaussians.quats))
     colours = t(gaussians.sh) if gaussians.sh.shape[1] > 1 else t(gaussians.colors)

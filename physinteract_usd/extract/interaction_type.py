@@ -5,14 +5,18 @@ is) and the default rules on it (`classify_interaction`, replaceable through `Mo
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .analysis import Analysis, disk_mask, median_flow, unit
 from .geometry import pixel_centres
 from .lifting import HandTrack
-from .models import Models
 from .segmentation import dilate, erode
 from .timing import Timing, coupled_share
+
+if TYPE_CHECKING:  # the models registry imports the default steps; only its type is needed here
+    from .models import Models
 
 
 def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
@@ -36,7 +40,7 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
 
 
 # ------------------------------------------------------------------------------ step
-def classify(an: Analysis, timing: Timing, c2, hand: HandTrack, evidence: dict, models: Models,
+def classify(an: Analysis, timing: Timing, c2, hand: HandTrack, evidence: dict, models: "Models",
              interaction_type: str | None = None, frames=None) -> tuple[str, float, str]:
     """Step 5: the type evidence into `evidence`, then the type: the user's (`interaction_type`)
     or the classifier's. Returns (type, confidence, source: "user" | "detected")."""

@@ -50,8 +50,8 @@ def preview_image(result, scene, n_tiles: int = 8, cols: int = 4) -> np.ndarray:
                 uv, _ = cam.project(x0[inter.indices])
                 for u, v in uv:
                     cv2.circle(img, (int(u * s), int(v * s)), max(1, s // 2), COL_CONTACT, -1)
-            if inter.track_uv is not None:
-                pts = (inter.track_uv[: k + 1] * s).astype(np.int32)
+            if result.track_uv is not None:
+                pts = (result.track_uv[: k + 1] * s).astype(np.int32)
                 if len(pts) > 1:
                     cv2.polylines(img, [pts], False, COL_TRACK, 1)
                 cv2.circle(img, tuple(int(c) for c in pts[-1]), 2 * s, COL_CONTACT, 1)

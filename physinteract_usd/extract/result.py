@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-INTERACTION_TYPES = ("pointAdherent", "pointNonAdherent", "surfaceNonAdherent")
-CONTACT_NAMES = {"pointAdherent": "hand", "pointNonAdherent": "finger", "surfaceNonAdherent": "palm"}
+from ..contacts import DEFAULT_NAMES as CONTACT_NAMES
+from ..contacts import INTERACTION_TYPES
 
 
 @dataclass
@@ -40,39 +40,8 @@ class Hint:
 
 
 @dataclass
-class ExtractedContact:
-    name: str
-    type: str                              # pointAdherent | pointNonAdherent | surfaceNonAdherent | fixed
-    indices: np.ndarray                    # particles (empty for colliders)
-    grasp_frame: int = 0
-    release_frame: int | None = None       # None: to the end
-    trajectory: np.ndarray | None = None   # (T, 3) world metres: contact centroid / collider centre / plane point
-    contact_point: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    radius: float = 0.0                    # pointNonAdherent sphere radius [m]
-    normal: tuple = (0.0, 1.0, 0.0)        # surfaceNonAdherent: plane normal, pointing to the object's side
-    friction: float = 0.5
-    track_uv: np.ndarray | None = None     # (T, 2) the 2D track the trajectory was lifted from
-    pixels: np.ndarray | None = None       # (N, 2) contact pixels (uv) in `pixels_frame`
-    pixels_frame: int = 0
-    confidence: float = 1.0
-    source: str = "extracted"              # extracted | hint | user
-    label: str = ""
-    guessed: bool = False                  # fixed: no still region was in view; the set is a guess
-
-    def to_spec(self):
-        """The fit's ContactSpec."""
-        from ..fit.problem import ContactSpec
-
-        return ContactSpec(self.name, self.type, np.asarray(self.indices, np.int64), int(self.grasp_frame),
-                           None if self.release_frame is None else int(self.release_frame),
-                           None if self.trajectory is None else np.asarray(self.trajectory, np.float64),
-                           radius=float(self.radius), normal=tuple(map(float, self.normal)),
-                           friction=float(self.friction), guessed=bool(self.guessed))
-
-
-@dataclass
 class ExtractionResult:
-    contacts: list                         # ExtractedContact: the interaction(s) first, then supports
+    contacts: list                         # contacts.ContactSet: the interaction(s) first, then supports
     hand_masks: np.ndarray                 # (T, H, W) bool
     interaction_type: str
     type_source: str                       # detected | user | stage
@@ -84,6 +53,10 @@ class ExtractionResult:
     object_masks: np.ndarray | None = None
     support_motion: np.ndarray | None = None  # (P,) per-particle motion measure [px]
     outputs: dict = field(default_factory=dict)   # what `extract` wrote (paths, contact names)
+    # how the interaction contact was found (the preview draws them; not written to the stage)
+    track_uv: np.ndarray | None = None     # (T, 2) the hand's 2D track the trajectory was lifted from
+    contact_pixels: np.ndarray | None = None  # (N, 2) contact pixels (uv) in the grasp frame
+    type_confidence: float = 1.0
 
     loss_margin_px: int = 1                # the written masks grow the hand by this much
 
@@ -103,9 +76,6 @@ class ExtractionResult:
     def supports(self) -> list:
         return [c for c in self.contacts if c.type == "fixed"]
 
-    def to_specs(self) -> list:
-        return [c.to_spec() for c in self.contacts]
-
     def summary(self) -> dict:
         """A JSON-able summary (what `extract --json` prints)."""
         out = {"interaction_type": self.interaction_type, "type_source": self.type_source,
@@ -118,8 +88,8 @@ class ExtractionResult:
             d = {"name": c.name, "type": c.type, "particles": int(len(c.indices)), "source": c.source,
                  "grasp_frame": int(c.grasp_frame),
                  "release_frame": None if c.release_frame is None else int(c.release_frame),
-                 "contact_point": [round(float(x), 5) for x in c.contact_point],
-                 "confidence": round(float(c.confidence), 3)}
+                 "contact_point": [round(float(x), 5) for x in c.point()],
+                 "confidence": round(float(self.type_confidence if c.is_interaction else 1.0), 3)}
             if c.type == "pointNonAdherent":
                 d["radius"] = round(float(c.radius), 5)
             if c.type == "surfaceNonAdherent":

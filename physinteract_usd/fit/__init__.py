@@ -3,7 +3,7 @@ through the differentiable simulator and renderer. No USD here."""
 
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit
-from .problem import ContactSpec, FitProblem, LossWeights, Observations
+from .problem import FitProblem, LossWeights, Observations
 
-__all__ = ["fit", "FitSettings", "FitResult", "FitProblem", "Observations", "ContactSpec", "LossWeights",
+__all__ = ["fit", "FitSettings", "FitResult", "FitProblem", "Observations", "LossWeights",
            "MaterialField"]

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from .. import metrics as M
+from ..devices import device_name
 from ..errors import SimulationError
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -191,7 +192,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         mat.set_basis(levels[0])
         mat.set_values(np.asarray(start["youngs"]), np.asarray(start["poisson"]))
         for i, (slot, _) in enumerate(prob.traj_slots):
-            name = prob.contacts[_contact_of_slot(prob, slot)].name
+            name = prob.contacts[slot].name
             if name in start.get("trajectories", {}):
                 trajs[i] = torch.as_tensor(start["trajectories"][name], dtype=prob.tdtype,
                                            device=prob.tdev).requires_grad_(s.joint)
@@ -325,7 +326,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         w = appearance_transfer_weights(w, idx, prob.gaussian_appearance(), feats)
     En = E.cpu().numpy()
     nun = nu.cpu().numpy()
-    names = [prob.contacts[_contact_of_slot(prob, slot)].name for slot, _ in prob.traj_slots]
+    names = prob.sim.slot_names()
     return FitResult(
         youngs=En, poisson=nun, confidence=conf,
         trajectories={n: t.detach().cpu().numpy() for n, t in zip(names, trajs)},
@@ -333,14 +334,9 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         gaussian_covs=np.stack(covs), youngs_gaussian=np.exp((w * np.log(En)[idx]).sum(1)),
         poisson_gaussian=(w * nun[idx]).sum(1), confidence_gaussian=(w * conf[idx]).sum(1),
         frame_metrics=metrics, loss_history=history, final_loss=final_loss,
-        runtime_s=time.perf_counter() - t0, device=_device_name(prob.device),
+        runtime_s=time.perf_counter() - t0, device=device_name(prob.device),
         settings={**asdict(s), "levels": list(s.levels), "level_share": list(s.level_share)},
         effects=dict(prob.effects), interrupted=interrupted, uniform_start=e_uniform)
-
-
-def _contact_of_slot(prob, slot):
-    """Index into prob.contacts of the sim contact `slot` (they are built in the same order)."""
-    return slot
 
 
 def _split(total, shares, n):
@@ -362,14 +358,6 @@ def _restore(mat, trajs, best, joint):
     for t, b in zip(trajs, best["trajs"]):
         with torch.no_grad():
             t.copy_(b)
-
-
-def _device_name(device: str) -> str:
-    if str(device).startswith("cuda") and torch.cuda.is_available():
-        return torch.cuda.get_device_name(torch.device(device))
-    import platform
-
-    return f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
 
 
 def frame_metrics(prob: FitProblem, renders: dict) -> list:

@@ -10,16 +10,16 @@ with the hand's pixels left out of every image term (weight 0). No USD here: the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from ..camera import Camera
-from ..render import GaussianBinding, covariance_from_scales_quats, estimate_background, render
+from ..contacts import ContactSet
+from ..render import estimate_background, render
 from ..render.losses import reconstruction_loss
-from ..scene import ContactSet, SceneData
-from ..sim import Contact, Control, GridSpec, Rollout, SimModel
+from ..scene import SceneData
+from ..simulation import build_simulation
 
 
 @dataclass
@@ -44,87 +44,27 @@ class LossWeights:
     depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
 
 
-@dataclass
-class ContactSpec:
-    """A contact as the fit uses it (from the stage, extraction or synthetic ground truth)."""
-
-    name: str
-    type: str
-    indices: np.ndarray
-    grasp_frame: int = 0
-    release_frame: int | None = None
-    trajectory: np.ndarray | None = None  # (T, 3) frames 0..T-1 (T0)
-    radius: float = 0.0
-    normal: tuple = (0.0, 1.0, 0.0)
-    friction: float = 0.5
-    source: str = "extracted"             # extracted | user | groundTruth (the stage's token)
-    guessed: bool = False                 # fixed: no still region was in view (`support_layer` resizes it)
-
-    @property
-    def sized_by_fit(self) -> bool:
-        """A support the extraction guessed (no still region was in view): the first fit sizes it
-        (`support_layer`, `optimize.select_supports`); measured, user and true sets stay as they are."""
-        return self.type == "fixed" and self.source == "extracted" and self.guessed
-
-    @staticmethod
-    def from_stage(c: ContactSet, trajectory: np.ndarray | None, n_frames: int) -> "ContactSpec":
-        rel = None if c.release_time >= 1e8 or c.release_time >= n_frames else int(round(c.release_time))
-        return ContactSpec(c.name, c.contact_type, np.asarray(c.particle_indices, np.int64),
-                           int(round(c.grasp_time)), rel, trajectory, c.collider_radius, tuple(c.normal), c.friction,
-                           str(c.source or "extracted"), bool(c.extent_guessed))
-
-
 class FitProblem:
-    def __init__(self, scene: SceneData, obs: Observations, contacts: list[ContactSpec], *,
+    """The fit's problem: the scene's simulation (`simulation.build_simulation`) under its contacts,
+    the observations, the renderer's inputs and the loss."""
+
+    def __init__(self, scene: SceneData, obs: Observations, contacts: list[ContactSet], *,
                  effects: dict | None = None, device: str = "cpu", dtype: str = "float32",
                  weights: LossWeights | None = None, knn: int = 4):
         self.scene, self.obs = scene, obs
-        self.device = device
-        self.tdev = torch.device("cpu" if device == "cpu" else device)
-        self.tdtype = torch.float32 if dtype == "float32" else torch.float64
         self.weights = weights or LossWeights()
         T = obs.n_frames
         if T < 2:
             raise ValueError("the fit needs at least 2 frames")
         self.T = T
-        st = scene.settings
-        self.x0 = scene.particles_positions
-        self.grid = self._grid_covering(st, [c.trajectory for c in contacts if c.trajectory is not None])
-        self.effects = dict(effects or {})
-        self.model = SimModel.create(self.x0, scene.particles_volumes, st.density, scene.youngs_modulus.clip(
-            st.youngs_min, st.youngs_max), scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model,
-            grid=self.grid, fps=scene.fps, substeps=st.substeps, E_max=st.youngs_max, nu_max=st.poisson_max,
-            gravity=st.gravity, effects=self.effects, dtype=dtype, device=device)
-        self.contacts = contacts
-        sim_contacts = []
-        self.traj_slots = []  # (contact index in sim, T0 tensor)
-        for c in contacts:
-            tr = None
-            if c.type != "fixed":
-                if c.trajectory is None or len(c.trajectory) != T:
-                    raise ValueError(f"contact {c.name}: a ({T}, 3) trajectory is needed")
-                tr = np.asarray(c.trajectory, np.float64)
-            if c.type in ("pointAdherent", "fixed"):
-                sim_contacts.append(Contact(c.type, indices=c.indices, trajectory=tr, grasp_frame=c.grasp_frame,
-                                            release_frame=c.release_frame))
-            elif c.type == "pointNonAdherent":
-                sim_contacts.append(Contact(c.type, trajectory=tr, radius=c.radius, shape="sphere",
-                                            friction=c.friction, grasp_frame=c.grasp_frame,
-                                            release_frame=c.release_frame))
-            else:
-                sim_contacts.append(Contact(c.type, trajectory=tr, normal=c.normal, friction=c.friction,
-                                            grasp_frame=c.grasp_frame, release_frame=c.release_frame))
-            if tr is not None:
-                self.traj_slots.append((len(sim_contacts) - 1, torch.as_tensor(tr, dtype=self.tdtype, device=self.tdev)))
-        self.control = Control(sim_contacts, n_frames=T - 1)
-        self.rollout = Rollout(self.model, self.control)
-        # Gaussians follow particles
-        g = scene.gaussians
-        self.binding = GaussianBinding.knn(g.means, self.x0, k=knn, dtype=self.tdtype, device=self.tdev)
+        self.sim = build_simulation(scene, contacts, T, effects=effects, device=device, dtype=dtype, knn=knn)
+        sim = self.sim
+        self.device, self.tdev, self.tdtype = sim.device, sim.tdev, sim.tdtype
+        self.x0, self.effects, self.contacts = sim.x0, sim.effects, sim.contacts
+        self.grid, self.model, self.control, self.rollout = sim.grid, sim.model, sim.control, sim.rollout
+        self.traj_slots, self.binding = sim.traj_slots, sim.binding
+        self.cov0, self.colors, self.opacities = sim.cov0, sim.colors, sim.opacities
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.tdtype, device=self.tdev)  # noqa: E731
-        self.cov0 = covariance_from_scales_quats(t(g.scales), t(g.quats))
-        self.colors = t(g.colors)
-        self.opacities = t(g.opacities)
         # observations
         self.frames = t(obs.frames)
         excl = obs.hand_masks
@@ -148,29 +88,10 @@ class FitProblem:
             r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
             self.traj_rays.append(torch.as_tensor(r, dtype=self.tdtype, device=self.tdev))
 
-    def _grid_covering(self, st, trajectories) -> GridSpec:
-        """The stage's grid, grown (same dx, same node lattice) to hold the trajectories with a
-        margin of half the object's extent: the hand may lead the object out of the init domain."""
-        lo = np.asarray(st.domain_min, float)
-        hi = lo + np.asarray(st.grid_resolution) * st.cell_size
-        if trajectories:
-            ext = float(np.max(np.ptp(self.x0, axis=0)))
-            pts = np.concatenate([np.asarray(t, float) for t in trajectories])
-            need_lo = pts.min(0) - 0.5 * ext - np.array([0.0, 0.3 * ext, 0.0])  # room to sag
-            need_hi = pts.max(0) + 0.5 * ext
-            lo = lo - np.maximum(np.ceil((lo - need_lo) / st.cell_size), 0) * st.cell_size
-            hi = hi + np.maximum(np.ceil((need_hi - hi) / st.cell_size), 0) * st.cell_size
-        res = tuple(int(round(r)) for r in (hi - lo) / st.cell_size)
-        return GridSpec(tuple(lo), st.cell_size, res)
-
     def held_particles(self) -> np.ndarray:
         """(P,) True for particles a fixed support holds from the first frame (the video cannot
         see their material)."""
-        held = np.zeros(len(self.x0), bool)
-        for c in self.contacts:
-            if c.type == "fixed" and c.grasp_frame <= 0:
-                held[np.asarray(c.indices, np.int64)] = True
-        return held
+        return self.sim.held_particles()
 
     def particle_appearance(self, k: int = 16) -> np.ndarray:
         """(P, 3) each particle's local mean colour from the stage's Gaussians (the fit's
@@ -196,16 +117,13 @@ class FitProblem:
 
     # ------------------------------------------------------------------ forward pieces
     def initial_trajectories(self) -> list[torch.Tensor]:
-        return [tr.clone() for _, tr in self.traj_slots]
+        return self.sim.initial_trajectories()
 
     def simulate(self, E, nu, trajectories=None, effects=None):
-        trajs = None
-        if trajectories is not None:
-            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
-        return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+        return self.sim.simulate(E, nu, trajectories, effects)
 
     def gaussians_at(self, x_k, F_k):
-        return self.binding.apply(x_k, F_k, self.cov0)
+        return self.sim.gaussians_at(x_k, F_k)
 
     def render_frame(self, k, x_k, F_k):
         means, covs = self.gaussians_at(x_k, F_k)

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..gaussians import scales_quats_from_covariance  # noqa: F401  (re-exported)
+
 
 @dataclass
 class GaussianBinding:
@@ -100,19 +102,6 @@ def covariance_from_scales_quats(scales: torch.Tensor, quats: torch.Tensor) -> t
     """R diag(s)^2 R^T (the `gaussians.Gaussians` convention), (N, 3, 3)."""
     M = quat_to_rotmat(quats) * scales[:, None, :]
     return M @ M.transpose(-1, -2)
-
-
-def scales_quats_from_covariance(cov) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3, 3) covariances -> (scales (N, 3) linear, quats (N, 4) w x y z, w >= 0), numpy, for
-    writing deformed Splats (eigen-decomposition; eigenvalues clamped at 0)."""
-    from ..gaussians import rotmat_to_quat
-
-    c = cov.detach().cpu().numpy() if isinstance(cov, torch.Tensor) else np.asarray(cov)
-    c = 0.5 * (c + np.swapaxes(c, -1, -2)).astype(np.float64)
-    evals, evecs = np.linalg.eigh(c)
-    det = np.linalg.det(evecs)
-    evecs[det < 0, :, 0] *= -1.0
-    return np.sqrt(np.maximum(evals, 0.0)), rotmat_to_quat(evecs)
 
 
 def polar_rotation(F: torch.Tensor) -> torch.Tensor:

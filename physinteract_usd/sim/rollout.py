@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from ..devices import torch_device
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS, PARAMETERS, SLOTS, canonical
@@ -37,8 +38,7 @@ _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
 
 
 def _torch_device(model) -> torch.device:
-    d = str(model.device)
-    return torch.device("cpu" if d == "cpu" else d)
+    return torch_device(model.device)
 
 
 class Checkpoints:

@@ -32,6 +32,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..frames import write_image, write_mask
 from ..gaussians import Gaussians, write_ply
+from .gt import write_ground_truth
 from .geometry import Capsule, Ellipsoid, Shape
 from .scenes import SCENES, SceneSpec, pattern_color
 
@@ -413,21 +414,14 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
     # ---- write the capture folder
     out.mkdir(parents=True, exist_ok=True)
     write_ply(g, out / "object.ply")
-    for sub in ("frames", "masks", "gt/hand_masks", "gt/amodal_masks"):
+    for sub in ("frames", "masks"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     for k in range(T):
         write_image(out / "frames" / f"{k:06d}.png", rgb[k])
         write_mask(out / "masks" / f"{k:06d}.png", visible[k])
-        write_mask(out / "gt" / "hand_masks" / f"{k:06d}.png", hmask[k])
-        write_mask(out / "gt" / "amodal_masks" / f"{k:06d}.png", amodal[k])
     (out / "transforms.json").write_text(json.dumps(cam.to_transforms_dict(sz.fps), indent=1))
     e_g = spec.youngs(g.means, gpart)
     nu_g = np.array([spec.poisson[gt.shape.labels[i]] for i in gpart])
-    np.save(out / "gt" / "youngs_modulus.npy", e_g.astype(np.float32))
-    np.save(out / "gt" / "poisson_ratio.npy", nu_g.astype(np.float32))
-    np.save(out / "gt" / "gaussian_positions.npy", gpos.astype(np.float32))
-    np.savez_compressed(out / "gt" / "particles.npz", rest=gt.x0, E=gt.E, nu=gt.nu,
-                        volume=np.full(len(gt.x0), gt.spacing ** 3), positions=x.astype(np.float32))
     info = {
         "scene": name, "paper_name": spec.paper_name, "origin": spec.origin, "description": spec.description,
         "size": size, "seed": seed, "fps": sz.fps, "n_frames": T, "density": spec.density,
@@ -453,7 +447,9 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
                            "density": spec.density},
         "generation_seconds": time.perf_counter() - t0,
     }
-    (out / "gt" / "gt.json").write_text(json.dumps(info, indent=1))
+    write_ground_truth(out, info, e_g, nu_g, gpos,
+                       dict(rest=gt.x0, E=gt.E, nu=gt.nu, volume=np.full(len(gt.x0), gt.spacing ** 3),
+                            positions=x.astype(np.float32)), hmask, amodal)
     ys = sz.fit_youngs
     (out / "README.txt").write_text(
         f"Synthetic capture '{name}' ({spec.paper_name}): {spec.description}.\n"

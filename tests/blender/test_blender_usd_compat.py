@@ -77,7 +77,7 @@ def test_splats_are_data_without_a_schema_in_blender_usd(stages):
     n = stages["gaussians"].prims["/World/Object/Splats"]["attributes"]["positions"]["n"]
     assert len(splats.GetAttribute("positions").Get()) == n
     assert splats.GetAttribute("radiance:sphericalHarmonicsDegree").Get() == 0
-    assert len(splats.GetAttribute("primvars:physinteract:particleIndex").Get()) == n
+    assert len(splats.GetAttribute("primvars:displayColor").Get()) == n   # per-Gaussian primvars read as data
 
 
 SCHEMA_CHECK = r"""

@@ -1,0 +1,52 @@
+"""`physinteract-usd fit`: fit the material field and the trajectory (the verb: `physinteract_usd.app.fit`)."""
+
+from __future__ import annotations
+
+import json
+
+from ..errors import InputError
+from .common import progress_log
+
+
+def add_parser(sub):
+    s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
+    s.add_argument("stage")
+    s.add_argument("--iterations", type=int, default=60, help="optimiser iterations (default 60)")
+    s.add_argument("--no-joint", action="store_true",
+                   help="keep the trajectory at its initialisation T0 (the paper's w/o JO ablation)")
+    s.add_argument("--contact-from", metavar="DIR/gt", help="take contacts, supports and T0 from a synthetic "
+                   "capture's ground truth instead of the stage / extraction")
+    s.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    s.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable)")
+    s.add_argument("--resume", action="store_true", help="start from the stage's last fit")
+    s.add_argument("--appearance", type=float, default=None, metavar="W",
+                   help="weight of the appearance prior (material parts follow colour edges; default 1, "
+                        "0 turns it off, with the smoothness back to its weak edge-blind 0.02: for objects whose "
+                        "colour says nothing about their material)")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    return s
+
+
+def run(a) -> int:
+    from .. import api
+
+    log = progress_log(a.json)
+    if a.appearance is not None and a.appearance < 0:
+        raise InputError(a.stage, f"--appearance must be >= 0, got {a.appearance}")
+    over = {"appearance": a.appearance} if a.appearance is not None else None
+    outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
+                      device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over)
+    summary = outcome.summary()
+    if a.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"fit v{summary['version']} written to {summary['layer']}"
+              + (" (interrupted: best iterate kept)" if summary["interrupted"] else ""))
+        print(f"  {summary['iterations']} iterations in {summary['runtime_s']:.0f} s on {summary['device']}, "
+              f"loss {summary['final_loss']:.5f}")
+        print(f"  PSNR {summary['psnr']:.2f} dB (masked {summary['psnr_masked']:.2f}), SSIM {summary['ssim']:.3f}, "
+              f"IoU {summary['iou']:.3f}")
+        e = summary["youngs_modulus_pa"]
+        print(f"  E {e['min']:.3g} .. {e['max']:.3g} Pa (median {e['median']:.3g}), mean confidence "
+              f"{summary['confidence_mean']:.2f}")
+    return 130 if summary["interrupted"] else 0

@@ -1,0 +1,52 @@
+"""`physinteract-usd init`: build a stage from a capture folder (the verb: `physinteract_usd.app.init`)."""
+
+from __future__ import annotations
+
+from ..errors import InputError
+from .common import e_range, positive_float
+from .info import format_info
+
+
+def add_parser(sub):
+    s = sub.add_parser("init", help="build a stage from a capture folder (object, video, camera, masks)")
+    s.add_argument("stage", help="root layer to write, e.g. scene.usda")
+    s.add_argument("--capture", metavar="DIR", help="capture folder (object.*, frames/ or video.mp4, "
+                   "masks/, transforms.json)")
+    s.add_argument("--object", metavar="FILE", help="3DGS PLY or mesh (overrides the folder's)")
+    s.add_argument("--video", metavar="FILE|DIR", help="video file or folder of frames")
+    s.add_argument("--camera", metavar="FILE", help="nerfstudio transforms.json")
+    s.add_argument("--masks", metavar="DIR", help="folder of object silhouettes, one per frame")
+    s.add_argument("--masks-amodal", action="store_true",
+                   help="the masks include the object behind the hand (default: visible only)")
+    s.add_argument("--fps", type=positive_float, help="frame rate, when neither transforms.json nor "
+                   "the video gives one")
+    s.add_argument("--grid", type=int, default=32, help="MPM grid cells along the longest side of the "
+                   "domain (default 32; the paper uses 100)")
+    s.add_argument("--padding", type=float, default=0.5, help="domain margin around the object, as a "
+                   "fraction of its extent (default 0.5)")
+    s.add_argument("--youngs-range", type=e_range, default=(1e3, 1e6), metavar="MIN,MAX",
+                   help="Young's modulus range in Pa the fit may use (default 1e3,1e6); MAX sets the substep")
+    s.add_argument("--poisson", type=float, default=0.3, help="starting Poisson ratio (default 0.3)")
+    s.add_argument("--max-poisson", type=float, default=0.45,
+                   help="largest Poisson ratio the fit may use (default 0.45); it sets the substep with E max")
+    s.add_argument("--spacing", type=positive_float, help="particle spacing in metres (default: half a grid cell)")
+    s.add_argument("--density", type=positive_float, default=1000.0, help="density in kg/m^3 (default 1000)")
+    s.add_argument("--model", choices=["fixedCorotated", "neoHookean"], default="fixedCorotated",
+                   help="constitutive model (default fixedCorotated)")
+    s.add_argument("--force", action="store_true",
+                   help="replace the generated layers of an existing stage (your root layer is kept)")
+    return s
+
+
+def run(a) -> int:
+    from .. import api
+
+    if a.capture is None and (a.object is None or a.video is None or a.camera is None):
+        raise InputError(a.stage, "give --capture DIR, or all of --object, --video and --camera")
+    lp = api.init(a.stage, a.capture, object=a.object, video=a.video, camera=a.camera, masks=a.masks,
+                  fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, padding=a.padding,
+                  youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
+                  constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force)
+    print(f"wrote {lp.root} (root), {lp.init.name}, {lp.fit.name}")
+    print(format_info(api.info(lp.root)))
+    return 0

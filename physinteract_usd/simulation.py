@@ -1,0 +1,123 @@
+"""The digital twin as a differentiable simulation: a scene's particles, material defaults, grid and
+effects (the simulator's `SimModel`), its contacts as controls, and the Gaussians bound to the
+particles. `build_simulation` is the one place that assembles it; the fit (`fit.problem`) and
+`simulate` both use it. No USD here.
+
+    sim = build_simulation(scene, contacts, n_frames=T, effects=..., device="cpu")
+    x, F = sim.simulate(E, nu)                      # (T, P, 3), (T, P, 3, 3), differentiable
+    means, covs = sim.gaussians_at(x[k], F[k])      # the splats at frame k
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .contacts import ContactSet, check_disjoint
+from .devices import torch_device
+from .render import GaussianBinding, covariance_from_scales_quats
+from .scene import SceneData, SimSettings
+from .sim import Contact, Control, GridSpec, Rollout, SimModel
+
+
+def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories) -> GridSpec:
+    """The stage's grid, grown (same dx, same node lattice) to hold the trajectories with a margin
+    of half the object's extent: the hand may lead the object out of the init domain."""
+    st = settings
+    lo = np.asarray(st.domain_min, float)
+    hi = lo + np.asarray(st.grid_resolution) * st.cell_size
+    trajectories = [t for t in trajectories if t is not None]
+    if trajectories:
+        ext = float(np.max(np.ptp(x0, axis=0)))
+        pts = np.concatenate([np.asarray(t, float) for t in trajectories])
+        need_lo = pts.min(0) - 0.5 * ext - np.array([0.0, 0.3 * ext, 0.0])  # room to sag
+        need_hi = pts.max(0) + 0.5 * ext
+        lo = lo - np.maximum(np.ceil((lo - need_lo) / st.cell_size), 0) * st.cell_size
+        hi = hi + np.maximum(np.ceil((need_hi - hi) / st.cell_size), 0) * st.cell_size
+    res = tuple(int(round(r)) for r in (hi - lo) / st.cell_size)
+    return GridSpec(tuple(lo), st.cell_size, res)
+
+
+def sim_contact(c: ContactSet, trajectory=None) -> Contact:
+    """The simulator's control for a contact (its T0 unless `trajectory` is given)."""
+    tr = c.trajectory if trajectory is None else trajectory
+    if c.type in ("pointAdherent", "fixed"):
+        return Contact(c.type, indices=c.indices, trajectory=None if c.type == "fixed" else tr,
+                       grasp_frame=c.grasp_frame, release_frame=c.release_frame)
+    if c.type == "pointNonAdherent":
+        return Contact(c.type, trajectory=tr, radius=c.radius, shape="sphere", friction=c.friction,
+                       grasp_frame=c.grasp_frame, release_frame=c.release_frame)
+    return Contact(c.type, trajectory=tr, normal=c.normal, friction=c.friction, grasp_frame=c.grasp_frame,
+                   release_frame=c.release_frame)
+
+
+class Simulation:
+    """A scene's simulation under its contacts for `n_frames` frames (frame 0 = rest).
+
+    `contacts[i]` drives the simulator's contact i; `traj_slots` lists (i, T0 tensor) of the
+    contacts whose trajectory is an input (all but fixed), in order: `simulate(E, nu,
+    trajectories=[...])` takes one (T, 3) tensor per slot."""
+
+    def __init__(self, scene: SceneData, contacts: list[ContactSet], n_frames: int, *, effects: dict | None = None,
+                 device: str = "cpu", dtype: str = "float32", knn: int = 4):
+        if n_frames < 2:
+            raise ValueError("a simulation needs at least 2 frames")
+        check_disjoint(contacts)
+        self.scene, self.contacts, self.T = scene, list(contacts), int(n_frames)
+        self.device = device
+        self.tdev = torch_device(device)
+        self.tdtype = torch.float32 if dtype == "float32" else torch.float64
+        st = scene.settings
+        self.x0 = scene.particles_positions
+        self.effects = dict(effects or {})
+        for c in self.contacts:
+            if c.type != "fixed" and (c.trajectory is None or len(c.trajectory) != self.T):
+                raise ValueError(f"contact {c.name}: a ({self.T}, 3) trajectory is needed")
+        self.grid = grid_covering(st, self.x0, [c.trajectory for c in self.contacts])
+        self.model = SimModel.create(
+            self.x0, scene.particles_volumes, st.density, scene.youngs_modulus.clip(st.youngs_min, st.youngs_max),
+            scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model, grid=self.grid,
+            fps=scene.fps, substeps=st.substeps, E_max=st.youngs_max, nu_max=st.poisson_max, gravity=st.gravity,
+            effects=self.effects, dtype=dtype, device=device)
+        self.traj_slots = [(i, torch.as_tensor(c.trajectory, dtype=self.tdtype, device=self.tdev))
+                           for i, c in enumerate(self.contacts) if c.type != "fixed"]
+        self.control = Control([sim_contact(c) for c in self.contacts], n_frames=self.T - 1)
+        self.rollout = Rollout(self.model, self.control)
+        g = scene.gaussians
+        self.binding = GaussianBinding.knn(g.means, self.x0, k=knn, dtype=self.tdtype, device=self.tdev)
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.tdtype, device=self.tdev)  # noqa: E731
+        self.cov0 = covariance_from_scales_quats(t(g.scales), t(g.quats))
+        self.colors = t(g.colors)
+        self.opacities = t(g.opacities)
+
+    def initial_trajectories(self) -> list[torch.Tensor]:
+        return [tr.clone() for _, tr in self.traj_slots]
+
+    def slot_names(self) -> list[str]:
+        return [self.contacts[i].name for i, _ in self.traj_slots]
+
+    def held_particles(self) -> np.ndarray:
+        """(P,) True for particles a fixed support holds from the first frame (the video cannot see
+        their material)."""
+        held = np.zeros(len(self.x0), bool)
+        for c in self.contacts:
+            if c.type == "fixed" and c.grasp_frame <= 0:
+                held[np.asarray(c.indices, np.int64)] = True
+        return held
+
+    def simulate(self, E, nu, trajectories=None, effects=None):
+        """x (T, P, 3), F (T, P, 3, 3) for E, nu (P,) and optionally the slots' trajectories and
+        the effects' parameters (tensors: differentiable)."""
+        trajs = None
+        if trajectories is not None:
+            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
+        return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+
+    def gaussians_at(self, x_k, F_k):
+        """(means (N, 3), covariances (N, 3, 3)) of the splats for particle state x_k, F_k."""
+        return self.binding.apply(x_k, F_k, self.cov0)
+
+
+def build_simulation(scene: SceneData, contacts: list[ContactSet], n_frames: int | None = None, **kw) -> Simulation:
+    """`Simulation(scene, contacts, n_frames or scene.n_frames, effects=, device=, dtype=, knn=)`."""
+    return Simulation(scene, contacts, scene.n_frames if n_frames is None else n_frames, **kw)

@@ -1,0 +1,130 @@
+"""What fits and re-simulations write: the fit layer's material field, animation, contacts and
+report (`write_fit_layer`), a re-simulation's own layer (`write_simulation_layer`), and the
+animation a stage shows (`read_splat_animation`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
+
+from ..gaussians import scales_quats_from_covariance
+from ..scene import SceneData
+from .contacts import remove_contacts, write_contact, write_trajectory
+from .layout import (GENERATOR, OBJECT, PARTICLES, SCENE, SPLATS, LayerPaths, atomic_outputs, mark_layer,
+                     open_fit_layer, remove_prim_spec, save_layer, set_stage_metadata)
+from .reports import json_default, report_versions, write_report
+from .stage import open_stage
+
+
+def _splat_samples(covs: np.ndarray):
+    covs = np.asarray(covs)
+    T, N = covs.shape[:2]
+    s, q = scales_quats_from_covariance(covs.reshape(-1, 3, 3))
+    return s.reshape(T, N, 3), q.reshape(T, N, 4)
+
+
+def _quatf_array(quats: np.ndarray) -> Vt.QuatfArray:
+    return Vt.QuatfArray([Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))) for q in quats])
+
+
+def author_animation(stage: Usd.Stage, positions, gaussian_means, gaussian_covs) -> None:
+    """Time-sampled SimParticles points (and extent) and Splats positions / orientations / scales,
+    frame k at time code k."""
+    pts = stage.OverridePrim(PARTICLES)
+    pattr = pts.CreateAttribute("points", Sdf.ValueTypeNames.Point3fArray)
+    ext = pts.CreateAttribute("extent", Sdf.ValueTypeNames.Float3Array)
+    for k in range(len(positions)):
+        p = np.asarray(positions[k], np.float32)
+        pattr.Set(Vt.Vec3fArray.FromNumpy(p), Usd.TimeCode(k))
+        ext.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, p.min(0))), Gf.Vec3f(*map(float, p.max(0)))]), Usd.TimeCode(k))
+    spl = stage.OverridePrim(SPLATS)
+    scales, quats = _splat_samples(gaussian_covs)
+    a_pos = spl.CreateAttribute("positions", Sdf.ValueTypeNames.Point3fArray)
+    a_rot = spl.CreateAttribute("orientations", Sdf.ValueTypeNames.QuatfArray)
+    a_scl = spl.CreateAttribute("scales", Sdf.ValueTypeNames.Float3Array)
+    for k in range(len(gaussian_means)):
+        tc = Usd.TimeCode(k)
+        a_pos.Set(Vt.Vec3fArray.FromNumpy(np.asarray(gaussian_means[k], np.float32)), tc)
+        a_rot.Set(_quatf_array(quats[k]), tc)
+        a_scl.Set(Vt.Vec3fArray.FromNumpy(scales[k].astype(np.float32)), tc)
+
+
+def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, effect_parameters: dict | None = None) -> dict:
+    """Write a fit into scene.fit.usdc (atomically), keeping earlier versions' reports and what
+    extraction wrote besides contacts (hand masks).
+
+    Authors: the material field (primvars on SimParticles and, per Gaussian, on Splats), the
+    confidence, the contacts used (`contacts.ContactSet`s, with their T0) and the fitted
+    trajectories, the simulated animation, and a PhysInteractFitReport for this model version.
+    Returns {"version", "layer"}."""
+    lp = LayerPaths.of(stage_path)
+    layer = open_fit_layer(lp, scene.fps, scene.n_frames)
+    version = max(report_versions(layer, SCENE), default=0) + 1
+    remove_prim_spec(layer, OBJECT)                  # the last fit's material and animation
+    remove_contacts(layer, SCENE)                    # ... and the contacts it (or extraction) wrote
+    stage = Usd.Stage.Open(layer)
+    f32 = lambda a: Vt.FloatArray.FromNumpy(np.asarray(a, np.float32))  # noqa: E731
+    for path, vals in ((PARTICLES, (result.youngs, result.poisson, result.confidence)),
+                       (SPLATS, (result.youngs_gaussian, result.poisson_gaussian, result.confidence_gaussian))):
+        pv = UsdGeom.PrimvarsAPI(stage.OverridePrim(path))
+        for name, v in zip(("youngsModulus", "poissonRatio", "confidence"), vals):
+            pv.CreatePrimvar(f"physinteract:{name}", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(f32(v))
+    author_animation(stage, result.positions, result.gaussian_means, result.gaussian_covs)
+    stage.OverridePrim(SCENE)
+    for c in contacts:
+        write_contact(stage, SCENE, c, scene.particles_positions, scene.fps)
+        fitted = result.trajectories.get(c.name)
+        if fitted is not None:
+            write_trajectory(stage, SCENE, c.name, fitted, "fitted", scene.fps)
+    write_report(stage, SCENE, version, result, effect_parameters)
+    mark_layer(layer, layer="fit", version=version)
+    save_layer(layer, lp.fit)
+    return {"version": version, "layer": str(lp.fit)}
+
+
+def read_splat_animation(path) -> dict:
+    """The composed Splats per frame (positions, orientations, scales), their per-Gaussian
+    primvars, and the time codes: what a fitted (or simulated) stage shows."""
+    stage = open_stage(path)
+    prim = stage.GetPrimAtPath(SPLATS)
+    pos_a = UsdVol.ParticleFieldPositionAttributeAPI(prim).GetPositionsAttr()
+    rot_a = UsdVol.ParticleFieldOrientationAttributeAPI(prim).GetOrientationsAttr()
+    scl_a = UsdVol.ParticleFieldScaleAttributeAPI(prim).GetScalesAttr()
+    times = pos_a.GetTimeSamples()
+    out = {"times": list(times), "positions": [], "quats": [], "scales": []}
+    for t in times:
+        tc = Usd.TimeCode(t)
+        out["positions"].append(np.array(pos_a.Get(tc), dtype=np.float64))
+        out["quats"].append(np.array([[q.GetReal(), *q.GetImaginary()] for q in rot_a.Get(tc)], dtype=np.float64))
+        out["scales"].append(np.array(scl_a.Get(tc), dtype=np.float64))
+    for name in ("youngsModulus", "poissonRatio", "confidence"):
+        a = prim.GetAttribute(f"primvars:physinteract:{name}")
+        out[name] = np.array(a.Get(), dtype=np.float64) if a and a.HasValue() else None
+    return out
+
+
+def write_simulation_layer(stage_path, scene: SceneData, name: str, positions, gaussian_means,
+                           gaussian_covs, fps: float, spec: dict) -> dict:
+    """A re-simulation under a new interaction as its own time-sampled layer
+    `<stem>.sim.<name>.usdc`, and a small stage `<stem>.sim.<name>.usda` that puts it over the
+    fitted stage (your root layer is not touched). Returns the two paths."""
+    lp = LayerPaths.of(stage_path)
+    layer_path, view_path = lp.sibling(f".sim.{name}.usdc"), lp.sibling(f".sim.{name}.usda")
+    n = len(positions)
+    layer = Sdf.Layer.CreateAnonymous("sim.usdc")
+    set_stage_metadata(layer, fps, 0, n - 1)
+    author_animation(Usd.Stage.Open(layer), positions, gaussian_means, gaussian_covs)
+    layer.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "simulation", "name": name,
+                                              "interaction": json.dumps(spec, default=json_default)}}
+    view = Sdf.Layer.CreateAnonymous("view.usda")
+    set_stage_metadata(view, fps, 0, n - 1)
+    view.subLayerPaths.append(f"./{layer_path.name}")
+    view.subLayerPaths.append(f"./{Path(lp.root).name}")
+    view.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "simulationView", "name": name}}
+    with atomic_outputs(layer_path, view_path) as (t1, t2):
+        if not layer.Export(str(t1)) or not view.Export(str(t2)):
+            raise OSError(f"{layer_path}: could not write the simulation layer")
+    return {"layer": str(layer_path), "stage": str(view_path)}

@@ -1,0 +1,70 @@
+"""The stage codec of fit reports: one `PhysInteractFitReport` prim per fitted model version,
+`/World/PhysInteract/FitReport_v<N>` (version, effects, per-frame metrics, loss history, runtime,
+device, settings and effect parameters as JSON)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from pxr import Sdf, Usd, Vt
+
+REPORT_TYPE = "PhysInteractFitReport"
+REPORT_PREFIX = "FitReport_v"
+
+
+def json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    return str(o)
+
+
+def read_report(prim: Usd.Prim) -> dict:
+    g = lambda n: prim.GetAttribute(f"physinteract:{n}").Get()  # noqa: E731
+    arr = lambda n: list(g(n) or [])  # noqa: E731
+    settings = g("settings") or ""
+    params = g("effectParameters") or ""
+    return {"name": prim.GetName(), "version": int(g("version")), "effects": [str(x) for x in arr("effects")],
+            "frames": [int(x) for x in arr("frameIndices")], "psnr": arr("framePsnr"),
+            "psnr_masked": arr("framePsnrMasked"), "ssim": arr("frameSsim"), "iou": arr("frameIou"),
+            "loss_history": arr("lossHistory"), "final_loss": float(g("finalLoss")),
+            "runtime_s": float(g("runtimeSeconds")), "device": str(g("device")),
+            "settings": json.loads(settings) if settings else {},
+            "effect_parameters": json.loads(params) if params else {}}
+
+
+def report_versions(layer: Sdf.Layer, parent: Sdf.Path) -> list[int]:
+    """The versions of the reports a layer holds."""
+    spec = layer.GetPrimAtPath(parent)
+    out = []
+    if spec is None:
+        return out
+    for child in spec.nameChildren:
+        if child.typeName == REPORT_TYPE:
+            attr = child.attributes.get("physinteract:version")
+            out.append(int(attr.default) if attr is not None and attr.default is not None else 1)
+    return out
+
+
+def write_report(stage: Usd.Stage, parent: Sdf.Path, version: int, result, effect_parameters: dict | None = None):
+    """The report of model version `version` from a fit result (its frame metrics, loss history,
+    final loss, runtime, device, settings and effects)."""
+    f32 = lambda a: Vt.FloatArray.FromNumpy(np.asarray(a, np.float32))  # noqa: E731
+    rp = stage.DefinePrim(parent.AppendChild(f"{REPORT_PREFIX}{version}"), REPORT_TYPE)
+    fm = result.frame_metrics
+    ra = lambda name, v: rp.GetAttribute(f"physinteract:{name}").Set(v)  # noqa: E731
+    ra("version", version)
+    ra("effects", Vt.TokenArray(sorted(result.effects)))
+    ra("frameIndices", Vt.IntArray([int(f["frame"]) for f in fm]))
+    for key, attr in (("psnr", "framePsnr"), ("psnr_masked", "framePsnrMasked"), ("ssim", "frameSsim"),
+                      ("iou", "frameIou")):
+        ra(attr, f32([min(float(f[key]), 100.0) if np.isfinite(f[key]) else 100.0 for f in fm]))
+    ra("lossHistory", f32(result.loss_history))
+    ra("finalLoss", float(result.final_loss))
+    ra("runtimeSeconds", float(result.runtime_s))
+    ra("device", str(result.device))
+    ra("settings", json.dumps(result.settings, default=json_default))
+    ra("effectParameters", json.dumps(effect_parameters or {}, default=json_default))
+    return rp
