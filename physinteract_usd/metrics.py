@@ -2,7 +2,7 @@
 
 - PSNR over the full frame, and inside the union of the true and rendered silhouettes (the honest
   one: a mostly-background frame cannot inflate it).
-- SSIM exactly as ``skimage.metrics.structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+- SSIM is ``skimage.metrics.structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
   use_sample_covariance=False, data_range=1, channel_axis=-1)``: 11x11 Gaussian window (sigma 1.5,
   truncated at 3.5 sigma), K1 = 0.01, K2 = 0.03, mean over the map cropped by the window radius.
 - Silhouette IoU; 2D track error in pixels; 3D position error in metres.
@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 MA_TOLERANCE = 0.2
 
@@ -40,24 +39,16 @@ def psnr_masked(pred, true, sil_pred, sil_true, data_range: float = 1.0) -> floa
 
 
 def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0, sigma: float = 1.5) -> float:
-    """Mean SSIM of two (H, W) or (H, W, C) images, matching skimage (see module doc)."""
+    """Mean SSIM of two (H, W) or (H, W, C) images: scikit-image's, with the design's settings (see
+    the module doc). The fit's differentiable SSIM is `render.losses.ssim` (tested against this)."""
+    from skimage.metrics import structural_similarity
+
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     if a.shape != b.shape:
         raise ValueError("ssim: images differ in shape")
-    if a.ndim == 3:
-        return float(np.mean([ssim(a[..., c], b[..., c], data_range, sigma) for c in range(a.shape[2])]))
-    truncate = 3.5
-    filt = lambda x: gaussian_filter(x, sigma=sigma, truncate=truncate, mode="reflect")  # noqa: E731
-    c1 = (0.01 * data_range) ** 2
-    c2 = (0.03 * data_range) ** 2
-    ux, uy = filt(a), filt(b)
-    vx = filt(a * a) - ux * ux
-    vy = filt(b * b) - uy * uy
-    vxy = filt(a * b) - ux * uy
-    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
-    r = int(truncate * sigma + 0.5)  # window radius: 5 for sigma 1.5 (an 11x11 window)
-    return float(s[r:-r, r:-r].mean())
+    return float(structural_similarity(a, b, gaussian_weights=True, sigma=sigma, use_sample_covariance=False,
+                                       data_range=data_range, channel_axis=-1 if a.ndim == 3 else None))
 
 
 def iou(sil_pred, sil_true) -> float:

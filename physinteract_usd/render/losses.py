@@ -122,15 +122,6 @@ def ssim_loss(pred, target, weight=None) -> torch.Tensor:
     return 1.0 - ssim(pred, target, weight)
 
 
-def psnr(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
-    """Weighted PSNR (data range 1), for logging."""
-    _grey_ok(pred, target)
-    x, w = _bchw(pred, weight)
-    y, _ = _bchw(target.to(pred.dtype), None)
-    mse = (((x - y) ** 2) * w).sum() / (x.shape[1] * w.sum()).clamp_min(1e-12)
-    return -10.0 * torch.log10(mse.clamp_min(1e-20))
-
-
 def reconstruction_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, weight: torch.Tensor | None = None,
                         pred_alpha: torch.Tensor | None = None, target_mask: torch.Tensor | None = None,
                         lambda_ssim: float = 0.2, lambda_mask: float = 1.0) -> dict:
