@@ -19,10 +19,11 @@ from .adapters import load_observations, read_scene
 
 def _user_hint(u, hint: Hint | None, sd) -> Hint | None:
     """The hint that the user's own interaction contact set `u` amounts to (its particles, else its
-    contact point's pixel at frame 0), keeping the support and grasp-size hints given."""
+    contact point's pixel at frame 0), keeping the support, grasp-size and timing hints given."""
     support_hint = {} if hint is None else {"support_pixels": hint.support_pixels,
                                              "support_particles": hint.support_particles,
-                                             "grasp_radius": hint.grasp_radius}
+                                             "grasp_radius": hint.grasp_radius, "grasp_frame": hint.grasp_frame,
+                                             "release_frame": hint.release_frame}
     if len(u.indices):
         return Hint(particles=np.asarray(u.indices, np.int64), **support_hint)
     if u.contact_point is not None and np.any(u.contact_point):
@@ -30,6 +31,13 @@ def _user_hint(u, hint: Hint | None, sd) -> Hint | None:
         if np.isfinite(uv).all() and 0 <= uv[0, 0] < sd.camera.width and 0 <= uv[0, 1] < sd.camera.height:
             return Hint(frame=0, pixel=(float(uv[0, 0]), float(uv[0, 1])), **support_hint)
     return Hint(**support_hint) if support_hint else None
+
+
+def timing_said(result: ExtractionResult) -> str:
+    """' (grasp and release as given)' where the user's flags set them."""
+    src = result.evidence.get("timing_source", {})
+    yours = [k for k in ("grasp", "release") if src.get(k) == "user"]
+    return f" ({' and '.join(yours)} as given)" if yours else ""
 
 
 def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | None = None, log=print,
@@ -95,7 +103,7 @@ def extract(stage_path, *, hint: Hint | None = None, interaction_type: str | Non
             continue
         rel = "end" if c.release_frame is None else c.release_frame
         log(f"contact {c.name}: {c.type} ({result.type_source}), {len(c.indices)} particles, "
-            f"frames {c.grasp_frame}..{rel}")
+            f"frames {c.grasp_frame}..{rel}{timing_said(result)}")
     n_sup = [len(c.indices) for c in contacts if c.type == "fixed"]
     log(f"supports: {len(n_sup)} fixed set(s) of {', '.join(map(str, n_sup)) or 'no'} particles")
     for n in result.notes:

@@ -23,6 +23,10 @@ def add_parser(sub):
     s.add_argument("--grasp-radius", type=float, metavar="R", help="the hand holds the particles within R metres "
                    "of the contact (a fingertip's radius for a poke); the video shows where the hand grasps, not "
                    "how much it holds (default: a 3 cm pinch, more when the contact region is larger)")
+    s.add_argument("--grasp-frame", metavar="K", help="the hand takes hold of (or starts touching) the object at "
+                   "frame K (wins over the detected grasp; recorded on the stage: the contact's source is 'user')")
+    s.add_argument("--release-frame", metavar="K", help="the hand lets go at frame K, or 'never' (held to the "
+                   "end); wins over the detected release")
     s.add_argument("--no-preview", action="store_true", help="skip the preview PNG")
     s.add_argument("--device", default="cpu", help="cpu or cuda (rendering the object's depth; default cpu)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -33,7 +37,8 @@ def run(a) -> int:
     from .. import api
 
     log = progress_log(a.json)
-    hint = api.parse_hint(a.hint_pixel, a.hint_particles, a.support_pixel, a.support_particles, a.grasp_radius)
+    hint = api.parse_hint(a.hint_pixel, a.hint_particles, a.support_pixel, a.support_particles, a.grasp_radius,
+                          grasp_frame=a.grasp_frame, release_frame=a.release_frame)
     r = api.extract(a.stage, hint=hint, interaction_type=a.type, preview=not a.no_preview, log=log, device=a.device)
     if a.json:
         print(json.dumps(r.summary(), indent=2, default=str))

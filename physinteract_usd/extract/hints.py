@@ -39,19 +39,40 @@ def parse_indices(text: str, flag: str) -> np.ndarray:
     return np.asarray(idx, np.int64)
 
 
+def parse_frame(text, flag: str, never_ok: bool = False) -> int:
+    """A frame number (`never` / `none` for a release that never comes, with `never_ok`)."""
+    t = str(text).strip().lower()
+    if never_ok and t in ("never", "none"):
+        return Hint.NEVER
+    try:
+        k = int(t)
+    except ValueError:
+        what = "a frame number or 'never'" if never_ok else "a frame number"
+        raise InputError(flag, f"expected {what}, got {text!r}") from None
+    if k < 0:
+        raise InputError(flag, f"frame must be >= 0, got {k}")
+    return k
+
+
 def parse_hint(pixel: str | None = None, particles: str | None = None, support_pixels=None,
-               support_particles: str | None = None, grasp_radius: float | None = None) -> Hint | None:
+               support_particles: str | None = None, grasp_radius: float | None = None,
+               grasp_frame=None, release_frame=None) -> Hint | None:
     """The CLI's hint flags: `--hint-pixel K,U,V` (frame K, pixel column U and row V as an image
     viewer shows them, 0-based; the pixel's centre is used), `--hint-particles I,J,...`
     (SimParticles indices), `--support-pixel K,U,V` (a list: where the object is held) and
-    `--support-particles I,J,...`, `--grasp-radius R` (metres). None when none is given; InputError
-    naming the flag otherwise."""
+    `--support-particles I,J,...`, `--grasp-radius R` (metres), `--grasp-frame K` and
+    `--release-frame K` (or `never`). None when none is given; InputError naming the flag
+    otherwise."""
     if isinstance(support_pixels, str):
         support_pixels = [support_pixels]
     if (pixel is None and particles is None and not support_pixels and support_particles is None
-            and grasp_radius is None):
+            and grasp_radius is None and grasp_frame is None and release_frame is None):
         return None
     hint = Hint()
+    if grasp_frame is not None:
+        hint.grasp_frame = parse_frame(grasp_frame, "--grasp-frame")
+    if release_frame is not None:
+        hint.release_frame = parse_frame(release_frame, "--release-frame", never_ok=True)
     if grasp_radius is not None:
         r = float(grasp_radius)
         if not np.isfinite(r) or r <= 0:
@@ -98,6 +119,7 @@ def check_hint(hint, scene, T):
         if not 0 < hint.grasp_radius <= ext:  # nan fails the comparison too
             raise InputError("--grasp-radius", f"must be a length in metres in (0, {ext:.3g}] (the object's "
                              f"extent), got {hint.grasp_radius}")
+    check_timing(hint, T)
     if hint.is_empty:
         return hint
     if hint.particles is not None and len(hint.particles):
@@ -113,6 +135,20 @@ def check_hint(hint, scene, T):
         check_pixel(k, hint.pixel, scene, T, "--hint-pixel")
         hint.frame = int(k)
     return hint
+
+
+def check_timing(hint, T):
+    """The user's grasp and release frames inside the video, the release after the grasp."""
+    g, r = hint.grasp_frame, hint.release_frame
+    if g is not None and not (0 <= int(g) < T - 1):
+        raise InputError("--grasp-frame", f"frame {g} is outside the video's first {T - 1} frames (0..{T - 2}: "
+                         "the hand must hold on for at least one frame)")
+    if r is not None and r != Hint.NEVER:
+        if not (0 < int(r) < T):
+            raise InputError("--release-frame", f"frame {r} is outside the video (1..{T - 1}; 'never' for a hand "
+                             "that holds on to the end)")
+        if g is not None and int(r) <= int(g):
+            raise InputError("--release-frame", f"frame {r} is not after the grasp frame {g}")
 
 
 def hint_location(an: Analysis, hint):

@@ -86,9 +86,10 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
     base = scene.camera.at(g).unproject(c2[None], np.array([z_c]))[0]
     for k in range(T):
         traj[k] = c3 + (scene.camera.at(k).unproject(track[k][None], np.array([depth[k]]))[0] - base)
+    users = hint is not None and (not hint.is_empty or hint.has_timing)
     contact = ContactSet(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
                          release_frame=r, trajectory=traj, contact_point=c3,
-                         source="user" if not (hint is None or hint.is_empty) else "extracted")
+                         source="user" if users else "extracted")
     push3 = None
     if itype == "pointAdherent":
         contact.indices = idx
@@ -127,6 +128,12 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
         contact.contact_point = c3
         contact.grasp_frame = 0
         contact.release_frame = None
+        if hint is not None and hint.has_timing:
+            # the user says when the fingertip or palm touches: it acts only then
+            if hint.grasp_frame is not None:
+                contact.grasp_frame = g
+            if hint.release_frame is not None:
+                r = contact.release_frame = timing.release
     return Lifted(contact, push3, track, r)
 
 

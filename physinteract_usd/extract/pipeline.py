@@ -46,7 +46,7 @@ from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts
-from .timing import find_timing
+from .timing import apply_overrides, find_timing
 
 
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
@@ -71,6 +71,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
 
     seen = find_contact(an, hint, evidence)                                                 # 3: where
     timing = find_timing(an, seen, evidence)                                                # 4: when
+    timing = apply_overrides(timing, hint, evidence, notes)                                 # the user's word
     g = timing.grasp
     grasp = contact_at_grasp(an, seen, g)
     hand = track_hand(timing, grasp.uv)

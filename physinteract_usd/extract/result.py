@@ -20,7 +20,9 @@ class Hint:
     detected there; detected regions elsewhere are dropped), or `support_particles`, the particles
     held still (exactly those). `grasp_radius` [m]: how much the hand holds, the particles within
     it of the contact (pointAdherent), or the fingertip's radius (pointNonAdherent): the video
-    shows where a hand grasps but not how much material it holds."""
+    shows where a hand grasps but not how much material it holds. `grasp_frame` / `release_frame`:
+    when the hand takes hold (or starts touching) and lets go (`release_frame` NEVER: held to the
+    end), for a video that does not show it; they win over the detected timing."""
 
     frame: int | None = None
     pixel: tuple | None = None
@@ -28,6 +30,14 @@ class Hint:
     support_pixels: list | None = None
     support_particles: np.ndarray | None = None
     grasp_radius: float | None = None
+    grasp_frame: int | None = None
+    release_frame: int | None = None       # NEVER (-1): the hand holds on to the end
+
+    NEVER = -1
+
+    @property
+    def has_timing(self) -> bool:
+        return self.grasp_frame is not None or self.release_frame is not None
 
     @property
     def is_empty(self) -> bool:

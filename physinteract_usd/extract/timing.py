@@ -42,6 +42,42 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     return Timing(vh, vo, coupled, near, (p0, p1), speed, g, r)
 
 
+def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing:
+    """The user's grasp and release frames (`--grasp-frame`, `--release-frame`) win over the
+    detected ones; a grasp given alone re-measures the release from it (the detected release is
+    kept when it still comes after the grasp). Recorded in `evidence["timing_source"]` and the
+    notes."""
+    src = {"grasp": "extracted", "release": "extracted"}
+    if hint is None or not hint.has_timing:
+        evidence["timing_source"] = src
+        return timing
+    g, r = timing.grasp, timing.release
+    if hint.grasp_frame is not None:
+        g_user = int(hint.grasp_frame)
+        if g_user != g:
+            notes.append(f"grasp at frame {g_user} as given (--grasp-frame; the video suggested {g})")
+        g = g_user
+        src["grasp"] = "user"
+        if hint.release_frame is None and r is not None and r <= g:
+            r = release(timing.coupled, timing.near, g, timing.speed)
+    if hint.release_frame is not None:
+        r_user = None if hint.release_frame == hint.NEVER else int(hint.release_frame)
+        if r_user != r:
+            said = "never" if r is None else str(r)
+            notes.append(f"release {'never' if r_user is None else 'at frame %d' % r_user} as given "
+                         f"(--release-frame; the video suggested {said})")
+        if r_user is not None and r_user <= g:
+            from ..errors import InputError
+
+            raise InputError("--release-frame", f"frame {r_user} is not after the grasp frame {g}"
+                             f"{' (detected: give --grasp-frame too)' if src['grasp'] != 'user' else ''}")
+        r = r_user
+        src["release"] = "user"
+    evidence.update({"timing_source": src, "grasp_frame": g, "release_frame": r})
+    return Timing(timing.hand_velocity, timing.object_velocity, timing.coupled, timing.near, timing.period,
+                  timing.speed, g, r)
+
+
 def velocities(an: Analysis, centres: list):
     """Per frame pair k -> k+1 the hand's and the object's median flow near the contact."""
     T = an.T
