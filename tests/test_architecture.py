@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent / "physinteract_usd"
 # lower imports nothing above it; a package may import itself freely
 RANKS = {
     "errors": 0,
-    "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1,
+    "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1,
     "scene": 2, "fill": 2,
     "capture": 3, "sim": 3,
     "render": 4,

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import warp as wp
 
+from .. import stopping
 from ..devices import torch_device
 from ..errors import SimulationError
 from .control import Control, ControlArrays
@@ -169,6 +170,7 @@ class Rollout:
         is non-finite or left the domain (one host sync, after the last frame)."""
         self._ensure_graphs(self._fwd_graphs, self._forward_frame)
         for k in range(self.T):
+            stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
             self._frame(self._fwd_graphs, self._forward_frame, k)
         self.solver.raise_on_status(self.status)
 
@@ -184,6 +186,7 @@ class Rollout:
         self.adj_ctrl.zero_()
         self._adj[0].zero_()
         for k in reversed(range(self.T)):
+            stopping.check("backward")
             self._frame(self._bwd_graphs, self._backward_frame, k)
         return self._adj[0]
 
