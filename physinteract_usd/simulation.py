@@ -59,7 +59,7 @@ class Simulation:
     trajectories=[...])` takes one (T, 3) tensor per slot."""
 
     def __init__(self, scene: SceneData, contacts: list[ContactSet], n_frames: int, *, effects: dict | None = None,
-                 device: str = "cpu", dtype: str = "float32", knn: int = 4):
+                 device: str = "cpu", dtype: str = "float32", knn: int = 4, adaptive_substeps: bool = True):
         if n_frames < 2:
             raise ValueError("a simulation needs at least 2 frames")
         check_disjoint(contacts)
@@ -74,21 +74,70 @@ class Simulation:
             if c.type != "fixed" and (c.trajectory is None or len(c.trajectory) != self.T):
                 raise ValueError(f"contact {c.name}: a ({self.T}, 3) trajectory is needed")
         self.grid = grid_covering(st, self.x0, [c.trajectory for c in self.contacts])
-        self.model = SimModel.create(
-            self.x0, scene.particles_volumes, st.density, scene.youngs_modulus.clip(st.youngs_min, st.youngs_max),
-            scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model, grid=self.grid,
-            fps=scene.fps, substeps=st.substeps, E_max=st.youngs_max, nu_max=st.poisson_max, gravity=st.gravity,
-            effects=self.effects, dtype=dtype, device=device)
+        self.dtype = dtype
         self.traj_slots = [(i, torch.as_tensor(c.trajectory, dtype=self.tdtype, device=self.tdev))
                            for i, c in enumerate(self.contacts) if c.type != "fixed"]
         self.control = Control([sim_contact(c) for c in self.contacts], n_frames=self.T - 1)
-        self.rollout = Rollout(self.model, self.control)
+        self.adaptive = bool(adaptive_substeps)
+        self._rollouts: dict[float, Rollout] = {}
+        self.e_bound = float(st.youngs_max)
+        self._use_bound(self.e_bound if not self.adaptive else
+                        self.bound_for(float(np.max(scene.youngs_modulus.clip(st.youngs_min, st.youngs_max)))))
         g = scene.gaussians
         self.binding = GaussianBinding.knn(g.means, self.x0, k=knn, dtype=self.tdtype, device=self.tdev)
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.tdtype, device=self.tdev)  # noqa: E731
         self.cov0 = covariance_from_scales_quats(t(g.scales), t(g.quats))
         self.colors = t(g.colors)
         self.opacities = t(g.opacities)
+
+    # ------------------------------------------------------------------ the substep
+    def bound_for(self, e_max: float) -> float:
+        """The stiffness the substep is taken at for a field whose largest E is `e_max`: the
+        smallest rung of a ladder of ratio sqrt(2) below the stage's E range's top that is >= e_max
+        (so a field may stiffen ~40% before the model is rebuilt, and rollouts are reused per rung)."""
+        st = self.scene.settings
+        top = float(st.youngs_max)
+        k = max(0, int(np.floor(np.log(top / max(e_max, 1e-30)) / np.log(np.sqrt(2.0)) + 1e-9)))
+        return top / np.sqrt(2.0) ** k
+
+    def _use_bound(self, bound: float) -> None:
+        st = self.scene.settings
+        if bound not in self._rollouts:
+            model = SimModel.create(
+                self.x0, self.scene.particles_volumes, st.density,
+                np.minimum(self.scene.youngs_modulus.clip(st.youngs_min, st.youngs_max), bound),
+                self.scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model, grid=self.grid,
+                fps=self.scene.fps, substeps=None if self.adaptive else st.substeps, E_max=bound, nu_max=st.poisson_max,
+                max_speed=self.control.max_speed(self.scene.fps) if self.adaptive else 0.0, gravity=st.gravity,
+                effects=self.effects, dtype=self.dtype, device=self.device,
+                # the contacts' partial blends keep the rate they have at the stage's substep
+                blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0)
+            if len(self._rollouts) >= 3:     # keep a few rungs' buffers and graphs
+                self._rollouts.pop(next(iter(self._rollouts)))
+            self._rollouts[bound] = Rollout(model, self.control)
+        self.e_bound = bound
+        self.rollout = self._rollouts[bound]
+        self.model = self.rollout.model
+
+    def ensure_stable(self, e_max: float) -> bool:
+        """Make the model's substep stable for a field whose largest E is `e_max` (the CFL bound at
+        the field, not at the top of the allowed range: a soft object takes far fewer substeps).
+        Returns True when the rung changed. Without `adaptive_substeps`, the stage's substep (taken
+        at the range's top) is kept."""
+        if not self.adaptive:
+            return False
+        want = self.bound_for(e_max)
+        # hysteresis: step down a rung only when the field is well inside the lower one
+        if want < self.e_bound and e_max * 1.1 > want:
+            want = self.e_bound
+        if want == self.e_bound:
+            return False
+        self._use_bound(want)
+        return True
+
+    @property
+    def substeps(self) -> int:
+        return self.model.substeps
 
     def initial_trajectories(self) -> list[torch.Tensor]:
         return [tr.clone() for _, tr in self.traj_slots]
@@ -111,6 +160,9 @@ class Simulation:
         trajs = None
         if trajectories is not None:
             trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
+        E = torch.as_tensor(E)
+        if self.adaptive:
+            self.ensure_stable(float(E.detach().max()))
         return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
 
     def gaussians_at(self, x_k, F_k):

@@ -8,7 +8,9 @@ analytic directional derivative is compared with a central difference: relative 
 Kinks (friction stick/slip, yield, push-only contact) are not smoothed: the scenes sit away from
 the switch points, and the checks use steps (1e-5 of the direction for material and effect
 parameters, 1e-6 for trajectories, which move contacts) small enough that no switch is crossed;
-collider and ground boundaries use the smoothed (C1) contact band the fit also uses.
+collider and ground boundaries use the smoothed (C1) contact band the fit also uses. The first two
+scenes' partial pin / collider blends act as rates (`blend_dt` != dt, as the fit's simulations
+with the field's substep use them), the third's once per substep.
 
 The rollout does not record on a wp.Tape (it launches each kernel's adjoint itself, every kernel
 reading inputs and writing separate outputs), so wp.config.verify_autograd_array_access, which
@@ -83,7 +85,7 @@ def test_grad_pull_on_ground_fixed_corotated():
     T = 3
     eff = {"damping": {"coefficient": 3.0}, "ground": {"height": 0.1, "friction": 0.3}}
     m = SimModel.create(pts, SP ** 3, 1000.0, 3e3, 0.3, grid=GridSpec((0, 0, 0), DX, (14, 10, 14)), fps=15,
-                        substeps=20, E_max=2e4, dtype="float64", effects=eff)
+                        substeps=20, E_max=2e4, dtype="float64", effects=eff, blend_dt=1.0 / (15 * 50))
     right = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
     left = np.nonzero(pts[:, 0] < pts[:, 0].min() + 1e-9)[0]
     traj = np.repeat(pts[right].mean(0)[None], T + 1, 0)
@@ -104,7 +106,7 @@ def test_grad_plasticity_viscoelasticity_sphere_release():
     T = 4
     eff = {"plasticity": {"yieldStress": 40.0}, "viscoelasticity": {"modulus": 800.0, "relaxationTime": 0.05}}
     m = SimModel.create(pts, SP ** 3, 1000.0, 2e3, 0.3, grid=GridSpec((0, 0, 0), DX, (12, 12, 12)), fps=20,
-                        substeps=16, E_max=1e4, dtype="float64", effects=eff)
+                        substeps=16, E_max=1e4, dtype="float64", effects=eff, blend_dt=1.0 / (20 * 7))
     bottom = np.nonzero(pts[:, 1] < pts[:, 1].min() + 1e-9)[0]
     side = np.nonzero((pts[:, 0] > pts[:, 0].max() - 1e-9) & (pts[:, 1] > pts[:, 1].min() + 1e-9))[0]
     top_c = np.array([pts[:, 0].mean() - 0.01, pts[:, 1].max() + 0.045, pts[:, 2].mean() + 0.005])

@@ -119,6 +119,31 @@ class MaterialField:
             self.nu_basis = self.B
             self.w_nu = torch.as_tensor(w, dtype=self.dtype, device=self.device).requires_grad_(True)
 
+    def set_regions(self, labels: np.ndarray) -> None:
+        """A piecewise-constant basis: one indicator per region of `labels` (0..m-1), each region
+        starting from the mean of the current field over it (`fit.regions`)."""
+        from .regions import one_hot
+
+        labels = np.asarray(labels, np.int64)
+        with torch.no_grad():
+            u = (self.B @ self.theta).cpu().numpy()
+        B = one_hot(labels)
+        theta = np.array([u[labels == r].mean() if np.any(labels == r) else 0.0 for r in range(B.shape[1])])
+        self.B = torch.as_tensor(B, dtype=self.dtype, device=self.device)
+        self.K = B.shape[1]
+        self.theta = torch.as_tensor(theta, dtype=self.dtype, device=self.device).requires_grad_(True)
+
+    def set_region_log_e(self, log_e: np.ndarray) -> None:
+        """Set each region's (basis function's) log E (one-hot bases: exact)."""
+        s = (np.asarray(log_e, np.float64) - self.lo) / (self.hi - self.lo)
+        with torch.no_grad():
+            self.theta = torch.as_tensor(_logit(s), dtype=self.dtype, device=self.device).requires_grad_(True)
+
+    def region_log_e(self) -> np.ndarray:
+        """Each basis function's log E (one-hot bases: the regions' values)."""
+        with torch.no_grad():
+            return (self.lo + (self.hi - self.lo) * torch.sigmoid(self.theta)).cpu().numpy()
+
     # ------------------------------------------------------------------ values
     def log_e(self) -> torch.Tensor:
         return self.lo + (self.hi - self.lo) * torch.sigmoid(self.B @ self.theta)

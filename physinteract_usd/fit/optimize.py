@@ -47,6 +47,19 @@ class FitSettings:
     confidence_probes: int = 4
     seed: int = 0
     fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
+    schedule: str = "bumps"             # "ladder": model selection, uniform E -> regions split by score
+                                        # (fit/ladder.py); "bumps": the coarse-to-fine RBF field below
+    holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
+    sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
+    flat_tolerance: float = 0.02        # ... minima within this (relative) of the best are refined too
+    max_regions: int = 5
+    region_min_share: float = 0.03      # a candidate part holds at least this share of the particles
+    split_candidates: int = 3           # candidates whose curvature is measured per round (2 forwards each)
+    split_min_drop: float = 0.01        # a split is tried when its predicted drop exceeds this share of the loss
+    split_margin: float = 0.005         # ... and kept when the held-back frames' loss falls by more than this
+    uniform_share: float = 0.2          # ladder budget: one E, each split, the final joint polish
+    split_share: float = 0.15
+    final_share: float = 0.2
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -74,6 +87,9 @@ class FitResult:
     effects: dict = field(default_factory=dict)
     interrupted: bool = False
     uniform_start: float = 0.0
+    regions: np.ndarray | None = None   # (P,) the material region of each particle (schedule "ladder")
+    model: dict = field(default_factory=dict)  # the material model chosen and why (regions, their E and
+                                        # intervals, the splits tried with predicted / realised drops)
 
 
 def _seed(s):
@@ -175,6 +191,12 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from.
     `uniform_e`: the uniform E to start from when a search already found it (`select_supports`)."""
     s = settings or FitSettings()
+    if s.schedule == "ladder":
+        from .ladder import fit_ladder
+
+        return fit_ladder(prob, s, progress=progress, log=log, start=start, uniform_e=uniform_e)
+    if s.schedule != "bumps":
+        raise ValueError(f"schedule must be 'ladder' or 'bumps', not {s.schedule!r}")
     _seed(s.seed)
     t0 = time.perf_counter()
     st = prob.scene.settings
@@ -314,6 +336,14 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
             mat.centre_mask = None
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed)
+    return assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, feats, history, final_loss, t0,
+                           interrupted, e_uniform)
+
+
+def assemble_result(prob: FitProblem, s: FitSettings, E, nu, conf, trajs, x, F, metrics, feats, history,
+                    final_loss, t0, interrupted, e_uniform, **extra) -> FitResult:
+    """The FitResult of a kept iterate: the animation's Gaussians, the material per Gaussian (from
+    the particles of its own colour when the appearance prior is on), the trajectories by name."""
     means, covs = [], []
     with torch.no_grad():
         for k in range(prob.T):
@@ -324,8 +354,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
     idx = prob.binding.index.cpu().numpy()
     if feats is not None:  # material values per Gaussian from the particles of its own colour
         w = appearance_transfer_weights(w, idx, prob.gaussian_appearance(), feats)
-    En = E.cpu().numpy()
-    nun = nu.cpu().numpy()
+    En = E.detach().cpu().numpy()
+    nun = nu.detach().cpu().numpy()
     names = prob.sim.slot_names()
     return FitResult(
         youngs=En, poisson=nun, confidence=conf,
@@ -336,7 +366,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool
         frame_metrics=metrics, loss_history=history, final_loss=final_loss,
         runtime_s=time.perf_counter() - t0, device=device_name(prob.device),
         settings={**asdict(s), "levels": list(s.levels), "level_share": list(s.level_share)},
-        effects=dict(prob.effects), interrupted=interrupted, uniform_start=e_uniform)
+        effects=dict(prob.effects), interrupted=interrupted, uniform_start=e_uniform, **extra)
 
 
 def _split(total, shares, n):
@@ -412,7 +442,7 @@ def residual_correlation(residuals: list) -> float:
 
 
 def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
-               tol: float = math.log(1.2)) -> np.ndarray:
+               tol: float = math.log(1.2), return_sigma: bool = False):
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
     the estimate, from the Gauss-Newton diagonal of the current basis coefficients.
 
@@ -463,4 +493,6 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
         dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
         sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
         conf = torch.erf(tol / (sigma_p * math.sqrt(2.0)).clamp_min(1e-12))
+    if return_sigma:     # and sigma(log E) per particle (the Laplace interval's half-width / 1.96)
+        return conf.cpu().numpy(), sigma_p.cpu().numpy()
     return conf.cpu().numpy()

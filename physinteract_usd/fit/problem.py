@@ -61,7 +61,7 @@ class FitProblem:
         sim = self.sim
         self.device, self.tdev, self.tdtype = sim.device, sim.tdev, sim.tdtype
         self.x0, self.effects, self.contacts = sim.x0, sim.effects, sim.contacts
-        self.grid, self.model, self.control, self.rollout = sim.grid, sim.model, sim.control, sim.rollout
+        self.grid, self.control = sim.grid, sim.control
         self.traj_slots, self.binding = sim.traj_slots, sim.binding
         self.cov0, self.colors, self.opacities = sim.cov0, sim.colors, sim.opacities
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.tdtype, device=self.tdev)  # noqa: E731
@@ -87,6 +87,15 @@ class FitProblem:
             r = t0.cpu().numpy() - c
             r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
             self.traj_rays.append(torch.as_tensor(r, dtype=self.tdtype, device=self.tdev))
+
+    @property
+    def model(self):
+        """The simulator's model at the current substep (`Simulation.ensure_stable` may rebuild it)."""
+        return self.sim.model
+
+    @property
+    def rollout(self):
+        return self.sim.rollout
 
     def held_particles(self) -> np.ndarray:
         """(P,) True for particles a fixed support holds from the first frame (the video cannot

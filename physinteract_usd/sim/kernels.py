@@ -532,7 +532,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     @wp.func
     def apply_collider(vel: vec3, xn: vec3, c: int, frame: int, alpha: T, fps: T, band: T,
                        col_shape: wp.array(dtype=int), col_pos: wp.array2d(dtype=vec3),
-                       col_geom: wp.array(dtype=vec3), col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T)):
+                       col_geom: wp.array(dtype=vec3), col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
+                       blend_r: T):
         p0 = col_pos[c, frame]
         p1 = col_pos[c, frame + 1]
         cen = p0 + alpha * (p1 - p0)
@@ -555,10 +556,20 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 dist = wp.sqrt(dist2)
                 nrm = d / dist
                 phi = dist - col_radius[c]
-        wc = soft_weight(phi, band)
+        wc = rate_weight(soft_weight(phi, band), blend_r)
         if wc > T(0.0):
             return collide(vel, (p1 - p0) * fps, nrm, col_mu[c], wc)
         return vel
+
+    @wp.func
+    def rate_weight(w: T, r: T):
+        # a blend weight w that acts once per reference step, for a step r reference steps long:
+        # the same rate per unit time (1 - (1 - w)^r), so the result does not depend on the substep
+        if w >= T(1.0):
+            return T(1.0)
+        if w <= T(0.0):
+            return T(0.0)
+        return T(1.0) - wp.exp(r * wp.log(T(1.0) - w))
 
     @wp.func
     def node_velocity(m: T, mv: vec3, pm: T, pmv: vec3, xn: vec3,
@@ -566,22 +577,22 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                       n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                       col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                       col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
-                      frame: int, alpha: T, fps: T):
+                      frame: int, alpha: T, fps: T, blend_r: T):
         vel = mv / m + dt * gravity
         if (flags & 1) != 0:
             vel = vel * wp.exp(-eff[0] * dt)
         if pm > T(0.0):
-            wpin = wp.min(pin_gain * pm / m, T(1.0))
+            wpin = rate_weight(wp.min(pin_gain * pm / m, T(1.0)), blend_r)
             vel = vel * (T(1.0) - wpin) + (wpin / pm) * pmv
         if (flags & 4) != 0:
-            wg = soft_weight(xn[1] - eff[2], band)
+            wg = rate_weight(soft_weight(xn[1] - eff[2], band), blend_r)
             if wg > T(0.0):
                 vel = collide(vel, vec3(), vec3(T(0.0), T(1.0), T(0.0)), eff[3], wg)
         for c in range(MAX_COLLIDERS):
             if c < n_col:
                 if col_active[c, frame] != 0:
                     vel = apply_collider(vel, xn, c, frame, alpha, fps, band, col_shape, col_pos, col_geom,
-                                         col_radius, col_mu)
+                                         col_radius, col_mu, blend_r)
         return vel
 
     @wp.kernel(module=module)
@@ -591,7 +602,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     pin_gain: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
-                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int, m_eps: T,
+                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int, m_eps: T, blend_r: T,
                     gv: wp.array(dtype=vec3)):
         # flat launch over the grid, ``chunk`` nodes per thread (the CPU pays per thread; chunk = 1
         # on CUDA); a node's index is decoded only where there is mass. Iterations are independent.
@@ -609,7 +620,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                 vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
                                     pin_gain, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
-                                    frame, alpha, fps)
+                                    frame, alpha, fps, blend_r)
             gv[t] = vel
 
     @wp.kernel(module=module, enable_backward=False)

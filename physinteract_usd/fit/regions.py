@@ -1,0 +1,150 @@
+"""Material regions: a piecewise-constant E field whose parts are found from the data.
+
+The fit's model selection (`optimize.fit`, schedule "ladder") starts from one E for the whole
+object and splits a region in two only when the data ask for it:
+
+- the *score* of a split is the loss's first derivative along the split's direction: with
+  g_p = dL / dlog E_p at the current fit and a candidate part A of region R, the direction
+  v = 1_A - (|A| / |R|) 1_R (zero mean over R, so the region's own parameter cannot absorb it)
+  has derivative d = g . v (a Lagrange-multiplier / score test for the omitted parameter);
+- its curvature h = v^T H v comes from two extra loss evaluations along v, and the predicted
+  loss drop of the split is d^2 / (2 h);
+- candidate parts come from the motion (where the score says "stiffer" vs "softer", smoothed
+  over the particle graph) and from the appearance (colour clusters: material parts tend to
+  differ in colour), each cut into connected pieces.
+
+This module is the geometry and the bookkeeping (numpy, scipy); the loss evaluations are the
+optimiser's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+
+def particle_graph(points: np.ndarray, radius: float) -> sp.csr_matrix:
+    """Symmetric adjacency (P, P) of the particles within `radius` of each other."""
+    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray")
+    P = len(points)
+    if len(pairs) == 0:
+        return sp.csr_matrix((P, P))
+    i, j = pairs[:, 0], pairs[:, 1]
+    A = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(P, P))
+    return A.tocsr()
+
+
+def smooth(values: np.ndarray, graph: sp.csr_matrix, steps: int = 3, within: np.ndarray | None = None) -> np.ndarray:
+    """`steps` rounds of averaging each value with its graph neighbours (a heat-diffusion denoiser).
+    With `within` (P,) labels, only neighbours of the same label are averaged."""
+    A = graph
+    if within is not None:
+        A = A.tocoo()
+        keep = within[A.row] == within[A.col]
+        A = sp.csr_matrix((A.data[keep], (A.row[keep], A.col[keep])), shape=graph.shape)
+    deg = np.asarray(A.sum(1)).ravel()
+    v = np.asarray(values, np.float64).copy()
+    for _ in range(steps):
+        v = (v + A @ v) / (1.0 + deg)
+    return v
+
+
+def components(mask: np.ndarray, graph: sp.csr_matrix) -> list[np.ndarray]:
+    """The connected pieces (index arrays) of the particles where `mask` is true, largest first."""
+    idx = np.where(mask)[0]
+    if len(idx) == 0:
+        return []
+    sub = graph[idx][:, idx]
+    n, lab = connected_components(sub, directed=False)
+    parts = [idx[lab == k] for k in range(n)]
+    return sorted(parts, key=len, reverse=True)
+
+
+def split_direction(labels: np.ndarray, region: int, part: np.ndarray) -> np.ndarray:
+    """v (P,): +1 - |A|/|R| on the part A, -|A|/|R| on the rest of region R, 0 elsewhere."""
+    v = np.zeros(len(labels))
+    inside = labels == region
+    a = np.zeros(len(labels), bool)
+    a[part] = True
+    share = a.sum() / max(inside.sum(), 1)
+    v[inside] = -share
+    v[a] += 1.0
+    return v
+
+
+def score_parts(score: np.ndarray, labels: np.ndarray, region: int, graph: sp.csr_matrix,
+                min_size: int) -> list[np.ndarray]:
+    """Candidate parts of `region` from the motion: where the (smoothed) score says the material
+    wants to be stiffer (negative dL/dlogE) against softer, split at the score's weighted median,
+    each side's largest connected piece (at least `min_size` particles, at most all but
+    `min_size`)."""
+    inside = labels == region
+    n = int(inside.sum())
+    if n < 2 * min_size:
+        return []
+    s = smooth(score, graph, steps=4, within=labels)
+    cut = float(np.median(s[inside]))
+    out = []
+    for side in (s < cut, s >= cut):
+        for piece in components(side & inside, graph)[:1]:
+            if min_size <= len(piece) <= n - min_size:
+                out.append(piece)
+    return out
+
+
+def appearance_parts(features: np.ndarray | None, labels: np.ndarray, region: int, graph: sp.csr_matrix,
+                     min_size: int, min_contrast: float = 0.08, seed: int = 0) -> list[np.ndarray]:
+    """Candidate parts of `region` from the appearance: two colour clusters (k-means on the
+    particles' local mean colours) when their centres differ by more than `min_contrast` (RGB
+    distance), each cluster's connected pieces of at least `min_size` particles."""
+    if features is None:
+        return []
+    from scipy.cluster.vq import kmeans2
+
+    inside = np.where(labels == region)[0]
+    if len(inside) < 2 * min_size:
+        return []
+    f = np.asarray(features, np.float64)[inside]
+    rng = np.random.default_rng(seed)
+    init = f[rng.choice(len(f), 2, replace=False)]
+    centres, lab = kmeans2(f, init, minit="matrix", seed=seed)
+    if len(np.unique(lab)) < 2 or np.linalg.norm(centres[0] - centres[1]) < min_contrast:
+        return []
+    out = []
+    for k in (0, 1):
+        mask = np.zeros(len(labels), bool)
+        mask[inside[lab == k]] = True
+        for piece in components(mask, graph):
+            if min_size <= len(piece) <= len(inside) - min_size:
+                out.append(piece)
+    return out
+
+
+def relabel_split(labels: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """The labels with `part` as a new region (the next free label)."""
+    out = labels.copy()
+    out[part] = labels.max() + 1
+    return out
+
+
+def attach_held(labels: np.ndarray, held: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Held particles (a support holds them: the video cannot see their material) take the label
+    of the nearest free particle."""
+    held = np.asarray(held, bool)
+    if not held.any() or held.all():
+        return labels
+    free = np.where(~held)[0]
+    _, nn = cKDTree(points[free]).query(points[held])
+    out = labels.copy()
+    out[held] = labels[free[nn]]
+    return out
+
+
+def one_hot(labels: np.ndarray) -> np.ndarray:
+    """(P, m) indicator basis of the regions 0..m-1 (a partition of unity)."""
+    m = int(labels.max()) + 1
+    B = np.zeros((len(labels), m))
+    B[np.arange(len(labels)), labels] = 1.0
+    return B
