@@ -17,9 +17,11 @@ from .app.init import choose_sim_settings, init
 from .app.interaction_spec import INTERACTION_DOC, parse_interaction
 from .app.simulate import simulate
 from .app.synth import synth, synth_scenes
+from .app.versions import list_versions
+from .app.versions import use as use_version
 from .extract import Hint, parse_hint
 
 __all__ = ["init", "info", "extract", "fit", "prepare_fit", "run_fit", "FitJob", "FitOutcome", "simulate",
            "evaluate", "export", "synth", "synth_scenes", "choose_sim_settings", "INTERACTION_DOC",
            "parse_interaction", "load_observations", "read_scene", "stage_contacts", "true_contacts", "Hint",
-           "parse_hint"]
+           "parse_hint", "list_versions", "use_version"]

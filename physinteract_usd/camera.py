@@ -16,6 +16,26 @@ from dataclasses import dataclass
 import numpy as np
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+ORTHONORMAL_TOL = 1e-3   # max |R^T R - I| of a camera pose's rotation
+
+
+def rotation_problem(c2w) -> str | None:
+    """None for a rigid camera-to-world matrix (orthonormal rotation, det +1, last row 0 0 0 1);
+    else what is wrong with it, in words."""
+    m = np.asarray(c2w, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        return "the transform must be a finite 4x4 matrix"
+    r = m[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > ORTHONORMAL_TOL:
+        norms = np.linalg.norm(r, axis=0)
+        return (f"the rotation is not orthonormal (max |R^T R - I| = {err:.3g}, column lengths "
+                f"{', '.join(f'{x:.4g}' for x in norms)}): a camera pose is a rotation and a translation")
+    if np.linalg.det(r) < 0:
+        return "the rotation is a reflection (det < 0)"
+    if abs(float(m[3, 3]) - 1.0) > 1e-6 or np.abs(m[3, :3]).max() > 1e-6:
+        return "the last row must be 0 0 0 1"
+    return None
 
 
 @dataclass

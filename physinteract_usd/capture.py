@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, rotation_problem
 from .errors import InputError
 from .frames import VIDEO_EXTS, FrameSource, ImageSequence, VideoFile, list_images, read_mask
 from .gaussians import Gaussians, is_gaussian_ply, read_ply
@@ -171,6 +171,9 @@ def read_transforms(path: str | os.PathLike, n_frames: int | None = None):
             raise InputError(path, f"{where}: transform_matrix must be a finite 4x4 matrix")
         if abs(np.linalg.det(a[:3, :3])) < 1e-9:
             raise InputError(path, f"{where}: transform_matrix has a singular rotation")
+        problem = rotation_problem(a)
+        if problem:
+            raise InputError(path, f"{where}: transform_matrix: {problem}")
         return a
 
     per_frame = [f for f in frames if isinstance(f, dict) and "transform_matrix" in f]

@@ -42,3 +42,27 @@ def device_name(device) -> str:
     import platform
 
     return f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+
+
+def quiet_warp_init(device=None) -> None:
+    """Initialise Warp now, without the "Warp CUDA warning: Could not find or load the NVIDIA CUDA
+    driver" line its native code prints on a machine without a GPU (when no GPU is asked for, that
+    line is only noise before a command's output or its one-line error)."""
+    import os
+    import sys
+
+    import warp as wp
+
+    if str(device).startswith("cuda") or getattr(wp._src.context, "runtime", None) is not None:
+        wp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+        wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)

@@ -26,15 +26,21 @@ class SimulationError(RuntimeError):
     """The simulation became unstable (non-finite state) or a particle left the grid domain."""
 
     def __init__(self, problem: str, frame: int | None = None, substep: int | None = None,
-                 advice: str = ""):
+                 advice: str = "", kind: str = ""):
         self.problem = problem
         self.frame = frame
         self.substep = substep
         self.advice = advice
+        self.kind = kind          # "unstable" | "domain" | "": lets a front end give its own advice
+        super().__init__(self.message())
+
+    def message(self, advice: str | None = None) -> str:
+        """The one-line message, with `advice` instead of the simulator's own when given."""
         where = ""
-        if frame is not None:
-            where = f" at frame {frame}" + (f" (substep {substep})" if substep is not None else "")
-        msg = f"simulation {problem}{where}"
+        if self.frame is not None:
+            where = f" at frame {self.frame}" + (f" (substep {self.substep})" if self.substep is not None else "")
+        msg = f"simulation {self.problem}{where}"
+        advice = self.advice if advice is None else advice
         if advice:
             msg += f"; {advice}"
-        super().__init__(msg)
+        return msg

@@ -178,6 +178,8 @@ class VideoFile(FrameSource):
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(self.path, "file not found")
+        # FFmpeg's own log ("moov atom not found", ...) would precede our one-line error
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
         cap = cv2.VideoCapture(str(self.path))
         ok, frame = (cap.read() if cap.isOpened() else (False, None))
         if not ok or frame is None:

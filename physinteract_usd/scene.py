@@ -78,9 +78,15 @@ class SceneData:
     effects: dict
     contacts: list                # contacts.ContactSet, each with its initial trajectory (T0) if any
     trajectories: list            # Trajectory: every trajectory prim (initial and fitted)
-    reports: list
+    reports: list                 # one dict per fit version, oldest first (usd.reports.read_report's keys,
+                                  # plus "current": bool and "snapshot": its v<N>.usdc or None)
     generator: str
     object_kind: str
+    current_version: int | None = None   # the fit version the stage shows (None: not fitted)
+
+    @property
+    def current_report(self) -> dict | None:
+        return next((r for r in self.reports if r.get("current")), None)
 
     @property
     def n_frames(self) -> int:

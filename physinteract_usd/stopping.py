@@ -97,13 +97,19 @@ def graceful(on_stop=None):
         _STATE.reset()
 
 
-def terminate_as_interrupt() -> None:
-    """SIGTERM raises KeyboardInterrupt like Ctrl-C (main thread only): temp files are removed and
-    the command exits 130 instead of dying where it stood."""
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block SIGTERM raises KeyboardInterrupt like Ctrl-C (main thread only): temp files
+    are removed and the command exits 130 instead of dying where it stood."""
     if threading.current_thread() is not threading.main_thread():
+        yield
         return
 
     def handler(signum, frame):
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, handler)
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

@@ -84,9 +84,10 @@ def stage_effects(sd: SceneData) -> dict:
 
 
 def effects_with_fitted(sd: SceneData) -> dict:
-    """The stage's effects with the values its last fit found for them."""
+    """The stage's effects with the values its current fit version found for them."""
     effects = stage_effects(sd)
-    if sd.reports:
-        for e, p in sd.reports[-1].get("effect_parameters", {}).items():
+    rep = sd.current_report
+    if rep is not None:
+        for e, p in rep.get("effect_parameters", {}).items():
             effects.setdefault(e, {}).update(p)
     return effects

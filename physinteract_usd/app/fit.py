@@ -6,8 +6,15 @@ The steps, each usable on its own (benchmarks and experiments swap a part):
    none; or the ground truth's with `contact_from`; or the caller's `contacts`), effects, settings
    and the resumed start -> a `FitJob`;
 2. `run_fit`: size a guessed support on the first fit, then the optimiser (`fit.fit`) -> FitResult;
-3. `write_fit_layer` (usd.fit_io) -> the version written.
-`fit` runs the three and returns a `FitOutcome`."""
+3. `write_fit_layer` (usd.fit_io) -> a new version (usd/versions.py: its snapshot in
+   `<stem>.versions/v<N>.usdc`; current when its loss is the lowest, with `keep_best`).
+`fit` runs the three and returns a `FitOutcome`.
+
+Stopping (docs/versions.md): SIGINT and SIGTERM ask the fit to stop; the simulator acts on it
+between frames, the optimiser keeps its best iterate, the confidence estimate is skipped, and the
+best iterate is written as an `interrupted` version (never current over a complete one). Every
+`checkpoint_every` iterations the best iterate goes to `<stem>.versions/checkpoint.npz`, which
+`resume` goes on from after a kill -9; a written version removes it."""
 
 from __future__ import annotations
 
@@ -17,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import stopping
 from ..devices import cpu_threads
 from ..errors import InputError
 from ..fit import FitProblem, FitResult, FitSettings
@@ -25,7 +33,14 @@ from ..fit.optimize import select_supports
 from ..fit.problem import Observations
 from ..scene import SceneData
 from ..usd.fit_io import write_fit_layer
+from ..usd.layout import LayerPaths
+from ..usd.versions import read_version_start
+from . import budget
 from .adapters import load_observations, read_scene, stage_contacts, stage_effects, true_contacts, true_hand_masks
+from .fit_checkpoint import FitTracker, fingerprint, load_checkpoint, remove_checkpoint
+
+DEFAULT_ITERATIONS = 60
+CHECKPOINT_EVERY = 5
 
 
 @dataclass
@@ -41,6 +56,9 @@ class FitJob:
     device: str = "cpu"
     start: dict | None = None            # resume: {"youngs", "poisson", "trajectories"}
     source: str = "extracted"            # where the contacts came from: extracted | groundTruth | caller
+    resumed_from: str = ""               # "" | "v<N>" | "checkpoint"
+    history: list = field(default_factory=list)   # a resumed checkpoint's loss history
+    problem: FitProblem | None = None    # built by run_fit (kept for the last pass after a late stop)
 
 
 @dataclass
@@ -49,12 +67,21 @@ class FitOutcome:
     version: int
     layer: str
     contacts: list = field(default_factory=list)
+    current: int | None = None           # the version current after this fit
+    reason: str = ""                     # why the new version is (or is not) current
+    snapshot: str = ""                   # <stem>.versions/v<N>.usdc
+    stopped_by: str | None = None        # the signal that stopped the fit (SIGINT, SIGTERM)
+    confidence_estimated: bool = True
 
     def summary(self) -> dict:
         """The JSON-able summary `fit --json` prints."""
         r = self.result
         fm = r.frame_metrics
-        return {"version": self.version, "layer": self.layer, "iterations": len(r.loss_history),
+        return {"version": self.version, "layer": self.layer, "snapshot": self.snapshot,
+                "current_version": self.current, "is_current": self.current == self.version,
+                "current_reason": self.reason, "status": "interrupted" if r.interrupted else "complete",
+                "stopped_by": self.stopped_by, "confidence_estimated": self.confidence_estimated,
+                "iterations": len(r.loss_history),
                 "final_loss": r.final_loss, "runtime_s": r.runtime_s, "device": r.device,
                 "interrupted": r.interrupted,
                 "psnr": float(np.mean([min(f["psnr"], 100) for f in fm])),
@@ -65,12 +92,47 @@ class FitOutcome:
                 "confidence_mean": float(r.confidence.mean())}
 
 
-def prepare_fit(stage_path, *, iterations=60, joint=True, contact_from=None, contacts=None, hand_masks=None,
-                device="cpu", seed=0, resume=False, log=print, settings_overrides=None) -> FitJob:
+def check_iterations(iterations) -> None:
+    if iterations is None:
+        return
+    if isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer)) or iterations < 1:
+        raise InputError("--iterations", f"must be a whole number >= 1, got {iterations!r}")
+
+
+def resume_start(stage_path, sd: SceneData, contacts) -> tuple[dict, str, dict | None]:
+    """Where `--resume` goes on from: a killed fit's checkpoint, else the newest version's
+    snapshot, else (a stage fitted before versions) the stage's current field. Returns (start,
+    "checkpoint" | "v<N>", the checkpoint or None)."""
+    lp = LayerPaths.of(stage_path)
+    ck = load_checkpoint(lp.checkpoint)
+    if ck is not None:
+        want = fingerprint(sd, contacts)
+        have = ck.get("fingerprint") or {}
+        if (have.get("particles"), have.get("frames")) != (want["particles"], want["frames"]):
+            raise InputError(lp.checkpoint, f"fit checkpoint of {have.get('particles')} particles and "
+                             f"{have.get('frames')} frames does not match the stage ({want['particles']}, "
+                             f"{want['frames']}): delete it to start afresh")
+        if len(ck["start"]["youngs"]) != want["particles"]:
+            raise InputError(lp.checkpoint, "fit checkpoint's material field does not match the stage's particles")
+        return ck["start"], "checkpoint", ck
+    if not sd.reports:
+        raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
+    newest = sd.reports[-1]
+    if newest.get("snapshot"):
+        return read_version_start(stage_path, newest["version"]), f"v{newest['version']}", None
+    start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
+             "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
+    return start, f"v{sd.current_version or newest['version']}", None
+
+
+def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=None, contacts=None,
+                hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None) -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
-    when it has none."""
+    when it has none. `resume`: go on from a killed fit's checkpoint or the newest version
+    (`iterations` None: the checkpoint's remaining iterations, else the default)."""
+    check_iterations(iterations)
     stage_path = Path(stage_path)
     sd = read_scene(stage_path)
     obs = load_observations(sd, with_hand_masks=False)
@@ -92,16 +154,42 @@ def prepare_fit(stage_path, *, iterations=60, joint=True, contact_from=None, con
             sd = read_scene(stage_path)
             contacts = stage_contacts(sd)
         obs = load_observations(sd)
+    start, resumed_from, history = None, "", []
+    if resume:
+        start, resumed_from, ck = resume_start(stage_path, sd, contacts)
+        if ck is not None:
+            history = list(ck.get("history") or [])
+            if iterations is None:
+                iterations = max(int(ck.get("budget") or DEFAULT_ITERATIONS) - int(ck.get("iteration") or 0), 1)
+            log(f"resuming from the checkpoint of a stopped fit (iteration {ck.get('iteration')} of "
+                f"{ck.get('budget')}, written {ck.get('created')}): {iterations} iterations more")
+        else:
+            log(f"resuming from {resumed_from}")
+    if iterations is None:
+        iterations = DEFAULT_ITERATIONS
     settings = FitSettings(iterations=iterations, joint=joint, seed=seed)
     if settings_overrides:
         settings = dataclasses.replace(settings, **settings_overrides)
-    start = None
-    if resume:
-        if not sd.reports:
-            raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
-        start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
-                 "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
-    return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source)
+    return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
+                  resumed_from, history)
+
+
+def estimate_seconds(job: FitJob) -> float:
+    """The fit's estimated wall time (app/budget.py's cost model)."""
+    sd, s = job.scene, job.settings
+    return budget.fit_seconds(int(s.iterations), len(sd.particles_positions), int(np.prod(sd.settings.grid_resolution)),
+                              sd.settings.substeps, sd.n_frames, job.device, 0 if job.start else s.search_evals,
+                              s.confidence_probes)
+
+
+def check_cost(job: FitJob, yes: bool) -> float:
+    """InputError (one line, with the cost) for a fit that would take hours, unless `yes`."""
+    sd, s = job.scene, job.settings
+    return budget.check_fit_cost(int(s.iterations), len(sd.particles_positions),
+                                 int(np.prod(sd.settings.grid_resolution)), sd.settings.substeps, sd.n_frames,
+                                 job.device, yes=yes, stage=str(job.stage_path),
+                                 search_evals=0 if job.start else s.search_evals,
+                                 confidence_probes=s.confidence_probes)
 
 
 def make_problem(job: FitJob, contacts=None) -> FitProblem:
@@ -113,9 +201,9 @@ def make_problem(job: FitJob, contacts=None) -> FitProblem:
         raise InputError(job.stage_path, str(exc)) from None
 
 
-def run_fit(job: FitJob, *, progress=True, log=print) -> FitResult:
+def run_fit(job: FitJob, *, progress=True, log=print, on_iteration=None) -> FitResult:
     """Run the optimiser on a job (the first fit of a guessed support sizes it first); the job's
-    contacts become the ones the result was fitted with."""
+    contacts become the ones the result was fitted with. `on_iteration`: the optimiser's callback."""
     uniform_e = None
     s = job.settings
     if (s.select_supports and job.source == "extracted" and job.start is None and not job.scene.reports
@@ -132,16 +220,75 @@ def run_fit(job: FitJob, *, progress=True, log=print) -> FitResult:
         job.contacts = contacts
     else:
         prob = make_problem(job)
-    return optimise(prob, s, progress=progress, log=log, start=job.start, uniform_e=uniform_e)
+    job.problem = prob
+    return optimise(prob, s, progress=progress, log=log, start=job.start, uniform_e=uniform_e,
+                    on_iteration=on_iteration)
 
 
-def fit(stage_path, *, iterations=60, joint=True, contact_from=None, contacts=None, hand_masks=None, device="cpu",
-        seed=0, resume=False, progress=True, log=print, settings_overrides=None) -> FitOutcome:
-    """Fit the stage's material field and trajectory to its video; write scene.fit.usdc."""
+def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
+    """A stop that landed outside the optimiser's loop (in its last pass or its confidence
+    estimate): the tracker's best iterate, through the optimiser's last pass alone."""
+    start = tracker.start()
+    if start is None or job.problem is None:
+        return None
+    log("stopped after the iterations: writing the best iterate without its confidence")
+    s = dataclasses.replace(job.settings, iterations=0, confidence_probes=0)
+    r = optimise(job.problem, s, progress=False, log=None, start=start)
+    r.loss_history = list(tracker.history)
+    r.interrupted = not tracker.loop_done
+    return r
+
+
+def fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=None, contacts=None, hand_masks=None,
+        device="cpu", seed=0, resume=False, progress=True, log=print, settings_overrides=None, keep_best=True,
+        checkpoint_every=CHECKPOINT_EVERY, yes=True) -> FitOutcome:
+    """Fit the stage's material field and trajectory to its video; write it as a new version
+    (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `keep_best`: the new version becomes current
+    only if its loss is below the current one's; `checkpoint_every`: iterations between
+    checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours.
+    SIGINT / SIGTERM stop it cleanly (the best iterate is written, `outcome.stopped_by` says so);
+    a second signal quits without writing (the checkpoint stays)."""
+    check_iterations(iterations)
+    if checkpoint_every is None or int(checkpoint_every) < 0:
+        raise InputError("--checkpoint-every", f"must be >= 0, got {checkpoint_every!r}")
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
                       settings_overrides=settings_overrides)
-    result = run_fit(job, progress=progress, log=log)
-    info = write_fit_layer(job.stage_path, job.scene, result, job.contacts)
-    return FitOutcome(result, info["version"], info["layer"], job.contacts)
+    check_cost(job, yes)
+    lp = LayerPaths.of(job.stage_path)
+    probes = int(job.settings.confidence_probes)
+    names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built
+    tracker = FitTracker(lp.checkpoint if checkpoint_every else None, fingerprint(job.scene, job.contacts),
+                         int(job.settings.iterations), names, every=int(checkpoint_every or 0),
+                         history=job.history, resumed_from=job.resumed_from)
+
+    def on_iteration(it, loss, mat, trajs):
+        if job.problem is not None and tracker.names is names:
+            tracker.names = job.problem.sim.slot_names()
+        tracker(it, loss, mat, trajs)
+
+    def on_stop():  # in the signal handler: a stopped fit skips its confidence estimate
+        job.settings.confidence_probes = 0
+
+    with stopping.graceful(on_stop=on_stop):
+        late = False
+        try:
+            result = run_fit(job, progress=progress, log=log, on_iteration=on_iteration)
+        except stopping.StopRequested as stop:
+            result, late = _finish_from(job, tracker, log), True
+            if result is None:
+                log(f"{stop.signal}: stopped before the first iteration; nothing written")
+                raise KeyboardInterrupt from None
+        stopped_by = stopping.requested()
+        conf_ok = probes > 0 and not late and int(result.settings.get("confidence_probes", 0)) > 0
+        result.settings["confidence_probes"] = probes   # what was asked; confidenceEstimated says what ran
+        if job.history:   # resumed from a checkpoint: the version holds the whole fit's history
+            result.loss_history = list(job.history) + list(result.loss_history)
+        info = write_fit_layer(job.stage_path, job.scene, result, job.contacts, keep_best=keep_best,
+                               confidence_estimated=conf_ok, resumed_from=job.resumed_from)
+        remove_checkpoint(lp.checkpoint)
+    job.settings.confidence_probes = probes
+    return FitOutcome(result, info["version"], info["layer"], job.contacts, current=info["current"],
+                      reason=info["reason"], snapshot=info["snapshot"], stopped_by=stopped_by,
+                      confidence_estimated=conf_ok)

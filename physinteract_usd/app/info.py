@@ -39,8 +39,11 @@ def info(stage_path) -> dict:
                          for t in sd.trajectories],
         "fits": [{"version": r["version"], "effects": r["effects"],
                   "psnr": float(np.mean(r["psnr"])) if r["psnr"] else None,
-                  "final_loss": r["final_loss"], "runtime_s": r["runtime_s"], "device": r["device"]}
+                  "final_loss": r["final_loss"], "runtime_s": r["runtime_s"], "device": r["device"],
+                  "status": r.get("status", "complete"), "current": bool(r.get("current")),
+                  "restorable": bool(r.get("snapshot"))}
                  for r in sd.reports],
+        "current_version": sd.current_version,
     }
     e = sd.youngs_modulus
     d["material"] = {"youngs_modulus_pa": {"min": float(e.min()), "median": float(np.median(e)), "max": float(e.max())},

@@ -11,11 +11,22 @@ import argparse
 import sys
 
 from .. import __version__
-from ..devices import check_device
+from ..devices import check_device, quiet_warp_init
 from ..errors import InputError, SimulationError
-from . import evaluate, export, extract, fit, info, init, simulate, synth
+from ..stopping import sigterm_as_interrupt
+from . import evaluate, export, extract, fit, info, init, simulate, synth, versions
 
-VERBS = [init, info, synth, extract, fit, evaluate, simulate, export]   # in the order `-h` lists them
+VERBS = [init, info, synth, extract, fit, versions, evaluate, simulate, export]   # in the order `-h` lists them
+
+
+# what to change, in flags, for the simulator's failures (its own advice names its classes)
+CLI_ADVICE = {
+    "domain": "a softer material sags further and a longer pull reaches further: give the object more room "
+              "(`init --padding`, larger), raise the smallest E it may have (`init --youngs-range MIN,MAX`), "
+              "or check the trajectory",
+    "unstable": "the substep is too long for the stiffness reached: lower the largest E (`init --youngs-range "
+                "MIN,MAX`) or --max-poisson, or slow the trajectory",
+}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -41,13 +52,16 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        check_device(getattr(args, "device", None))
-        return args.run(args)
+        device = getattr(args, "device", None)
+        check_device(device)
+        quiet_warp_init(device)
+        with sigterm_as_interrupt():   # SIGTERM (timeout, schedulers) ends a verb as Ctrl-C does: exit 130
+            return args.run(args)
     except InputError as exc:
         print(f"physinteract-usd {args.verb}: error: {exc.oneline()}", file=sys.stderr)
         return 2
     except SimulationError as exc:
-        print(f"physinteract-usd {args.verb}: {exc}", file=sys.stderr)
+        print(f"physinteract-usd {args.verb}: {exc.message(CLI_ADVICE.get(exc.kind))}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
         print(f"physinteract-usd {args.verb}: interrupted", file=sys.stderr)
@@ -57,6 +71,11 @@ def main(argv=None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # a file that cannot be written or read where the checks did not foresee it
+        where = exc.filename or ""
+        print(f"physinteract-usd {args.verb}: error: {where}{': ' if where else ''}{exc.strerror or exc}",
+              file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

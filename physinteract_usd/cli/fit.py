@@ -11,14 +11,25 @@ from .common import progress_log
 def add_parser(sub):
     s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
     s.add_argument("stage")
-    s.add_argument("--iterations", type=int, default=60, help="optimiser iterations (default 60)")
+    s.add_argument("--iterations", type=int, default=None,
+                   help="optimiser iterations (default 60; with --resume after a killed fit: the ones it had left)")
     s.add_argument("--no-joint", action="store_true",
                    help="keep the trajectory at its initialisation T0 (the paper's w/o JO ablation)")
     s.add_argument("--contact-from", metavar="DIR/gt", help="take contacts, supports and T0 from a synthetic "
                    "capture's ground truth instead of the stage / extraction")
     s.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     s.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable)")
-    s.add_argument("--resume", action="store_true", help="start from the stage's last fit")
+    s.add_argument("--resume", action="store_true", help="go on from a stopped fit's checkpoint, else from the "
+                   "newest version")
+    kb = s.add_mutually_exclusive_group()
+    kb.add_argument("--keep-best", dest="keep_best", action="store_true", default=True,
+                    help="the new version becomes current only if its loss is below the current one's (default)")
+    kb.add_argument("--no-keep-best", dest="keep_best", action="store_false",
+                    help="the new version becomes current (unless it was interrupted and the current one is complete)")
+    s.add_argument("--checkpoint-every", type=int, default=5, metavar="N",
+                   help="write the best iterate to <stem>.versions/checkpoint.npz every N iterations, for --resume "
+                        "after a kill (default 5; 0: never)")
+    s.add_argument("--yes", action="store_true", help="go on even when the fit is estimated to take hours")
     s.add_argument("--appearance", type=float, default=None, metavar="W",
                    help="weight of the appearance prior (material parts follow colour edges; default 1, "
                         "0 turns it off, with the smoothness back to its weak edge-blind 0.02: for objects whose "
@@ -31,22 +42,35 @@ def run(a) -> int:
     from .. import api
 
     log = progress_log(a.json)
-    if a.appearance is not None and a.appearance < 0:
+    if a.iterations is not None and a.iterations < 1:
+        raise InputError("--iterations", f"must be at least 1, got {a.iterations}")
+    if a.checkpoint_every < 0:
+        raise InputError("--checkpoint-every", f"must be >= 0, got {a.checkpoint_every}")
+    if a.appearance is not None and not a.appearance >= 0:
         raise InputError(a.stage, f"--appearance must be >= 0, got {a.appearance}")
     over = {"appearance": a.appearance} if a.appearance is not None else None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
-                      device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over)
+                      device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,
+                      keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes)
     summary = outcome.summary()
     if a.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"fit v{summary['version']} written to {summary['layer']}"
-              + (" (interrupted: best iterate kept)" if summary["interrupted"] else ""))
+        stopped = (f" (stopped by {summary['stopped_by']}: best iterate kept)" if summary["stopped_by"]
+                   else " (interrupted: best iterate kept)" if summary["interrupted"] else "")
+        print(f"fit v{summary['version']} written to {summary['layer']}{stopped}")
+        cur = summary["current_version"]
+        if summary["is_current"]:
+            print(f"  v{summary['version']} is now current: {summary['current_reason']}")
+        else:
+            print(f"  v{summary['version']} is kept as a version ({summary['snapshot']}); v{cur} stays current: "
+                  f"{summary['current_reason']}")
         print(f"  {summary['iterations']} iterations in {summary['runtime_s']:.0f} s on {summary['device']}, "
               f"loss {summary['final_loss']:.5f}")
         print(f"  PSNR {summary['psnr']:.2f} dB (masked {summary['psnr_masked']:.2f}), SSIM {summary['ssim']:.3f}, "
               f"IoU {summary['iou']:.3f}")
         e = summary["youngs_modulus_pa"]
-        print(f"  E {e['min']:.3g} .. {e['max']:.3g} Pa (median {e['median']:.3g}), mean confidence "
-              f"{summary['confidence_mean']:.2f}")
-    return 130 if summary["interrupted"] else 0
+        conf = (f"mean confidence {summary['confidence_mean']:.2f}" if summary["confidence_estimated"]
+                else "confidence not estimated (stopped)")
+        print(f"  E {e['min']:.3g} .. {e['max']:.3g} Pa (median {e['median']:.3g}), {conf}")
+    return 130 if summary["interrupted"] or summary["stopped_by"] else 0

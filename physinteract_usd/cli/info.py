@@ -55,8 +55,11 @@ def format_info(d: dict) -> str:
     if d["fits"]:
         for r in d["fits"]:
             psnr = f"PSNR {r['psnr']:.2f} dB, " if r["psnr"] is not None else ""
-            lines.append(f"fit v{r['version']}      effects [{', '.join(r['effects']) or 'none'}], {psnr}"
-                         f"loss {r['final_loss']:.4g}, {r['runtime_s']:.0f} s on {r['device']}")
+            tags = ([r["status"]] if r.get("status", "complete") != "complete" else []) + \
+                (["current"] if r.get("current") else []) + ([] if r.get("restorable", True) else ["report only"])
+            lines.append(f"fit v{r['version']:<6} effects [{', '.join(r['effects']) or 'none'}], {psnr}"
+                         f"loss {r['final_loss']:.4g}, {r['runtime_s']:.0f} s on {r['device']}"
+                         + (f"  ({', '.join(tags)})" if tags else ""))
     else:
         lines.append("fits        none yet")
     return "\n".join(lines)

@@ -1,6 +1,6 @@
-"""What fits and re-simulations write: the fit layer's material field, animation, contacts and
-report (`write_fit_layer`), a re-simulation's own layer (`write_simulation_layer`), and the
-animation a stage shows (`read_splat_animation`)."""
+"""What fits and re-simulations write: a fit version's material field, animation, contacts and
+report (`write_fit_layer`, through the versions of usd/versions.py), a re-simulation's own layer
+(`write_simulation_layer`), and the animation a stage shows (`read_splat_animation`)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
 
 from ..gaussians import scales_quats_from_covariance
 from ..scene import SceneData
-from .contacts import remove_contacts, write_contact, write_trajectory
-from .layout import (GENERATOR, OBJECT, PARTICLES, SCENE, SPLATS, LayerPaths, atomic_outputs, mark_layer,
-                     open_fit_layer, remove_prim_spec, save_layer, set_stage_metadata)
-from .reports import json_default, report_versions, write_report
+from .contacts import write_contact, write_trajectory
+from .layout import GENERATOR, PARTICLES, SCENE, SPLATS, LayerPaths, atomic_outputs, set_stage_metadata
+from .reports import json_default, write_report
 from .stage import open_stage
+from .versions import commit_version, now_utc
 
 
 def _splat_samples(covs: np.ndarray):
@@ -52,23 +52,16 @@ def author_animation(stage: Usd.Stage, positions, gaussian_means, gaussian_covs)
         a_scl.Set(Vt.Vec3fArray.FromNumpy(scales[k].astype(np.float32)), tc)
 
 
-def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, effect_parameters: dict | None = None) -> dict:
-    """Write a fit into scene.fit.usdc (atomically), keeping earlier versions' reports and what
-    extraction wrote besides contacts (hand masks).
-
-    Authors: the material field (primvars on SimParticles and, per Gaussian, on Splats), the
-    confidence, the contacts used (`contacts.ContactSet`s, with their T0) and the fitted
-    trajectories, the simulated animation, and a PhysInteractFitReport for this model version.
-    Returns {"version", "layer"}."""
-    lp = LayerPaths.of(stage_path)
-    layer = open_fit_layer(lp, scene.fps, scene.n_frames)
-    version = max(report_versions(layer, SCENE), default=0) + 1
-    remove_prim_spec(layer, OBJECT)                  # the last fit's material and animation
-    remove_contacts(layer, SCENE)                    # ... and the contacts it (or extraction) wrote
-    stage = Usd.Stage.Open(layer)
+def author_fit_content(stage: Usd.Stage, scene: SceneData, result, contacts, *,
+                       confidence=None) -> None:
+    """A fit's content, authored as overs on `stage`: the material field (primvars on SimParticles
+    and, per Gaussian, on Splats), the confidence, the simulated animation, the contacts used
+    (`contacts.ContactSet`s, with their T0) and the fitted trajectories. `confidence`: (per
+    particle, per Gaussian) to write instead of the result's (a stopped fit's zeros)."""
     f32 = lambda a: Vt.FloatArray.FromNumpy(np.asarray(a, np.float32))  # noqa: E731
-    for path, vals in ((PARTICLES, (result.youngs, result.poisson, result.confidence)),
-                       (SPLATS, (result.youngs_gaussian, result.poisson_gaussian, result.confidence_gaussian))):
+    conf_p, conf_g = confidence if confidence is not None else (result.confidence, result.confidence_gaussian)
+    for path, vals in ((PARTICLES, (result.youngs, result.poisson, conf_p)),
+                       (SPLATS, (result.youngs_gaussian, result.poisson_gaussian, conf_g))):
         pv = UsdGeom.PrimvarsAPI(stage.OverridePrim(path))
         for name, v in zip(("youngsModulus", "poissonRatio", "confidence"), vals):
             pv.CreatePrimvar(f"physinteract:{name}", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(f32(v))
@@ -79,10 +72,28 @@ def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, effect_pa
         fitted = result.trajectories.get(c.name)
         if fitted is not None:
             write_trajectory(stage, SCENE, c.name, fitted, "fitted", scene.fps)
-    write_report(stage, SCENE, version, result, effect_parameters)
-    mark_layer(layer, layer="fit", version=version)
-    save_layer(layer, lp.fit)
-    return {"version": version, "layer": str(lp.fit)}
+
+
+def write_fit_layer(stage_path, scene: SceneData, result, contacts, *, effect_parameters: dict | None = None,
+                    keep_best: bool = True, confidence_estimated: bool = True, resumed_from: str = "") -> dict:
+    """Write a fit as a new version (usd/versions.py): its full snapshot in
+    `<stem>.versions/v<N>.usdc`, its PhysInteractFitReport in scene.fit.usdc beside every earlier
+    version's, and its content (`author_fit_content`) into scene.fit.usdc when it becomes current:
+    with `keep_best`, when its loss is lower than the current version's; an interrupted fit never
+    replaces a complete one. What extraction wrote besides contacts (hand masks) stays.
+    Returns {"version", "layer", "snapshot", "current", "made_current", "reason"}."""
+    status = "interrupted" if result.interrupted else "complete"
+    conf = None
+    if not confidence_estimated:  # not estimated: claim nothing (0), and say so in the report
+        conf = (np.zeros_like(result.confidence), np.zeros_like(result.confidence_gaussian))
+
+    def author(stage, version):
+        author_fit_content(stage, scene, result, contacts, confidence=conf)
+        write_report(stage, SCENE, version, result, effect_parameters, status=status, created=now_utc(),
+                     confidence_estimated=confidence_estimated, resumed_from=resumed_from)
+
+    return commit_version(stage_path, scene, author, status=status, final_loss=float(result.final_loss),
+                          keep_best=keep_best)
 
 
 def read_splat_animation(path) -> dict:

@@ -5,7 +5,10 @@ and the paths of its prims.
 scene.usda            the user's thin root: stage metadata, their choices (effects, overrides),
                       subLayers = [./scene.fit.usdc, ./scene.init.usdc]
 scene.init.usdc       written by `init`: object, particles, camera, PhysInteractScene
-scene.fit.usdc        written by `extract`, `fit` (empty after `init`)
+scene.fit.usdc        written by `extract`, `fit` (empty after `init`): every version's
+                      PhysInteractFitReport and the current version's material, animation, contacts
+scene.versions/       written by `fit`: v<N>.usdc, the full snapshot of fit version N (what it wrote
+                      into the fit layer), and checkpoint.npz while a fit runs (`fit --resume`)
 ```
 Every writer edits an anonymous copy and renames a temp file into place: nothing is half-written,
 and nothing the user authored in the root layer is touched.
@@ -50,6 +53,18 @@ class LayerPaths:
     def of(root) -> "LayerPaths":
         root = Path(root)
         return LayerPaths(root, root.with_name(f"{stem(root)}.init.usdc"), root.with_name(f"{stem(root)}.fit.usdc"))
+
+    @property
+    def versions(self) -> Path:
+        """`<stem>.versions/`: one snapshot layer per fit version, and a running fit's checkpoint."""
+        return self.sibling(".versions")
+
+    def version_layer(self, n: int) -> Path:
+        return self.versions / f"v{int(n)}.usdc"
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.versions / "checkpoint.npz"
 
     def sibling(self, suffix: str) -> Path:
         """`<stem><suffix>` next to the root layer (e.g. ".extract", ".sim.pull.usdc")."""
@@ -105,10 +120,35 @@ def check_our_root(path: Path) -> Sdf.Layer:
     return layer
 
 
+def layer_kind(path: Path) -> str | None:
+    """The physinteract layer kind a file says it is ("root", "init", "fit", "version", ...), or
+    None for a file that is not one of ours (or not a USD layer at all)."""
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # noqa: BLE001  (a Tf error: not a USD layer)
+        return None
+    if layer is None:
+        return None
+    data = dict(layer.customLayerData).get("physinteract")
+    return str(data.get("layer", "")) if isinstance(data, dict) else None
+
+
+def check_owned(path: Path, kind: str) -> None:
+    """InputError unless the existing file at `path` is a physinteract `kind` layer: a file another
+    tool wrote under our name is never written over."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(path, f"is a folder where the stage's {kind} layer belongs")
+    if path.exists() and layer_kind(path) != kind:
+        raise InputError(path, f"is not a physinteract-usd {kind} layer (written by another tool?): "
+                         "it is left alone; move it away or choose another stage name")
+
+
 def open_fit_layer(lp: LayerPaths, fps: float, n_frames: int) -> Sdf.Layer:
     """An anonymous, editable copy of the stage's fit layer (or a new one): the one way every verb
     that writes the fit layer opens it. Save it with `save_layer(layer, lp.fit)`."""
     if lp.fit.exists():
+        check_owned(lp.fit, "fit")
         layer = Sdf.Layer.OpenAsAnonymous(str(lp.fit))
         if layer is None:
             raise InputError(lp.fit, "cannot be opened as a USD layer")

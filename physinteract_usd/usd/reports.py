@@ -1,6 +1,8 @@
 """The stage codec of fit reports: one `PhysInteractFitReport` prim per fitted model version,
-`/World/PhysInteract/FitReport_v<N>` (version, effects, per-frame metrics, loss history, runtime,
-device, settings and effect parameters as JSON)."""
+`/World/PhysInteract/FitReport_v<N>` (version, status, creation time, effects, per-frame metrics,
+loss history, final loss, runtime, device, settings and effect parameters as JSON, whether the
+confidence was estimated, what the fit started from). Read back as a dict: the keys of
+`read_report` are what `SceneData.reports`, `versions list --json` and the report verb use."""
 
 from __future__ import annotations
 
@@ -21,18 +23,34 @@ def json_default(o):
     return str(o)
 
 
+def _mean(v) -> float | None:
+    v = [float(x) for x in v if np.isfinite(x)]
+    return float(np.mean(v)) if v else None
+
+
 def read_report(prim: Usd.Prim) -> dict:
+    """{"name", "version", "status" (complete | interrupted), "created" (ISO 8601 UTC, "" for a
+    report written before versions had one), "effects", "frames", per-frame "psnr",
+    "psnr_masked", "ssim", "iou", their means in "metrics", "loss_history", "final_loss",
+    "runtime_s", "device", "settings", "effect_parameters", "confidence_estimated",
+    "resumed_from"}."""
     g = lambda n: prim.GetAttribute(f"physinteract:{n}").Get()  # noqa: E731
     arr = lambda n: list(g(n) or [])  # noqa: E731
     settings = g("settings") or ""
     params = g("effectParameters") or ""
-    return {"name": prim.GetName(), "version": int(g("version")), "effects": [str(x) for x in arr("effects")],
-            "frames": [int(x) for x in arr("frameIndices")], "psnr": arr("framePsnr"),
-            "psnr_masked": arr("framePsnrMasked"), "ssim": arr("frameSsim"), "iou": arr("frameIou"),
-            "loss_history": arr("lossHistory"), "final_loss": float(g("finalLoss")),
-            "runtime_s": float(g("runtimeSeconds")), "device": str(g("device")),
-            "settings": json.loads(settings) if settings else {},
-            "effect_parameters": json.loads(params) if params else {}}
+    ce = g("confidenceEstimated")
+    out = {"name": prim.GetName(), "version": int(g("version")), "status": str(g("status") or "complete"),
+           "created": str(g("createdTime") or ""), "effects": [str(x) for x in arr("effects")],
+           "frames": [int(x) for x in arr("frameIndices")], "psnr": arr("framePsnr"),
+           "psnr_masked": arr("framePsnrMasked"), "ssim": arr("frameSsim"), "iou": arr("frameIou"),
+           "loss_history": arr("lossHistory"), "final_loss": float(g("finalLoss")),
+           "runtime_s": float(g("runtimeSeconds")), "device": str(g("device")),
+           "settings": json.loads(settings) if settings else {},
+           "effect_parameters": json.loads(params) if params else {},
+           "confidence_estimated": True if ce is None else bool(ce),
+           "resumed_from": str(g("resumedFrom") or "")}
+    out["metrics"] = {k: _mean(out[k]) for k in ("psnr", "psnr_masked", "ssim", "iou")}
+    return out
 
 
 def report_versions(layer: Sdf.Layer, parent: Sdf.Path) -> list[int]:
@@ -48,14 +66,19 @@ def report_versions(layer: Sdf.Layer, parent: Sdf.Path) -> list[int]:
     return out
 
 
-def write_report(stage: Usd.Stage, parent: Sdf.Path, version: int, result, effect_parameters: dict | None = None):
+def write_report(stage: Usd.Stage, parent: Sdf.Path, version: int, result, effect_parameters: dict | None = None,
+                 *, status: str = "complete", created: str = "", confidence_estimated: bool = True,
+                 resumed_from: str = ""):
     """The report of model version `version` from a fit result (its frame metrics, loss history,
-    final loss, runtime, device, settings and effects)."""
+    final loss, runtime, device, settings and effects) and what the version record adds: status
+    (complete | interrupted), creation time, whether the confidence was estimated, what it resumed."""
     f32 = lambda a: Vt.FloatArray.FromNumpy(np.asarray(a, np.float32))  # noqa: E731
     rp = stage.DefinePrim(parent.AppendChild(f"{REPORT_PREFIX}{version}"), REPORT_TYPE)
     fm = result.frame_metrics
     ra = lambda name, v: rp.GetAttribute(f"physinteract:{name}").Set(v)  # noqa: E731
     ra("version", version)
+    ra("status", status)
+    ra("createdTime", created)
     ra("effects", Vt.TokenArray(sorted(result.effects)))
     ra("frameIndices", Vt.IntArray([int(f["frame"]) for f in fm]))
     for key, attr in (("psnr", "framePsnr"), ("psnr_masked", "framePsnrMasked"), ("ssim", "frameSsim"),
@@ -67,4 +90,6 @@ def write_report(stage: Usd.Stage, parent: Sdf.Path, version: int, result, effec
     ra("device", str(result.device))
     ra("settings", json.dumps(result.settings, default=json_default))
     ra("effectParameters", json.dumps(effect_parameters or {}, default=json_default))
+    ra("confidenceEstimated", bool(confidence_estimated))
+    ra("resumedFrom", str(resumed_from))
     return rp

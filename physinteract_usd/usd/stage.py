@@ -17,7 +17,8 @@ from ..gaussians import Gaussians
 from ..scene import SceneData, SimSettings
 from . import EFFECT_APIS
 from .contacts import read_contacts
-from .reports import REPORT_TYPE, read_report
+from . import validate as V
+from .versions import stage_versions
 from .layout import (CAMERA, GENERATOR, MESH, OBJECT, PARTICLES, PRIMVAR_CONF, PRIMVAR_E, PRIMVAR_NU,
                      PRIMVAR_SURFACE, PRIMVAR_VOLUME, SCENE, SPLATS, WORLD, LayerPaths, atomic_outputs,
                      check_our_root, set_stage_metadata)
@@ -292,13 +293,24 @@ def read_stage(path) -> SceneData:
     stage = open_stage(path)
     scene = stage.GetPrimAtPath(SCENE)
     ga = lambda name: scene.GetAttribute(f"physinteract:{name}").Get()  # noqa: E731
+    root_file = str(path)
+    V.check_scene_prim(scene, root_file)   # every authored value is checked before it is used
     w, h = ga("imageResolution")
     start, end = int(ga("startFrame")), int(ga("endFrame"))
+    cam_prim = stage.GetPrimAtPath(CAMERA)
+    if cam_prim and cam_prim.IsA(UsdGeom.Camera):
+        V.check_camera_pose(cam_prim, root_file, end + 1)
     cam = read_camera(stage, int(w), int(h), n_frames=end + 1)
-    g = read_splats(stage)
     pprim = stage.GetPrimAtPath(PARTICLES)
     if not pprim:
         raise InputError(path, f"no simulation particles at {PARTICLES}")
+    e_range = (float(ga("youngsModulusMin")), float(ga("youngsModulusMax")))
+    n_particles = V.check_particles(pprim, root_file, e_range, float(ga("poissonRatioMax")))
+    sprim = stage.GetPrimAtPath(SPLATS)
+    if sprim:
+        V.check_splats(sprim, root_file, e_range, float(ga("poissonRatioMax")))
+    V.check_contact_indices(scene, root_file, n_particles)
+    g = read_splats(stage)
     pts = np.array(UsdGeom.Points(pprim).GetPointsAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
 
     def pv(prim, name, default=None):
@@ -324,8 +336,7 @@ def read_stage(path) -> SceneData:
                     params[prop.split(":")[-1]] = scene.GetAttribute(prop).Get()
             effects[name] = params
     contacts, trajectories = read_contacts(scene)
-    reports = sorted((read_report(ch) for ch in scene.GetChildren() if ch.GetTypeName() == REPORT_TYPE),
-                     key=lambda r: r["version"])
+    reports, current = stage_versions(path, stage)
     frames = [a.path for a in (ga("frames") or [])]
     masks = [a.path for a in (ga("masks") or [])]
     video = ga("video")
@@ -343,7 +354,8 @@ def read_stage(path) -> SceneData:
         mask_assets=[_resolve(path, a) for a in masks], masks_amodal=bool(ga("masksAmodal")),
         hand_mask_assets=[_resolve(path, a.path) for a in (ga("handMasks") or [])],
         effects=effects, contacts=contacts, trajectories=trajectories, reports=reports,
-        generator=str(ga("generator")), object_kind="mesh" if stage.GetPrimAtPath(MESH) else "gaussians")
+        generator=str(ga("generator")), object_kind="mesh" if stage.GetPrimAtPath(MESH) else "gaussians",
+        current_version=current)
 
 
 def _resolve(stage_path: Path, asset: str) -> str:
