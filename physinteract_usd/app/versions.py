@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ..usd.versions import stage_versions, use_version
+from ..usd.stage import frame_range, stage_versions
+from ..usd.versions import use_version
 
 SUMMARY_KEYS = ("version", "status", "created", "effects", "final_loss", "iterations", "runtime_s", "device",
                 "resumed_from", "confidence_estimated", "current", "snapshot")
@@ -35,4 +36,4 @@ def use(stage_path, version) -> dict:
         raise InputError("VERSION", f"must be a version number (as `versions list` shows), got {version!r}") from None
     if n < 1:
         raise InputError("VERSION", f"versions count from 1, got {n}")
-    return use_version(stage_path, n)
+    return use_version(stage_path, n, *frame_range(stage_path))

@@ -18,7 +18,8 @@ from ..scene import SceneData, SimSettings
 from . import EFFECT_APIS
 from .contacts import read_contacts
 from . import validate as V
-from .versions import stage_versions
+from .reports import REPORT_TYPE, read_report
+from .versions import CURRENT_ATTR, list_versions
 from .layout import (CAMERA, GENERATOR, MESH, OBJECT, PARTICLES, PRIMVAR_CONF, PRIMVAR_E, PRIMVAR_NU,
                      PRIMVAR_SURFACE, PRIMVAR_VOLUME, SCENE, SPLATS, WORLD, LayerPaths, atomic_outputs,
                      check_our_root, set_stage_metadata)
@@ -361,3 +362,27 @@ def read_stage(path) -> SceneData:
 def _resolve(stage_path: Path, asset: str) -> str:
     p = Path(asset)
     return str(p if p.is_absolute() else (stage_path.parent / p).resolve())
+
+
+# ------------------------------------------------------------------------------------- versions
+def frame_range(stage_path) -> tuple[float, int]:
+    """(fps, frame count) of a stage, read without checking the rest of it."""
+    stage = open_stage(stage_path)
+    scene = stage.GetPrimAtPath(SCENE)
+    g = lambda n: scene.GetAttribute(f"physinteract:{n}").Get()  # noqa: E731
+    fps, start, end = g("fps"), g("startFrame"), g("endFrame")
+    return float(fps or 24.0), int((end or 0) - (start or 0) + 1)
+
+
+def stage_versions(stage_path, stage: Usd.Stage | None = None) -> tuple[list[dict], int | None]:
+    """(every version as `list_versions` gives it, the current version) from the composed stage
+    (`stage`: already open), without checking the rest of it."""
+    stage = stage or open_stage(stage_path)
+    scene = stage.GetPrimAtPath(SCENE)
+    reports = [read_report(ch) for ch in scene.GetChildren() if ch.GetTypeName() == REPORT_TYPE]
+    cur_attr = scene.GetAttribute(CURRENT_ATTR)
+    if cur_attr and cur_attr.HasAuthoredValue():
+        current = int(cur_attr.Get()) or None
+    else:  # a stage fitted before versions existed shows its newest fit
+        current = max((r["version"] for r in reports), default=None)
+    return list_versions(stage_path, reports, current), current

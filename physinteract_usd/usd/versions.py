@@ -219,13 +219,11 @@ def commit_version(stage_path, scene, author, *, status: str, final_loss: float,
             "current": version if make else cur_v, "made_current": make, "reason": reason}
 
 
-def use_version(stage_path, n: int) -> dict:
-    """Make version n current: its snapshot's content into the fit layer. Returns {"version",
-    "previous", "layer"}. Reads no more of the stage than it needs (a stage whose current content
-    is broken can still be switched to a good version)."""
+def use_version(stage_path, n: int, fps: float, n_frames: int) -> dict:
+    """Make version n current: its snapshot's content into the fit layer (`fps`, `n_frames`: the
+    stage's, for a fit layer that has to be made). Returns {"version", "previous", "layer"}."""
     lp = LayerPaths.of(stage_path)
     check_owned(lp.fit, "fit")
-    fps, n_frames = _frame_range(stage_path)
     with versions_lock(lp):
         fit = open_fit_layer(lp, fps, n_frames)
         known = _existing_versions(lp, fit)
@@ -257,32 +255,6 @@ def open_snapshot(path: Path) -> Sdf.Layer:
 
 
 # -------------------------------------------------------------------------------------- reading
-def _frame_range(stage_path) -> tuple[float, int]:
-    from .stage import open_stage
-
-    stage = open_stage(stage_path)
-    scene = stage.GetPrimAtPath(SCENE)
-    g = lambda n: scene.GetAttribute(f"physinteract:{n}").Get()  # noqa: E731
-    fps, start, end = g("fps"), g("startFrame"), g("endFrame")
-    return float(fps or 24.0), int((end or 0) - (start or 0) + 1)
-
-
-def stage_versions(stage_path, stage: Usd.Stage | None = None) -> tuple[list[dict], int | None]:
-    """(every version as `list_versions` gives it, the current version) from the composed stage
-    (`stage`: already open), without checking the rest of it."""
-    from .stage import open_stage
-
-    stage = stage or open_stage(stage_path)
-    scene = stage.GetPrimAtPath(SCENE)
-    reports = [read_report(ch) for ch in scene.GetChildren() if ch.GetTypeName() == REPORT_TYPE]
-    cur_attr = scene.GetAttribute(CURRENT_ATTR)
-    if cur_attr and cur_attr.HasAuthoredValue():
-        current = int(cur_attr.Get()) or None
-    else:  # a stage fitted before versions existed shows its newest fit
-        current = max((r["version"] for r in reports), default=None)
-    return list_versions(stage_path, reports, current), current
-
-
 def list_versions(stage_path, fit_layer_reports: list[dict], current: int | None) -> list[dict]:
     """Every version the stage knows (reports in the fit layer, and snapshots whose report the fit
     layer lacks), oldest first, each a report dict plus "current" and "snapshot" (path or None)."""
