@@ -106,6 +106,10 @@ def _load_mesh(path: Path):
         raise InputError(path, "contains no triangle faces")
     if not np.isfinite(mesh.vertices).all():
         raise InputError(path, "mesh has non-finite vertices")
+    ext = np.ptp(np.asarray(mesh.vertices, np.float64), axis=0)
+    if not ext.max() > 0 or ext.min() <= 1e-6 * ext.max():
+        raise InputError(path, f"mesh is flat ({len(mesh.faces)} face{'s' if len(mesh.faces) != 1 else ''}, all in one "
+                         "plane): a soft object needs a volume (a closed surface, or at least a solid one)")
     return mesh
 
 
@@ -253,6 +257,7 @@ def read_capture(capture_dir=None, *, object=None, video=None, camera=None, mask
             raise InputError(mdir, f"{len(mask_paths)} masks for {len(frames)} frames")
         import cv2
 
+        covered = []
         for p in mask_paths:
             m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if m is None:
@@ -260,6 +265,17 @@ def read_capture(capture_dir=None, *, object=None, video=None, camera=None, mask
             if (m.shape[1], m.shape[0]) != frames.size:
                 raise InputError(p, f"mask is {m.shape[1]}x{m.shape[0]} but frames are "
                                  f"{frames.size[0]}x{frames.size[1]}")
+            on = (m[:, :, :3].max(axis=2) if m.ndim == 3 else m) > (32767 if m.dtype == np.uint16 else 127)
+            covered.append(float(on.mean()))
+            if covered[-1] >= 1.0:
+                raise InputError(p, "mask covers the whole frame (all white): a silhouette marks the object's "
+                                 "pixels (>127) and leaves the rest black (inverted masks?)")
+        if max(covered) == 0.0:
+            raise InputError(mdir, f"all {len(mask_paths)} masks are empty (all black): no pixel marks the object "
+                             "(>127 = object)")
+        if covered[0] == 0.0:
+            raise InputError(mask_paths[0], "the first mask is empty (all black), but frame 0 is the object at rest, "
+                             "in view")
 
     # object
     if object is not None:

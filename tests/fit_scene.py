@@ -131,9 +131,11 @@ def build(root, *, E=None, name="scene") -> dict:
     cam = camera()
     (cap / "transforms.json").write_text(json.dumps(cam.to_transforms_dict(FPS)))
     blank = np.zeros((HEIGHT, WIDTH, 3), np.float32)
+    box = np.zeros((HEIGHT, WIDTH), bool)
+    box[HEIGHT // 4: 3 * HEIGHT // 4, WIDTH // 4: 3 * WIDTH // 4] = True   # init refuses empty silhouettes
     for k in range(N_FRAMES):  # placeholders: init only needs their count and size
         write_image(cap / "frames" / f"{k:06d}.png", blank)
-        write_mask(cap / "masks" / f"{k:06d}.png", np.zeros((HEIGHT, WIDTH), bool))
+        write_mask(cap / "masks" / f"{k:06d}.png", box)
     stage = root / f"{name}.usda"
     api.init(stage, cap, grid=GRID, padding=PADDING, youngs_range=E_RANGE, max_poisson=MAX_POISSON,
              poisson=NU_TRUE)

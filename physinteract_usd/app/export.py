@@ -7,18 +7,36 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..gaussians import Gaussians, write_ply
-from ..usd.export import export_stage
+from ..usd.export import export_stage, stage_layer_files
+from ..usd.layout import check_writable_dir
 from ..usd.fit_io import read_splat_animation
 from .adapters import read_scene
 
 
-def export(stage_path, out_path, *, ply_sequence=None) -> dict:
-    """Returns {"usd": path[, "ply_frames", "ply_sequence"]}."""
+def check_output(stage_path, out_path, force: bool) -> None:
+    """Before anything is written: OUT is a file name in a writable folder, not a layer of the
+    stage, and not an existing file unless `force`."""
+    out = Path(out_path)
+    if out.is_dir():
+        raise InputError(out, "is a folder: give the asset's file name, e.g. twin.usdc")
+    check_writable_dir(out.parent)
+    if out.resolve() in stage_layer_files(stage_path):
+        raise InputError(out, "would overwrite a layer of the stage itself")
+    if out.exists() and not force:
+        raise InputError(out, "already exists: --force replaces it")
+
+
+def export(stage_path, out_path, *, ply_sequence=None, force=False, capture_paths="drop") -> dict:
+    """Returns {"usd": path[, "ply_frames", "ply_sequence"]}. The stage is read (and checked)
+    first; OUT is refused if it exists, unless `force`; `capture_paths`: "drop" (default: the file
+    depends on nothing else) or "absolute" (the capture's frames and masks by absolute path)."""
+    read_scene(stage_path)   # a stage with bad authored values is refused, not exported
+    check_output(stage_path, out_path, force)
     if ply_sequence:  # checked before anything is written
         out_dir = Path(ply_sequence)
         if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
             raise InputError(out_dir, "exists and is not empty")
-    result = {"usd": export_stage(stage_path, out_path)}
+    result = {"usd": export_stage(stage_path, out_path, capture_paths=capture_paths)}
     if ply_sequence:
         out_dir.mkdir(parents=True, exist_ok=True)
         sd = read_scene(stage_path)

@@ -8,13 +8,17 @@ def add_parser(sub):
     s.add_argument("stage")
     s.add_argument("out", help="OUT.usd, .usdc, .usda or .usdz")
     s.add_argument("--ply-sequence", metavar="DIR", help="also write one 3DGS PLY per frame into DIR")
+    s.add_argument("--force", action="store_true", help="replace OUT if it exists")
+    s.add_argument("--capture-paths", choices=["drop", "absolute"], default="drop",
+                   help="the capture's frames and masks: drop them (default: the asset depends on no other file) "
+                        "or keep them as absolute paths (valid on this machine only)")
     return s
 
 
 def run(a) -> int:
     from .. import api
 
-    out = api.export(a.stage, a.out, ply_sequence=a.ply_sequence)
+    out = api.export(a.stage, a.out, ply_sequence=a.ply_sequence, force=a.force, capture_paths=a.capture_paths)
     print(f"wrote {out['usd']}" + (f" and {out['ply_frames']} PLY frames in {out['ply_sequence']}"
                                     if "ply_sequence" in out else ""))
     return 0

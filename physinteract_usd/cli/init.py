@@ -22,7 +22,7 @@ def add_parser(sub):
                    "the video gives one")
     s.add_argument("--grid", type=int, default=32, help="MPM grid cells along the longest side of the "
                    "domain (default 32; the paper uses 100)")
-    s.add_argument("--padding", type=float, default=0.5, help="domain margin around the object, as a "
+    s.add_argument("--padding", type=positive_float, default=0.5, help="domain margin around the object, as a "
                    "fraction of its extent (default 0.5)")
     s.add_argument("--youngs-range", type=e_range, default=(1e3, 1e6), metavar="MIN,MAX",
                    help="Young's modulus range in Pa the fit may use (default 1e3,1e6); MAX sets the substep")
@@ -35,6 +35,10 @@ def add_parser(sub):
                    help="constitutive model (default fixedCorotated)")
     s.add_argument("--force", action="store_true",
                    help="replace the generated layers of an existing stage (your root layer is kept)")
+    s.add_argument("--discard-fits", action="store_true",
+                   help="with --force on a fitted stage: discard its fit versions (scene.versions/) too")
+    s.add_argument("--yes", action="store_true",
+                   help="go on even when a frame needs so many substeps that fits would take hours")
     return s
 
 
@@ -46,7 +50,8 @@ def run(a) -> int:
     lp = api.init(a.stage, a.capture, object=a.object, video=a.video, camera=a.camera, masks=a.masks,
                   fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, padding=a.padding,
                   youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
-                  constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force)
+                  constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force,
+                  discard_fits=a.discard_fits, yes=a.yes)
     print(f"wrote {lp.root} (root), {lp.init.name}, {lp.fit.name}")
     print(format_info(api.info(lp.root)))
     return 0

@@ -94,6 +94,24 @@ def atomic_outputs(*paths: Path):
                 t.unlink()
 
 
+def check_writable_dir(folder: Path) -> None:
+    """InputError unless `folder` is an existing folder we may create files in (probed: a
+    read-only mount or a folder that is not ours fails here, not halfway through a write)."""
+    folder = Path(folder)
+    if not folder.exists():
+        raise InputError(folder, "output folder does not exist")
+    if not folder.is_dir():
+        raise InputError(folder, "is not a folder")
+    probe = folder / f".physinteract-write-probe.{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+    except OSError as exc:
+        raise InputError(folder, f"output folder is not writable ({exc.strerror or exc})") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+
+
 def set_stage_metadata(layer: Sdf.Layer, fps: float, start: int, end: int) -> None:
     layer.defaultPrim = "World"
     layer.timeCodesPerSecond = fps

@@ -308,6 +308,25 @@ def read_version_start(stage_path, n: int) -> dict:
     return vals
 
 
+def fit_history(stage_path) -> dict:
+    """What fits a stage's files hold, whether or not its root layer exists: {"versions": sorted
+    version numbers (fit-layer reports and snapshots), "checkpoint": bool}."""
+    lp = LayerPaths.of(stage_path)
+    vs = set()
+    if lp.fit.is_file():
+        try:
+            fit = Sdf.Layer.OpenAsAnonymous(str(lp.fit))
+        except Exception:  # noqa: BLE001  (not a layer: check_owned reports it)
+            fit = None
+        if fit is not None:
+            vs |= _existing_versions(lp, fit)
+    if lp.versions.is_dir():
+        for p in lp.versions.glob("v*.usdc"):
+            with contextlib.suppress(ValueError):
+                vs.add(int(p.stem[1:]))
+    return {"versions": sorted(vs), "checkpoint": lp.checkpoint.exists()}
+
+
 def discard_versions(stage_path) -> None:
     """Remove the versions folder (init --discard-fits)."""
     import shutil
