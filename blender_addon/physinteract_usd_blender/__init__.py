@@ -1,35 +1,55 @@
 """PhysInteract USD for Blender: "Fit material from video" in the 3D viewport's sidebar.
 
-A thin client: it runs the `physinteract-usd` command line (init, extract, fit, export) as
-subprocesses, never blocking the interface (a modal operator polls them on a timer), and imports
-the resulting USD with Blender's own importer as an animated point cloud. No physics here.
+A thin client: it runs the `physinteract-usd` command line (init, extract, fit, export, simulate,
+and report / diagnose / effects / versions when the installed CLI has them) as subprocesses,
+never blocking the interface (a modal operator polls them on a timer), and imports the resulting
+USD with Blender's own importer as animated point clouds. No physics here.
+
+Modules: `runner` (subprocess jobs, progress, cancel; no bpy), `clicaps` (what the CLI offers),
+`spec` (the `simulate` interaction spec), `stagedata` (what Blender's pxr reads from a stage; the
+splats as points), `viewport` (the Empty, selections, the cursor, markers, materials).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import runner
+
+def _ensure_pxr() -> None:
+    """pip bpy keeps Blender's USD Python modules in its own site-packages (a Blender binary has
+    them on sys.path already)."""
+    try:
+        import pxr  # noqa: F401
+    except ImportError:
+        sys.path.append(os.path.join(bpy.utils.resource_path("LOCAL"), "python", "lib",
+                                     f"python{sys.version_info.major}.{sys.version_info.minor}", "site-packages"))
+
+
+_ensure_pxr()
+
+from . import clicaps, runner, spec, stagedata, viewport  # noqa: E402
+from .viewport import PRIMVAR_E, youngs_material  # noqa: E402,F401  (youngs_material: public API)
 
 bl_info = {  # legacy add-on install; as an extension, blender_manifest.toml is used instead
     "name": "PhysInteract USD",
     "author": "physinteract-usd",
-    "version": (0, 1, 0),
+    "version": (0, 2, 0),
     "blender": (4, 2, 0),
     "location": "3D Viewport > Sidebar > PhysInteract",
     "description": "Fit a soft object's material from a video of a hand handling it, import the "
-                   "digital twin as an animated point cloud",
+                   "digital twin as an animated point cloud, resimulate it under a new interaction",
     "category": "Physics",
 }
 
 ADDON_ID = __package__ or __name__
-PRIMVAR_E = "physinteract:youngsModulus"
-STEP_LABELS = {"init": "init", "extract": "extract", "fit": "fit", "export": "export"}
+EFFECTS = ("damping", "plasticity", "ground", "viscoelasticity")
+SPEC_MARK = "physinteract-usd-blender"
 
 _JOB: runner.Job | None = None
 
@@ -39,11 +59,15 @@ class UserError(Exception):
 
 
 # ------------------------------------------------------------------------------- preferences
+def _cli_changed(self, context):
+    clicaps.clear()
+
+
 class PHYSINTERACT_AP_preferences(bpy.types.AddonPreferences):
     bl_idname = ADDON_ID
 
     cli_path: StringProperty(
-        name="physinteract-usd", subtype="FILE_PATH", default="",
+        name="physinteract-usd", subtype="FILE_PATH", default="", update=_cli_changed,
         description="The physinteract-usd executable (or a command line such as "
                     "'/path/to/python -m physinteract_usd'). Empty: found on PATH")
 
@@ -64,6 +88,27 @@ def cli_setting(context) -> str:
 
 
 # ---------------------------------------------------------------------------------- settings
+def _recolour(self, context):
+    obj = viewport.particles_in(self.last_collection)
+    if obj is not None:
+        self.look_note = viewport.colour_particles(obj, self.colour_by, _e_range(self))
+    sim = viewport.particles_in(self.last_sim_collection)
+    if sim is not None:
+        viewport.colour_particles(sim, self.colour_by, _e_range(self))
+
+
+def _resize(self, context):
+    for coll_name in (self.last_collection, self.last_sim_collection):
+        coll = bpy.data.collections.get(coll_name or "")
+        for o in coll.all_objects if coll is not None else []:
+            if o.get(viewport.OWNED) == "splats":
+                viewport.set_look_size(o, self.splat_size)
+
+
+def _is_empty(self, obj):
+    return obj.type == "EMPTY"
+
+
 class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
     capture_dir: StringProperty(name="Capture", subtype="DIR_PATH",
                                 description="Capture folder: object file, frames/ or video.mp4, "
@@ -97,11 +142,106 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
                                     "(your root layer is kept)")
     replace_import: BoolProperty(name="Replace previous import", default=True,
                                  description="Remove the objects of the previous import first")
+    # init's settings (0: the CLI's default)
+    padding: FloatProperty(name="Padding", default=0.0, min=0.0, soft_max=2.0,
+                           description="init --padding: domain margin around the object, as a fraction "
+                                       "of its extent (0: the CLI's default, 0.5)")
+    youngs_min: FloatProperty(name="E min (Pa)", default=0.0, min=0.0,
+                              description="init --youngs-range MIN (Pa; 0 with E max 0: the CLI's 1e3)")
+    youngs_max: FloatProperty(name="E max (Pa)", default=0.0, min=0.0,
+                              description="init --youngs-range MAX (Pa; sets the substep; 0: the CLI's 1e6)")
+    poisson: FloatProperty(name="Poisson", default=0.0, min=0.0, max=0.49,
+                           description="init --poisson: starting Poisson ratio (0: the CLI's 0.3)")
+    max_poisson: FloatProperty(name="Max Poisson", default=0.0, min=0.0, max=0.499,
+                               description="init --max-poisson: the largest Poisson ratio the fit may use "
+                                           "(0: the CLI's 0.45)")
+    density: FloatProperty(name="Density", default=0.0, min=0.0,
+                           description="init --density in kg/m^3 (0: the CLI's 1000)")
+    model: EnumProperty(name="Model", default="DEFAULT",
+                        items=[("DEFAULT", "Default", "The CLI's default (fixed corotated)"),
+                               ("fixedCorotated", "Fixed corotated", ""), ("neoHookean", "Neo-Hookean", "")])
+    fit_iterations: IntProperty(name="Iterations", default=0, min=0,
+                                description="fit --iterations (0: the CLI's default)")
+    export_sim_ready: BoolProperty(name="Sim-ready (TetMesh)", default=False,
+                                   description="export --sim-ready: a TetMesh with the deformable-physics schemas")
+    # hints for extract
+    hint_type: EnumProperty(
+        name="Type", default="AUTO",
+        items=[("AUTO", "Detect", "Let extract detect the interaction type"),
+               ("pointAdherent", "Grasp / pull", "pointAdherent"),
+               ("pointNonAdherent", "Poke", "pointNonAdherent"),
+               ("surfaceNonAdherent", "Surface push", "surfaceNonAdherent")],
+        description="extract --type")
+    hint_contact_particles: StringProperty(name="Contact particles", default="",
+                                           description="extract --hint-particles I,J,...")
+    hint_contact_pixel: StringProperty(name="Contact pixel", default="",
+                                       description="extract --hint-pixel K,U,V (frame, column, row)")
+    hint_support_particles: StringProperty(name="Support particles", default="",
+                                           description="extract --support-particles I,J,...")
+    hint_support_pixels: StringProperty(name="Support pixels", default="",
+                                        description="extract --support-pixel K,U,V, several separated by ';'")
+    hint_grasp_radius: FloatProperty(name="Grasp radius", default=0.0, min=0.0, unit="LENGTH",
+                                     description="extract --grasp-radius in metres (0: the CLI's default)")
+    use_markers: BoolProperty(name="Grasp / release from markers", default=True,
+                              description="Pass timeline markers named 'grasp' and 'release' as "
+                                          "extract --grasp-frame / --release-frame")
+    # resimulation
+    resim_empty: PointerProperty(name="Empty", type=bpy.types.Object, poll=_is_empty,
+                                 description="The Empty whose animation is the new interaction")
+    resim_kind: EnumProperty(
+        name="Kind", default="drag",
+        items=[("drag", "Drag", "pointAdherent: the particles within the Empty's radius (or the selected "
+                                "points) are held and follow the Empty"),
+               ("poke", "Poke", "pointNonAdherent: a sphere of the Empty's radius pushes the object"),
+               ("push", "Surface push", "surfaceNonAdherent: a plane through the Empty, normal its +Z")])
+    resim_contact: EnumProperty(
+        name="Held", default="RADIUS",
+        items=[("RADIUS", "Within the Empty", "Particles within the Empty's display size at the grasp frame"),
+               ("SELECTION", "Selected points", "The selected points of the imported SimParticles cloud")])
+    resim_release: EnumProperty(
+        name="Release", default="NEVER",
+        items=[("NEVER", "Never", "Held to the end"),
+               ("LAST_KEY", "At the last key", "Let go at the Empty's last keyframe")])
+    resim_frames: IntProperty(name="Frames", default=0, min=0,
+                              description="Frames to simulate (0: as many as the stage has)")
+    resim_keep_supports: BoolProperty(name="Keep supports", default=True,
+                                      description="Keep the fitted stage's supports (fixed contact sets)")
+    resim_friction: FloatProperty(name="Friction", default=0.5, min=0.0, description="Surface push friction")
+    resim_name: StringProperty(name="Name", default="",
+                               description="The simulation's name (empty: the Empty's name)")
+    # the look
+    colour_by: EnumProperty(
+        name="Colour by", default="STIFFNESS", update=_recolour,
+        items=[("STIFFNESS", "Stiffness", "log10 of Young's modulus (blue soft, red stiff)"),
+               ("CONFIDENCE", "Confidence", "The fit's confidence (red low, green high)"),
+               ("RESIDUAL", "Residual", "The report's per-particle residual (bright: the model misses there)")])
+    splat_look: BoolProperty(name="Splat colours", default=True,
+                             description="Also import the Gaussian splats as a point cloud with their own "
+                                         "colours and sizes")
+    splat_size: FloatProperty(name="Splat size", default=1.0, min=0.0, soft_max=4.0, update=_resize,
+                              description="Scale of the splat points' radius")
     # state shown in the panel
     running: BoolProperty(default=False, options={"SKIP_SAVE"})
     status: StringProperty(default="", options={"SKIP_SAVE"})
     error: StringProperty(default="", options={"SKIP_SAVE"})
+    note: StringProperty(default="", options={"SKIP_SAVE"})
+    progress: FloatProperty(default=-1.0, options={"SKIP_SAVE"})
+    look_note: StringProperty(default="")
     last_collection: StringProperty(default="")
+    last_sim_collection: StringProperty(default="")
+    info_json: StringProperty(default="")
+    contacts_json: StringProperty(default="")
+    report_json: StringProperty(default="")
+    diagnose_json: StringProperty(default="")
+    frame_psnr: FloatProperty(name="Frame PSNR", default=0.0,
+                              description="The report's per-frame PSNR, keyed per frame (Graph Editor)")
+
+
+def _e_range(settings):
+    try:
+        return ((json.loads(settings.info_json or "{}").get("simulation") or {}).get("youngs_range_pa"))
+    except ValueError:
+        return None
 
 
 # ------------------------------------------------------------------------------------- paths
@@ -127,6 +267,14 @@ def resolved_paths(settings) -> dict:
     return {"capture": capture, "stage": stage, "export": export,
             "video": _abs(settings.video, "video"), "camera": _abs(settings.camera, "camera"),
             "masks": _abs(settings.masks, "masks")}
+
+
+def sim_paths(stage: str, name: str) -> dict:
+    """What `simulate --name NAME` writes beside the stage, and where the add-on puts the spec."""
+    p = Path(stage)
+    return {"view": str(p.with_name(f"{p.stem}.sim.{name}.usda")),
+            "layer": str(p.with_name(f"{p.stem}.sim.{name}.usdc")),
+            "spec": str(p.with_name(f"{p.stem}.sim.{name}.json"))}
 
 
 # ------------------------------------------------------------------------ the selected mesh
@@ -155,42 +303,124 @@ def export_selected_mesh(context, path: str) -> str:
 
 
 # ---------------------------------------------------------------------------------- import
-def import_result(context, path: str, info: dict | None = None, replace: bool = True) -> list:
-    """Import a stage or exported asset with Blender's USD importer; returns the new objects.
+def import_result(context, path: str, info: dict | None = None, replace: bool = True,
+                  role: str = "fit", stage: str | None = None) -> list:
+    """Import a stage, exported asset (role "fit") or a resimulation's view stage (role "sim")
+    with Blender's USD importer; returns the new objects.
 
     Time-sampled SimParticles become an animated POINTCLOUD (a Mesh Sequence Cache modifier
-    reading the USD file), primvars become attributes; the camera comes along. Gaussian splats
-    (UsdVol.ParticleField, USD >= 26.x) and the PhysInteract prims are skipped by Blender.
-    """
+    reading the USD file), primvars become attributes; the camera comes along (role "fit"). Then:
+    the scene's fps and frame range are the stage's; the particles get the material `colour_by`
+    asks for; the Gaussian splats (skipped by Blender's USD) come in as a second, coloured point
+    cloud (`stagedata.write_splat_points`); the stage's contact sets are shown as Empties and
+    markers (role "fit"). A resimulation goes into its own collection beside the fitted twin
+    (which is hidden, viewport and render, so the new motion is what plays)."""
     if not os.path.exists(path):
         raise RuntimeError(f"{path}: file not found")
-    settings = context.scene.physinteract
-    if replace and settings.last_collection:
+    scene = context.scene
+    settings = scene.physinteract
+    notes = []
+    if role == "fit" and replace and settings.last_collection:
         _remove_collection(settings.last_collection)
+    if role == "sim":
+        for c in list(bpy.data.collections):
+            if c.get("physinteract_file") == os.path.abspath(path):
+                _remove_collection(c.name)
     before = set(bpy.data.objects)
     colls_before = set(bpy.data.collections)
-    result = bpy.ops.wm.usd_import(filepath=path, import_cameras=True, import_points=True,
+    result = bpy.ops.wm.usd_import(filepath=path, import_cameras=(role == "fit"), import_points=True,
                                    import_meshes=True, set_frame_range=True, create_collection=True)
     if "FINISHED" not in result:
         raise RuntimeError(f"{path}: Blender's USD import failed")
     new = [o for o in bpy.data.objects if o not in before]
     new_colls = [c for c in bpy.data.collections if c not in colls_before]
-    settings.last_collection = new_colls[0].name if new_colls else ""
-    scene = context.scene
-    cams = [o for o in new if o.type == "CAMERA"]
-    if cams:
-        scene.camera = cams[0]
-    if info:
-        size = (info.get("frames") or {}).get("size")
-        if size:
-            scene.render.resolution_x, scene.render.resolution_y = int(size[0]), int(size[1])
-            scene.render.resolution_percentage = 100
-    e_range = ((info or {}).get("simulation") or {}).get("youngs_range_pa")
-    for o in new:
-        if o.type == "POINTCLOUD" and PRIMVAR_E in o.data.attributes:
-            o.data.materials.clear()
-            o.data.materials.append(youngs_material(o.data, e_range))
+    coll = new_colls[0] if new_colls else scene.collection
+    if new_colls:
+        coll["physinteract_file"] = os.path.abspath(path)
+        coll["physinteract_role"] = role
+    if role == "fit":
+        settings.last_collection = coll.name if new_colls else ""
+        cams = [o for o in new if o.type == "CAMERA"]
+        if cams:
+            scene.camera = cams[0]
+        if info:
+            settings.info_json = json.dumps(info)
+            size = (info.get("frames") or {}).get("size")
+            if size:
+                scene.render.resolution_x, scene.render.resolution_y = int(size[0]), int(size[1])
+                scene.render.resolution_percentage = 100
+    else:
+        settings.last_sim_collection = coll.name if new_colls else ""
+    # the stage's clock: Blender's USD import sets the frame range but leaves the scene at 24 fps
+    tm = stagedata.timing(path)
+    scene.render.fps, scene.render.fps_base = stagedata.fps_fields(tm["fps"])
+    scene.frame_start, scene.frame_end = tm["start"], tm["end"]
+    particles = [o for o in new if viewport.is_particles(o)]
+    for o in particles:
+        note = viewport.colour_particles(o, settings.colour_by, _e_range(settings))
+        if note:
+            notes.append(note)
+        if role == "sim":
+            o.name = f"SimParticles [{Path(path).stem.split('.sim.')[-1]}]"
+    if settings.splat_look and particles:
+        new += _import_splat_look(context, path, coll, particles[0], settings.splat_size)
+    if role == "fit" and particles:
+        contacts = stagedata.contact_sets(path)
+        if not contacts and stage and os.path.exists(stage):
+            contacts = stagedata.contact_sets(stage)
+        settings.contacts_json = stagedata.dumps(contacts)
+        new += viewport.show_contacts(scene, particles[0], contacts, coll)
+    if role == "sim" and settings.last_collection in bpy.data.collections:
+        fitted = bpy.data.collections[settings.last_collection]
+        fitted.hide_render = True
+        lc = _layer_collection(context.view_layer.layer_collection, fitted.name)
+        if lc is not None:
+            lc.hide_viewport = True
+    settings.look_note = "; ".join(notes)
     return new
+
+
+def _import_splat_look(context, path, coll, particles, size) -> list:
+    """The splats as a second point cloud in `coll`, placed like the particles, coloured and sized."""
+    out = stagedata.write_splat_points(path)
+    if out is None:
+        return []
+    view_layer = context.view_layer
+    active = view_layer.active_layer_collection
+    lc = _layer_collection(view_layer.layer_collection, coll.name)
+    before = set(bpy.data.objects)
+    try:
+        if lc is not None:
+            view_layer.active_layer_collection = lc
+        result = bpy.ops.wm.usd_import(filepath=str(out), import_cameras=False, import_points=True,
+                                       set_frame_range=False, create_collection=False)
+    finally:
+        view_layer.active_layer_collection = active
+    if "FINISHED" not in result:
+        raise RuntimeError(f"{out}: Blender's USD import failed")
+    new = [o for o in bpy.data.objects if o not in before]
+    for o in new:
+        if o.name not in coll.objects:
+            for c in list(o.users_collection):
+                c.objects.unlink(o)
+            coll.objects.link(o)
+        if o.type == "POINTCLOUD":
+            o.name = "Splats" if "sim" not in coll.get("physinteract_role", "") else f"Splats [{coll.name}]"
+            o[viewport.OWNED] = "splats"
+            o.parent = particles.parent
+            o.matrix_world = particles.matrix_world.copy()
+            viewport.apply_splat_look(o, size)
+    return new
+
+
+def _layer_collection(root, name):
+    if root.collection.name == name:
+        return root
+    for child in root.children:
+        found = _layer_collection(child, name)
+        if found is not None:
+            return found
+    return None
 
 
 def _remove_collection(name: str) -> None:
@@ -204,70 +434,191 @@ def _remove_collection(name: str) -> None:
     bpy.data.collections.remove(coll)
 
 
-def youngs_material(pointcloud, e_range=None) -> bpy.types.Material:
-    """Colour by log10 of Young's modulus over the fit's allowed range (blue soft, red stiff)."""
-    if not e_range:
-        import numpy as np
+# ------------------------------------------------------------------------------ report data
+def store_report(context, report: dict) -> None:
+    """Keep the report for the panel, and key `frame_psnr` per frame (the error curve in the
+    Graph Editor, on the timeline's frames)."""
+    settings = context.scene.physinteract
+    settings.report_json = json.dumps(report)
+    scene = context.scene
+    _clear_curve(scene)
+    for f in report.get("frames") or []:
+        if f.get("psnr") is None:
+            continue
+        settings.frame_psnr = float(f["psnr"])
+        settings.keyframe_insert("frame_psnr", frame=int(f["frame"]))
 
-        vals = np.empty(len(pointcloud.points), np.float32)
-        pointcloud.attributes[PRIMVAR_E].data.foreach_get("value", vals)
-        lo, hi = float(vals.min()), float(vals.max())
-        e_range = (lo, hi if hi > lo else lo * 10.0)
-    lo, hi = (max(float(x), 1e-6) for x in e_range)
-    import math
 
-    mat = bpy.data.materials.get("PhysInteract Young's modulus") or bpy.data.materials.new(
-        "PhysInteract Young's modulus")
-    if mat.node_tree is None:
-        mat.use_nodes = True
-    nt = mat.node_tree
-    nt.nodes.clear()
-    attr = nt.nodes.new("ShaderNodeAttribute")
-    attr.attribute_type = "GEOMETRY"
-    attr.attribute_name = PRIMVAR_E
-    log = nt.nodes.new("ShaderNodeMath")
-    log.operation = "LOGARITHM"
-    log.inputs[1].default_value = 10.0
-    rng = nt.nodes.new("ShaderNodeMapRange")
-    rng.inputs["From Min"].default_value = math.log10(lo)
-    rng.inputs["From Max"].default_value = math.log10(hi)
-    ramp = nt.nodes.new("ShaderNodeValToRGB")
-    ramp.color_ramp.elements[0].color = (0.1, 0.2, 0.9, 1.0)
-    ramp.color_ramp.elements[1].color = (0.9, 0.15, 0.1, 1.0)
-    bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
-    out = nt.nodes.new("ShaderNodeOutputMaterial")
-    nt.links.new(attr.outputs["Fac"], log.inputs[0])
-    nt.links.new(log.outputs[0], rng.inputs["Value"])
-    nt.links.new(rng.outputs["Result"], ramp.inputs["Fac"])
-    nt.links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
-    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
-    for i, n in enumerate((attr, log, rng, ramp, bsdf, out)):
-        n.location = (i * 220.0, 0.0)
-    return mat
+def _clear_curve(scene) -> None:
+    ad = scene.animation_data
+    if ad is None or ad.action is None:
+        return
+    try:
+        from bpy_extras import anim_utils
+
+        bag = anim_utils.animdata_get_channelbag_for_assigned_slot(ad)
+        fc = bag.fcurves.find("physinteract.frame_psnr") if bag is not None else None
+        if fc is not None:
+            bag.fcurves.remove(fc)
+    except (ImportError, AttributeError, RuntimeError):
+        pass
+
+
+def report_at(report: dict, frame: int) -> dict | None:
+    return next((f for f in report.get("frames") or [] if f.get("frame") == frame), None)
 
 
 # ------------------------------------------------------------------------------------- jobs
-STEP_CHOICES = ("init", "extract", "fit", "export", "import", "import_stage", "all")
+STEP_CHOICES = ("init", "extract", "fit", "export", "import", "import_stage", "all", "simulate",
+                "report", "diagnose")
+
+
+def _parse_steps(steps: str) -> list[str]:
+    names = [s.strip() for s in steps.split(",") if s.strip()]
+    bad = [s for s in names if s not in STEP_CHOICES and not s.startswith(("effect:", "version:"))]
+    if bad or not names:
+        raise UserError(f"unknown step(s) {', '.join(bad) or '(none)'}: expected {', '.join(STEP_CHOICES)}, "
+                        "effect:NAME or version:N")
+    return names
+
+
+def extract_argv(context, cli, stage, notes: list) -> list:
+    """`extract` with the viewport's hints: the type, the contact (particles or a pixel), the
+    supports, the grasp radius, and the 'grasp' / 'release' timeline markers when the CLI has
+    --grasp-frame / --release-frame."""
+    s = context.scene.physinteract
+    argv = runner.verb_argv(cli, "extract", stage)
+    if s.hint_type != "AUTO":
+        argv += ["--type", s.hint_type]
+    try:
+        contact = viewport.parse_indices(s.hint_contact_particles)
+        supports = viewport.parse_indices(s.hint_support_particles)
+    except viewport.ViewportError as exc:
+        raise UserError(f"hints: {exc}") from None
+    if contact:
+        argv += ["--hint-particles", viewport.compact_indices(contact)]
+        if s.hint_contact_pixel.strip():
+            notes.append("the contact particles win over the contact pixel")
+    elif s.hint_contact_pixel.strip():
+        argv += ["--hint-pixel", s.hint_contact_pixel.strip()]
+    if supports:
+        argv += ["--support-particles", viewport.compact_indices(supports)]
+    for px in (p.strip() for p in s.hint_support_pixels.split(";")):
+        if px:
+            argv += ["--support-pixel", px]
+    if s.hint_grasp_radius > 0:
+        argv += ["--grasp-radius", f"{s.hint_grasp_radius:g}"]
+    if s.use_markers:
+        for name, flag in (("grasp", "--grasp-frame"), ("release", "--release-frame")):
+            frame = viewport.marker_frame(context.scene, name)
+            if frame is None:
+                continue
+            if clicaps.has(cli, "extract", flag):
+                argv += [flag, str(int(frame))]
+            else:
+                notes.append(f"the '{name}' marker was not passed: this physinteract-usd's extract has no {flag}")
+    return argv
+
+
+def build_simulation(context, cli, stage: str) -> tuple[list, str]:
+    """The resimulation: the interaction spec from the Empty (written beside the stage), the
+    `simulate` step and the import of its view stage. Raises UserError before anything runs."""
+    scene = context.scene
+    s = scene.physinteract
+    if not os.path.exists(stage):
+        raise UserError(f"{stage}: the stage does not exist yet (run init and fit first)")
+    empty = s.resim_empty or (context.active_object if context.active_object is not None
+                              and context.active_object.type == "EMPTY" else None)
+    if empty is None:
+        raise UserError("pick the Empty whose animation is the new interaction (Resimulate > Empty)")
+    particles = viewport.particles_in(s.last_collection)
+    to_stage = viewport.stage_matrix(particles)
+    try:
+        tm = stagedata.timing(stage)
+        n = s.resim_frames or (tm["end"] - tm["start"] + 1)
+        sampled = viewport.sample_empty(scene, empty, n, to_stage)
+        keys = viewport.keyframe_frames(empty)
+        grasp = min(max(keys[0] if keys else 0, 0), n - 2)
+        release = None
+        if s.resim_release == "LAST_KEY" and keys and grasp < keys[-1] <= n:
+            release = keys[-1]
+        indices = None
+        if s.resim_kind == "drag" and s.resim_contact == "SELECTION":
+            obj = context.active_object if viewport.is_particles(context.active_object) else particles
+            indices = viewport.selected_points(obj)
+            if not indices:
+                raise UserError("'Held: Selected points' but no point of the SimParticles cloud is selected")
+        rest = stagedata.rest_points(stage) if s.resim_kind == "drag" else None
+        name = spec.sim_name(s.resim_name or empty.name)
+        sp = spec.build_spec(s.resim_kind, sampled["positions"], grasp=grasp, release=release,
+                             radius=sampled["radius"], normal=sampled["axis"][grasp], indices=indices,
+                             rest=rest, name=name, keep_supports=s.resim_keep_supports,
+                             friction=s.resim_friction, source=SPEC_MARK)
+    except (spec.SpecError, viewport.ViewportError, stagedata.StageError) as exc:
+        raise UserError(f"resimulate: {exc}") from None
+    paths = sim_paths(stage, name)
+    _write_spec(paths["spec"], sp)
+    steps = [runner.CliStep("simulate", [*cli, "simulate", stage, "--interaction", paths["spec"], "--name", name]),
+             runner.PyStep("import", lambda view=paths["view"]: import_result(
+                 bpy.context, view, None, True, role="sim", stage=stage))]
+    return steps, name
+
+
+def _write_spec(path: str, sp: dict) -> None:
+    """The spec beside the stage; a file of that name the add-on did not write is left alone."""
+    if os.path.exists(path):
+        try:
+            old = json.loads(Path(path).read_text())
+        except (OSError, ValueError):
+            old = None
+        if not isinstance(old, dict) or old.get("source") != SPEC_MARK:
+            raise UserError(f"{path}: exists and was not written by the add-on: rename the simulation")
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(sp, f, indent=1)
+    os.replace(tmp, path)
 
 
 def build_job(context, steps: str) -> runner.Job:
     """The steps as a runner.Job. Raises UserError / runner.CliNotFound before anything runs."""
     settings = context.scene.physinteract
-    names = [s.strip() for s in steps.split(",") if s.strip()]
-    bad = [s for s in names if s not in STEP_CHOICES]
-    if bad or not names:
-        raise UserError(f"unknown step(s) {', '.join(bad) or '(none)'}: expected {', '.join(STEP_CHOICES)}")
+    names = _parse_steps(steps)
     p = resolved_paths(settings)
     cli = runner.resolve_cli(cli_setting(context))
+    has = lambda verb, flag=None: clicaps.has(cli, verb, flag)  # noqa: E731
     if "all" in names:
         names = (["init"] if settings.force or not os.path.exists(p["stage"]) else []) + \
             ["extract", "fit", "export", "import"]
     info: dict = {}
+    notes: list = []
     job_steps = []
+
+    def import_steps(name):
+        target = p["stage"] if name == "import_stage" else p["export"]
+        return [runner.CliStep("info", runner.verb_argv(cli, "info", p["stage"], "--json"),
+                               on_done=lambda out, info=info: info.update(parse_json(out))),
+                runner.PyStep("import", lambda target=target, info=info: import_result(
+                    bpy.context, target, info, bpy.context.scene.physinteract.replace_import,
+                    role="fit", stage=p["stage"]))]
+
+    def report_steps():
+        if has("report"):
+            return [runner.CliStep("report", runner.verb_argv(cli, "report", p["stage"], "--json"),
+                                   on_done=lambda out: store_report(bpy.context, parse_json(out)))]
+        notes.append("this physinteract-usd has no `report` verb: per-frame PSNR, SSIM and IoU from the "
+                     "stage's fit report")
+        return [runner.PyStep("report", lambda: store_report(bpy.context, stagedata.report_from_stage(p["stage"])))]
+
+    fit_argv = runner.verb_argv(cli, "fit", p["stage"]) + (
+        ["--iterations", str(settings.fit_iterations)] if settings.fit_iterations else [])
     for name in names:
         if name == "init":
             if not p["capture"] and not (p["video"] and p["camera"]):
                 raise UserError("set the capture folder (or both the video and the camera)")
+            if (settings.youngs_min > 0) != (settings.youngs_max > 0):
+                raise UserError("give both E min and E max (or neither)")
+            if settings.youngs_min and settings.youngs_min >= settings.youngs_max:
+                raise UserError(f"E min {settings.youngs_min:g} must be below E max {settings.youngs_max:g}")
             obj = None
             if settings.object_source == "SELECTED":
                 obj = export_selected_mesh(context, str(Path(p["stage"]).with_name(
@@ -276,19 +627,54 @@ def build_job(context, steps: str) -> runner.Job:
             job_steps.append(runner.CliStep("init", runner.init_argv(
                 cli, p["stage"], capture=p["capture"] or None, object=obj, video=p["video"] or None,
                 camera=p["camera"] or None, masks=p["masks"] or None, masks_amodal=settings.masks_amodal,
-                fps=settings.fps or None, grid=settings.grid, force=settings.force)))
-        elif name in ("extract", "fit"):
-            job_steps.append(runner.CliStep(name, runner.verb_argv(cli, name, p["stage"])))
+                fps=settings.fps or None, grid=settings.grid, force=settings.force,
+                padding=settings.padding or None, youngs_range=(settings.youngs_min, settings.youngs_max),
+                poisson=settings.poisson or None, max_poisson=settings.max_poisson or None,
+                density=settings.density or None,
+                model=None if settings.model == "DEFAULT" else settings.model)))
+        elif name == "extract":
+            job_steps.append(runner.CliStep("extract", extract_argv(context, cli, p["stage"], notes)))
+        elif name == "fit":
+            job_steps.append(runner.CliStep("fit", fit_argv))
         elif name == "export":
-            job_steps.append(runner.CliStep("export", runner.verb_argv(cli, "export", p["stage"], p["export"])))
+            argv = runner.verb_argv(cli, "export", p["stage"], p["export"])
+            if settings.export_sim_ready:
+                if has("export", "--sim-ready"):
+                    argv.append("--sim-ready")
+                else:
+                    notes.append("exported without --sim-ready: this physinteract-usd's export lacks it")
+            job_steps.append(runner.CliStep("export", argv))
         elif name in ("import", "import_stage"):
-            target = p["stage"] if name == "import_stage" else p["export"]
-            job_steps.append(runner.CliStep("info", runner.verb_argv(cli, "info", p["stage"], "--json"),
-                                            on_done=lambda out, info=info: info.update(parse_json(out))))
-            job_steps.append(runner.PyStep(
-                "import", lambda target=target, info=info: import_result(
-                    bpy.context, target, info, bpy.context.scene.physinteract.replace_import)))
-    return runner.Job(job_steps)
+            job_steps += import_steps(name)
+        elif name == "simulate":
+            more, _ = build_simulation(context, cli, p["stage"])
+            job_steps += more
+        elif name == "report":
+            job_steps += report_steps()
+        elif name == "diagnose":
+            if not has("diagnose"):
+                raise UserError("this physinteract-usd has no `diagnose` verb yet: update the project")
+            job_steps.append(runner.CliStep("diagnose", runner.verb_argv(cli, "diagnose", p["stage"], "--json"),
+                                            on_done=lambda out: setattr(bpy.context.scene.physinteract,
+                                                                        "diagnose_json", json.dumps(parse_json(out)))))
+        elif name.startswith("effect:"):
+            effect = name.split(":", 1)[1]
+            if effect not in EFFECTS:
+                raise UserError(f"unknown effect '{effect}': expected {', '.join(EFFECTS)}")
+            if not has("effects"):
+                raise UserError("this physinteract-usd has no `effects` verb yet: update the project")
+            job_steps.append(runner.CliStep(f"effects add {effect}", [*cli, "effects", "add", p["stage"], effect]))
+            job_steps.append(runner.CliStep("fit", fit_argv))
+            job_steps += import_steps("import_stage")
+            job_steps += report_steps()
+        elif name.startswith("version:"):
+            if not has("versions"):
+                raise UserError("this physinteract-usd has no `versions` verb yet: update the project")
+            job_steps.append(runner.CliStep("versions use", [*cli, "versions", "use", p["stage"], name.split(":", 1)[1]]))
+            job_steps += import_steps("import_stage")
+    job = runner.Job(job_steps)
+    job.notes = notes
+    return job
 
 
 def parse_json(out: str) -> dict:
@@ -296,7 +682,7 @@ def parse_json(out: str) -> dict:
     one to stdout when it initialises)."""
     start = out.find("\n{") + 1 if not out.lstrip().startswith("{") else out.find("{")
     if start <= 0 and not out.lstrip().startswith("{"):
-        raise ValueError("info --json printed no JSON object")
+        raise ValueError("the CLI printed no JSON object")
     return json.loads(out[start:])
 
 
@@ -304,7 +690,7 @@ def _redraw(context) -> None:
     wm = context.window_manager
     for window in wm.windows if wm else []:
         for area in window.screen.areas:
-            if area.type == "VIEW_3D":
+            if area.type in ("VIEW_3D", "TIMELINE", "DOPESHEET_EDITOR", "GRAPH_EDITOR"):
                 area.tag_redraw()
 
 
@@ -316,8 +702,8 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     steps: StringProperty(name="Steps", default="all",
-                          description="Comma-separated: init, extract, fit, export, import, "
-                                      "import_stage, or all")
+                          description="Comma-separated: init, extract, fit, export, import, import_stage, "
+                                      "simulate, report, diagnose, effect:NAME, version:N, or all")
 
     _timer = None
 
@@ -329,6 +715,8 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
         global _JOB
         settings = context.scene.physinteract
         settings.error = ""
+        settings.note = ""
+        settings.progress = -1.0
         try:
             _JOB = build_job(context, self.steps)
         except (UserError, runner.CliNotFound) as exc:
@@ -344,10 +732,12 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
     def _finish(self, context):
         settings = context.scene.physinteract
         settings.running = False
+        settings.progress = -1.0
         job = _JOB
+        settings.note = "; ".join(job.notes)
         if job.state == "done":
             settings.status = f"{self.steps}: done in {_elapsed(job)}"
-            self.report({"INFO"}, settings.status)
+            self.report({"INFO"}, settings.status + (f" (note: {settings.note})" if settings.note else ""))
             return {"FINISHED"}
         settings.error = job.error
         settings.status = f"{self.steps}: {job.state}"
@@ -377,7 +767,9 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
         state = _JOB.poll()
         settings = context.scene.physinteract
         if state == "running":
-            settings.status = _JOB.progress()
+            text, frac = _JOB.progress_info()
+            settings.status = text
+            settings.progress = -1.0 if frac is None else frac
             _redraw(context)
             return {"PASS_THROUGH"}
         context.window_manager.event_timer_remove(self._timer)
@@ -388,7 +780,7 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
 
     def cancel(self, context):
         if _JOB is not None:
-            _JOB.cancel()
+            _JOB.kill()
         if self._timer is not None:
             context.window_manager.event_timer_remove(self._timer)
         context.scene.physinteract.running = False
@@ -401,7 +793,8 @@ def _elapsed(job) -> str:
 
 
 class PHYSINTERACT_OT_cancel(bpy.types.Operator):
-    """Stop the running physinteract-usd step"""
+    """Stop the running physinteract-usd step: first its own clean stop (a fit keeps its best
+    iterate), a second click forces it"""
 
     bl_idname = "physinteract.cancel"
     bl_label = "Cancel"
@@ -411,11 +804,170 @@ class PHYSINTERACT_OT_cancel(bpy.types.Operator):
         return _JOB is not None and not _JOB.finished
 
     def execute(self, context):
-        _JOB.cancel()  # the modal operator sees the state on its next tick
+        _JOB.cancel()  # graceful first; again: forced. The modal operator sees the end on a tick
+        s = context.scene.physinteract
+        s.status = _JOB.progress() or s.status
+        return {"FINISHED"}
+
+
+# ------------------------------------------------------------------------------- viewport ops
+def _particles_for_selection(context):
+    s = context.scene.physinteract
+    obj = context.active_object
+    if obj is not None and obj.type == "POINTCLOUD" and not viewport.is_particles(obj):
+        raise UserError(f"'{obj.name}' is not the SimParticles cloud (the splat cloud's points are Gaussians, "
+                        "not particles): select points of SimParticles")
+    obj = obj if viewport.is_particles(obj) else viewport.particles_in(s.last_collection)
+    if obj is None:
+        raise UserError("import the stage first, then select points of its SimParticles cloud (Edit Mode)")
+    idx = viewport.selected_points(obj)
+    if not idx:
+        raise UserError(f"no point of '{obj.name}' is selected (Edit Mode)")
+    return idx
+
+
+def _video_size(context):
+    s = context.scene.physinteract
+    try:
+        size = (json.loads(s.info_json or "{}").get("frames") or {}).get("size")
+    except ValueError:
+        size = None
+    r = context.scene.render
+    return tuple(size) if size else (r.resolution_x, r.resolution_y)
+
+
+class PHYSINTERACT_OT_hint(bpy.types.Operator):
+    """Set an extraction hint from the viewport"""
+
+    bl_idname = "physinteract.hint"
+    bl_label = "Set hint"
+    bl_options = {"REGISTER", "UNDO"}
+
+    action: EnumProperty(items=[
+        ("CONTACT_POINTS", "Contact from selected points", "The selected SimParticles points are the contact"),
+        ("CONTACT_CURSOR", "Contact from 3D cursor", "The hand touches where the 3D cursor is, at this frame"),
+        ("SUPPORT_POINTS", "Supports from selected points", "The selected points are held still"),
+        ("SUPPORT_CURSOR", "Support from 3D cursor", "The object is held still where the 3D cursor is, at this frame"),
+        ("GRASP", "Grasp here", "A 'grasp' marker at this frame"),
+        ("RELEASE", "Release here", "A 'release' marker at this frame"),
+        ("CLEAR", "Clear", "Clear the hint fields (markers stay)")])
+
+    def execute(self, context):
+        s = context.scene.physinteract
+        scene = context.scene
+        try:
+            if self.action == "CONTACT_POINTS":
+                s.hint_contact_particles = viewport.compact_indices(_particles_for_selection(context))
+                s.hint_contact_pixel = ""
+            elif self.action == "SUPPORT_POINTS":
+                s.hint_support_particles = viewport.compact_indices(_particles_for_selection(context))
+            elif self.action in ("CONTACT_CURSOR", "SUPPORT_CURSOR"):
+                k = scene.frame_current
+                uv = viewport.cursor_pixel(scene, scene.camera, scene.cursor.location, k, _video_size(context))
+                px = viewport.hint_pixel(k, uv)
+                if self.action == "CONTACT_CURSOR":
+                    s.hint_contact_pixel, s.hint_contact_particles = px, ""
+                else:
+                    s.hint_support_pixels = ";".join([p for p in s.hint_support_pixels.split(";") if p.strip()] + [px])
+            elif self.action in ("GRASP", "RELEASE"):
+                viewport.set_marker(scene, self.action.lower(), scene.frame_current)
+            else:
+                s.hint_contact_particles = s.hint_contact_pixel = ""
+                s.hint_support_particles = s.hint_support_pixels = ""
+                s.hint_type = "AUTO"
+                s.hint_grasp_radius = 0.0
+        except (UserError, viewport.ViewportError) as exc:
+            s.error = str(exc)
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        s.error = ""
+        return {"FINISHED"}
+
+
+class PHYSINTERACT_OT_suggested(bpy.types.Operator):
+    """Fill init's settings from the capture's README ('Suggested:' init command line)"""
+
+    bl_idname = "physinteract.suggested"
+    bl_label = "Use the capture's suggested settings"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        s = context.scene.physinteract
+        try:
+            readme = Path(_abs(s.capture_dir, "capture folder")) / "README.txt"
+        except UserError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        found = runner.suggested_init(readme.read_text(errors="replace")) if readme.is_file() else {}
+        if not found:
+            s.error = f"{readme}: no suggested init settings there"
+            self.report({"ERROR"}, s.error)
+            return {"CANCELLED"}
+        apply_init_settings(s, found)
+        s.error = ""
+        s.status = "init settings: " + ", ".join(f"{k} {v}" for k, v in found.items())
+        return {"FINISHED"}
+
+
+def apply_init_settings(s, found: dict) -> None:
+    for key, value in found.items():
+        if key == "youngs_range":
+            s.youngs_min, s.youngs_max = value
+        elif key == "model":
+            s.model = value if value in ("fixedCorotated", "neoHookean") else "DEFAULT"
+        elif key in ("grid", "padding", "poisson", "max_poisson", "density"):
+            setattr(s, key, value)
+
+
+class PHYSINTERACT_OT_add_empty(bpy.types.Operator):
+    """Add an Empty at the 3D cursor to drive a resimulation (keyframe its location)"""
+
+    bl_idname = "physinteract.add_empty"
+    bl_label = "Add interaction Empty"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        s = context.scene.physinteract
+        e = bpy.data.objects.new("Drag", None)
+        e.empty_display_type = "SPHERE"
+        e.empty_display_size = 0.03
+        e.location = context.scene.cursor.location
+        context.collection.objects.link(e)
+        s.resim_empty = e
         return {"FINISHED"}
 
 
 # ------------------------------------------------------------------------------------- panel
+def _cli(context):
+    try:
+        return runner.resolve_cli(cli_setting(context))
+    except runner.CliNotFound:
+        return None
+
+
+_PROBING: set = set()
+
+
+def _caps(context, verb: str, flag: str | None = None):
+    """True / False, or None while unknown (a background probe is started): never blocks draw()."""
+    cli = _cli(context)
+    if cli is None:
+        return False
+    verbs = clicaps.cached(cli)
+    if verbs is None or (flag and verb in verbs and clicaps.cached(cli, verb) is None):
+        key = tuple(cli)
+        if key not in _PROBING:
+            _PROBING.add(key)
+            clicaps.probe_in_background(cli)
+        return None
+    return verb in verbs and (flag is None or flag in (clicaps.cached(cli, verb) or set()))
+
+
+def _missing(layout, what: str, known) -> None:
+    layout.label(text=f"{what}: checking the CLI…" if known is None else
+                 f"{what}: not in this physinteract-usd (update it)", icon="INFO")
+
+
 class PHYSINTERACT_PT_fit(bpy.types.Panel):
     bl_idname = "PHYSINTERACT_PT_fit"
     bl_label = "Fit material from video"
@@ -462,17 +1014,256 @@ class PHYSINTERACT_PT_fit(bpy.types.Panel):
         row.operator("physinteract.run", text="Import twin", icon="IMPORT").steps = "import"
         row.operator("physinteract.run", text="Import stage").steps = "import_stage"
         layout.prop(s, "replace_import")
-        if busy:
-            layout.label(text=s.status or "running", icon="SORTTIME")
-            layout.operator("physinteract.cancel", icon="CANCEL")
-        elif s.error:
-            layout.label(text=s.error, icon="ERROR")
-        elif s.status:
-            layout.label(text=s.status, icon="CHECKMARK")
+        draw_status(layout, s, busy)
+
+
+def draw_status(layout, s, busy) -> None:
+    if busy:
+        if s.progress >= 0:
+            layout.progress(factor=s.progress, type="BAR", text=f"{100 * s.progress:.0f}%")
+        layout.label(text=s.status or "running", icon="SORTTIME")
+        stopping = _JOB is not None and _JOB.stopping
+        layout.operator("physinteract.cancel", text="Force stop" if stopping else "Cancel", icon="CANCEL")
+    elif s.error:
+        layout.label(text=s.error, icon="ERROR")
+    elif s.status:
+        layout.label(text=s.status, icon="CHECKMARK")
+    if not busy and s.note:
+        layout.label(text=f"note: {s.note}", icon="INFO")
+
+
+class _Sub:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "PhysInteract"
+    bl_parent_id = "PHYSINTERACT_PT_fit"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
+class PHYSINTERACT_PT_settings(_Sub, bpy.types.Panel):
+    bl_idname = "PHYSINTERACT_PT_settings"
+    bl_label = "Init and fit settings"
+
+    def draw(self, context):
+        s = context.scene.physinteract
+        layout = self.layout
+        layout.operator("physinteract.suggested", icon="IMPORT")
+        layout.label(text="0 keeps the CLI's default")
+        col = layout.column(align=True)
+        col.prop(s, "padding")
+        row = col.row(align=True)
+        row.prop(s, "youngs_min")
+        row.prop(s, "youngs_max")
+        col.prop(s, "poisson")
+        col.prop(s, "max_poisson")
+        col.prop(s, "density")
+        col.prop(s, "model")
+        layout.prop(s, "fit_iterations")
+        known = _caps(context, "export", "--sim-ready")
+        if known:
+            layout.prop(s, "export_sim_ready")
+        else:
+            _missing(layout, "export --sim-ready", known)
+
+
+class PHYSINTERACT_PT_hints(_Sub, bpy.types.Panel):
+    bl_idname = "PHYSINTERACT_PT_hints"
+    bl_label = "Hints for extract"
+
+    def draw(self, context):
+        s = context.scene.physinteract
+        layout = self.layout
+        layout.prop(s, "hint_type")
+        col = layout.column(align=True)
+        row = col.row(align=True)
+        row.operator("physinteract.hint", text="Contact: selected points").action = "CONTACT_POINTS"
+        row.operator("physinteract.hint", text="Contact: 3D cursor").action = "CONTACT_CURSOR"
+        col.prop(s, "hint_contact_particles")
+        col.prop(s, "hint_contact_pixel")
+        col = layout.column(align=True)
+        row = col.row(align=True)
+        row.operator("physinteract.hint", text="Supports: selected points").action = "SUPPORT_POINTS"
+        row.operator("physinteract.hint", text="Support: 3D cursor").action = "SUPPORT_CURSOR"
+        col.prop(s, "hint_support_particles")
+        col.prop(s, "hint_support_pixels")
+        layout.prop(s, "hint_grasp_radius")
+        row = layout.row(align=True)
+        row.operator("physinteract.hint", text="Grasp here", icon="MARKER").action = "GRASP"
+        row.operator("physinteract.hint", text="Release here", icon="MARKER").action = "RELEASE"
+        layout.prop(s, "use_markers")
+        scene = context.scene
+        g, r = viewport.marker_frame(scene, "grasp"), viewport.marker_frame(scene, "release")
+        if g is not None or r is not None:
+            layout.label(text=f"markers: grasp {g if g is not None else '-'}, release {r if r is not None else '-'}")
+            known = _caps(context, "extract", "--grasp-frame")
+            if not known:
+                _missing(layout, "extract --grasp-frame", known)
+        layout.operator("physinteract.hint", text="Clear hints").action = "CLEAR"
+        try:
+            contacts = json.loads(s.contacts_json or "[]")
+        except ValueError:
+            contacts = []
+        if contacts:
+            box = layout.box()
+            box.label(text="On the stage:")
+            for c in contacts:
+                box.label(text=viewport.describe_contact(c), icon="HAND" if c["source"] == "user" else "DOT")
+
+
+class PHYSINTERACT_PT_resimulate(_Sub, bpy.types.Panel):
+    bl_idname = "PHYSINTERACT_PT_resimulate"
+    bl_label = "Resimulate"
+
+    def draw(self, context):
+        s = context.scene.physinteract
+        layout = self.layout
+        row = layout.row(align=True)
+        row.prop(s, "resim_empty")
+        row.operator("physinteract.add_empty", text="", icon="ADD")
+        layout.prop(s, "resim_kind", expand=True)
+        if s.resim_kind == "drag":
+            layout.prop(s, "resim_contact")
+        if s.resim_kind == "push":
+            layout.prop(s, "resim_friction")
+        col = layout.column(align=True)
+        col.prop(s, "resim_release")
+        col.prop(s, "resim_frames")
+        col.prop(s, "resim_keep_supports")
+        col.prop(s, "resim_name")
+        busy = _JOB is not None and not _JOB.finished
+        row = layout.row()
+        row.enabled = not busy
+        row.operator("physinteract.run", text="Resimulate and import", icon="PHYSICS").steps = "simulate"
+        if s.resim_empty is not None:
+            layout.label(text=f"radius {s.resim_empty.empty_display_size:.3g} (the Empty's display size)")
+
+
+class PHYSINTERACT_PT_look(_Sub, bpy.types.Panel):
+    bl_idname = "PHYSINTERACT_PT_look"
+    bl_label = "Look"
+
+    def draw(self, context):
+        s = context.scene.physinteract
+        layout = self.layout
+        layout.prop(s, "colour_by")
+        if s.colour_by == "RESIDUAL":
+            known = _caps(context, "report")
+            if not known:
+                _missing(layout, "report (per-particle residual)", known)
+        layout.prop(s, "splat_look")
+        layout.prop(s, "splat_size")
+        if s.look_note:
+            layout.label(text=s.look_note, icon="INFO")
+
+
+class PHYSINTERACT_PT_report(_Sub, bpy.types.Panel):
+    bl_idname = "PHYSINTERACT_PT_report"
+    bl_label = "Report and diagnosis"
+
+    def draw(self, context):
+        s = context.scene.physinteract
+        layout = self.layout
+        busy = _JOB is not None and not _JOB.finished
+        row = layout.row(align=True)
+        row.enabled = not busy
+        row.operator("physinteract.run", text="Report", icon="GRAPH").steps = "report"
+        has_diag = _caps(context, "diagnose")
+        sub = row.row(align=True)
+        sub.enabled = bool(has_diag)
+        sub.operator("physinteract.run", text="Diagnose", icon="VIEWZOOM").steps = "diagnose"
+        known = _caps(context, "report")
+        if not known:
+            _missing(layout, "report (stage's fit report used)", known)
+        if not has_diag:
+            _missing(layout, "diagnose", has_diag)
+        draw_report(layout, s, context.scene.frame_current)
+        draw_diagnosis(layout, s, _caps(context, "effects"), busy)
+        draw_versions(layout, s, _caps(context, "versions"), busy)
+
+
+def draw_report(layout, s, frame) -> None:
+    try:
+        rep = json.loads(s.report_json) if s.report_json else None
+    except ValueError:
+        rep = None
+    if not rep:
+        return
+    box = layout.box()
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    box.label(text=f"PSNR {fmt(rep.get('psnr'), '.2f')} dB (masked {fmt(rep.get('psnr_masked'), '.2f')}), "
+                   f"SSIM {fmt(rep.get('ssim'), '.3f')}, IoU {fmt(rep.get('iou'), '.3f')}")
+    if rep.get("track_error_px") is not None:
+        box.label(text=f"track error {rep['track_error_px']:.2f} px")
+    frames = [f for f in rep.get("frames") or [] if f.get("psnr") is not None]
+    now = report_at(rep, frame)
+    if now:
+        box.label(text=f"frame {frame}: PSNR {fmt(now.get('psnr'), '.2f')}, SSIM {fmt(now.get('ssim'), '.3f')}, "
+                       f"IoU {fmt(now.get('iou'), '.3f')}" + (f" ({now['phase']})" if now.get("phase") else ""))
+    if frames:
+        vals = [f["psnr"] for f in frames]
+        lo, hi = min(vals), max(vals)
+        col = box.column(align=True)
+        col.label(text=f"per-frame PSNR {lo:.1f}..{hi:.1f} dB (keyed as 'Frame PSNR' for the Graph Editor)")
+        step = max(1, (len(frames) + 23) // 24)
+        for f in frames[::step]:
+            fac = 0.05 + 0.95 * ((f["psnr"] - lo) / (hi - lo) if hi > lo else 1.0)
+            col.progress(factor=fac, type="BAR", text=f"{f['frame']}: {f['psnr']:.1f} dB")
+    if rep.get("source") == "stage":
+        box.label(text="(from the stage's fit report)")
+
+
+def draw_diagnosis(layout, s, has_effects, busy) -> None:
+    try:
+        diag = json.loads(s.diagnose_json) if s.diagnose_json else None
+    except ValueError:
+        diag = None
+    if not diag:
+        return
+    box = layout.box()
+    box.label(text=f"verdict: {diag.get('verdict', '?')}")
+    if diag.get("reason"):
+        box.label(text=str(diag["reason"])[:160])
+    for c in diag.get("candidates") or []:
+        eff = str(c.get("effect", "?"))
+        drop = c.get("predicted_loss_drop")
+        col = box.column(align=True)
+        col.label(text=f"{eff}: score {c.get('score', 0):.3g}" + (f", predicted loss drop {drop:.3g}" if
+                                                                  isinstance(drop, (int, float)) else ""))
+        ev = c.get("evidence")
+        if ev:
+            col.label(text=("  " + (ev if isinstance(ev, str) else json.dumps(ev)))[:160])
+        if eff in EFFECTS:
+            row = col.row()
+            row.enabled = bool(has_effects) and not busy
+            row.operator("physinteract.run", text=f"Add {eff} and refit", icon="ADD").steps = f"effect:{eff}"
+    if not has_effects:
+        _missing(box, "effects add", has_effects)
+
+
+def draw_versions(layout, s, has_versions, busy) -> None:
+    try:
+        fits = (json.loads(s.info_json or "{}").get("fits")) or []
+    except ValueError:
+        fits = []
+    if not fits:
+        return
+    box = layout.box()
+    box.label(text="Fit versions:")
+    for f in fits:
+        row = box.row()
+        psnr = f.get("psnr")
+        row.label(text=f"v{f.get('version')}: {', '.join(f.get('effects') or []) or 'base'}"
+                       + (f", PSNR {psnr:.2f}" if isinstance(psnr, (int, float)) else ""))
+        if has_versions:
+            sub = row.row()
+            sub.enabled = not busy
+            sub.operator("physinteract.run", text="Use").steps = f"version:{f.get('version')}"
 
 
 CLASSES = (PHYSINTERACT_AP_preferences, PHYSINTERACT_PG_settings, PHYSINTERACT_OT_run,
-           PHYSINTERACT_OT_cancel, PHYSINTERACT_PT_fit)
+           PHYSINTERACT_OT_cancel, PHYSINTERACT_OT_hint, PHYSINTERACT_OT_suggested, PHYSINTERACT_OT_add_empty,
+           PHYSINTERACT_PT_fit, PHYSINTERACT_PT_settings, PHYSINTERACT_PT_hints, PHYSINTERACT_PT_resimulate,
+           PHYSINTERACT_PT_look, PHYSINTERACT_PT_report)
 
 
 def register():
@@ -484,7 +1275,7 @@ def register():
 def unregister():
     global _JOB
     if _JOB is not None and not _JOB.finished:
-        _JOB.cancel()
+        _JOB.kill()
     _JOB = None
     del bpy.types.Scene.physinteract
     for cls in reversed(CLASSES):

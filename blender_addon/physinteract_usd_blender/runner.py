@@ -13,6 +13,7 @@ On failure `Job.error` holds one line: the CLI's own error line from stderr (eve
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -24,6 +25,7 @@ from typing import Callable
 
 CLI_NAME = "physinteract-usd"
 EXIT_MEANING = {2: "bad input", 3: "simulation unstable", 130: "interrupted"}
+KILL_AFTER = 5.0   # seconds between a forced stop's SIGTERM and SIGKILL
 # variables Blender (or its bundled USD / MaterialX) sets that must not leak into the CLI's Python
 _STRIP_ENV_PREFIXES = ("PXR_",)
 _STRIP_ENV = ("PYTHONPATH", "PYTHONHOME", "MATERIALX_SEARCH_PATH", "PYTHONEXECUTABLE")
@@ -104,6 +106,9 @@ class Job:
     started: float = 0.0
     step_started: float = 0.0
     outputs: dict = field(default_factory=dict)   # label -> (returncode, stdout, stderr)
+    notes: list = field(default_factory=list)     # one-line notes for the user (what was skipped)
+    stopping: str = ""             # "" | "graceful" (SIGINT sent) | "forced" (SIGTERM sent)
+    stop_requested: float = 0.0
     _proc: subprocess.Popen | None = None
     _out: object = None
     _err: object = None
@@ -139,6 +144,8 @@ class Job:
                 self._next()
                 continue
             if self._proc.poll() is None:
+                if self.stopping == "forced" and time.monotonic() - self.stop_requested > KILL_AFTER:
+                    self._proc.kill()
                 break
             self._finish_cli(step)
         return self.state
@@ -148,42 +155,86 @@ class Job:
         t0 = time.monotonic()
         while self.poll() == "running":
             if timeout is not None and time.monotonic() - t0 > timeout:
-                self.cancel()
+                self.kill()
                 self.error = f"timed out after {timeout:.0f} s"
                 break
             time.sleep(interval)
         return self.state
 
-    def cancel(self) -> None:
+    def cancel(self, force: bool = False) -> None:
+        """Ask the running step to stop; returns at once.
+
+        First request: SIGINT, the CLI's own clean stop (a fit keeps its best iterate and writes
+        it; that can take a while on the CPU): the job stays `running` with `stopping` set, and
+        ends `cancelled` when the CLI exits. A second request (or force=True): SIGTERM (to the CLI
+        a second signal: it quits at once, removing its temp files), then SIGKILL if it is still
+        there `KILL_AFTER` seconds later. A PyStep or a job between steps stops at once."""
+        proc = self._proc
+        if proc is None or proc.poll() is not None or os.name != "posix":
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            self._close()
+            self._mark_cancelled()
+            return
+        now = time.monotonic()
+        if not self.stopping and not force:
+            self.stopping = "graceful"
+            self.stop_requested = now
+            proc.send_signal(signal.SIGINT)
+        elif self.stopping != "forced":
+            self.stopping = "forced"
+            self.stop_requested = now
+            proc.terminate()
+        else:  # a third request: no more waiting
+            proc.kill()
+
+    def kill(self, timeout: float = 5.0) -> None:
+        """Stop now and wait for the process (unregister, Blender quitting, timeouts)."""
         proc = self._proc
         if proc is not None and proc.poll() is None:
-            # SIGINT first: the CLI turns it into KeyboardInterrupt, removes its temp files and
-            # exits 130; then SIGTERM, then SIGKILL
-            stops = ([lambda: proc.send_signal(signal.SIGINT)] if os.name == "posix" else []) + \
-                [proc.terminate, proc.kill]
-            for stop in stops:
+            for stop in ([lambda: proc.send_signal(signal.SIGINT)] if os.name == "posix" else []) + \
+                    [proc.terminate, proc.kill]:
                 stop()
                 try:
-                    proc.wait(3)
+                    proc.wait(timeout / 3)
                     break
                 except subprocess.TimeoutExpired:
                     continue
         self._close()
+        self._mark_cancelled()
+
+    def _mark_cancelled(self) -> None:
         if not self.finished:
+            label = self.current.label if self.current else ""
             self.state = "cancelled"
-            self.error = f"{self.current.label}: cancelled" if self.current else "cancelled"
+            self.error = f"{label}: cancelled" if label else "cancelled"
 
     def progress(self) -> str:
-        """One line for the panel: step k/n, its name, seconds, and the CLI's latest output line."""
+        """One line for the panel: step k/n, its name, seconds, and what the CLI is doing (its
+        latest meaningful output line, see `describe_output`)."""
+        return self.progress_info()[0]
+
+    def progress_info(self) -> tuple[str, float | None]:
+        """(the panel's line, the step's completed share in [0, 1] or None when the CLI gives
+        none, e.g. during the fit's start search)."""
         step = self.current
         if step is None:
-            return ""
-        text = f"[{self.index + 1}/{len(self.steps)}] {step.label}  {time.monotonic() - self.step_started:.0f} s"
+            return "", None
+        secs = time.monotonic() - self.step_started
+        text = f"[{self.index + 1}/{len(self.steps)}] {step.label}  {secs:.0f} s"
+        frac = None
         if isinstance(step, CliStep) and self._out is not None:
-            tail = last_line(self._tail(self._err)) or last_line(self._tail(self._out))
-            if tail:
-                text += f"  {tail[:120]}"
-        return text
+            what, frac = describe_output(self._tail(self._out, 16384), self._tail(self._err, 16384),
+                                         stderr_newer=_mtime(self._err) > _mtime(self._out))
+            if what:
+                text += f"  {what[:120]}"
+        if self.stopping == "graceful":
+            text += f"  (stopping: waiting for the CLI's clean stop, {time.monotonic() - self.stop_requested:.0f} s; " \
+                    "Cancel again to force)"
+        elif self.stopping == "forced":
+            text += "  (forcing the stop)"
+        return text, frac
 
     # --------------------------------------------------------------- internals
     def _begin(self) -> None:
@@ -206,6 +257,12 @@ class Job:
         out, err = self._read(self._out), self._read(self._err)
         self._close()
         self.outputs[step.label] = (rc, out, err)
+        if self.stopping:
+            self.state = "cancelled"
+            kept = "best iterate so far" in (out + err) or "interrupted" in last_line(out)
+            how = "stopped" if self.stopping == "graceful" and rc in (0, 130) else "cancelled"
+            self.error = f"{step.label}: {how}" + ("; the CLI kept its best iterate" if kept and how == "stopped" else "")
+            return
         if rc != 0:
             line = error_line(err)
             what = EXIT_MEANING.get(rc, "failed") if rc >= 0 else f"killed by signal {-rc}"
@@ -254,11 +311,64 @@ class Job:
             return ""
 
 
+# ------------------------------------------------------------------------------- progress
+# lines that say nothing about the verb's progress: Warp's banner and warnings, Python warnings
+_NOISE = re.compile(r"^(Warp\b|Module \S+ \S+ load|\s*warnings\.warn|\S*Warning\b|.*\bUserWarning\b|"
+                    r"\s*(Devices|Kernel cache|CUDA|Driver)\b|\s*\"(cpu|cuda)[:\"]|\s+\S.*:\s*$)", re.I)
+# tqdm: "fit:  50%|#####     | 1/2 [00:16<00:16, 16.11s/it, E=2.29e+05, K=8, best=0.0914, loss=0.0914]"
+_TQDM = re.compile(r"^(?P<desc>[^:|]*?):?\s*(?P<pct>\d+)%\|[^|]*\|\s*(?P<n>\d+)/(?P<total>\d+)\s*"
+                   r"\[(?P<elapsed>[^<\]]*)<(?P<eta>[^,\]]*)(?:,\s*(?P<rate>[^,\]]*))?(?:,\s*(?P<post>[^\]]*))?\]")
+_SEARCH = re.compile(r"^uniform E (?P<e>\S+) Pa: loss (?P<loss>\S+)")
+
+
+def _lines(text: str) -> list[str]:
+    return [ln.strip() for ln in text.replace("\r", "\n").split("\n") if ln.strip() and not _NOISE.match(ln)]
+
+
+def _mtime(f) -> int:
+    try:
+        return os.fstat(f.fileno()).st_mtime_ns if f is not None else 0
+    except (OSError, ValueError):
+        return 0
+
+
+def describe_output(stdout: str, stderr: str, stderr_newer: bool = True) -> tuple[str, float | None]:
+    """What a running verb is doing, from the tails of its stdout and stderr: (one line, the share
+    done or None). Skips Warp's banner and warnings; a tqdm bar becomes `fit 50% (1/2, 16.11s/it,
+    ETA 00:16) loss=...`; the fit's start search (`uniform E ... Pa: loss ...` lines, before its
+    bar exists) becomes `start search: 3 uniform E tried, best loss ...`. The newer of the two
+    streams wins (the CLI logs to stdout and draws its bar on stderr)."""
+    out, err = _lines(stdout), _lines(stderr)
+    order = (err, out) if stderr_newer else (out, err)
+    line = next((ls[-1] for ls in order if ls), "")
+    if not line:
+        return "", None
+    m = _TQDM.match(line)
+    if m:
+        n, total = int(m["n"]), int(m["total"])
+        rate = (m["rate"] or "").strip()
+        bits = [f"{n}/{total}"] + ([rate] if rate and "?" not in rate else []) + \
+            ([f"ETA {m['eta'].strip()}"] if m["eta"] and "?" not in m["eta"] else [])
+        desc = m["desc"].strip() or "progress"
+        text = f"{desc} {int(m['pct'])}% ({', '.join(bits)})"
+        if m["post"]:
+            text += " " + " ".join(p.strip() for p in m["post"].split(","))
+        return text, (n / total if total else None)
+    if _SEARCH.match(line):
+        tried = [float(s["loss"]) for s in map(_SEARCH.match, out) if s]
+        best = min(tried) if tried else float(_SEARCH.match(line)["loss"])
+        return f"start search: {len(tried)} uniform E tried, best loss {best:.5g} (last: {line})", None
+    return line, None
+
+
 # ------------------------------------------------------------------------- argv of each verb
 def init_argv(cli: list, stage: str, *, capture: str | None = None, object: str | None = None,
               video: str | None = None, camera: str | None = None, masks: str | None = None,
               masks_amodal: bool = False, fps: float | None = None, grid: int | None = None,
-              force: bool = False) -> list:
+              force: bool = False, padding: float | None = None, youngs_range=None,
+              poisson: float | None = None, max_poisson: float | None = None, density: float | None = None,
+              spacing: float | None = None, model: str | None = None) -> list:
+    """`init`'s argv; a setting left None (or 0) is not passed: the CLI's default applies."""
     argv = [*cli, "init", stage]
     for flag, value in (("--capture", capture), ("--object", object), ("--video", video),
                         ("--camera", camera), ("--masks", masks)):
@@ -270,9 +380,55 @@ def init_argv(cli: list, stage: str, *, capture: str | None = None, object: str 
         argv += ["--fps", repr(float(fps))]
     if grid:
         argv += ["--grid", str(int(grid))]
+    for flag, value in (("--padding", padding), ("--poisson", poisson), ("--max-poisson", max_poisson),
+                        ("--density", density), ("--spacing", spacing)):
+        if value:
+            argv += [flag, f"{float(value):g}"]
+    if youngs_range and all(youngs_range):
+        argv += ["--youngs-range", f"{float(youngs_range[0]):g},{float(youngs_range[1]):g}"]
+    if model:
+        argv += ["--model", model]
     if force:
         argv.append("--force")
     return argv
+
+
+_SUGGESTED_FLAGS = {"--grid": "grid", "--padding": "padding", "--youngs-range": "youngs_range",
+                    "--poisson": "poisson", "--max-poisson": "max_poisson", "--density": "density",
+                    "--spacing": "spacing", "--model": "model"}
+
+
+def suggested_init(text: str) -> dict:
+    """init's settings from a capture's README (`physinteract-usd synth` writes a `Suggested:` init
+    command line): {"grid": 24, "padding": 0.3, "youngs_range": (1e3, 6e4), ...}; {} when none."""
+    for line in text.splitlines():
+        if " init " not in f" {line} " and not line.strip().startswith("physinteract-usd init"):
+            continue
+        try:
+            words = shlex.split(line)
+        except ValueError:
+            continue
+        out = {}
+        for i, w in enumerate(words[:-1]):
+            key = _SUGGESTED_FLAGS.get(w)
+            if key is None:
+                continue
+            v = words[i + 1]
+            try:
+                if key == "youngs_range":
+                    lo, hi = (float(x) for x in v.split(","))
+                    out[key] = (lo, hi)
+                elif key == "grid":
+                    out[key] = int(v)
+                elif key == "model":
+                    out[key] = v
+                else:
+                    out[key] = float(v)
+            except ValueError:
+                continue
+        if out:
+            return out
+    return {}
 
 
 def verb_argv(cli: list, verb: str, stage: str, *rest) -> list:

@@ -141,8 +141,13 @@ def test_init_then_import_stage(settings, capture, tmp_path):
     for _ in range(2):  # the second import replaces the first
         assert bpy.ops.physinteract.run(steps="import_stage") == {"FINISHED"}
     pcs = [o for o in bpy.data.objects if o.type == "POINTCLOUD"]
-    assert len(pcs) == 1 and len(pcs[0].data.points) == n
-    assert pcs[0].data.materials[0].name == "PhysInteract Young's modulus"
+    # the particles, and the splats as a second point cloud (Blender's USD skips the ParticleField)
+    assert sorted(o.name for o in pcs) == ["SimParticles", "Splats"]
+    sim = bpy.data.objects["SimParticles"]
+    assert len(sim.data.points) == n
+    assert sim.data.materials[0].name == "PhysInteract Young's modulus"
+    n_splats = len(usd.GetPrimAtPath("/World/Object/Splats").GetAttribute("positions").Get())
+    assert len(bpy.data.objects["Splats"].data.points) == n_splats
     scene = bpy.context.scene
     assert scene.camera is not None and scene.camera.type == "CAMERA"
     assert (scene.render.resolution_x, scene.render.resolution_y) == (48, 36)  # from `info --json`
@@ -232,7 +237,7 @@ def test_missing_settings_are_reported_before_running(settings):
     with pytest.raises(RuntimeError, match="set the capture folder"):
         bpy.ops.physinteract.run(steps="init")
     with pytest.raises(RuntimeError, match="unknown step"):
-        bpy.ops.physinteract.run(steps="simulate")
+        bpy.ops.physinteract.run(steps="bogus")
 
 
 # ------------------------------------------------------------------------------- the runner
@@ -261,15 +266,120 @@ def test_job_polls_without_blocking(addon, cli, capture, tmp_path):
     assert rc == 0 and "wrote" in out
 
 
-def test_cancel_stops_the_subprocess(addon, project_python):
+# a stand-in for a fit that stops cleanly on SIGINT the way the CLI does (stopping.graceful): it
+# says so, takes a while to write its best iterate, then exits 130; a second signal quits at once
+CLEAN_STOP = r"""
+import signal, sys, time
+out = sys.argv[1]
+asked = []
+def on_signal(signum, frame):
+    if asked:
+        raise KeyboardInterrupt
+    asked.append(signum)
+signal.signal(signal.SIGINT, on_signal)
+signal.signal(signal.SIGTERM, on_signal)
+print("fit:  10%|#    | 1/10 [00:01<00:09, 1.00s/it, loss=0.1]", file=sys.stderr, flush=True)
+while not asked:
+    time.sleep(0.05)
+print("interrupted: keeping the best iterate so far", flush=True)
+try:
+    time.sleep(float(sys.argv[2]))          # writing the best iterate
+except KeyboardInterrupt:
+    sys.exit(130)                           # forced: nothing written
+open(out, "w").write("best iterate")
+sys.exit(130)
+"""
+
+
+def _wait_for(cond, timeout=30.0):
+    t0 = time.monotonic()
+    while not cond():
+        assert time.monotonic() - t0 < timeout, "timed out"
+        time.sleep(0.05)
+
+
+def test_cancel_waits_for_the_clis_clean_stop(addon, project_python, tmp_path):
+    """Cancel sends SIGINT and waits, however long the CLI takes to keep its best iterate."""
+    runner = addon.runner
+    best = tmp_path / "best.txt"
+    job = runner.Job([runner.CliStep("fit", [project_python, "-c", CLEAN_STOP, str(best), "3"])]).start()
+    _wait_for(lambda: "1/10" in job.progress())
+    t0 = time.monotonic()
+    job.cancel()
+    assert job.poll() == "running" and job.stopping == "graceful"
+    assert "Cancel again to force" in job.progress()
+    while job.poll() == "running":
+        time.sleep(0.05)
+        assert time.monotonic() - t0 < 30
+    assert time.monotonic() - t0 > 2.5, "the job did not wait for the CLI's own stop"
+    assert best.read_text() == "best iterate"
+    assert job.state == "cancelled"
+    assert job.error == "fit: stopped; the CLI kept its best iterate"
+
+
+def test_second_cancel_forces_the_stop(addon, project_python, tmp_path):
+    runner = addon.runner
+    best = tmp_path / "best.txt"
+    job = runner.Job([runner.CliStep("fit", [project_python, "-c", CLEAN_STOP, str(best), "60"])]).start()
+    _wait_for(lambda: "1/10" in job.progress())
+    job.cancel()
+    _wait_for(lambda: "interrupted" in job._tail(job._out))
+    t0 = time.monotonic()
+    job.cancel()                                    # the second click: SIGTERM, the CLI's "quit now"
+    assert job.stopping == "forced"
+    while job.poll() == "running":
+        time.sleep(0.05)
+    assert time.monotonic() - t0 < 5
+    assert job.state == "cancelled" and job.error == "fit: cancelled" and not best.exists()
+
+
+def test_forced_stop_kills_a_cli_that_ignores_signals(addon, project_python, monkeypatch):
+    runner = addon.runner
+    monkeypatch.setattr(runner, "KILL_AFTER", 0.5)
+    deaf = ("import signal, sys, time; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+            "signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', flush=True); time.sleep(60)")
+    job = runner.Job([runner.CliStep("fit", [project_python, "-c", deaf])]).start()
+    proc = job._proc
+    _wait_for(lambda: "ready" in job._tail(job._out))
+    job.cancel()
+    time.sleep(0.5)
+    assert job.poll() == "running"                 # SIGINT ignored: still waiting for it
+    t0 = time.monotonic()
+    job.cancel()
+    while job.poll() == "running":
+        time.sleep(0.05)
+    assert time.monotonic() - t0 < 5
+    assert job.state == "cancelled" and proc.returncode == -9
+
+
+def test_kill_stops_at_once(addon, project_python):
+    """unregister / Blender quitting / a timeout: no waiting on the CLI."""
     runner = addon.runner
     job = runner.Job([runner.CliStep("fit", [project_python, "-c", "import time; time.sleep(60)"])]).start()
     proc = job._proc
-    assert job.poll() == "running"
     t0 = time.monotonic()
-    job.cancel()
+    job.kill()
     assert job.state == "cancelled" and job.error == "fit: cancelled"
     assert proc.poll() is not None and time.monotonic() - t0 < 10
+
+
+def test_progress_skips_warp_and_reads_tqdm_and_the_start_search(addon):
+    describe = addon.runner.describe_output
+    warp = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available.\n"
+    assert describe("", warp) == ("", None)
+    assert describe("no contact sets on the stage: running extraction first\n", warp) == \
+        ("no contact sets on the stage: running extraction first", None)
+    search = "uniform E 1.446e+04 Pa: loss 0.13564\nuniform E 6.917e+04 Pa: loss 0.10254\n"
+    text, frac = describe(search, warp, stderr_newer=True)
+    assert frac is None and text.startswith("start search: 2 uniform E tried, best loss 0.10254")
+    bar = warp + "\rfit:   0%|          | 0/2 [00:00<?, ?it/s]\rfit:  50%|#####     | 1/2 " \
+        "[00:16<00:16, 16.11s/it, E=2.29e+05, K=8, best=0.0914, loss=0.0914]"
+    text, frac = describe(search, bar, stderr_newer=True)
+    assert frac == 0.5
+    assert text == "fit 50% (1/2, 16.11s/it, ETA 00:16) E=2.29e+05 K=8 best=0.0914 loss=0.0914"
+    # a log line written after the bar wins over it
+    assert describe(search + "interrupted: keeping the best iterate so far\n", bar, stderr_newer=False)[0] == \
+        "interrupted: keeping the best iterate so far"
 
 
 def test_cli_environment_drops_blenders_usd_variables(addon):
@@ -336,8 +446,12 @@ def test_cancel_button_stops_a_running_step(addon, settings, capture, tmp_path):
     op._timer = context.window_manager.event_timer_add(0.25, window=context.window or
                                                        context.window_manager.windows[0])
     assert bpy.ops.physinteract.cancel() == {"FINISHED"}
-    assert op_cls.modal(op, context, SimpleNamespace(type="TIMER")) == {"CANCELLED"}
-    assert settings.error == "init: cancelled" and not settings.running
+    t0 = time.monotonic()
+    while (result := op_cls.modal(op, context, SimpleNamespace(type="TIMER"))) == {"PASS_THROUGH"}:
+        assert time.monotonic() - t0 < 60  # the CLI's own clean stop
+        time.sleep(0.05)
+    assert result == {"CANCELLED"}
+    assert settings.error in ("init: stopped", "init: cancelled") and not settings.running
     assert bpy.ops.physinteract.run.poll()
     # init writes atomically: nothing half-written. Under load the CLI may have finished before the
     # signal reached it (seen once with a second 2-core job running); then the stage is whole.
