@@ -1,15 +1,36 @@
-"""`synth`: a synthetic capture with ground truth (scenes modelled on the paper's Table 1, hidden
-effects, two sizes); the generator is `physinteract_usd.synth`."""
+"""`synth`: a synthetic capture with ground truth: the named scenes (modelled on the paper's Table 1,
+hidden effects, two sizes) or a randomised world capture of the dev or validation split; the
+generators are `physinteract_usd.synth` (`generate`, `world.generate_world`)."""
 
 from __future__ import annotations
 
+from ..errors import InputError
 from ..synth import generate, list_scenes
 
 
 def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0, noise=None, blur=None, seed=0,
-          device="cpu", force=False, log=print) -> dict:
-    """Write the capture folder `out_dir` (object.ply, frames/, masks/, transforms.json, gt/);
-    returns the ground truth's summary (gt/gt.json)."""
+          device="cpu", force=False, log=print, random=None, split="dev", overrides=None) -> dict:
+    """Write the capture folder `out_dir` (object.ply, frames/ or video.mp4, masks/, transforms.json,
+    gt/); returns the ground truth's summary (gt/gt.json).
+
+    `random=SEED` (name None): world capture SEED of `split` ("dev", or "validation": never tuned
+    on; its folders carry the split's marker, docs/benchmarks/world.md), everything drawn from the
+    split's random stream; `frames` and `overrides` (drawn values by name) replace drawn values."""
+    if random is not None:
+        from ..synth.world import generate_world
+
+        if name is not None:
+            raise InputError("synth", "give either a scene name or --random / --validation SEED, not both")
+        for flag, v in (("--size", size != "small"), ("--hidden", hidden is not None), ("--noise", noise is not None),
+                        ("--blur", blur is not None)):
+            if v:
+                raise InputError(flag, "world captures draw it themselves (not with --random / --validation)")
+        ov = dict(overrides or {})
+        if frames is not None:
+            if int(frames) < 3:
+                raise InputError("--frames", "needs at least 3 frames")
+            ov["frames"] = int(frames)
+        return generate_world(int(random), out_dir, split=split, overrides=ov, device=device, force=force, log=log)
     return generate(name, out_dir, size=size, frames=frames, hidden=hidden, strength=strength, noise=noise,
                     blur=blur, seed=seed, device=device, force=force, log=log)
 

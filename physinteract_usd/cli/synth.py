@@ -10,6 +10,12 @@ def add_parser(sub):
     s.add_argument("name", nargs="?", help="scene name (see --list)")
     s.add_argument("out_dir", nargs="?", help="capture folder to write")
     s.add_argument("--list", action="store_true", help="list the scenes")
+    s.add_argument("--random", type=int, metavar="SEED", help="a randomised world capture of the dev split "
+                   "(synth --random SEED OUT_DIR): object, material, support or floor, toucher, camera, light, noise "
+                   "and compression drawn from the seed")
+    s.add_argument("--validation", type=int, metavar="SEED", help="a world capture of the validation split "
+                   "(synth --validation SEED OUT_DIR): never tune anything on it; its folder carries the split's "
+                   "marker, which tuning tools refuse")
     s.add_argument("--size", choices=["small", "paper"], default="small",
                    help="small: CPU-sized (default); paper: the paper's scale")
     s.add_argument("--frames", type=int, help="number of frames (default: the size's)")
@@ -32,8 +38,17 @@ def run(a) -> int:
         for name, paper, kind, desc in api.synth_scenes():
             print(f"{name:16s} {kind:19s} {paper}: {desc}")
         return 0
+    if a.random is not None or a.validation is not None:
+        if a.random is not None and a.validation is not None:
+            raise InputError("--validation", "give --random or --validation, not both")
+        if not a.name or a.out_dir:
+            raise InputError("synth", "give --random SEED OUT_DIR or --validation SEED OUT_DIR")
+        split, seed = ("dev", a.random) if a.random is not None else ("validation", a.validation)
+        api.synth(None, a.name, frames=a.frames, random=seed, split=split, device=a.device, force=a.force,
+                  size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur)
+        return 0
     if not a.name or not a.out_dir:
-        raise InputError("synth", "give NAME OUT_DIR (or --list)")
+        raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
               noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force)
     return 0

@@ -1,0 +1,308 @@
+"""Extraction measured on the world suite (randomised captures: `physinteract-usd synth --random
+SEED` for the dev split, `--validation SEED` for the validation split), against the ground truth.
+
+    python benchmarks/world_suite.py generate --split dev --seeds 0-23 --work data/world_dev
+    python benchmarks/world_suite.py extract --split dev --work data/world_dev --json out/world_dev.json
+    python benchmarks/world_suite.py generate --split validation --seeds 0-23 --work data/world_val
+    python benchmarks/world_suite.py extract --split validation --final --work data/world_val ...
+
+The dev split is for tuning. The validation split is never tuned on: `extract --split dev` refuses
+every folder of it (`synth.splits.refuse_validation`), and reading it needs `--split validation
+--final`, which logs the read in the folder's VALIDATION_SPLIT marker (so every look at it is on
+record). Use it once, for the final table.
+
+Per capture: gt/ moved out of the capture (DIR/<name>.gt), `init` with the capture's suggested
+settings (its README: grid 24, padding 0.3, the E range, the density), `extract`, then compared
+with the ground truth:
+
+- type: right or not;
+- grasp / release: frame errors. Grasps (pointAdherent): the frame the hand takes hold and the
+  motion starts; colliders: the first frame the fingertip / palm touches the object and the first
+  frame after that it does not (from the ground truth's geometry). A release that is never (held
+  to the end) on one side and a frame on the other counts as wrong (shown "never/K");
+- contact [cm]: pointAdherent: between the centroids of the extracted and the true held
+  particles (the extracted contact point when the type is wrong); pointNonAdherent: between the
+  contact points on the surface at rest; surfaceNonAdherent: the plane's offset along its normal;
+- supports: recall and precision over the stage's particles (as eval_extract.py); for an object
+  that nothing holds (resting on a floor), whether any support was invented, and whether the
+  extraction reported the floor;
+- hand IoU; and "ok": grasp and release within one frame, contact within 3 cm, no invented support
+  (the issue's bar).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+import physinteract_usd  # noqa: F401
+from physinteract_usd import api
+from physinteract_usd.errors import InputError
+from physinteract_usd.frames import read_mask
+from physinteract_usd.synth.splits import log_validation_read, mark_validation, refuse_validation
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def parse_seeds(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        if "-" in part:
+            a, b = part.split("-")
+            out += list(range(int(a), int(b) + 1))
+        elif part:
+            out.append(int(part))
+    return out
+
+
+def name_of(split: str, seed: int) -> str:
+    return f"{split}_{seed:04d}"
+
+
+def captures(work: Path, split: str) -> list[str]:
+    return sorted(p.name for p in work.iterdir() if p.is_dir() and p.name.startswith(f"{split}_")
+                  and "." not in p.name)
+
+
+def guard(work: Path, split: str, final: bool, tool: str) -> None:
+    """The dev split's tools refuse validation data; the validation split needs --final and is logged."""
+    if split == "dev":
+        refuse_validation(work, tool)
+        for n in captures(work, "dev"):
+            refuse_validation(work / n, tool)
+            if (work / f"{n}.gt").exists():
+                refuse_validation(work / f"{n}.gt", tool)
+        if captures(work, "validation"):
+            raise InputError(work, f"holds validation captures: {tool} is a tuning tool and never reads them")
+    else:
+        if not final:
+            raise InputError("--split", "validation is read only for the final table: add --final (the read is "
+                             "logged in the folder's VALIDATION_SPLIT marker); tune on the dev split")
+        mark_validation(work)
+
+
+def generate(work: Path, split: str, seeds: list[int], device: str, log=print) -> None:
+    work.mkdir(parents=True, exist_ok=True)
+    if split == "validation":
+        mark_validation(work)
+    else:
+        refuse_validation(work, "world_suite.py generate --split dev")
+    for s in seeds:
+        n = name_of(split, s)
+        if (work / f"{n}.gt" / "gt.json").exists() or (work / n / "gt" / "gt.json").exists():
+            continue
+        t0 = time.perf_counter()
+        try:
+            api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None)
+            log(f"{n}: {time.perf_counter() - t0:.0f} s", flush=True)
+        except Exception as exc:
+            log(f"{n}: FAILED {type(exc).__name__}: {exc}", flush=True)
+            traceback.print_exc()
+
+
+def prepare(work: Path, n: str) -> tuple[Path, Path, Path]:
+    """gt/ moved out to <n>.gt; the stage initialised with the capture's suggested settings."""
+    cap, gt, stage = work / n, work / f"{n}.gt", work / f"{n}.stage" / "scene.usda"
+    if (cap / "gt").exists():
+        shutil.rmtree(gt, ignore_errors=True)
+        shutil.move(str(cap / "gt"), str(gt))
+    g = json.loads((gt / "gt.json").read_text())["suggested_init"]
+    shutil.rmtree(stage.parent, ignore_errors=True)
+    stage.parent.mkdir(parents=True)
+    api.init(stage, cap, grid=g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
+             max_poisson=g["max_poisson"], density=g["density"])
+    return cap, gt, stage
+
+
+def compare(stage: Path, gt_dir: Path, result) -> dict:
+    sd = api.read_scene(stage)
+    g = json.loads((gt_dir / "gt.json").read_text())
+    it = g["interaction"]
+    w = g.get("world", {})
+    gtc = api.true_contacts(sd, gt_dir)
+    x0 = sd.particles_positions
+    true, mine = gtc[0], result.interaction[0]
+    row = {"type_true": it["type"], "type": result.interaction_type, "type_ok": result.interaction_type == it["type"],
+           "scenario": w.get("scenario"), "shape": w.get("shape"), "look": w.get("look"),
+           "width": sd.camera.width, "fps": sd.fps, "frames": sd.n_frames, "masks": g.get("masks"),
+           "encoding": g.get("noise", {}).get("encoding"), "e_max": g["youngs_modulus"]["max"]}
+    row["grasp_true"], row["grasp"] = int(it["grasp_frame"]), int(result.grasp_frame)
+    row["release_true"] = it.get("release_frame")
+    row["release"] = result.release_frame
+    row["grasp_err"] = abs(row["grasp"] - row["grasp_true"])
+    rt, rm = row["release_true"], row["release"]
+    row["release_err"] = 0 if (rt is None and rm is None) else (None if (rt is None) != (rm is None) else abs(rm - rt))
+    # contact
+    if it["type"] == "pointAdherent":
+        c_true = x0[true.indices].mean(0)
+        c_mine = x0[mine.indices].mean(0) if (mine.type == "pointAdherent" and len(mine.indices)) else mine.point(x0)
+        row["contact_cm"] = float(np.linalg.norm(c_true - c_mine) * 100)
+    elif it["type"] == "pointNonAdherent":
+        row["contact_cm"] = float(np.linalg.norm(np.asarray(it["contact_point"]) - mine.point(x0)) * 100)
+    else:
+        n = np.asarray(it["plane_normal"], float)
+        gf = min(row["grasp_true"], sd.n_frames - 1)
+        p = mine.trajectory[gf] if mine.trajectory is not None else mine.point(x0)
+        row["contact_cm"] = float(abs(np.dot(true.trajectory[gf] - p, n)) * 100)
+    # supports
+    fixed_true = set(gtc[-1].indices.tolist()) if gtc[-1].type == "fixed" else set()
+    fixed_mine = set(np.concatenate([c.indices for c in result.supports]).tolist()) if result.supports else set()
+    hit = len(fixed_true & fixed_mine)
+    row["free"] = not fixed_true
+    row["support_recall"] = hit / len(fixed_true) if fixed_true else None
+    row["support_precision"] = hit / len(fixed_mine) if fixed_mine else (None if not fixed_true else 0.0)
+    row["support_sets"] = len(result.supports)
+    row["invented_support"] = bool(not fixed_true and fixed_mine)
+    row["floor_true"] = g.get("floor") is not None
+    row["floor_found"] = bool(result.evidence.get("floor"))
+    # hand masks
+    T = sd.n_frames
+    hm = np.stack([read_mask(gt_dir / "hand_masks" / f"{k:06d}.png") for k in range(T)])
+    union = (hm | result.hand_masks).sum()
+    row["hand_iou"] = float((hm & result.hand_masks).sum() / union) if union else 1.0
+    row["ok_timing"] = row["grasp_err"] <= 1 and row["release_err"] is not None and row["release_err"] <= 1
+    row["ok_contact"] = row["contact_cm"] <= 3.0
+    row["ok"] = bool(row["ok_timing"] and row["ok_contact"] and not row["invented_support"])
+    row["notes"] = list(result.notes)
+    return row
+
+
+def fmt(v, spec=".2f", none="-"):
+    if v is None:
+        return none
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    return format(v, spec)
+
+
+def _rel(r):
+    if r.get("release_err") is None:
+        return f"**{fmt(r['release'], 'd', 'never')}/{fmt(r['release_true'], 'd', 'never')}**"
+    s = str(r["release_err"])
+    return s if r["release_err"] <= 1 else f"**{s}**"
+
+
+def table(rows: list[dict]) -> str:
+    head = ("| capture | object | toucher | px, fps | type (true) | type | grasp err | release err | contact [cm] | "
+            "support recall | support precision | free: invented / floor found | hand IoU | ok | MA | masked PSNR |")
+    lines = [head, "|" + "---|" * 16]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['scene']} | failed: {r['error']} |" + " |" * 14)
+            continue
+        typ = r["type"] if r["type_ok"] else f"**{r['type']}**"
+        g = str(r["grasp_err"]) if r["grasp_err"] <= 1 else f"**{r['grasp_err']}**"
+        c = f"{r['contact_cm']:.1f}" if r["contact_cm"] <= 3 else f"**{r['contact_cm']:.1f}**"
+        free = "-" if not r["free"] else (f"{'**yes**' if r['invented_support'] else 'no'} / "
+                                          f"{'yes' if r['floor_found'] else 'no'}")
+        fit = r.get("fit") or {}
+        lines.append(
+            f"| {r['scene']} | {r['shape']} {r['scenario']} | {r['look']} | {r['width']}, {r['fps']:g} | "
+            f"{r['type_true']} | {typ} | {g} | {_rel(r)} | {c} | {fmt(r['support_recall'])} | "
+            f"{fmt(r['support_precision'])} | {free} | {r['hand_iou']:.2f} | {'yes' if r['ok'] else '**no**'} | "
+            f"{fmt(fit.get('ma'), '.3f')} | {fmt(fit.get('psnr_masked'), '.1f')} |")
+    ok = [r for r in rows if "error" not in r]
+    if ok:
+        n = len(ok)
+        t = sum(r["ok_timing"] for r in ok)
+        c = sum(r["ok_contact"] for r in ok)
+        free = [r for r in ok if r["free"]]
+        inv = sum(r["invented_support"] for r in free)
+        rec = [r["support_recall"] for r in ok if r["support_recall"] is not None]
+        prec = [r["support_precision"] for r in ok if r["support_precision"] is not None and not r["free"]]
+        fits = [r["fit"] for r in ok if r.get("fit") and r["fit"].get("ma") is not None]
+        lines.append(
+            f"| **all ({n})** | | | | | type {np.mean([r['type_ok'] for r in ok]):.2f} | "
+            f"grasp <= 1: {sum(r['grasp_err'] <= 1 for r in ok)}/{n} | "
+            f"release <= 1: {sum(r['release_err'] is not None and r['release_err'] <= 1 for r in ok)}/{n} | "
+            f"<= 3 cm: {c}/{n} (median {np.median([r['contact_cm'] for r in ok]):.1f}) | "
+            f"{fmt(float(np.mean(rec)) if rec else None)} | {fmt(float(np.mean(prec)) if prec else None)} | "
+            f"invented {inv}/{len(free)}, floor {sum(r['floor_found'] for r in free)}/{len(free)} | "
+            f"{np.mean([r['hand_iou'] for r in ok]):.2f} | **{sum(r['ok'] for r in ok)}/{n}** "
+            f"(timing {t}/{n}) | {fmt(float(np.mean([f['ma'] for f in fits])) if fits else None, '.3f')} | "
+            f"{fmt(float(np.mean([f['psnr_masked'] for f in fits])) if fits else None, '.1f')} |")
+    return "\n".join(lines)
+
+
+def run_extract(work: Path, split: str, names: list[str], json_path: Path | None, redo: bool, device: str,
+                log=print) -> list[dict]:
+    rows = json.loads(json_path.read_text()) if (json_path and json_path.exists() and not redo) else []
+    done = {r["scene"] for r in rows if "error" not in r}
+    rows = [r for r in rows if r["scene"] in done]
+    for n in names:
+        if n in done:
+            continue
+        row = {"scene": n}
+        try:
+            cap, gt, stage = prepare(work, n)
+            t0 = time.perf_counter()
+            res = api.extract(stage, log=lambda *m: None, device=device)
+            row["extract_s"] = time.perf_counter() - t0
+            row.update(compare(stage, gt, res))
+            log(f"{n}: {row['type']}{'' if row['type_ok'] else ' (WRONG, ' + row['type_true'] + ')'}, grasp "
+                f"{row['grasp']}/{row['grasp_true']}, release {row['release']}/{row['release_true']}, contact "
+                f"{row['contact_cm']:.1f} cm, supports R {fmt(row['support_recall'])} P {fmt(row['support_precision'])}"
+                f"{' INVENTED' if row['invented_support'] else ''}, hand IoU {row['hand_iou']:.2f}"
+                f" -> {'ok' if row['ok'] else 'FAIL'} ({row['extract_s']:.1f} s)", flush=True)
+        except Exception as exc:
+            row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+            log(f"{n}: FAILED {row['error']}", flush=True)
+            traceback.print_exc()
+        rows.append(row)
+        if json_path:
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps(rows, indent=1, default=float))
+    order = {n: i for i, n in enumerate(names)}
+    rows.sort(key=lambda r: order.get(r["scene"], 1 << 30))
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("command", choices=["generate", "extract", "table"])
+    ap.add_argument("--split", choices=["dev", "validation"], default="dev")
+    ap.add_argument("--final", action="store_true", help="read the validation split for the final table (logged)")
+    ap.add_argument("--work", required=True, help="the folder of the split's captures")
+    ap.add_argument("--seeds", default="", help="e.g. 0-23 (generate; extract: default every capture there)")
+    ap.add_argument("--json", help="rows as JSON (resumable: captures already there are skipped)")
+    ap.add_argument("--fits", help="world_fit.py's JSON rows: their MA and masked PSNR go into the table")
+    ap.add_argument("--redo", action="store_true", help="measure again the captures the JSON already holds")
+    ap.add_argument("--device", default="cpu")
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    tool = f"world_suite.py {a.command} --split dev"
+    try:
+        if a.command == "generate":
+            generate(work, a.split, parse_seeds(a.seeds), a.device)
+            return 0
+        guard(work, a.split, a.final, tool)
+        names = [name_of(a.split, s) for s in parse_seeds(a.seeds)] if a.seeds else captures(work, a.split)
+        if a.split == "validation":
+            log_validation_read(work, f"world_suite.py {a.command}", f"{len(names)} captures")
+        jp = Path(a.json) if a.json else None
+        if a.command == "extract":
+            rows = run_extract(work, a.split, names, jp, a.redo, a.device)
+        else:
+            rows = json.loads(jp.read_text())
+        if a.fits and Path(a.fits).exists():
+            fits = {r["scene"]: r for r in json.loads(Path(a.fits).read_text()) if "ma" in r}
+            for r in rows:
+                if r["scene"] in fits:
+                    r["fit"] = fits[r["scene"]]
+        print()
+        print(table(rows))
+        return 0
+    except InputError as exc:
+        print(f"world_suite.py: error: {exc.oneline()}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
