@@ -278,10 +278,8 @@ def colour_particles(obj, colour_by: str, e_range=None) -> str:
     red low, green high) or RESIDUAL (the report's per-particle residual, 0..its 98th percentile,
     dark to bright red). Returns '' or one line saying why it could not."""
     pc = obj.data
-    if colour_by == "RESIDUAL":
-        if PRIMVAR_RESIDUAL not in pc.attributes:
-            return ("no per-particle residual on this stage (primvars:physinteract:residual: written by "
-                    "`report`); coloured by stiffness")
+    note = ""
+    if colour_by == "RESIDUAL" and PRIMVAR_RESIDUAL in pc.attributes:
         v = _attr_values(pc, PRIMVAR_RESIDUAL)
         hi = float(np.percentile(v, 98)) if len(v) else 1.0
         mat = ramp_material("PhysInteract residual", PRIMVAR_RESIDUAL, 0.0, hi if hi > 0 else 1.0,
@@ -290,11 +288,15 @@ def colour_particles(obj, colour_by: str, e_range=None) -> str:
         mat = ramp_material("PhysInteract confidence", PRIMVAR_CONF, 0.0, 1.0,
                             colours=((0.9, 0.15, 0.1, 1.0), (0.1, 0.8, 0.2, 1.0)))
     else:
+        if colour_by == "RESIDUAL":
+            note = ("no per-particle residual on this stage (primvars:physinteract:residual, written by "
+                    "`report`): coloured by stiffness")
+        elif colour_by == "CONFIDENCE":
+            note = "no confidence on this stage (not fitted yet): coloured by stiffness"
         mat = youngs_material(pc, e_range)
     pc.materials.clear()
     pc.materials.append(mat)
-    return "" if colour_by in ("STIFFNESS", "RESIDUAL") or PRIMVAR_CONF in pc.attributes else \
-        "no confidence on this stage (not fitted yet); coloured by stiffness"
+    return note
 
 
 SPLAT_MATERIAL = "PhysInteract splat colour"

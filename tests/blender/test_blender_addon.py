@@ -82,6 +82,10 @@ class FakeLayout:
     def label(self, text="", **kw):
         self.log.append(("label", text))
 
+    def progress(self, factor=0.0, type="BAR", text=""):
+        assert 0.0 <= factor <= 1.0, factor
+        self.log.append(("progress", text))
+
 
 @pytest.mark.parametrize("source", ["CAPTURE", "SELECTED"])
 def test_panel_draws_fields_and_buttons(settings, source):
