@@ -243,13 +243,13 @@ class MPMSolver:
                 f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]})", frame=frame,
                 advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
                         f"or speed reached: raise substeps per frame, lower E_max = {m.E_max:g} Pa (and nu_max "
-                        f"= {m.nu_max:g}), or slow the trajectory"))
+                        f"= {m.nu_max:g}), or slow the trajectory"), kind="unstable")
         lo, hi = m.grid.valid_lower, m.grid.valid_upper
         raise SimulationError(
             f"left the grid domain ({st[r, 1]} particles, e.g. particle {st[r, 3]}; valid box "
             f"[{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)", frame=frame,
             advice="enlarge the grid (GridSpec lower corner / resolution, or GridSpec.around with more padding), "
-                   "or check the trajectory, the ground height and gravity")
+                   "or check the trajectory, the ground height and gravity", kind="domain")
 
     # ------------------------------------------------------------------ convenience
     def simulate(self, n_frames: int, state: SimState | None = None, check: bool = True) -> dict[str, np.ndarray]:
