@@ -7,7 +7,7 @@ module per verb). The CLI, the Blender add-on's runner and the benchmarks use on
     api.evaluate("scene.usda", "capture/gt")
 """
 
-from .app.adapters import load_observations, read_scene, stage_contacts, true_contacts
+from .app.adapters import load_observations, measured_tracks, read_scene, stage_contacts, true_contacts
 from .app.evaluate import evaluate
 from .app.export import export
 from .app.extract import extract
@@ -15,6 +15,7 @@ from .app.fit import FitJob, FitOutcome, fit, prepare_fit, run_fit
 from .app.info import info
 from .app.init import choose_sim_settings, init
 from .app.interaction_spec import INTERACTION_DOC, parse_interaction
+from .app.report import report
 from .app.simulate import simulate
 from .app.synth import synth, synth_scenes
 from .app.versions import list_versions
@@ -24,4 +25,4 @@ from .extract import Hint, parse_hint
 __all__ = ["init", "info", "extract", "fit", "prepare_fit", "run_fit", "FitJob", "FitOutcome", "simulate",
            "evaluate", "export", "synth", "synth_scenes", "choose_sim_settings", "INTERACTION_DOC",
            "parse_interaction", "load_observations", "read_scene", "stage_contacts", "true_contacts", "Hint",
-           "parse_hint", "list_versions", "use_version"]
+           "parse_hint", "list_versions", "use_version", "report", "measured_tracks"]

@@ -21,6 +21,7 @@ RANKS = {
     "render": 4,
     "simulation": 5,
     "fit": 6, "extract": 6, "synth": 6,
+    "compare": 6.5,   # the report's analysis: above the fit and extraction (it may use their types), below usd
     "usd": 7,
     "app": 8,
     "api": 9,

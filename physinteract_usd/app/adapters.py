@@ -91,3 +91,72 @@ def effects_with_fitted(sd: SceneData) -> dict:
         for e, p in rep.get("effect_parameters", {}).items():
             effects.setdefault(e, {}).update(p)
     return effects
+
+
+def measured_tracks(sd: SceneData, obs: Observations, *, cache: bool = True, max_points: int = 3000,
+                    device: str = "cpu", progress=None):
+    """Point tracks measured on the stage's video (`extract.track.measure_tracks`: DIS flow, checked
+    forward-backward) from the Gaussians it shows at frame 0 (the object at rest, rendered through
+    the stage's camera: opaque, front surface, inside the silhouette, off the hand), and from
+    textured static background (the tracker's noise; a static camera only), as a
+    `compare.GaussianTracks`. Cached in `<stem>.report/tracks.npz` next to the stage, keyed by the
+    frames, hand masks and start points."""
+    import hashlib
+    import os
+
+    import torch
+
+    from ..compare import GaussianTracks, ModelAnimation, background_points, render_frames, track_start
+    from ..compare.noise import static_background
+    from ..extract.track import DenseFlowTracker, measure_tracks
+    from ..render import covariance_from_scales_quats
+    from ..usd.layout import LayerPaths
+
+    g = sd.gaussians
+    covs = covariance_from_scales_quats(torch.as_tensor(g.scales, dtype=torch.float32),
+                                        torch.as_tensor(g.quats, dtype=torch.float32)).numpy()
+    rest = render_frames(ModelAnimation(g.means[None], covs[None], g.colors, g.opacities), sd.camera,
+                         np.zeros(3, np.float32), device=device)
+    sil0 = None if obs.masks is None else obs.masks[0]
+    hand0 = None if obs.hand_masks is None else obs.hand_masks[0]
+    ids, uv0 = track_start(g.means, rest["alpha"][0], rest["depth"][0], sd.camera, sd.settings.particle_spacing,
+                           silhouette=sil0, hand=hand0, max_points=max_points)
+    bg_pts = np.zeros((0, 2))
+    if sd.camera.is_static:
+        cover = rest["alpha"][0][None] > 0.05
+        if obs.masks is not None:
+            cover = cover | obs.masks
+        if obs.hand_masks is not None:
+            cover = cover | obs.hand_masks
+        bg_pts = background_points(obs.frames[0], static_background(cover, obs.frames.shape[1:3]))
+    tracker = DenseFlowTracker()
+    key = hashlib.sha1()
+    for a in (obs.frames, obs.hand_masks, ids, uv0, bg_pts):
+        if a is not None:
+            key.update(np.ascontiguousarray(a).tobytes())
+    key.update(repr((tracker.name, tracker.min_width, tracker.fb_tolerance, tracker.appearance_tolerance, 1)).encode())
+    key = key.hexdigest()[:16]
+    path = LayerPaths.of(sd.path).sibling(".report") / "tracks.npz"
+    if cache and path.exists():
+        try:
+            with np.load(path) as z:
+                if str(z["key"]) == key:
+                    n = len(ids)
+                    return GaussianTracks(ids, z["uv"][:, :n], z["valid"][:, :n], z["fb"][:, :n],
+                                          z["uv"][:, n:] if sd.camera.is_static else None,
+                                          z["valid"][:, n:] if sd.camera.is_static else None)
+        except (OSError, KeyError, ValueError):
+            pass   # a stale or broken cache is measured again
+    pts = np.concatenate([uv0, bg_pts])
+    t = measure_tracks(obs.frames, pts, start=0, stop=obs.hand_masks, tracker=tracker, progress=progress)
+    if cache:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f".tracks.tmp{os.getpid()}.npz")
+            np.savez_compressed(tmp, key=key, uv=t.uv.astype(np.float32), valid=t.valid, fb=t.fb_error.astype(np.float32))
+            tmp.replace(path)
+        except OSError:
+            pass   # a read-only folder: no cache
+    n = len(ids)
+    return GaussianTracks(ids, t.uv[:, :n], t.valid[:, :n], t.fb_error[:, :n],
+                          t.uv[:, n:] if sd.camera.is_static else None, t.valid[:, n:] if sd.camera.is_static else None)

@@ -172,3 +172,72 @@ def median_flow(flow: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
     if not mask.any():
         return None
     return np.median(flow[mask], axis=0)
+
+
+@dataclass
+class MeasuredTracks:
+    """Point tracks measured on a video (`measure_tracks`)."""
+
+    uv: np.ndarray         # (T, N, 2) positions (nan where lost)
+    valid: np.ndarray      # (T, N) bool
+    fb_error: np.ndarray   # (T, N) forward-backward disagreement in pixels (nan where lost): the
+                           # tracker's own inconsistency, a measure of its noise
+    direct: np.ndarray     # (T, N) bool: measured by the flow start -> k itself (no chaining)
+    start: int
+
+
+def measure_tracks(frames: np.ndarray, points: np.ndarray, *, start: int = 0, stop: np.ndarray | None = None,
+                   tracker: DenseFlowTracker | None = None, flows: Flows | None = None,
+                   progress=None) -> MeasuredTracks:
+    """Track `points` ((N, 2) pixel coordinates in frame `start`) through `frames` ((T, H, W, 3)
+    float in [0, 1]): each point's position in frame k measured straight by the flow start -> k
+    (no drift) where that passes the forward-backward and appearance checks, else by the flow
+    chained through the frames between (`DenseFlowTracker.track`); lost points are nan / invalid.
+    `stop` (T, H, W) bool: pixels that hide the object (the hand); a point on them is lost there.
+    `progress`: a callable wrapping an iterable (e.g. tqdm) for the per-frame loop.
+
+    The measurement the report compares the model's projected Gaussians with (and a fit may use
+    as a loss term)."""
+    import cv2
+
+    tracker = tracker or DenseFlowTracker()
+    flows = flows if flows is not None else tracker.flows(frames)
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    T = len(flows.grays)
+    H, W = flows.images.shape[1:3]
+    chained = tracker.track(flows, pts, start, stop)
+    uv = np.full((T, len(pts), 2), np.nan)
+    valid = np.zeros((T, len(pts)), bool)
+    fb_err = np.full((T, len(pts)), np.nan)
+    direct = np.zeros((T, len(pts)), bool)
+    uv[start], valid[start], fb_err[start], direct[start] = pts, True, 0.0, True
+    if stop is not None:
+        valid[start] &= ~sample(stop[start].astype(np.float32), pts, order=0).astype(bool)
+    ref = sample(flows.images[start], pts)
+    tol = tracker.appearance_tolerance + 4.0 * flows.noise
+    s = flows.scale
+    ks = [k for k in range(T) if k != start]
+    for k in (progress(ks) if progress else ks):
+        f = tracker._flow(flows.grays[start], flows.grays[k])
+        b = tracker._flow(flows.grays[k], flows.grays[start])
+        if s > 1:
+            f = cv2.resize(f, (W, H), interpolation=cv2.INTER_AREA) / s
+            b = cv2.resize(b, (W, H), interpolation=cv2.INTER_AREA) / s
+        d = sample(f, pts)
+        nxt = pts + d
+        fb = np.linalg.norm(d + sample(b, nxt), axis=1)
+        ok = valid[start] & (fb < tracker.fb_tolerance + 0.1 * np.linalg.norm(d, axis=1))
+        ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] < W) & (nxt[:, 1] >= 0) & (nxt[:, 1] < H)
+        ok &= np.abs(sample(flows.images[k], np.clip(nxt, 0, [W - 1e-3, H - 1e-3])) - ref).max(1) <= tol
+        if stop is not None:
+            ok &= ~sample(stop[k].astype(np.float32), nxt, order=0).astype(bool)
+        uv[k][ok], fb_err[k][ok], direct[k][ok] = nxt[ok], fb[ok], True
+        # where the straight flow fails (large motion, occlusion on the way back), the chain may hold
+        ch = ~ok & chained.valid[k]
+        if ch.any():
+            cu = chained.uv[k][ch]
+            fb_err[k][ch] = np.linalg.norm(cu + sample(b, cu) - pts[ch], axis=1)
+            uv[k][ch] = cu
+            ok = ok | ch
+        valid[k] = ok
+    return MeasuredTracks(uv, valid, fb_err, direct, start)
