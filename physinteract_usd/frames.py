@@ -16,6 +16,10 @@ from .errors import InputError
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr")
 VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 
+# FFmpeg's own log ("moov atom not found", ...) would precede our one-line errors; OpenCV reads
+# this once, when its FFmpeg backend first opens a video (reading or writing)
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
 
 def _natural_key(p: Path):
     import re
@@ -178,8 +182,6 @@ class VideoFile(FrameSource):
         self.path = Path(path)
         if not self.path.exists():
             raise InputError(self.path, "file not found")
-        # FFmpeg's own log ("moov atom not found", ...) would precede our one-line error
-        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
         cap = cv2.VideoCapture(str(self.path))
         ok, frame = (cap.read() if cap.isOpened() else (False, None))
         if not ok or frame is None:

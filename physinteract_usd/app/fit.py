@@ -126,7 +126,8 @@ def resume_start(stage_path, sd: SceneData, contacts) -> tuple[dict, str, dict |
 
 
 def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=None, contacts=None,
-                hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None) -> FitJob:
+                hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
+                yes=True) -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
@@ -135,6 +136,13 @@ def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contac
     check_iterations(iterations)
     stage_path = Path(stage_path)
     sd = read_scene(stage_path)
+    # what can be refused is refused before extraction writes anything
+    if resume and not sd.reports and not LayerPaths.of(stage_path).checkpoint.exists():
+        raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
+    settings = FitSettings(iterations=iterations or DEFAULT_ITERATIONS, joint=joint, seed=seed)
+    if settings_overrides:
+        settings = dataclasses.replace(settings, **settings_overrides)
+    check_cost(sd, settings, device, yes=yes, stage_path=stage_path, resumed=resume)
     obs = load_observations(sd, with_hand_masks=False)
     source = "extracted"
     if contacts is not None:
@@ -165,31 +173,20 @@ def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contac
                 f"{ck.get('budget')}, written {ck.get('created')}): {iterations} iterations more")
         else:
             log(f"resuming from {resumed_from}")
-    if iterations is None:
-        iterations = DEFAULT_ITERATIONS
-    settings = FitSettings(iterations=iterations, joint=joint, seed=seed)
-    if settings_overrides:
-        settings = dataclasses.replace(settings, **settings_overrides)
+    if iterations is not None:
+        settings.iterations = int(iterations)
     return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
                   resumed_from, history)
 
 
-def estimate_seconds(job: FitJob) -> float:
-    """The fit's estimated wall time (app/budget.py's cost model)."""
-    sd, s = job.scene, job.settings
-    return budget.fit_seconds(int(s.iterations), len(sd.particles_positions), int(np.prod(sd.settings.grid_resolution)),
-                              sd.settings.substeps, sd.n_frames, job.device, 0 if job.start else s.search_evals,
-                              s.confidence_probes)
-
-
-def check_cost(job: FitJob, yes: bool) -> float:
-    """InputError (one line, with the cost) for a fit that would take hours, unless `yes`."""
-    sd, s = job.scene, job.settings
-    return budget.check_fit_cost(int(s.iterations), len(sd.particles_positions),
+def check_cost(sd: SceneData, settings: FitSettings, device: str, *, yes: bool, stage_path, resumed: bool = False):
+    """The fit's estimated wall time (app/budget.py's cost model); InputError (one line, with the
+    cost) for a fit that would take hours, unless `yes`."""
+    return budget.check_fit_cost(int(settings.iterations), len(sd.particles_positions),
                                  int(np.prod(sd.settings.grid_resolution)), sd.settings.substeps, sd.n_frames,
-                                 job.device, yes=yes, stage=str(job.stage_path),
-                                 search_evals=0 if job.start else s.search_evals,
-                                 confidence_probes=s.confidence_probes)
+                                 device, yes=yes, stage=str(stage_path),
+                                 search_evals=0 if resumed else settings.search_evals,
+                                 confidence_probes=settings.confidence_probes)
 
 
 def make_problem(job: FitJob, contacts=None) -> FitProblem:
@@ -254,8 +251,7 @@ def fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=N
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
-                      settings_overrides=settings_overrides)
-    check_cost(job, yes)
+                      settings_overrides=settings_overrides, yes=yes)
     lp = LayerPaths.of(job.stage_path)
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built
