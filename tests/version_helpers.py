@@ -31,13 +31,18 @@ def fake_result(sd, E: float, *, loss: float, interrupted: bool = False, history
         device="cpu (test)", settings={"iterations": 2}, effects=dict(effects or {}), interrupted=interrupted)
 
 
-def fake_fit(stage, E: float, *, loss: float, interrupted: bool = False, keep_best: bool = True, contacts=()):
-    """Write a version of uniform E with final loss `loss`; returns write_fit_layer's dict."""
+def fake_fit(stage, E: float, *, loss: float, interrupted: bool = False, keep_best: bool = True, contacts=(),
+             trajectories=None, shift=0.0):
+    """Write a version of uniform E with final loss `loss` (its animation: the rest pose moved up
+    by `shift` metres from frame 1 on); returns write_fit_layer's dict."""
     from physinteract_usd.usd.fit_io import write_fit_layer
     from physinteract_usd.usd.stage import read_stage
 
     sd = read_stage(stage)
     r = fake_result(sd, E, loss=loss, interrupted=interrupted)
+    r.positions[1:, :, 1] += shift
+    r.gaussian_means[1:, :, 1] += shift
+    r.trajectories = dict(trajectories or {})
     return write_fit_layer(stage, sd, r, list(contacts), keep_best=keep_best)
 
 
