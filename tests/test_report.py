@@ -107,6 +107,35 @@ def test_particle_map_takes_the_nearest_measured_gaussians():
     assert np.isnan(particle_map(np.full(3, np.nan), g, g)).all()
 
 
+def test_the_headline_says_from_when_and_how():
+    from physinteract_usd.compare.verdict import headline, how_it_fails
+
+    nan = float("nan")
+    T = 8
+    phases = ["rest", "load", "load", "hold", "release", "free", "free", "free"]
+    floor = np.full(T, 0.25)
+    fail = np.array([False] * 5 + [True] * 3)
+    # the video comes to rest after the release, the model swings on
+    code, words = how_it_fails(fail, [nan, 1, 1, 1, 1, 2.0, 1.5, 2.0], [nan, 1, 1, 1, 1, 0.1, 0.05, 0.02], floor, {})
+    assert (code, words) == ("model_keeps_moving", "the model keeps moving, the video settles")
+    err = [0, 0.1, 0.1, 0.1, 0.2, 2.0, 3.0, 2.5]
+    h = headline(fail, phases, words, track_error=err, debiased=err, track_floor=floor, psnr_masked=[40.0] * T)
+    assert h["verdict"] == "inadequate" and h["first_failing_frame"] == 5 and h["failing_phases"] == ["free"]
+    assert h["headline"].startswith("inadequate from frame 5 on (free): the model keeps moving, the video settles;")
+    assert h["headline"].endswith("worst at frame 6")
+    # the reverse, and a sag read from the residual along gravity (positive: the video hangs lower)
+    assert how_it_fails(fail, [nan, 1, 1, 1, 1, 0.1, 0.1, 0.1], [nan, 1, 1, 1, 1, 2, 2, 2], floor, {})[0] == \
+        "video_keeps_moving"
+    g = np.array([0, 0, 0, 0, 0, -0.004, -0.005, -0.004])
+    code, words = how_it_fails(fail, [nan] * T, [nan] * T, floor, {"gravity": g, "velocity": g / 4})
+    assert code == "gravity_over" and words.startswith("the model sags too much") and "4.3 mm" in words
+    scattered = np.array([False, False, True, False, False, True, True, False])
+    h = headline(scattered, phases, "x", track_error=err, debiased=err, track_floor=floor, psnr_masked=[40.0] * T)
+    assert h["headline"].startswith("inadequate at frames 2, 5-6 (load, free): x")
+    ok = headline(np.zeros(T, bool), phases, "", track_error=err, debiased=err, track_floor=floor, psnr_masked=[40.0] * T)
+    assert ok["verdict"] == "adequate" and ok["failing_frames"] == []
+
+
 # ------------------------------------------------------------------------------ the verb
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
@@ -155,7 +184,7 @@ def test_report_json_has_the_designs_keys(reported):
     json.dumps(d, allow_nan=False)
 
 
-def test_residual_maps_are_primvars_on_the_particles(reported, scene):
+def test_residual_maps_are_primvars_on_the_particles(reported):
     from pxr import Usd, UsdGeom
 
     from physinteract_usd.usd.report_io import read_residuals
@@ -178,6 +207,10 @@ def test_residual_maps_are_primvars_on_the_particles(reported, scene):
     assert lp.root.read_bytes() == reported["root_before"] and lp.init.read_bytes() == reported["init_before"]
     from pxr import Sdf
 
+    from pxr import UsdValidation
+
+    ctx = UsdValidation.ValidationContext(UsdValidation.ValidationRegistry().GetOrLoadAllValidators())
+    assert not [e for e in ctx.Validate(composed) if e.GetType() == UsdValidation.ValidationErrorType.Error]
     fit = Sdf.Layer.FindOrOpen(str(lp.fit))
     assert fit.GetAttributeAtPath("/World/Object/SimParticles.primvars:physinteract:residual") is not None
     assert dict(fit.customLayerData)["physinteract"]["report"]["verdict"] == "adequate"

@@ -228,7 +228,7 @@ def report(stage_path, *, html=None, video=None, frames_dir=None, write_stage: b
                       sd.settings.particle_spacing, tuple(sd.settings.gravity))
     meas = Measurements(obs.frames[:T], None if obs.masks is None else obs.masks[:T],
                         None if obs.hand_masks is None else obs.hand_masks[:T], tracks)
-    cmp = compare(anim, meas, scene, renders=renders)
+    cmp = compare(anim, meas, scene, renders=renders, progress=bar("model tracks"))
     data = cmp.to_dict()
     vers = versions(sd)
     current = getattr(sd, "current_version", None)

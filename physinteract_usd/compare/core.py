@@ -240,7 +240,7 @@ def compare(anim: ModelAnimation, meas: Measurements, scene: SceneInfo, *, rende
     if fail.any():
         code, words = how_it_fails(fail, model_speed, video_speed, floor.track_px,
                                    {k: np.asarray([np.nan if x is None else x for x in v], float) for k, v in split.items()},
-                                   mm_per_px, iou=[d["iou"] for d in per])
+                                   iou=[d["iou"] for d in per])
     verdict = headline(fail, phases, words, track_error=track_error, debiased=debiased, track_floor=floor.track_px,
                        psnr_masked=[d["psnr_masked"] if d["psnr_masked"] is not None else np.nan for d in per])
     verdict["reason"] = code or None

@@ -34,6 +34,12 @@ def frame_failures(track_error, track_floor, n_tracks, mse, mse_floor) -> tuple[
     return fail, how
 
 
+def _nanmean(a) -> float:
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return float(a.mean()) if a.size else float("nan")
+
+
 def _runs_text(frames: list[int]) -> str:
     runs = []
     for k in frames:
@@ -44,12 +50,11 @@ def _runs_text(frames: list[int]) -> str:
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def how_it_fails(fail: np.ndarray, model_speed, video_speed, track_floor, split: dict, mm_per_px: float,
-                 iou=None) -> tuple[str, str]:
+def how_it_fails(fail: np.ndarray, model_speed, video_speed, track_floor, split: dict, iou=None) -> tuple[str, str]:
     """(reason code, words) for the failing frames."""
     F = np.where(fail)[0]
-    sm, sv = np.nanmean(np.asarray(model_speed, float)[F]), np.nanmean(np.asarray(video_speed, float)[F])
-    f = float(np.nanmean(np.asarray(track_floor, float)[F]))
+    sm, sv = _nanmean(np.asarray(model_speed, float)[F]), _nanmean(np.asarray(video_speed, float)[F])
+    f = _nanmean(np.asarray(track_floor, float)[F])
     if np.isfinite(sm) and np.isfinite(sv):
         if sm > 2 * sv + f:
             if sv < 2 * f:
@@ -80,7 +85,7 @@ def how_it_fails(fail: np.ndarray, model_speed, video_speed, track_floor, split:
             w = words[name][0 if mm > 0 else 1]
             return f"{name}_{'under' if mm > 0 else 'over'}", f"{w}: {abs(mm):.1f} mm on average"
     if iou is not None:
-        return "silhouette", f"the silhouettes differ (IoU {np.nanmean(np.asarray(iou, float)[F]):.2f})"
+        return "silhouette", f"the silhouettes differ (IoU {_nanmean(np.asarray(iou, float)[F]):.2f})"
     return "unclear", "the error is above the noise floor"
 
 
