@@ -184,10 +184,11 @@ def compare(anim: ModelAnimation, meas: Measurements, scene: SceneInfo, *, rende
 
     # ---- the noise floor
     rest = [k for k in range(T) if phases[k] == "rest"] or [0]
-    cover = None
-    if sil_true is not None or hands is not None:
-        cover = (sil_true if sil_true is not None else np.zeros(frames.shape[:3], bool)) | \
-            (hands if hands is not None else False) | (alpha > 0.05)
+    cover = alpha > 0.05               # the model's object, the video's silhouette and the hand: not background
+    if sil_true is not None:
+        cover = cover | sil_true
+    if hands is not None:
+        cover = cover | hands
     floor = noise_floor(frames, cover, [mse[k] for k in rest], tr.background_uv, tr.background_valid,
                         tr.fb_error[:T] if tr.fb_error is not None else None, np.asarray(tr.valid[:T], bool),
                         render_px=render_px)
