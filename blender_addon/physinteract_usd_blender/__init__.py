@@ -105,6 +105,18 @@ def _resize(self, context):
                 viewport.set_look_size(o, self.splat_size)
 
 
+def _rerender(self, context):
+    for coll_name in (self.last_collection, self.last_sim_collection):
+        obj = viewport.particles_in(coll_name)
+        if obj is not None:
+            obj.hide_render = not self.render_particles and _has_splats(coll_name)
+
+
+def _has_splats(coll_name) -> bool:
+    coll = bpy.data.collections.get(coll_name or "")
+    return coll is not None and any(o.get(viewport.OWNED) == "splats" for o in coll.all_objects)
+
+
 def _is_empty(self, obj):
     return obj.type == "EMPTY"
 
@@ -220,6 +232,9 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
                                          "colours and sizes")
     splat_size: FloatProperty(name="Splat size", default=1.0, min=0.0, soft_max=4.0, update=_resize,
                               description="Scale of the splat points' radius")
+    render_particles: BoolProperty(name="Render particles", default=False, update=_rerender,
+                                   description="Render the SimParticles cloud too (off: with the splats imported, "
+                                               "renders show the splats' own colours only)")
     # state shown in the panel
     running: BoolProperty(default=False, options={"SKIP_SAVE"})
     status: StringProperty(default="", options={"SKIP_SAVE"})
@@ -363,7 +378,11 @@ def import_result(context, path: str, info: dict | None = None, replace: bool = 
         if role == "sim":
             o.name = f"SimParticles [{Path(path).stem.split('.sim.')[-1]}]"
     if settings.splat_look and particles:
-        new += _import_splat_look(context, path, coll, particles[0], settings.splat_size)
+        splats = _import_splat_look(context, path, coll, particles[0], settings.splat_size)
+        new += splats
+        if splats:  # renders show the splats' colours; the particles stay in the viewport
+            for o in particles:
+                o.hide_render = not settings.render_particles
     if role == "fit" and particles:
         contacts = stagedata.contact_sets(path)
         if not contacts and stage and os.path.exists(stage):
@@ -1152,6 +1171,7 @@ class PHYSINTERACT_PT_look(_Sub, bpy.types.Panel):
                 _missing(layout, "report (per-particle residual)", known)
         layout.prop(s, "splat_look")
         layout.prop(s, "splat_size")
+        layout.prop(s, "render_particles")
         if s.look_note:
             layout.label(text=s.look_note, icon="INFO")
 

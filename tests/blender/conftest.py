@@ -204,3 +204,60 @@ def addon(cli):
     bpy.context.preferences.addons["physinteract_usd_blender"].preferences.cli_path = cli
     yield mod
     addon_utils.disable("physinteract_usd_blender", default_set=True)
+
+
+# ------------------------------------------------------------------- a fitted twin (issue 27)
+TWIN_FPS = 20.0
+TWIN_CONTACT = (0.1, 0.15, 0.0)       # the sphere's +x side (stage frame), in view of the capture's camera
+STAGE_TO_BLENDER = ((1, 0, 0), (0, 0, -1), (0, 1, 0))
+
+
+@pytest.fixture(scope="session")
+def twin(tmp_path_factory, addon):
+    """A fitted 20 fps stage made through the panel, with hints set in the viewport: the capture's
+    suggested init settings (its README), the contact where the 3D cursor is at frame 2, the lowest
+    points selected as the support, a 'grasp' marker at frame 1; then extract and a one-iteration
+    fit (about half a minute on a free core)."""
+    import bpy
+    import numpy as np
+    from blender_capture import make_capture
+    from mathutils import Vector
+    from pxr import Usd, UsdGeom
+
+    root = tmp_path_factory.mktemp("twin")
+    cap = make_capture(root / "cap", n_frames=6, fps=TWIN_FPS)
+    # what `physinteract-usd synth` writes into a capture's README, read by the panel's button
+    (cap / "README.txt").write_text("Suggested:\n  physinteract-usd init scene.usda --capture cap --grid 12 "
+                                    "--youngs-range 1000,20000 --max-poisson 0.4 --density 150\n")
+    stage = root / "out" / "scene.usda"
+    bpy.ops.wm.read_homefile(use_empty=True)
+    s = bpy.context.scene.physinteract
+    s.capture_dir = str(cap)
+    s.stage_path = str(stage)
+    assert bpy.ops.physinteract.suggested() == {"FINISHED"}, s.error
+    s.fit_iterations = 1
+    assert bpy.ops.physinteract.run(steps="init,import_stage") == {"FINISHED"}, s.error
+    scene = bpy.context.scene
+
+    scene.frame_set(2)
+    scene.cursor.location = Vector(np.array(STAGE_TO_BLENDER, float) @ np.array(TWIN_CONTACT))
+    assert bpy.ops.physinteract.hint(action="CONTACT_CURSOR") == {"FINISHED"}, s.error
+    s.hint_type = "pointAdherent"
+    usd = Usd.Stage.Open(str(stage))   # kept: a prim of a stage already freed is invalid
+    attr = UsdGeom.Points(usd.GetPrimAtPath("/World/Object/SimParticles")).GetPointsAttr()
+    rest = np.asarray(attr.Get(Usd.TimeCode.Default()), float)
+    support = np.flatnonzero(rest[:, 1] < rest[:, 1].min() + 0.02)
+    pc = bpy.data.objects["SimParticles"]
+    sel = pc.data.attributes.get(".selection") or pc.data.attributes.new(".selection", "BOOLEAN", "POINT")
+    mask = np.zeros(len(pc.data.points), bool)
+    mask[support] = True
+    sel.data.foreach_set("value", mask)
+    bpy.context.view_layer.objects.active = pc
+    assert bpy.ops.physinteract.hint(action="SUPPORT_POINTS") == {"FINISHED"}, s.error
+    scene.frame_set(1)
+    assert bpy.ops.physinteract.hint(action="GRASP") == {"FINISHED"}
+    hints = {"pixel": s.hint_contact_pixel, "support": s.hint_support_particles, "support_idx": support}
+    assert bpy.ops.physinteract.run(steps="extract,fit") == {"FINISHED"}, s.error
+    hints["note"] = s.note
+    return {"stage": stage, "capture": cap, "hints": hints, "rest": rest,
+            "transforms": json.loads((cap / "transforms.json").read_text())}

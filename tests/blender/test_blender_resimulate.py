@@ -4,8 +4,8 @@ timeline marker) through extract onto the stage and back, a short fit, the twin 
 stage's fps with the splats' own colours, a headless render, and a resimulation driven by an
 animated Empty, imported beside the fitted twin.
 
-One fitted stage per module (init + extract + fit: about half a minute on a free core); each test
-imports it afresh into an empty Blender file.
+One fitted stage per session (conftest's `twin`: init + extract + fit, about half a minute on a
+free core); each test imports it afresh into an empty Blender file.
 """
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ import subprocess
 import bpy
 import numpy as np
 import pytest
-from conftest import clean_env
+from conftest import STAGE_TO_BLENDER, TWIN_CONTACT, TWIN_FPS, clean_env
 from mathutils import Matrix, Vector
 from pxr import Usd, UsdGeom
 
-Y_UP_TO_Z_UP = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)   # stage -> Blender
-CONTACT_STAGE = (0.1, 0.15, 0.0)          # the sphere's +x side, in view of the capture's camera
+Y_UP_TO_Z_UP = np.array(STAGE_TO_BLENDER, float)    # stage -> Blender
+CONTACT_STAGE = TWIN_CONTACT
 DRAG_BLENDER = (0.06, 0.0, 0.04)          # the Empty's move in Blender (stage: +x 6 cm, up 4 cm)
-FPS = 20.0
+FPS = TWIN_FPS
 
 
 def blender_point(p_stage) -> Vector:
@@ -49,50 +49,6 @@ def import_twin(addon, stage, **kw):
     s.stage_path = str(stage)
     addon.import_result(bpy.context, str(stage), {"frames": {"size": [48, 36]}}, role="fit", stage=str(stage))
     return s
-
-
-@pytest.fixture(scope="module")
-def twin(tmp_path_factory, addon):
-    """A fitted 20 fps stage made through the panel, with hints set in the viewport."""
-    from blender_capture import make_capture
-
-    root = tmp_path_factory.mktemp("twin")
-    cap = make_capture(root / "cap", n_frames=6, fps=FPS)
-    # what `physinteract-usd synth` writes into a capture's README, read by the panel's button
-    (cap / "README.txt").write_text("Suggested:\n  physinteract-usd init scene.usda --capture cap --grid 12 "
-                                    "--youngs-range 1000,20000 --max-poisson 0.4 --density 150\n")
-    stage = root / "out" / "scene.usda"
-    bpy.ops.wm.read_homefile(use_empty=True)
-    s = bpy.context.scene.physinteract
-    s.capture_dir = str(cap)
-    s.stage_path = str(stage)
-    assert bpy.ops.physinteract.suggested() == {"FINISHED"}, s.error
-    s.fit_iterations = 1
-    assert bpy.ops.physinteract.run(steps="init,import_stage") == {"FINISHED"}, s.error
-    scene = bpy.context.scene
-
-    # hints from the viewport: the contact where the 3D cursor is at frame 2, the lowest points held
-    scene.frame_set(2)
-    scene.cursor.location = blender_point(CONTACT_STAGE)
-    assert bpy.ops.physinteract.hint(action="CONTACT_CURSOR") == {"FINISHED"}, s.error
-    s.hint_type = "pointAdherent"
-    rest = stage_points(stage)
-    support = np.flatnonzero(rest[:, 1] < rest[:, 1].min() + 0.02)
-    pc = bpy.data.objects["SimParticles"]
-    sel = pc.data.attributes.get(".selection") or pc.data.attributes.new(".selection", "BOOLEAN", "POINT")
-    mask = np.zeros(len(pc.data.points), bool)
-    mask[support] = True
-    sel.data.foreach_set("value", mask)
-    bpy.context.view_layer.objects.active = pc
-    assert bpy.ops.physinteract.hint(action="SUPPORT_POINTS") == {"FINISHED"}, s.error
-    scene.frame_set(1)
-    assert bpy.ops.physinteract.hint(action="GRASP") == {"FINISHED"}
-    hints = {"pixel": s.hint_contact_pixel, "support": s.hint_support_particles, "support_idx": support,
-             "note": ""}
-    assert bpy.ops.physinteract.run(steps="extract,fit") == {"FINISHED"}, s.error
-    hints["note"] = s.note
-    return {"stage": stage, "capture": cap, "hints": hints, "rest": rest,
-            "transforms": json.loads((cap / "transforms.json").read_text())}
 
 
 # ----------------------------------------------------------------------------- settings

@@ -1,0 +1,159 @@
+"""The panel's pieces for verbs the CLI gains over time (report, diagnose, effects, versions,
+export --sim-ready): shown and used when the installed CLI has them, one clear line when not.
+
+A CLI that has them is stood in for by a small wrapper: it answers `-h`, `report --json`,
+`diagnose --json`, `effects add` and `versions use` with what the design's contract says (the
+JSON keys of `report --json` and `diagnose --json`) and hands every other verb to the real CLI.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import bpy
+import pytest
+from test_blender_addon import FakeLayout
+
+REPORT = {"psnr": 24.5, "psnr_masked": 18.25, "ssim": 0.91, "iou": 0.8, "track_error_px": 1.5,
+          "frames": [{"frame": k, "psnr": 20.0 + k, "ssim": 0.9, "iou": 0.8, "phase": "grasped"} for k in range(6)],
+          "versions": [{"version": 1, "effects": [], "psnr": 24.5, "loss": 0.1}]}
+DIAGNOSE = {"verdict": "missing_effect", "reason": "the motion decays faster than elasticity allows",
+            "candidates": [{"effect": "damping", "score": 0.8, "predicted_loss_drop": 0.02, "realized_loss_drop": None,
+                            "estimate": {"c": 3.0}, "evidence": "amplitude ratio 0.4 per swing"},
+                           {"effect": "interaction:timing", "score": 0.3, "predicted_loss_drop": 0.005,
+                            "realized_loss_drop": None, "estimate": {}, "evidence": "--grasp-frame 2 fits better"}]}
+
+WRAPPER = r'''#!{python}
+import json, os, sys
+REAL, LOG = {real!r}, {log!r}
+NEW = {{"report": ["--json"], "diagnose": ["--json"], "effects": [], "versions": ["--json"]}}
+a = sys.argv[1:]
+def log(*words):
+    with open(LOG, "a") as f:
+        f.write(" ".join(words) + "\n")
+if a == ["-h"]:
+    print("usage: physinteract-usd [-h] [--version] VERB ...\n\npositional arguments:\n  VERB\n"
+          + "".join(f"    {{v}}      x\n" for v in ("init", "info", "extract", "fit", "simulate", "export", *NEW))
+          + "\noptions:\n  -h, --help  show this help message and exit")
+elif len(a) == 2 and a[1] == "-h" and a[0] in NEW:
+    print(f"usage: physinteract-usd {{a[0]}} [-h] " + " ".join(NEW[a[0]]) + " stage")
+elif a[:2] == ["export", "-h"]:
+    print("usage: physinteract-usd export [-h] [--ply-sequence DIR] [--sim-ready] stage out")
+elif a and a[0] == "report":
+    log(*a); print("Warp 1.10 initialized:"); print(json.dumps({report}))
+elif a and a[0] == "diagnose":
+    log(*a); print(json.dumps({diagnose}))
+elif a and a[0] in ("effects", "versions"):
+    log(*a); print("ok")
+elif a and a[0] == "export" and "--sim-ready" in a:
+    log(*a); a.remove("--sim-ready"); os.execv(REAL, [REAL, *a])
+else:
+    os.execv(REAL, [REAL, *a])
+'''
+
+
+@pytest.fixture
+def newer_cli(addon, cli, tmp_path):
+    """The add-on pointed at a CLI with report / diagnose / effects / versions / --sim-ready."""
+    path, log = tmp_path / "physinteract-usd-newer", tmp_path / "calls.log"
+    path.write_text(WRAPPER.format(python=sys.executable, real=cli, log=str(log),
+                                   report=repr(REPORT), diagnose=repr(DIAGNOSE)))
+    path.chmod(0o755)
+    prefs = bpy.context.preferences.addons["physinteract_usd_blender"].preferences
+    prefs.cli_path = str(path)           # the update clears what the add-on knew of the old CLI
+    addon.clicaps.probe_in_background([str(path)]).join(60)
+    yield log
+    prefs.cli_path = cli
+
+
+def draw(panel) -> list:
+    log = []
+    panel.draw(type("P", (), {"layout": FakeLayout(log)})(), bpy.context)
+    return log
+
+
+def known_caps(addon, cli):
+    addon.clicaps.probe_in_background([cli]).join(60)
+
+
+def test_without_the_verbs_the_panel_says_so(addon, cli, twin):
+    from test_blender_resimulate import import_twin
+
+    known_caps(addon, cli)
+    s = import_twin(addon, twin["stage"])
+    have = addon.clicaps.verbs([cli])
+    log = draw(bpy.types.PHYSINTERACT_PT_report)
+    labels = [e[1] for e in log if e[0] == "label"]
+    for verb in ("diagnose",):
+        if verb not in have:
+            assert f"{verb}: not in this physinteract-usd (update it)" in labels
+            with pytest.raises(RuntimeError, match=f"no `{verb}` verb"):
+                bpy.ops.physinteract.run(steps=verb)
+    if "effects" not in have:
+        with pytest.raises(RuntimeError, match="no `effects` verb"):
+            bpy.ops.physinteract.run(steps="effect:damping")
+    if "versions" not in have:
+        with pytest.raises(RuntimeError, match="no `versions` verb"):
+            bpy.ops.physinteract.run(steps="version:1")
+    if not addon.clicaps.has([cli], "export", "--sim-ready"):
+        labels = [e[1] for e in draw(bpy.types.PHYSINTERACT_PT_settings) if e[0] == "label"]
+        assert "export --sim-ready: not in this physinteract-usd (update it)" in labels
+    assert s.error.startswith("this physinteract-usd has no") or not (
+        {"diagnose", "effects", "versions"} - have)
+
+
+def test_report_and_diagnosis_from_a_cli_that_has_them(addon, newer_cli, twin):
+    from test_blender_resimulate import import_twin
+
+    s = import_twin(addon, twin["stage"])
+    assert bpy.ops.physinteract.run(steps="report,diagnose") == {"FINISHED"}, s.error
+    assert json.loads(s.report_json)["psnr"] == 24.5 and s.note == ""
+    assert json.loads(s.diagnose_json)["verdict"] == "missing_effect"
+    calls = newer_cli.read_text().splitlines()
+    assert calls == [f"report {twin['stage']} --json", f"diagnose {twin['stage']} --json"]
+    bpy.context.scene.frame_set(3)
+    assert s.frame_psnr == pytest.approx(23.0)          # the curve, keyed per frame
+    log = draw(bpy.types.PHYSINTERACT_PT_report)
+    labels = [e[1] for e in log if e[0] == "label"]
+    assert "PSNR 24.50 dB (masked 18.25), SSIM 0.910, IoU 0.800" in labels
+    assert "track error 1.50 px" in labels
+    assert "frame 3: PSNR 23.00, SSIM 0.900, IoU 0.800 (grasped)" in labels
+    assert [e[1] for e in log if e[0] == "progress"] == [f"{k}: {20 + k:.1f} dB" for k in range(6)]
+    assert "verdict: missing_effect" in labels
+    assert any(t.startswith("damping: score 0.8") for t in labels)
+    assert "  amplitude ratio 0.4 per swing" in labels and "  --grasp-frame 2 fits better" in labels
+    ops = [(e[1], e[2]) for e in log if e[0] == "operator"]
+    assert ("physinteract.run", "Add damping and refit") in ops
+    assert not any("interaction:timing" in (t or "") for _, t in ops)     # not an effect: no button
+    assert not any("not in this physinteract-usd" in t for t in labels)
+
+
+def test_add_effect_refits_and_versions_use_reimports(addon, newer_cli, twin):
+    from test_blender_resimulate import import_twin
+
+    s = import_twin(addon, twin["stage"])
+    job = addon.build_job(bpy.context, "effect:damping")
+    assert [st.label for st in job.steps] == ["effects add damping", "fit", "info", "import", "report"]
+    assert job.steps[0].argv[-4:] == ["effects", "add", str(twin["stage"]), "damping"]
+    with pytest.raises(RuntimeError, match="unknown effect 'wind'"):
+        bpy.ops.physinteract.run(steps="effect:wind")
+    assert bpy.ops.physinteract.run(steps="version:1") == {"FINISHED"}, s.error
+    assert newer_cli.read_text().splitlines()[-1] == f"versions use {twin['stage']} 1"
+    assert s.last_collection in bpy.data.collections                      # re-imported
+    fits = json.loads(s.info_json)["fits"]
+    assert fits and fits[0]["version"] == 1
+    ops = [(e[2]) for e in draw(bpy.types.PHYSINTERACT_PT_report) if e[0] == "operator"]
+    assert "Use" in ops
+
+
+def test_export_sim_ready_when_offered(addon, newer_cli, twin, tmp_path):
+    from test_blender_resimulate import import_twin
+
+    s = import_twin(addon, twin["stage"])
+    s.export_path = str(tmp_path / "twin.usdc")
+    s.export_sim_ready = True
+    props = [e[1] for e in draw(bpy.types.PHYSINTERACT_PT_settings) if e[0] == "prop"]
+    assert "export_sim_ready" in props
+    job = addon.build_job(bpy.context, "export")
+    assert job.steps[0].argv[-1] == "--sim-ready" and job.notes == []
