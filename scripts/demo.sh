@@ -8,7 +8,7 @@ bash scripts/setup.sh
 SAMPLE=samples/foam_bar   # regenerate with: physinteract-usd synth foam_bar samples/foam_bar --frames 14 --force
 OUT=out/demo
 mkdir -p "$OUT"
-rm -f "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc
+rm -rf "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/scene.versions "$OUT"/scene.extract
 # the capture's README.txt suggests grid 24: ~10 minutes on 2 CPU cores, MA 0.93 (grid 20: ~5 minutes,
 # MA 0.84; docs/benchmarks/fit.md)
 physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 0.3 \
@@ -17,5 +17,5 @@ physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 
 physinteract-usd fit "$OUT/scene.usda" "$@"
 physinteract-usd evaluate "$OUT/scene.usda" --gt "$SAMPLE/gt"
 physinteract-usd info "$OUT/scene.usda"
-physinteract-usd export "$OUT/scene.usda" "$OUT/foam_bar_twin.usdc"
+physinteract-usd export "$OUT/scene.usda" "$OUT/foam_bar_twin.usdc" --force
 echo "demo done: open $OUT/scene.usda (or $OUT/foam_bar_twin.usdc in Blender)"

@@ -13,7 +13,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
 from ..gaussians import scales_quats_from_covariance
 from ..scene import SceneData
 from .contacts import write_contact, write_trajectory
-from .layout import GENERATOR, PARTICLES, SCENE, SPLATS, LayerPaths, atomic_outputs, set_stage_metadata
+from .layout import (GENERATOR, PARTICLES, SCENE, SPLATS, LayerPaths, atomic_outputs, check_owned,
+                     set_stage_metadata)
 from .reports import json_default, write_report
 from .stage import open_stage
 from .versions import commit_version, now_utc
@@ -124,6 +125,8 @@ def write_simulation_layer(stage_path, scene: SceneData, name: str, positions, g
     fitted stage (your root layer is not touched). Returns the two paths."""
     lp = LayerPaths.of(stage_path)
     layer_path, view_path = lp.sibling(f".sim.{name}.usdc"), lp.sibling(f".sim.{name}.usda")
+    check_owned(layer_path, "simulation")      # an earlier simulate's files are replaced; nobody else's
+    check_owned(view_path, "simulationView")
     n = len(positions)
     layer = Sdf.Layer.CreateAnonymous("sim.usdc")
     set_stage_metadata(layer, fps, 0, n - 1)

@@ -24,12 +24,13 @@ import os
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom
+from pxr import Sdf, Usd
 
 from ..errors import InputError
 from .contacts import CONTACT_TYPE, TRAJECTORY_TYPE, remove_contacts
 from .layout import (GENERATOR, OBJECT, PARTICLES, PRIMVAR_E, PRIMVAR_NU, SCENE, LayerPaths, atomic_outputs,
-                     check_owned, mark_layer, open_fit_layer, remove_prim_spec, save_layer, set_stage_metadata)
+                     check_our_root, check_owned, mark_layer, open_fit_layer, remove_prim_spec, save_layer,
+                     set_stage_metadata)
 from .reports import REPORT_PREFIX, REPORT_TYPE, read_report, report_versions
 
 CURRENT_ATTR = "physinteract:currentVersion"
@@ -193,6 +194,7 @@ def commit_version(stage_path, scene, author, *, status: str, final_loss: float,
     layer, and its content too when it becomes current (`choose_current`). Returns {"version",
     "layer", "snapshot", "current" (the version current now), "made_current", "reason"}."""
     lp = LayerPaths.of(stage_path)
+    check_our_root(lp.root)
     check_owned(lp.fit, "fit")
     with versions_lock(lp):
         fit = open_fit_layer(lp, scene.fps, scene.n_frames)
@@ -286,14 +288,12 @@ def read_version_start(stage_path, n: int) -> dict:
     path = LayerPaths.of(stage_path).version_layer(n)
     st = Usd.Stage.Open(open_snapshot(path))
     prim = st.GetPrimAtPath(PARTICLES)
-    pv = UsdGeom.PrimvarsAPI(prim) if prim else None
     vals = {}
     for key, name in (("youngs", PRIMVAR_E), ("poisson", PRIMVAR_NU)):
         a = prim.GetAttribute(name) if prim else None
         if not a or not a.HasValue():
             raise InputError(path, f"version {n}'s snapshot has no {name} on {PARTICLES}")
         vals[key] = np.asarray(a.Get(), np.float64)
-    del pv
     trajs = {}
     scene = st.GetPrimAtPath(SCENE)
     if scene:
