@@ -16,14 +16,14 @@ ROOT = Path(__file__).resolve().parent.parent / "physinteract_usd"
 RANKS = {
     "errors": 0,
     "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1,
-    "scene": 2, "fill": 2,
+    "scene": 2, "fill": 2, "tetmesh": 2,
     "capture": 3, "sim": 3,
     "render": 4,
     "simulation": 5,
     "fit": 6, "extract": 6, "synth": 6,
     "compare": 6.5,   # the report's analysis: above the fit and extraction (it may use their types), below usd
     "usd": 7,
-    "app": 8,
+    "app": 8, "crosscheck": 8,
     "api": 9,
     "cli": 10, "__main__": 11,
 }

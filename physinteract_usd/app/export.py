@@ -26,17 +26,25 @@ def check_output(stage_path, out_path, force: bool) -> None:
         raise InputError(out, "already exists: --force replaces it")
 
 
-def export(stage_path, out_path, *, ply_sequence=None, force=False, capture_paths="drop") -> dict:
-    """Returns {"usd": path[, "ply_frames", "ply_sequence"]}. The stage is read (and checked)
-    first; OUT is refused if it exists, unless `force`; `capture_paths`: "drop" (default: the file
-    depends on nothing else) or "absolute" (the capture's frames and masks by absolute path)."""
+def export(stage_path, out_path, *, ply_sequence=None, force=False, capture_paths="drop", sim_ready=False) -> dict:
+    """Returns {"usd": path[, "ply_frames", "ply_sequence"][, "sim_ready"]}. The stage is read (and
+    checked) first; OUT is refused if it exists, unless `force`; `capture_paths`: "drop" (default:
+    the file depends on nothing else) or "absolute" (the capture's frames and masks by absolute
+    path). `sim_ready`: OUT is the tetrahedral soft body with the deformable-physics schemas
+    (`app.simready`; its summary under "sim_ready") instead of the flattened stage."""
     read_scene(stage_path)   # a stage with bad authored values is refused, not exported
     check_output(stage_path, out_path, force)
     if ply_sequence:  # checked before anything is written
         out_dir = Path(ply_sequence)
         if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
             raise InputError(out_dir, "exists and is not empty")
-    result = {"usd": export_stage(stage_path, out_path, capture_paths=capture_paths)}
+    if sim_ready:
+        from .simready import export_sim_ready
+
+        summary = export_sim_ready(stage_path, out_path)
+        result = {"usd": summary["usd"], "sim_ready": summary}
+    else:
+        result = {"usd": export_stage(stage_path, out_path, capture_paths=capture_paths)}
     if ply_sequence:
         out_dir.mkdir(parents=True, exist_ok=True)
         sd = read_scene(stage_path)

@@ -1,0 +1,131 @@
+"""Cross-check of `export --sim-ready` with Newton: our MPM and Newton (from the exported file alone)
+under the same loads, on the bundled sample's fitted stage and on one synthetic scene per archetype.
+
+    python benchmarks/simready_newton.py --sample out/demo/scene.usda --scenes hemp_rope,bow_tie,balloon,flower \\
+        --work /tmp/simready --json docs/benchmarks/simready_newton.json
+
+The sample is its fitted stage (`bash scripts/demo.sh` writes out/demo/scene.usda): the fitted field
+and the fitted interaction. A synthetic scene is `synth NAME --size small` + `init` with its
+suggested settings, then its ground-truth field (from gt/particles.npz, nearest particle) and
+ground-truth contacts (no fit: what is compared is the two simulators on one asset). Each asset is
+exported with `app.simready` and loaded into Newton by `crosscheck` (see physinteract_usd/
+crosscheck.py for the loads and the measures). Prints one row per scene and load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+ARCHETYPES = {"hemp_rope": "rope", "bow_tie": "flat", "balloon": "inflated", "flower": "thin stem + petals",
+              "glove": "flat, fingers", "balloon_dog": "inflated, limbs", "tow_rope": "rope, two anchors"}
+
+
+def synthetic_scene(name: str, work: Path):
+    """(SceneData with the ground-truth field and contacts, its stage path)."""
+    from physinteract_usd import api
+
+    from eval_extract import init_stage
+
+    cap = work / name
+    if not (cap / "gt" / "gt.json").exists():
+        api.synth(name, cap, size="small", force=True, log=lambda *a: None)
+    stage = work / f"{name}.stage" / "scene.usda"
+    if not stage.exists():
+        init_stage(cap, cap / "gt", stage)
+    sd = api.read_scene(stage)
+    gtp = np.load(cap / "gt" / "particles.npz")            # the ground-truth simulation's particles
+    _, nn = cKDTree(gtp["rest"]).query(sd.particles_positions)
+    E, nu = gtp["E"][nn], gtp["nu"][nn]
+    contacts = api.true_contacts(sd, cap / "gt")
+    return dataclasses.replace(sd, youngs_modulus=np.asarray(E, np.float64), poisson_ratio=np.asarray(nu, np.float64),
+                               contacts=contacts, trajectories=[]), stage
+
+
+def run_one(label: str, archetype: str, sd, out: Path, args) -> list[dict]:
+    from physinteract_usd.app.simready import build_sim_ready
+    from physinteract_usd.crosscheck import crosscheck
+    from physinteract_usd.usd.simready import write_sim_ready
+
+    t0 = time.perf_counter()
+    asset = build_sim_ready(sd, log=lambda *a: None)
+    write_sim_ready(out, asset)
+    export_s = time.perf_counter() - t0
+    print(f"{label}: {len(asset.tets)} tetrahedra, {len(asset.points)} points, {len(asset.regions)} regions, "
+          f"surface within {asset.info['surfaceDistanceMax'] / asset.info['particleSpacing']:.2f} h of the Gaussians, "
+          f"exported in {export_s:.1f} s", flush=True)
+    r = crosscheck(sd, out, duration=args.duration, damping=args.damping, newton_substeps=args.rate,
+                   iterations=args.iterations, log=lambda m: print(f"{label}{m}", flush=True))
+    rows = []
+    for load, c in r["loads"].items():
+        rows.append({"scene": label, "archetype": archetype, "load": load, "particles": len(sd.particles_positions),
+                     "tetrahedra": len(asset.tets), "points": len(asset.points), "regions": len(asset.regions),
+                     "spacing_m": asset.info["particleSpacing"], "surface_max_h": asset.info["surfaceDistanceMax"]
+                     / asset.info["particleSpacing"], "volume_ratio": asset.info["volumeRatio"], **c})
+    for w in r.get("newton_warnings", []):
+        print(f"{label}: Newton: {w}")
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    head = ("| scene | archetype | load | particles | tets | tip ours [mm] | tip Newton [mm] | tip error | "
+            "surface error | MPM s | Newton s |")
+    lines = [head, "|" + "---|" * 11]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['archetype']} | {r['load']} | {r['particles']} | {r['tetrahedra']} | "
+                     f"{1e3 * r['tip_ours_norm_m']:.2f} | {1e3 * r['tip_newton_norm_m']:.2f} | "
+                     f"{100 * r['tip_error']:.1f}% | {100 * r['surface_error']:.1f}% | {r['mpm_seconds']:.0f} | "
+                     f"{r['newton_seconds']:.0f} |")
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sample", help="the bundled sample's fitted stage (out/demo/scene.usda)")
+    ap.add_argument("--scenes", default="hemp_rope,bow_tie,balloon,flower", help="synthetic scenes (comma list)")
+    ap.add_argument("--work", default="/tmp/simready", help="scratch folder for captures, stages and assets")
+    ap.add_argument("--json", help="append the rows here")
+    ap.add_argument("--duration", type=float, default=1.5, help="seconds simulated per load")
+    ap.add_argument("--damping", type=float, default=25.0, help="mass-proportional damping c [1/s]")
+    ap.add_argument("--rate", type=int, default=2000, help="Newton steps per second")
+    ap.add_argument("--iterations", type=int, default=10, help="Newton VBD iterations per step")
+    args = ap.parse_args()
+    import physinteract_usd  # noqa: F401
+    from physinteract_usd import api
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    jobs = []
+    if args.sample:
+        jobs.append(("foam_bar (sample, fitted)", "bar (sample)", lambda: api.read_scene(args.sample)))
+    for name in filter(None, args.scenes.split(",")):
+        jobs.append((name, ARCHETYPES.get(name, "?"), lambda n=name: synthetic_scene(n, work)[0]))
+    for label, arch, load in jobs:
+        sd = load()
+        out = work / f"{label.split()[0]}.simready.usdc"
+        new = run_one(label, arch, sd, out, args)
+        rows += new
+        if args.json:
+            p = Path(args.json)
+            old = json.loads(p.read_text()) if p.exists() else {"machine": platform.processor() or platform.machine(),
+                                                                   "rows": []}
+            old["rows"] += new
+            p.write_text(json.dumps(old, indent=1))
+        print(table(new), flush=True)
+    print()
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
