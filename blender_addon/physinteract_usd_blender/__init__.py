@@ -152,6 +152,12 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
     force: BoolProperty(name="Replace generated layers", default=False,
                         description="init --force: rewrite the generated layers of an existing stage "
                                     "(your root layer is kept)")
+    discard_fits: BoolProperty(name="Discard fit versions", default=False,
+                               description="init --force --discard-fits: a fitted stage's fit versions go too "
+                                           "(without it the CLI refuses to re-init a fitted stage)")
+    accept_slow: BoolProperty(name="Accept slow fits", default=False,
+                              description="init --yes: go on when a frame needs so many substeps that fits "
+                                          "would take hours")
     replace_import: BoolProperty(name="Replace previous import", default=True,
                                  description="Remove the objects of the previous import first")
     # init's settings (0: the CLI's default)
@@ -248,6 +254,7 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
     contacts_json: StringProperty(default="")
     report_json: StringProperty(default="")
     diagnose_json: StringProperty(default="")
+    versions_json: StringProperty(default="")
     frame_psnr: FloatProperty(name="Frame PSNR", default=0.0,
                               description="The report's per-frame PSNR, keyed per frame (Graph Editor)")
 
@@ -332,6 +339,7 @@ def import_result(context, path: str, info: dict | None = None, replace: bool = 
     (which is hidden, viewport and render, so the new motion is what plays)."""
     if not os.path.exists(path):
         raise RuntimeError(f"{path}: file not found")
+    stagedata.reload_layers(path)   # what the CLI rewrote since the last import
     scene = context.scene
     settings = scene.physinteract
     notes = []
@@ -446,11 +454,16 @@ def _remove_collection(name: str) -> None:
     coll = bpy.data.collections.get(name)
     if coll is None:
         return
+    caches = {m.cache_file for o in coll.all_objects for m in o.modifiers
+              if m.type == "MESH_SEQUENCE_CACHE" and m.cache_file is not None}
     for o in list(coll.all_objects):
         bpy.data.objects.remove(o, do_unlink=True)
     for child in list(coll.children_recursive):
         bpy.data.collections.remove(child)
     bpy.data.collections.remove(coll)
+    unused = [c for c in caches if c.users == 0]
+    if unused:  # the import's cache files hold the USD layers open
+        bpy.data.batch_remove(unused)
 
 
 # ------------------------------------------------------------------------------ report data
@@ -466,6 +479,28 @@ def store_report(context, report: dict) -> None:
             continue
         settings.frame_psnr = float(f["psnr"])
         settings.keyframe_insert("frame_psnr", frame=int(f["frame"]))
+
+
+def _store_versions(out: str) -> None:
+    try:
+        bpy.context.scene.physinteract.versions_json = json.dumps(parse_json(out))
+    except ValueError:
+        bpy.context.scene.physinteract.versions_json = ""   # an older `versions` without --json
+
+
+def _reimport_for_residual(context, stage: str) -> None:
+    """`report` writes the per-particle residual into the stage: when the imported stage's cloud
+    lacks it, import the stage again so the residual can colour it."""
+    s = context.scene.physinteract
+    coll = bpy.data.collections.get(s.last_collection or "")
+    obj = viewport.particles_in(s.last_collection)
+    if coll is None or obj is None or coll.get("physinteract_file") != os.path.abspath(stage):
+        return
+    if viewport.PRIMVAR_RESIDUAL in obj.data.attributes or not stagedata.has_primvar(
+            stage, stagedata.PARTICLES, viewport.PRIMVAR_RESIDUAL):
+        return
+    info = json.loads(s.info_json or "{}") or None
+    import_result(context, stage, info, True, role="fit", stage=stage)
 
 
 def _clear_curve(scene) -> None:
@@ -598,6 +633,19 @@ def _write_spec(path: str, sp: dict) -> None:
     os.replace(tmp, path)
 
 
+def _optional_flags(cli, verb, notes, pairs) -> list:
+    """The flags asked for that the CLI's verb has; a note for each it lacks."""
+    out = []
+    for flag, wanted in pairs:
+        if not wanted:
+            continue
+        if clicaps.has(cli, verb, flag):
+            out.append(flag)
+        else:
+            notes.append(f"{verb} ran without {flag}: this physinteract-usd lacks it")
+    return out
+
+
 def build_job(context, steps: str) -> runner.Job:
     """The steps as a runner.Job. Raises UserError / runner.CliNotFound before anything runs."""
     settings = context.scene.physinteract
@@ -614,16 +662,21 @@ def build_job(context, steps: str) -> runner.Job:
 
     def import_steps(name):
         target = p["stage"] if name == "import_stage" else p["export"]
-        return [runner.CliStep("info", runner.verb_argv(cli, "info", p["stage"], "--json"),
-                               on_done=lambda out, info=info: info.update(parse_json(out))),
-                runner.PyStep("import", lambda target=target, info=info: import_result(
-                    bpy.context, target, info, bpy.context.scene.physinteract.replace_import,
-                    role="fit", stage=p["stage"]))]
+        out = [runner.CliStep("info", runner.verb_argv(cli, "info", p["stage"], "--json"),
+                              on_done=lambda out, info=info: info.update(parse_json(out)))]
+        if has("versions"):  # optional: a failure here is a note, the import goes on
+            out.append(runner.CliStep("versions list", [*cli, "versions", "list", p["stage"], "--json"],
+                                      on_done=_store_versions, optional=True))
+        out.append(runner.PyStep("import", lambda target=target, info=info: import_result(
+            bpy.context, target, info, bpy.context.scene.physinteract.replace_import,
+            role="fit", stage=p["stage"])))
+        return out
 
     def report_steps():
         if has("report"):
             return [runner.CliStep("report", runner.verb_argv(cli, "report", p["stage"], "--json"),
-                                   on_done=lambda out: store_report(bpy.context, parse_json(out)))]
+                                   on_done=lambda out: store_report(bpy.context, parse_json(out))),
+                    runner.PyStep("residual", lambda: _reimport_for_residual(bpy.context, p["stage"]))]
         notes.append("this physinteract-usd has no `report` verb: per-frame PSNR, SSIM and IoU from the "
                      "stage's fit report")
         return [runner.PyStep("report", lambda: store_report(bpy.context, stagedata.report_from_stage(p["stage"])))]
@@ -650,7 +703,9 @@ def build_job(context, steps: str) -> runner.Job:
                 padding=settings.padding or None, youngs_range=(settings.youngs_min, settings.youngs_max),
                 poisson=settings.poisson or None, max_poisson=settings.max_poisson or None,
                 density=settings.density or None,
-                model=None if settings.model == "DEFAULT" else settings.model)))
+                model=None if settings.model == "DEFAULT" else settings.model)
+                + _optional_flags(cli, "init", notes, (("--discard-fits", settings.force and settings.discard_fits),
+                                                       ("--yes", settings.accept_slow)))))
         elif name == "extract":
             job_steps.append(runner.CliStep("extract", extract_argv(context, cli, p["stage"], notes)))
         elif name == "fit":
@@ -845,6 +900,13 @@ def _particles_for_selection(context):
     return idx
 
 
+def _stage_camera(context):
+    """The video's camera: the one imported with the stage (not whatever camera renders the scene)."""
+    coll = bpy.data.collections.get(context.scene.physinteract.last_collection or "")
+    cams = [o for o in coll.all_objects if o.type == "CAMERA"] if coll is not None else []
+    return cams[0] if cams else context.scene.camera
+
+
 def _video_size(context):
     s = context.scene.physinteract
     try:
@@ -882,7 +944,8 @@ class PHYSINTERACT_OT_hint(bpy.types.Operator):
                 s.hint_support_particles = viewport.compact_indices(_particles_for_selection(context))
             elif self.action in ("CONTACT_CURSOR", "SUPPORT_CURSOR"):
                 k = scene.frame_current
-                uv = viewport.cursor_pixel(scene, scene.camera, scene.cursor.location, k, _video_size(context))
+                uv = viewport.cursor_pixel(scene, _stage_camera(context), scene.cursor.location, k,
+                                           _video_size(context))
                 px = viewport.hint_pixel(k, uv)
                 if self.action == "CONTACT_CURSOR":
                     s.hint_contact_pixel, s.hint_contact_particles = px, ""
@@ -1017,7 +1080,10 @@ class PHYSINTERACT_PT_fit(bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(s, "grid")
         row.prop(s, "fps")
-        layout.prop(s, "force")
+        row = layout.row(align=True)
+        row.prop(s, "force")
+        if s.force and _caps(context, "init", "--discard-fits"):
+            row.prop(s, "discard_fits")
 
         busy = _JOB is not None and not _JOB.finished
         col = layout.column(align=True)
@@ -1077,6 +1143,8 @@ class PHYSINTERACT_PT_settings(_Sub, bpy.types.Panel):
         col.prop(s, "max_poisson")
         col.prop(s, "density")
         col.prop(s, "model")
+        if _caps(context, "init", "--yes"):
+            layout.prop(s, "accept_slow")
         layout.prop(s, "fit_iterations")
         known = _caps(context, "export", "--sim-ready")
         if known:
@@ -1209,6 +1277,10 @@ def draw_report(layout, s, frame) -> None:
     if not rep:
         return
     box = layout.box()
+    if rep.get("verdict"):
+        box.label(text=f"verdict: {rep['verdict']}", icon="CHECKMARK" if rep["verdict"] == "adequate" else "ERROR")
+    for line in _wrap(rep.get("headline") or "", 70):
+        box.label(text=line)
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     box.label(text=f"PSNR {fmt(rep.get('psnr'), '.2f')} dB (masked {fmt(rep.get('psnr_masked'), '.2f')}), "
                    f"SSIM {fmt(rep.get('ssim'), '.3f')}, IoU {fmt(rep.get('iou'), '.3f')}")
@@ -1260,21 +1332,39 @@ def draw_diagnosis(layout, s, has_effects, busy) -> None:
         _missing(box, "effects add", has_effects)
 
 
+def _wrap(text: str, width: int) -> list:
+    words, lines, cur = text.split(), [], ""
+    for w in words:
+        if cur and len(cur) + 1 + len(w) > width:
+            lines.append(cur)
+            cur = w
+        else:
+            cur = f"{cur} {w}".strip()
+    return lines + ([cur] if cur else [])
+
+
 def draw_versions(layout, s, has_versions, busy) -> None:
+    """The fit versions: `versions list --json` when the CLI has it (with the current one), else
+    `info --json`'s fits."""
     try:
-        fits = (json.loads(s.info_json or "{}").get("fits")) or []
+        listed = json.loads(s.versions_json) if s.versions_json else None
+        fits = (listed or {}).get("versions") or (json.loads(s.info_json or "{}").get("fits")) or []
     except ValueError:
         fits = []
     if not fits:
         return
+    current = (listed or {}).get("current")
     box = layout.box()
     box.label(text="Fit versions:")
     for f in fits:
         row = box.row()
         psnr = f.get("psnr")
+        status = f.get("status")
         row.label(text=f"v{f.get('version')}: {', '.join(f.get('effects') or []) or 'base'}"
-                       + (f", PSNR {psnr:.2f}" if isinstance(psnr, (int, float)) else ""))
-        if has_versions:
+                       + (f", PSNR {psnr:.2f}" if isinstance(psnr, (int, float)) else "")
+                       + (f" ({status})" if status and status != "complete" else ""),
+                  icon="RADIOBUT_ON" if f.get("version") == current else "RADIOBUT_OFF")
+        if has_versions and f.get("version") != current:
             sub = row.row()
             sub.enabled = not busy
             sub.operator("physinteract.run", text="Use").steps = f"version:{f.get('version')}"

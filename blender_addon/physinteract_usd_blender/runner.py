@@ -87,6 +87,7 @@ class CliStep:
     label: str
     argv: list
     on_done: Callable[[str], None] | None = None  # called with stdout on success
+    optional: bool = False        # a failure becomes a note in Job.notes and the job goes on
 
 
 @dataclass
@@ -266,7 +267,12 @@ class Job:
         if rc != 0:
             line = error_line(err)
             what = EXIT_MEANING.get(rc, "failed") if rc >= 0 else f"killed by signal {-rc}"
-            self._fail(line or f"{step.label}: {CLI_NAME} exited with code {rc} ({what})")
+            msg = line or f"{step.label}: {CLI_NAME} exited with code {rc} ({what})"
+            if step.optional:
+                self.notes.append(f"{step.label} skipped: {msg}")
+                self._next()
+                return
+            self._fail(msg)
             return
         if step.on_done is not None:
             try:

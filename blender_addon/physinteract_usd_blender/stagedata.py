@@ -45,10 +45,33 @@ def _open(path) -> "Usd.Stage":
         raise StageError("Blender's USD Python module (pxr) is not available")
     if not os.path.exists(path):
         raise StageError(f"{path}: file not found")
+    reload_layers(path)
     stage = Usd.Stage.Open(str(path))
     if stage is None:
         raise StageError(f"{path}: cannot be opened as a USD stage")
     return stage
+
+
+def reload_layers(path) -> None:
+    """Re-read the layers of `path` that this process already holds (USD keeps an opened layer
+    while anything uses it, e.g. an imported cache): the CLI replaces them on disk between runs."""
+    if Sdf is None:
+        return
+    seen, todo = set(), [os.path.abspath(str(path))]
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        layer = Sdf.Layer.Find(p)
+        if layer is None:
+            continue
+        try:
+            layer.Reload()
+        except Exception:  # noqa: BLE001 - a layer gone from disk: the open below says so
+            continue
+        for sub in layer.subLayerPaths:
+            todo.append(os.path.normpath(os.path.join(os.path.dirname(p), sub)))
 
 
 # ---------------------------------------------------------------------------------- timing
@@ -78,6 +101,12 @@ def rest_points(path) -> np.ndarray:
     if v is None:
         raise StageError(f"{path}: no {PARTICLES} points")
     return np.asarray(v, np.float64).reshape(-1, 3)
+
+
+def has_primvar(path, prim_path: str, name: str) -> bool:
+    st = _open(path)
+    prim = st.GetPrimAtPath(prim_path)
+    return bool(prim) and bool(prim.GetAttribute(f"primvars:{name}"))
 
 
 def contact_sets(path) -> list[dict]:

@@ -17,7 +17,12 @@ from test_blender_addon import FakeLayout
 
 REPORT = {"psnr": 24.5, "psnr_masked": 18.25, "ssim": 0.91, "iou": 0.8, "track_error_px": 1.5,
           "frames": [{"frame": k, "psnr": 20.0 + k, "ssim": 0.9, "iou": 0.8, "phase": "grasped"} for k in range(6)],
-          "versions": [{"version": 1, "effects": [], "psnr": 24.5, "loss": 0.1}]}
+          "versions": [{"version": 1, "effects": [], "psnr": 24.5, "loss": 0.1}],
+          "verdict": "inadequate", "headline": "inadequate from frame 4 on (load): the model sags too much (the "
+          "video hangs higher): 6.2 mm on average"}
+VERSIONS = {"stage": "scene.usda", "current": 2,
+            "versions": [{"version": 1, "status": "complete", "effects": [], "psnr": 22.5},
+                         {"version": 2, "status": "interrupted", "effects": ["damping"], "psnr": 23.0}]}
 DIAGNOSE = {"verdict": "missing_effect", "reason": "the motion decays faster than elasticity allows",
             "candidates": [{"effect": "damping", "score": 0.8, "predicted_loss_drop": 0.02, "realized_loss_drop": None,
                             "estimate": {"c": 3.0}, "evidence": "amplitude ratio 0.4 per swing"},
@@ -44,6 +49,8 @@ elif a and a[0] == "report":
     log(*a); print("Warp 1.10 initialized:"); print(json.dumps({report}))
 elif a and a[0] == "diagnose":
     log(*a); print(json.dumps({diagnose}))
+elif a[:2] == ["versions", "list"]:
+    log(*a); print(json.dumps({versions}))
 elif a and a[0] in ("effects", "versions"):
     log(*a); print("ok")
 elif a and a[0] == "export" and "--sim-ready" in a:
@@ -58,7 +65,8 @@ def newer_cli(addon, cli, tmp_path):
     """The add-on pointed at a CLI with report / diagnose / effects / versions / --sim-ready."""
     path, log = tmp_path / "physinteract-usd-newer", tmp_path / "calls.log"
     path.write_text(WRAPPER.format(python=sys.executable, real=cli, log=str(log),
-                                   report=repr(REPORT), diagnose=repr(DIAGNOSE)))
+                                   report=repr(REPORT), diagnose=repr(DIAGNOSE),
+                                   versions=repr(VERSIONS)))
     path.chmod(0o755)
     prefs = bpy.context.preferences.addons["physinteract_usd_blender"].preferences
     prefs.cli_path = str(path)           # the update clears what the add-on knew of the old CLI
@@ -117,6 +125,8 @@ def test_report_and_diagnosis_from_a_cli_that_has_them(addon, newer_cli, twin):
     log = draw(bpy.types.PHYSINTERACT_PT_report)
     labels = [e[1] for e in log if e[0] == "label"]
     assert "PSNR 24.50 dB (masked 18.25), SSIM 0.910, IoU 0.800" in labels
+    assert "verdict: inadequate" in labels
+    assert "inadequate from frame 4 on (load): the model sags too much (the video" in labels
     assert "track error 1.50 px" in labels
     assert "frame 3: PSNR 23.00, SSIM 0.900, IoU 0.800 (grasped)" in labels
     assert [e[1] for e in log if e[0] == "progress"] == [f"{k}: {20 + k:.1f} dB" for k in range(6)]
@@ -134,17 +144,19 @@ def test_add_effect_refits_and_versions_use_reimports(addon, newer_cli, twin):
 
     s = import_twin(addon, twin["stage"])
     job = addon.build_job(bpy.context, "effect:damping")
-    assert [st.label for st in job.steps] == ["effects add damping", "fit", "info", "import", "report"]
+    assert [st.label for st in job.steps] == ["effects add damping", "fit", "info", "versions list", "import",
+                                              "report", "residual"]
     assert job.steps[0].argv[-4:] == ["effects", "add", str(twin["stage"]), "damping"]
     with pytest.raises(RuntimeError, match="unknown effect 'wind'"):
         bpy.ops.physinteract.run(steps="effect:wind")
     assert bpy.ops.physinteract.run(steps="version:1") == {"FINISHED"}, s.error
-    assert newer_cli.read_text().splitlines()[-1] == f"versions use {twin['stage']} 1"
+    assert newer_cli.read_text().splitlines()[-2:] == [f"versions use {twin['stage']} 1",
+                                                        f"versions list {twin['stage']} --json"]
     assert s.last_collection in bpy.data.collections                      # re-imported
-    fits = json.loads(s.info_json)["fits"]
-    assert fits and fits[0]["version"] == 1
-    ops = [(e[2]) for e in draw(bpy.types.PHYSINTERACT_PT_report) if e[0] == "operator"]
-    assert "Use" in ops
+    log = draw(bpy.types.PHYSINTERACT_PT_report)
+    labels = [e[1] for e in log if e[0] == "label"]
+    assert "v1: base, PSNR 22.50" in labels and "v2: damping, PSNR 23.00 (interrupted)" in labels
+    assert [e[2] for e in log if e[0] == "operator"].count("Use") == 1      # not for the current one
 
 
 def test_export_sim_ready_when_offered(addon, newer_cli, twin, tmp_path):

@@ -116,6 +116,21 @@ def test_cursor_hint_is_the_cameras_pixel(twin, addon):
     uv = project(np.array([CONTACT_STAGE]), np.array(t["transform_matrix"]), t["fl_x"], t["fl_y"], t["cx"], t["cy"])[0]
     assert int(k) == 2
     assert (float(u), float(v)) == pytest.approx((uv[0] - 0.5, uv[1] - 0.5), abs=0.02)
+    # the video's camera, not whatever camera the artist renders with
+    s = import_twin(addon, twin["stage"])
+    scene = bpy.context.scene
+    mine = bpy.data.objects.new("my camera", bpy.data.cameras.new("my camera"))
+    scene.collection.objects.link(mine)
+    mine.location = (1.0, -1.0, 0.5)
+    scene.camera = mine
+    scene.cursor.location = blender_point(CONTACT_STAGE)
+    scene.frame_set(4)
+    assert bpy.ops.physinteract.hint(action="CONTACT_CURSOR") == {"FINISHED"}, s.error
+    k, u, v = s.hint_contact_pixel.split(",")
+    assert int(k) == 4 and (float(u), float(v)) == pytest.approx((uv[0] - 0.5, uv[1] - 0.5), abs=0.02)
+    scene.cursor.location = (5.0, 5.0, 5.0)
+    with pytest.raises(RuntimeError, match="outside the video's frame|behind the camera"):
+        bpy.ops.physinteract.hint(action="CONTACT_CURSOR")
 
 
 def test_hints_round_trip_through_the_stage(twin, addon):
@@ -369,14 +384,21 @@ def test_stage_matrix_matches_the_imports_axes(addon, twin):
 
 
 # ------------------------------------------------------------------------- report
-def test_report_curve(addon, twin, cli):
-    s = import_twin(addon, twin["stage"])
+def test_report_curve(addon, twin, cli, tmp_path):
+    copy = tmp_path / "copy"                 # `report` writes residual primvars into the stage
+    shutil.copytree(twin["stage"].parent.parent, copy)   # with the capture: the stage's paths are relative
+    stage = copy / "out" / "scene.usda"
+    s = import_twin(addon, stage, colour_by="RESIDUAL")
     assert bpy.ops.physinteract.run(steps="report") == {"FINISHED"}, s.error
     rep = json.loads(s.report_json)
     frames = [f for f in rep["frames"] if f.get("psnr") is not None]
     assert len(frames) >= 5 and rep["psnr"] > 5
     if not addon.clicaps.has([cli], "report"):
         assert rep["source"] == "stage" and "no `report` verb" in s.note
+    else:   # the CLI's report wrote the residual: the stage was imported again, coloured by it
+        pc = addon.viewport.particles_in(s.last_collection)
+        assert "physinteract:residual" in pc.data.attributes
+        assert pc.data.materials[0].name == "PhysInteract residual" and s.look_note == ""
     # the curve on the timeline: 'Frame PSNR' keyed per frame
     scene = bpy.context.scene
     for f in frames[:3]:
