@@ -369,6 +369,52 @@ def test_resimulate_without_an_empty_says_so(addon, twin):
     with pytest.raises(RuntimeError, match="pick the Empty"):
         bpy.ops.physinteract.run(steps="simulate")
     assert s.error.startswith("pick the Empty")
+    bpy.context.scene.cursor.location = (0.1, 0.0, 0.15)
+    assert bpy.ops.physinteract.add_empty() == {"FINISHED"}
+    e = s.resim_empty
+    assert e.type == "EMPTY" and e.empty_display_size == pytest.approx(0.03)
+    assert tuple(e.location) == pytest.approx((0.1, 0.0, 0.15))
+    with pytest.raises(RuntimeError, match="does not move"):       # not keyframed yet
+        bpy.ops.physinteract.run(steps="simulate")
+
+
+def test_selected_points_and_a_push_become_specs(addon, twin):
+    """Held points picked in Edit Mode; a surface push's normal is the Empty's +Z in the stage's
+    frame (the spec is written when the job is planned, before anything runs)."""
+    s = import_twin(addon, twin["stage"])
+    scene = bpy.context.scene
+    s.resim_empty = animate_empty(scene, "Pick")
+    pc = bpy.data.objects["SimParticles"]
+    picked = [3, 5, 8]
+    sel = pc.data.attributes.get(".selection") or pc.data.attributes.new(".selection", "BOOLEAN", "POINT")
+    mask = np.zeros(len(pc.data.points), bool)
+    mask[picked] = True
+    sel.data.foreach_set("value", mask)
+    s.resim_contact = "SELECTION"
+    s.resim_release = "LAST_KEY"
+    job = addon.build_job(bpy.context, "simulate")
+    assert [st.label for st in job.steps] == ["simulate", "import"]
+    sp = json.loads(open(addon.sim_paths(str(twin["stage"]), "Pick")["spec"]).read())
+    c = sp["contacts"][0]
+    assert c["select"] == {"indices": picked} and c["release_frame"] == 5
+    np.testing.assert_allclose(c["trajectory"][0], twin["rest"][picked].mean(0), atol=1e-6)
+
+    s.resim_kind = "push"
+    s.resim_empty.rotation_euler = (np.pi / 2, 0.0, 0.0)        # Blender +Z turned to -Y: stage +Z
+    s.resim_name = "push it"
+    job = addon.build_job(bpy.context, "simulate")
+    sp = json.loads(open(addon.sim_paths(str(twin["stage"]), "push_it")["spec"]).read())
+    c = sp["contacts"][0]
+    assert c["type"] == "surfaceNonAdherent" and c["friction"] == 0.5
+    np.testing.assert_allclose(c["normal"], [0.0, 0.0, 1.0], atol=1e-6)
+    assert job.steps[0].argv[-2:] == ["--name", "push_it"]
+    # a spec file the add-on did not write is left alone
+    path = addon.sim_paths(str(twin["stage"]), "mine")["spec"]
+    open(path, "w").write('{"contacts": []}')
+    s.resim_name = "mine"
+    with pytest.raises(RuntimeError, match="was not written by the add-on"):
+        bpy.ops.physinteract.run(steps="simulate")
+    assert open(path).read() == '{"contacts": []}'
 
 
 def test_stage_matrix_matches_the_imports_axes(addon, twin):
