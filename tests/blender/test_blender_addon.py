@@ -245,15 +245,30 @@ def test_missing_settings_are_reported_before_running(settings):
 
 
 # ------------------------------------------------------------------------------- the runner
-def test_run_all_plans_the_verbs_in_order(addon, settings, capture, tmp_path):
+def test_run_all_plans_the_verbs_in_order(addon, settings, capture, tmp_path, cli):
     settings.capture_dir = str(capture)
     settings.stage_path = str(tmp_path / "scene.usda")
+    # with a CLI that has `versions`, the import lists them too (an optional step)
+    versions = ["versions list"] if addon.clicaps.has([cli], "versions") else []
     job = addon.build_job(bpy.context, "all")
-    assert [s.label for s in job.steps] == ["init", "extract", "fit", "export", "info", "import"]
+    assert [s.label for s in job.steps] == ["init", "extract", "fit", "export", "info", *versions, "import"]
     assert job.steps[3].argv[-2:] == [str(tmp_path / "scene.usda"), str(tmp_path / "scene_twin.usdc")]
+    assert all(s.optional == (s.label == "versions list") for s in job.steps if hasattr(s, "optional"))
     (tmp_path / "scene.usda").write_text("#usda 1.0\n")
     job = addon.build_job(bpy.context, "all")  # the stage exists: init is skipped unless forced
-    assert [s.label for s in job.steps] == ["extract", "fit", "export", "info", "import"]
+    assert [s.label for s in job.steps] == ["extract", "fit", "export", "info", *versions, "import"]
+
+
+def test_an_optional_step_that_fails_is_a_note(addon, project_python):
+    runner = addon.runner
+    fail = [project_python, "-c", "import sys; print('physinteract-usd versions: error: old', file=sys.stderr); "
+                                  "sys.exit(2)"]
+    ok = [project_python, "-c", "print('fine')"]
+    job = runner.Job([runner.CliStep("versions list", fail, optional=True), runner.CliStep("info", ok)]).start()
+    assert job.wait(timeout=60) == "done"
+    assert job.notes == ["versions list skipped: physinteract-usd versions: error: old"]
+    job = runner.Job([runner.CliStep("versions list", fail)]).start()
+    assert job.wait(timeout=60) == "failed" and job.error == "physinteract-usd versions: error: old"
 
 
 def test_job_polls_without_blocking(addon, cli, capture, tmp_path):
