@@ -270,8 +270,8 @@ CASES = [
     ("info-not-a-stage", ["info", "{w}/cap/transforms.json"], 2, ["transforms.json"], None),
     ("export-nan-e", ["export", "{stage}", "{w}/twin.usdc"], 2, ["stage/scene.usda", "not finite"],
      lambda w: _e_values(w, float("nan"))),
-    ("evaluate-nan-splat-e", ["evaluate", "{fitted}", "--gt", "{w}/gt"], 2, ["fitted/scene.usda", SPLATS, "not finite"],
-     lambda w: _e_values(w, float("nan"), "fitted", SPLATS)),
+    ("evaluate-nan-splat-e", ["evaluate", "{fitted}", "--gt", "{w}/gt"], 2,
+     ["fitted/scene.usda", SPLATS, "not finite"], lambda w: _e_values(w, float("nan"), "fitted", SPLATS)),
     ("simulate-negative-e", ["simulate", "{stage}", "--interaction", "{w}/pull.json"], 2, ["youngsModulus"],
      lambda w: (_e_values(w, -1.0), _spec(w, json.dumps({"contacts": [{"type": "fixed", "select": {"indices": [0]}}]})))),
     # export
