@@ -68,8 +68,8 @@ VOLUME_MATERIAL_API = "PhysicsVolumeDeformableMaterialAPI"
 COLLISION_API = "PhysicsCollisionAPI"
 ATTACHMENT_TYPE = "PhysicsAttachment"
 
-MAPPED = {"ground": "a static collider /World/Ground (Plane at y = height) with physics:dynamicFriction and "
-                    "physics:staticFriction = friction"}
+MAPPED = {"ground": "a static collider /World/Ground (Plane at y = height); physics:dynamicFriction and "
+                    "physics:staticFriction = friction on its material and on the body's"}
 UNMAPPED = {"damping": "no damping in the volume-deformable schemas: mass-proportional c [1/s] (v <- v exp(-c dt)) "
                        "as physinteract:damping:coefficient on /World/Twin",
             "plasticity": "no plasticity in the schemas: von Mises yield stress [Pa] on the Hencky strain",
@@ -266,7 +266,12 @@ def _author(stage: Usd.Stage, a: SimReadyAsset) -> None:
     unmapped = {}
     for name, params in sorted(a.effects.items()):
         if name == "ground":
-            _ground(stage, float(params.get("height", 0.0)), float(params.get("friction", 0.5)))
+            mu = float(params.get("friction", 0.5))
+            _ground(stage, float(params.get("height", 0.0)), mu)
+            # the object's side of the contact too (simulators combine both materials' friction)
+            bapi = UsdPhysics.MaterialAPI(body.GetPrim())
+            bapi.CreateDynamicFrictionAttr().Set(mu)
+            bapi.CreateStaticFrictionAttr().Set(mu)
             continue
         for p, v in params.items():
             twin.GetPrim().CreateAttribute(f"physinteract:{name}:{p}", Sdf.ValueTypeNames.Float).Set(float(v))
