@@ -375,6 +375,10 @@ def main(argv=None):
             names.append(n)
     fits = list(names) if a.fit == "all" else [s for s in a.fit.split(",") if s]
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="eval_extract_"))
+    # a tuning tool: the world suite's validation split is never read here (synth/splits.py)
+    from physinteract_usd.synth.splits import refuse_validation
+
+    refuse_validation(work, "eval_extract.py")
     work.mkdir(parents=True, exist_ok=True)
     log = print
     rows = []

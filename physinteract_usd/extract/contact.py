@@ -118,9 +118,17 @@ def contact_centres(an: Analysis, touching, hint_c2, hint_frame):
         if not touching[k] and hint_c2 is None:
             centres.append(None)
             continue
-        region = an.contact_region(k, prev)
-        if not region.any() and prev is not None:
-            region = an.contact_region(k) & disk_mask((an.H, an.W), prev, 3 * an.R)
+        if hint_c2 is None:
+            # the toucher's leading part: a hand in front of the object overlaps it far from where
+            # it touches
+            full = leading_part(an, k, an.contact_region(k))
+            region = full if prev is None else full & disk_mask((an.H, an.W), prev, 1.5 * an.R)
+            if not region.any() and prev is not None:
+                region = full & disk_mask((an.H, an.W), prev, 3 * an.R)
+        else:
+            region = an.contact_region(k, prev)
+            if not region.any() and prev is not None:
+                region = an.contact_region(k) & disk_mask((an.H, an.W), prev, 3 * an.R)
         if not region.any():
             centres.append(prev if hint_c2 is not None else None)
             continue
@@ -130,6 +138,36 @@ def contact_centres(an: Analysis, touching, hint_c2, hint_frame):
         centres.append(c)
         prev = c
     return centres
+
+
+def leading_part(an: Analysis, k: int, region: np.ndarray) -> np.ndarray:
+    """Of a contact region wider than 2.5 R, the toucher's leading part: the pixels within R of
+    its farthest reach from the toucher's body (the centroid of the hand component it belongs to)
+    toward the region. A fingertip, a stick's end, a sphere's front and a pinch's fingertips touch
+    with their leading part; the rest of a hand in front of the object only hides it."""
+    import cv2
+
+    if not region.any():
+        return region
+    ys, xs = np.nonzero(region)
+    if max(np.ptp(xs), np.ptp(ys)) + 1 <= 2.5 * an.R:
+        return region
+    n, lab = cv2.connectedComponents(an.hand[k].astype(np.uint8), connectivity=8)
+    labs = lab[region]
+    labs = labs[labs > 0]
+    if not len(labs):
+        return region
+    comp = lab == np.bincount(labs).argmax()
+    body = pixel_centres(comp).mean(0)
+    pix = pixel_centres(region)
+    u = unit(pix.mean(0) - body)
+    if not np.any(u):
+        return region
+    proj = (pix - body) @ u
+    keep = proj >= proj.max() - an.R
+    out = np.zeros_like(region)
+    out[ys[keep], xs[keep]] = True
+    return out
 
 
 def track_back_to(an: Analysis, c, k_from, k_to):

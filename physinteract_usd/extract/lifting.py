@@ -31,7 +31,7 @@ class Lifted:
     contact: ContactSet                # the interaction contact, with its T0
     push_dir: np.ndarray | None        # (3,) a collider's push direction (None for a grasp)
     track_uv: np.ndarray               # (T, 2) the 2D track lifted (a grasp's held after its release)
-    release: int | None                # the release frame (None for colliders: they follow the whole video)
+    release: int | None                # the release frame: a grasp lets go, a collider leaves (None: never)
 
 
 def track_hand(timing: Timing, c2) -> HandTrack:
@@ -72,8 +72,6 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
     if itype == "pointAdherent":
         end = (T - 1) if r is None else r
         track[end + 1:] = track[end]
-    else:
-        r = None
     # depth: a hand coming toward the camera looks bigger; its apparent scale (a similarity fit to
     # its optical flow) gives the contact's depth over the grasp (pulls; colliders are lifted
     # along their push direction below)
@@ -126,6 +124,8 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
             start = c3 + normal * (s_min - 0.5 * an.spacing)
         contact.trajectory = lift_along(scene.camera, start, track, push3, g)
         contact.contact_point = c3
+        # a collider acts wherever its trajectory puts it: on the stage it is active throughout
+        # (the extraction's grasp and release, when it touches, are in the result and evidence)
         contact.grasp_frame = 0
         contact.release_frame = None
         if hint is not None and hint.has_timing:

@@ -190,7 +190,16 @@ class ColourMotionSegmenter:
             if _pass == 0:
                 bg, seen = estimate_background(f, cover | hand, dilate=2, return_seen=True)
                 bg = _inpaint(bg, seen == 0)
-        obj = M & ~hand if have_masks else (fg & ~hand)
+        if have_masks:
+            obj = M & ~hand
+        else:
+            # without silhouettes the object is the foreground that is not the hand, near where it
+            # rests (the hand's own rim, its shadow or a prop elsewhere are not the object)
+            obj = fg & ~hand
+            if rest_alpha is not None and (rest_alpha > 0.05).any():
+                ys, xs = np.nonzero(rest_alpha > 0.05)
+                reach = max(3, int(round(0.2 * max(np.ptp(xs), np.ptp(ys)))))
+                obj &= dilate(rest_alpha > 0.05, reach)[None]
         return Segmentation(hand=hand, object=obj, background=bg, foreground=fg, noise_sigma=sigma,
                             threshold=thr)
 

@@ -27,6 +27,13 @@ def support_contacts(an: Analysis, hint, exclude, contact_motion_px: float, push
                                                  push_dir=push_dir)
     evidence["supports"] = sup_ev
     sup_source = "extracted"
+    floor = sup_ev.get("floor")
+    if floor is not None and not (hint is not None and hint.has_support):
+        evidence["floor"] = floor
+        notes.append(f"the object rests on a floor at y = {floor['height']:.3f} m (nothing holds it: its lowest "
+                     "part stays down and it stands on it), so no fixed support is set; the floor holds it by "
+                     "friction, the `ground` effect: `physinteract-usd effects add STAGE ground` (height "
+                     f"{floor['height']:.3f}); if something does hold it there, --support-pixel sets the support")
     cores = sup_ev.get("core_particles", [])
     shell = sum(len(s_) for s_ in fixed_sets) - sum(cores)
     if (fixed_sets and len(cores) == len(fixed_sets) and "fallback" not in sup_ev and shell > 0
@@ -117,6 +124,9 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     still[np.asarray(exclude, np.int64)] = False
     if moving < 3 * abs_threshold:
         ev["note"] = "the object hardly moves: no support can be told from the motion"
+        floor = resting_base(x0, h, [])
+        if floor is not None:
+            ev["floor"] = floor
         return [], motion, ev
     sets = components(x0[still], 1.8 * h, np.where(still)[0])
     sets = [s for s in sets if len(s) >= 2]
@@ -137,6 +147,14 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     sets = cores
     ev["core_particles"] = n_core   # the rest of each set is the shell around its core (uncertain)
     ev["core_threshold_px"] = max(low, split)
+    # a floor is not a support: still regions at the object's bottom, on which it can stand, are
+    # where it rests (held by friction, not pinned)
+    floor = resting_base(x0, h, sets)
+    if floor is not None:
+        ev["floor"] = floor
+        ev["sets_on_floor"] = [int(len(s_)) for s_ in sets]
+        ev["sets"] = []
+        return [], motion, ev
     if not sets and push_dir is not None and np.linalg.norm(push_dir) > 0:
         # pushed and not driven away: held on the far side along the push (a ball pressed onto
         # an unseen stand)
@@ -158,6 +176,43 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
         ev["fallback"] = "stillest particles (no still region)"
     ev["sets"] = [int(len(s)) for s in sets]
     return sets, motion, ev
+
+
+def resting_base(x0: np.ndarray, h: float, sets: list, slab_share: float = 0.12, tip_margin: float = 0.15):
+    """Whether the object rests on a floor (a dict: the floor's height, the base's particles) or
+    not (None). A floor holds an object from below by friction: it rests there when (a) it can stand
+    on its lowest part, its base (the particles within 1.5 spacings of its lowest point): the centre
+    of mass lies over the base's footprint with a margin of at least `tip_margin` x its height over
+    the base (a thin stem or a hanging end cannot stand on its tip), and (b) every still region
+    found (`sets`) lies at the bottom: 80% of it within max(1.5 spacings, `slab_share` x the object's
+    height) of the lowest point. With no still region at all, (a) alone decides (the whole object
+    moved: it slid or tipped on something that does not hold it)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    y = x0[:, 1]
+    ymin = float(y.min())
+    height = float(np.ptp(y))
+    slab = max(1.5 * h, slab_share * height)
+    for s_ in sets:
+        if np.mean(y[s_] <= ymin + slab) < 0.8:
+            return None
+    base = y <= ymin + 1.5 * h
+    com = x0.mean(0)
+    pts = x0[base][:, [0, 2]]
+    c = com[[0, 2]]
+    try:
+        hull = ConvexHull(pts)
+        # signed distance of the centre of mass's projection to the footprint's edges (> 0 inside)
+        eq = hull.equations                               # n . p + d <= 0 inside
+        inside = float(np.min(-(eq[:, :2] @ c + eq[:, 2])))
+    except (QhullError, ValueError):
+        inside = -float(np.min(np.linalg.norm(pts - c, axis=1))) if len(pts) else -np.inf
+    inside += 0.5 * h                                     # the particles sit half a spacing in from the edge
+    lift = float(com[1] - ymin)
+    if inside < tip_margin * max(lift, h):
+        return None
+    return {"height": float(ymin - 0.5 * h), "friction": 0.5, "base_particles": int(base.sum()),
+            "stance_margin_m": inside, "com_height_m": lift}
 
 
 def support_core(x0: np.ndarray, ids: np.ndarray, motion: np.ndarray, limit: float, h: float,

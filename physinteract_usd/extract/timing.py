@@ -28,18 +28,85 @@ class Timing:
 
 def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     """Step 4: velocities and coupling next to the contact, the contact period, the grasp and the
-    release (recorded in `evidence`)."""
+    release (recorded in `evidence`).
+
+    The contact is the longest-supported run of frame pairs in which the toucher touches the
+    object and moves with it (`contact_run`): the object next to the contact follows it, or both
+    stay still; an approach (the toucher moves, the object does not) ends it before, a retreat (the
+    toucher moves away, the object does not follow) after. This reads the object's own motion and
+    the toucher's, whatever the toucher looks like; where no such run exists (the object never
+    seen to follow), the grasp is the toucher's slowest frame on the object (`contact_start`)."""
     vh, vo = velocities(an, seen.centres)
     coupled = coupling(vh, vo, an.eps)
     near = seen.touching | (np.array([c is not None for c in seen.centres]) & (seen.hint_uv is not None))
     p0, p1 = contact_period(near)
     speed = np.linalg.norm(vh, axis=1)
-    g = contact_start(speed, near, p0, p1, coupled, vh)
-    r = release(coupled, near, g, speed)
+    run = contact_run(coupled, near, vh, vo, an.eps)
+    if run is not None:
+        # the object next to the contact keeps to its own share of the toucher's speed while they
+        # touch (the held particles move with the hand, their neighbours lag): a pair in which it
+        # falls below half that share is the two parting, even the same way (a released end falling
+        # as the hand drops away)
+        coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
+        run = contact_run(coupled, near, vh, vo, an.eps)
+    if run is not None:
+        g, e = run
+        r = None if e >= len(coupled) - 1 else e + 1
+        evidence["timing_rule"] = "contact run"
+    else:
+        g = contact_start(speed, near, p0, p1, coupled, vh)
+        r = release(coupled, near, g, speed)
+        evidence["timing_rule"] = "slowest frame"
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
     return Timing(vh, vo, coupled, near, (p0, p1), speed, g, r)
+
+
+def contact_run(coupled: np.ndarray, near: np.ndarray, vh: np.ndarray, vo: np.ndarray, eps: float):
+    """The contact as frame pairs (first, last): of the runs of pairs in which the toucher touches
+    the object (`near` at the pair's first frame) and is not seen moving apart from it (coupling
+    >= 0; a single pair apart between two in contact is noise), the one with the most evidence of
+    contact: the object's motion that follows the toucher, plus a little for each pair in which both
+    are seen still. Pairs where the object next to the contact is unseen are trimmed from the ends.
+    None when no run holds a pair of evidence."""
+    T1 = len(coupled)
+    seen_o = np.isfinite(vo).all(1)
+    so = np.nan_to_num(np.linalg.norm(vo, axis=1))
+    sh = np.nan_to_num(np.linalg.norm(vh, axis=1))
+    ok = np.array([bool(near[k]) and coupled[k] >= 0 for k in range(T1)])
+    for k in range(1, T1 - 1):
+        # one pair apart between two in contact is noise, unless the toucher moved fast in it
+        if not ok[k] and near[k] and ok[k - 1] and ok[k + 1] and not sh[k] >= 3 * eps:
+            ok[k] = True
+    # evidence per pair: a pair in which the object follows counts 1 (more when the motion is well
+    # above the noise, at most 2: one fast pair, e.g. a mis-segmented hand, must not outweigh a
+    # whole pull), a seen still pair 1/4
+    ev = np.where(coupled > 0, 1.0 + np.clip(np.minimum(np.where(np.isfinite(vh).all(1), sh, so), so) / eps - 1, 0, 1), 0.0)
+    ev = np.where((coupled == 0) & seen_o & ok, 0.25, ev)
+    ev = np.where(seen_o, ev, 0.0)
+    best = None
+    k = 0
+    while k < T1:
+        if not ok[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < T1 and ok[j + 1]:
+            j += 1
+        a, b = k, j
+        while a <= b and not seen_o[a]:
+            a += 1
+        while b >= a and not seen_o[b]:
+            b -= 1
+        if a <= b:
+            score = float(ev[a:b + 1].sum())
+            if score > 0 and (best is None or score > best[2] + 1e-9):
+                best = (a, b if j < T1 - 1 else j, score)
+        k = j + 1
+    if best is None:
+        return None
+    return best[0], best[1]
 
 
 def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing:
@@ -58,8 +125,8 @@ def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing
             notes.append(f"grasp at frame {g_user} as given (--grasp-frame; the video suggested {g})")
         g = g_user
         src["grasp"] = "user"
-        if hint.release_frame is None and r is not None and r <= g:
-            r = release(timing.coupled, timing.near, g, timing.speed)
+        if hint.release_frame is None and (r is None or r <= g or g < timing.grasp):
+            r = release_after(timing, g)
     if hint.release_frame is not None:
         r_user = None if hint.release_frame == hint.NEVER else int(hint.release_frame)
         if r_user != r:
@@ -76,6 +143,39 @@ def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing
     evidence.update({"timing_source": src, "grasp_frame": g, "release_frame": r})
     return Timing(timing.hand_velocity, timing.object_velocity, timing.coupled, timing.near, timing.period,
                   timing.speed, g, r)
+
+
+def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> np.ndarray:
+    """`coupled` with the pairs in which the object follows at less than half its usual share of the
+    toucher's speed (the median over the run's pairs where the toucher moves at >= 2 eps; at least
+    3 of them) set to -1 (apart)."""
+    sh = np.linalg.norm(vh, axis=1)
+    so = np.linalg.norm(vo, axis=1)
+    a, b = run
+    fast = [k for k in range(a, b + 1) if coupled[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k])
+            and sh[k] >= 2 * eps]
+    if len(fast) < 3:
+        return coupled
+    share = float(np.percentile([so[k] / sh[k] for k in fast], 70))
+    out = coupled.copy()
+    for k in range(len(coupled)):
+        if out[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k]) and sh[k] >= 2 * eps and so[k] < 0.5 * share * sh[k]:
+            out[k] = -1
+    return out
+
+
+def release_after(timing: Timing, g: int):
+    """The release after a grasp at frame g (the user's): the end of the contact run from g (the
+    first pair from which the toucher moves apart from the object, or stops touching it)."""
+    c, near = timing.coupled, timing.near
+    T1 = len(c)
+    k = g
+    while k < T1:
+        apart = not near[k] or (c[k] < 0 and (k + 1 >= T1 or c[k + 1] < 0 or not near[k + 1]))
+        if apart and k > g:
+            return k
+        k += 1
+    return None
 
 
 def velocities(an: Analysis, centres: list):
@@ -102,24 +202,23 @@ def velocities(an: Analysis, centres: list):
     return vh, vo
 
 
-def coupling(vh: np.ndarray, vo: np.ndarray, eps: float) -> np.ndarray:
-    """+1: the object near the contact moves with the hand; 0: both (about) still; -1: not."""
+def coupling(vh: np.ndarray, vo: np.ndarray, eps: float, floor: float = 0.05) -> np.ndarray:
+    """+1: the object near the contact moves with the hand (its way, at >= 20% of its speed: the
+    object next to a grasp stretches and lags, a stiff one pushed barely gives); 0: both (about)
+    still, or the object near the contact unseen; -1: not (the hand moves and the object does not
+    follow, or the object moves without the hand). Below `floor` px a motion has no direction."""
     out = np.full(len(vh), -1, np.int8)
     for k in range(len(vh)):
         a, b = vh[k], vo[k]
-        if np.isnan(a).any() and np.isnan(b).any():
-            out[k] = 0
+        if np.isnan(b).any():
+            out[k] = 0      # the object near the contact unseen: no evidence either way
             continue
         if np.isnan(a).any():
             a = np.zeros(2)  # the hand hidden (e.g. behind the object): no evidence of its motion
-        if np.isnan(b).any():
-            out[k] = 0 if np.linalg.norm(a) < eps else 1  # the object near the contact all covered
-            continue
         na, nb = np.linalg.norm(a), np.linalg.norm(b)
         if max(na, nb) < eps:
             out[k] = 0
-        elif nb >= eps and nb >= 0.2 * na and np.dot(a, b) >= 0.7 * na * nb:
-            # the object next to the contact moves the hand's way (slower: it stretches)
+        elif nb >= max(floor, 0.2 * na) and na >= floor and np.dot(a, b) >= 0.6 * na * nb:
             out[k] = 1
         else:
             out[k] = -1

@@ -65,7 +65,7 @@ GLOVE_COLOURS = [(0.20, 0.40, 0.85), (0.08, 0.08, 0.09), (0.92, 0.92, 0.90), (0.
 TOOL_COLOURS = [(0.62, 0.63, 0.66), (0.55, 0.40, 0.25), (0.80, 0.15, 0.12), (0.15, 0.15, 0.18),
                 (0.95, 0.95, 0.95)]
 FIT_GRID, FIT_PADDING = 24, 0.3     # the init settings the capture's README suggests
-MAX_PARTICLE_SUBSTEPS = 2.5e8          # the ground truth's cost cap (particles x substeps x frames)
+MAX_PARTICLE_SUBSTEPS = 1.0e8          # the ground truth's cost cap (particles x substeps x frames)
 
 
 # ------------------------------------------------------------------------------ the draw
@@ -316,16 +316,25 @@ class World:
         e_hi = float(w["e_max"])
         e_lo = e_hi / float(w["e_ratio"]) if w["e_field"] != "uniform" else e_hi
         self.density = _sag_density(w, self.shape, e_lo, e_hi)
-        fit_dx = (1 + 2 * FIT_PADDING) * self.extent / FIT_GRID
-        h = 0.5 * w["gt_ratio"] * fit_dx
         vol = float(self._volume())
-        h = max(h, (vol / 40000.0) ** (1 / 3))          # at most ~40k particles
-        for _ in range(3):                               # ... and a CPU's worth of particle-substeps
+        # the fit's suggested grid: 24 cells over the padded domain, fewer for a bulky object (at most
+        # ~5000 fit particles) or a stiff one (the ground truth's cost); the ground truth always finer
+        cells = (1 + 2 * FIT_PADDING) * self.extent
+        grid = int(np.clip(round(FIT_GRID * (5000.0 / (vol / (cells / (2 * FIT_GRID)) ** 3)) ** (1 / 3)), 12, FIT_GRID))
+        while True:
+            fit_dx = cells / grid
+            h = 0.5 * w["gt_ratio"] * fit_dx
+            for _ in range(3):                               # a CPU's worth of particle-substeps
+                cost = vol / h ** 3 * self._substeps(2 * h, e_hi) * self.T
+                if cost <= MAX_PARTICLE_SUBSTEPS:
+                    break
+                h *= (cost / MAX_PARTICLE_SUBSTEPS) ** 0.25
+            h = min(h, 0.85 * 0.5 * fit_dx)                 # ... but always finer than the fit's
             cost = vol / h ** 3 * self._substeps(2 * h, e_hi) * self.T
-            if cost <= MAX_PARTICLE_SUBSTEPS:
+            if cost <= 1.5 * MAX_PARTICLE_SUBSTEPS or grid <= 12:
                 break
-            h *= (cost / MAX_PARTICLE_SUBSTEPS) ** 0.25
-        h = min(h, 0.85 * 0.5 * fit_dx)                 # ... but always finer than the fit's
+            grid -= 2
+        self.fit_grid = grid
         x0 = self.shape.lattice(h)
         jit = rng.uniform(-0.35, 0.35, size=x0.shape) * h
         x0 = x0 + jit
@@ -512,6 +521,7 @@ class World:
 
         it, x0, h = self.w["interaction"], self.x0, self.h
         held_sup = self._held_mask()
+        self.approach_offset()                      # sets `arrive`
         out = []
         self.contact_indices = np.zeros(0, np.int64)
         if it == "pointAdherent":
@@ -524,7 +534,8 @@ class World:
             centroid = x0[idx].mean(0)
             self.trajectory = centroid + self.disp
             self.hand_offset = self.contact_point - centroid
-            out.append(Contact("pointAdherent", indices=idx, trajectory=self.trajectory, grasp_frame=self.grasp,
+            # the hand takes hold when it arrives (and holds still through its dwell), pulls from `grasp`
+            out.append(Contact("pointAdherent", indices=idx, trajectory=self.trajectory, grasp_frame=self.arrive,
                                release_frame=None if self.never else self.release))
         elif it == "pointNonAdherent":
             R = self.toucher_radius
@@ -561,7 +572,7 @@ class World:
         control = Control(contacts, n_frames=self.T - 1)
         pts = np.concatenate([self.x0, self.trajectory, self.trajectory + self.hand_offset])
         dx = 2.0 * self.h
-        self.grid = GridSpec.around(pts, dx=dx, padding=0.35 * self.extent)
+        pad = 0.35 * self.extent
         fall = math.sqrt(2 * GRAVITY * self.extent)
         self.substeps = self._substeps(dx, float(self.E.max()), max(control.max_speed(self.fps), fall))
         effects = {}
@@ -571,7 +582,8 @@ class World:
         from ..errors import SimulationError
 
         dev = "cpu" if self.device == "cpu" else self.device
-        for attempt in range(3):   # an unstable ground truth is run again with finer substeps
+        for attempt in range(3):   # a ground truth that goes unstable or leaves its grid is run again
+            self.grid = GridSpec.around(pts, dx=dx, padding=pad)
             m = SimModel.create(self.x0, np.full(len(self.x0), self.h ** 3), self.density, self.E, self.nu,
                                 grid=self.grid, fps=self.fps, substeps=self.substeps, E_max=float(self.E.max()),
                                 effects=effects, device=self.device, pin_gain=1.0)
@@ -581,10 +593,13 @@ class World:
                     x, F = ro(torch.tensor(self.E, dtype=torch.float32, device=dev),
                               torch.tensor(self.nu, dtype=torch.float32, device=dev))
                 return x.cpu().double().numpy(), F.cpu().double().numpy()
-            except SimulationError:
+            except SimulationError as exc:
                 if attempt == 2:
                     raise
-                self.substeps *= 2
+                if "left the grid" in str(exc):
+                    pad *= 2.0
+                else:
+                    self.substeps *= 2
 
     def cost(self) -> float:
         """Particles x substeps x frames of the ground truth (set by `run`)."""
@@ -909,10 +924,11 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     if not np.isfinite(x).all():
         raise RuntimeError(f"world {split}/{seed}: the ground truth went non-finite")
     it = w["interaction"]
-    if it == "pointAdherent":
-        g_true, r_true = world.grasp, (None if world.never else world.release)
-    else:
-        g_true, r_true = touch_frames(world, x)
+    # the truth's timing: the toucher arrives on the object (a hand takes hold then, and holds still
+    # through its dwell before it pulls); it lets go (a collider leaves the surface) when the motion
+    # ends, or never
+    g_true, r_true = world.arrive, (None if world.never else world.release)
+    touched = touch_frames(world, x) if it != "pointAdherent" else None
     log(f"world {split}/{seed}: {w['shape']} {w['scenario']}, {w['interaction']} by {w['look']}; "
         f"{len(world.x0)} ground-truth particles, {world.substeps} substeps/frame, E {world.E.min():.3g}.."
         f"{world.E.max():.3g} Pa, rho {world.density:.0f}; {world.W}x{world.H} @ {world.fps:g} fps, {world.T} frames")
@@ -966,7 +982,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     e_g = youngs_field(w, world.shape, g.means, gpart)
     nu_g = np.full(len(g), w["poisson"])
     e_lo, e_hi = float(e_g.min()), float(e_g.max())
-    suggested = {"grid": FIT_GRID, "padding": FIT_PADDING,
+    suggested = {"grid": world.fit_grid, "padding": FIT_PADDING,
                  "youngs_range": [float(max(1e2, 10 ** (math.floor(math.log10(e_lo) * 2) / 2 - 1))),
                                   float(min(3e6, 10 ** (math.ceil(math.log10(e_hi) * 2) / 2 + 1)))],
                  "max_poisson": 0.45, "density": round(world.density, 3)}
@@ -985,6 +1001,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
                         "grasp_frame": int(g_true),
                         "release_frame": None if r_true is None else int(r_true),
                         "motion_frames": [world.grasp, world.release], "arrive_frame": world.arrive,
+                        "touch_frames": touched,
                         "trajectory": world.trajectory.tolist(),
                         "collider_radius": world.toucher_radius if it == "pointNonAdherent" else 0.0,
                         "collider_shape": ("sphere" if w["look"] == "sphere" else "capsule")
@@ -1016,7 +1033,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
                       f"{world.floor_y:.4f} m\n")
     (out / "README.txt").write_text(
         f"World capture {split}/{seed}: {info['description']}.\nGround truth in gt/ (never read by init, extract "
-        f"or fit).\n\nSuggested:\n  physinteract-usd init scene.usda --capture {out.name} --grid {FIT_GRID} "
+        f"or fit).\n\nSuggested:\n  physinteract-usd init scene.usda --capture {out.name} --grid {world.fit_grid} "
         f"--padding {FIT_PADDING} --youngs-range {ys[0]:g},{ys[1]:g} --max-poisson 0.45 --density "
         f"{suggested['density']:g}\n" + floor_line)
     if split == "validation":

@@ -1,0 +1,127 @@
+"""The fit columns of the world suite's tables: MA and masked PSNR from the extracted interactions.
+
+For every capture that `world_suite.py extract` prepared (DIR/<name>, DIR/<name>.gt, DIR/<name>.stage
+with its extraction), a fresh copy of the stage (DIR/<name>.fit-s<seed>/) is fitted with `api.fit`
+and scored with `api.evaluate` against the ground truth. Where the extraction found that the
+object rests on a floor (its notes suggest the `ground` effect), the copy gets the effect at the
+floor's height, as a user following the note would (`effects add`). One JSON row per capture,
+appended as soon as its fit ends; a run cut short resumes where it stopped (rows already in --json
+are skipped unless --redo).
+
+    python benchmarks/world_fit.py --work data/world_dev --json out/world_dev_fit.json --iterations 60 --device cuda
+    python benchmarks/world_fit.py --work data/world_val --split validation --final --json out/world_val_fit.json
+
+The validation split is read only with `--split validation --final` (logged in the folder's
+VALIDATION_SPLIT marker): never tune on it. `world_suite.py extract ... --fits out.json` puts the
+rows' MA and masked PSNR into its table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import physinteract_usd  # noqa: F401
+from physinteract_usd import api
+from physinteract_usd.errors import InputError
+from physinteract_usd.synth.splits import log_validation_read
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from world_suite import captures, guard, name_of, parse_seeds  # noqa: E402
+
+
+def add_ground(stage: Path, height: float, friction: float = 0.5) -> None:
+    """Switch the `ground` effect on in the stage's root layer (what `effects add ground` does)."""
+    from pxr import Usd
+
+    st = Usd.Stage.Open(str(stage))
+    st.SetEditTarget(st.GetRootLayer())
+    prim = st.GetPrimAtPath("/World/PhysInteract")
+    prim.ApplyAPI("PhysInteractGroundAPI")
+    prim.GetAttribute("physinteract:ground:height").Set(float(height))
+    prim.GetAttribute("physinteract:ground:friction").Set(float(friction))
+    st.GetRootLayer().Save()
+
+
+def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=print) -> dict:
+    src = work / f"{n}.stage"
+    gt = work / f"{n}.gt"
+    if not (src / "scene.usda").exists() or not (gt / "gt.json").exists():
+        raise InputError(src, "not prepared: run world_suite.py extract on this folder first")
+    d = work / f"{n}.fit-s{seed}"
+    shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(src, d)
+    stage = d / "scene.usda"
+    # the extraction's word on a floor (re-extracted on the copy: the stage keeps contacts, not notes)
+    res = api.extract(stage, log=lambda *a: None, device=device, preview=False)
+    effects = {}
+    floor = res.evidence.get("floor")
+    if floor:
+        add_ground(stage, floor["height"], floor.get("friction", 0.5))
+        effects["ground"] = {"height": floor["height"]}
+    t0 = time.perf_counter()
+    api.fit(stage, iterations=iterations, device=device, seed=seed, progress=False, log=lambda *a: None)
+    fit_s = time.perf_counter() - t0
+    ev = api.evaluate(stage, gt, device=device)
+    row = {"scene": n, "ma": ev["ma"], "ma_best_uniform": ev.get("ma_best_uniform"), "psnr": ev["psnr"],
+           "psnr_masked": ev["psnr_masked"], "ssim": ev.get("ssim"), "iou": ev.get("iou"),
+           "position_error_m": ev.get("position_error_m"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
+           "device": device, "effects": effects}
+    log(f"{n}: MA {row['ma']:.3f}, masked PSNR {row['psnr_masked']:.2f} dB ({fit_s:.0f} s)", flush=True)
+    return row
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", required=True)
+    ap.add_argument("--split", choices=["dev", "validation"], default="dev")
+    ap.add_argument("--final", action="store_true", help="read the validation split for the final table (logged)")
+    ap.add_argument("--seeds", default="", help="capture seeds (default: every prepared capture of the split)")
+    ap.add_argument("--json", required=True, help="rows (resumable)")
+    ap.add_argument("--redo", action="store_true")
+    ap.add_argument("--iterations", type=int, default=60)
+    ap.add_argument("--seed", type=int, default=0, help="the fit's seed")
+    ap.add_argument("--device", default="cpu")
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    try:
+        guard(work, a.split, a.final, "world_fit.py --split dev")
+        names = [name_of(a.split, s) for s in parse_seeds(a.seeds)] if a.seeds else captures(work, a.split)
+        if a.split == "validation":
+            log_validation_read(work, "world_fit.py", f"{len(names)} captures, {a.iterations} iterations")
+    except InputError as exc:
+        print(f"world_fit.py: error: {exc.oneline()}", file=sys.stderr)
+        return 2
+    jp = Path(a.json)
+    rows = json.loads(jp.read_text()) if jp.exists() and not a.redo else []
+    done = {r["scene"] for r in rows if "ma" in r}
+    rows = [r for r in rows if r["scene"] in done]
+    for n in names:
+        if n in done:
+            continue
+        try:
+            row = fit_one(work, n, a.iterations, a.seed, a.device)
+        except Exception as exc:
+            row = {"scene": n, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}
+            print(f"{n}: FAILED {row['error']}", flush=True)
+            traceback.print_exc()
+        rows.append(row)
+        jp.parent.mkdir(parents=True, exist_ok=True)
+        jp.write_text(json.dumps(rows, indent=1, default=float))
+    ok = [r for r in rows if "ma" in r]
+    if ok:
+        import numpy as np
+
+        print(f"{len(ok)} fits: mean MA {np.mean([r['ma'] for r in ok]):.3f}, mean masked PSNR "
+              f"{np.mean([r['psnr_masked'] for r in ok]):.2f} dB; {len(rows) - len(ok)} failed")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
