@@ -71,15 +71,17 @@ def camera() -> Camera:
     return Camera.look_at(centre + np.array([0.03, 0.05, 0.25]), centre, width=WIDTH, height=HEIGHT, fov_y_deg=40)
 
 
-def contacts(sd, *, lift=LIFT):
-    """The hand (pointAdherent, grasping the free end at frame 0) and the support (fixed)."""
+def contacts(sd, *, lift=LIFT, release=None):
+    """The hand (pointAdherent, grasping the free end at frame 0, lifting it until `release`, or to
+    the end when None) and the support (fixed)."""
     from physinteract_usd.contacts import ContactSet
 
     hand, support = _selections(sd.particles_positions)
-    s = np.linspace(0.0, 1.0, sd.n_frames)
+    end = sd.n_frames - 1 if release is None else release
+    s = np.clip(np.arange(sd.n_frames) / max(end, 1), 0.0, 1.0)
     s = s * s * (3 - 2 * s)
     traj = sd.particles_positions[hand].mean(0) + s[:, None] * np.asarray(lift, float)
-    return [ContactSet("hand", "pointAdherent", hand, 0, None, traj),
+    return [ContactSet("hand", "pointAdherent", hand, 0, release, traj),
             ContactSet("support", "fixed", support)]
 
 
@@ -89,11 +91,11 @@ def _selections(x0):
     return hand, np.setdiff1d(support, hand)
 
 
-def write_gt_json(gt_dir: Path, sd, hand_traj) -> None:
+def write_gt_json(gt_dir: Path, sd, hand_traj, release=None) -> None:
     """A minimal gt/gt.json that `fit --contact-from` reads: the same contacts as `contacts`."""
     gt = {"interaction": {"type": "pointAdherent", "trajectory": np.asarray(hand_traj).tolist(),
                           "contact_point": HAND_CENTRE.tolist(), "contact_radius": HAND_RADIUS,
-                          "grasp_frame": 0, "release_frame": None},
+                          "grasp_frame": 0, "release_frame": release},
           "supports": [{"centre": SUPPORT_CENTRE.tolist(), "radius": SUPPORT_RADIUS}]}
     gt_dir.mkdir(parents=True, exist_ok=True)
     (gt_dir / "gt.json").write_text(json.dumps(gt))
@@ -120,8 +122,10 @@ def render_truth(sd, contact_specs, E=None, nu=NU_TRUE):
     return np.stack(frames), np.stack(masks), x.numpy()
 
 
-def build(root, *, E=None, name="scene") -> dict:
-    """Capture folder + stage for the bar, frames rendered at E. Returns paths and the truth."""
+def build(root, *, E=None, name="scene", density=1000.0, n_frames=N_FRAMES, release=None, e_range=E_RANGE,
+          lift=LIFT, grid=GRID) -> dict:
+    """Capture folder + stage for the bar, frames rendered at E (and `density`; the hand lets go at
+    `release`, None: never). Returns paths and the truth."""
     root = Path(root)
     cap = root / "capture"
     (cap / "frames").mkdir(parents=True, exist_ok=True)
@@ -133,21 +137,21 @@ def build(root, *, E=None, name="scene") -> dict:
     blank = np.zeros((HEIGHT, WIDTH, 3), np.float32)
     box = np.zeros((HEIGHT, WIDTH), bool)
     box[HEIGHT // 4: 3 * HEIGHT // 4, WIDTH // 4: 3 * WIDTH // 4] = True   # init refuses empty silhouettes
-    for k in range(N_FRAMES):  # placeholders: init only needs their count and size
+    for k in range(n_frames):  # placeholders: init only needs their count and size
         write_image(cap / "frames" / f"{k:06d}.png", blank)
         write_mask(cap / "masks" / f"{k:06d}.png", box)
     stage = root / f"{name}.usda"
-    api.init(stage, cap, grid=GRID, padding=PADDING, youngs_range=E_RANGE, max_poisson=MAX_POISSON,
-             poisson=NU_TRUE)
+    api.init(stage, cap, grid=grid, padding=PADDING, youngs_range=e_range, max_poisson=MAX_POISSON,
+             poisson=NU_TRUE, density=density)
     from physinteract_usd.usd.stage import read_stage
 
     sd = read_stage(stage)
-    specs = contacts(sd)
+    specs = contacts(sd, lift=lift, release=release)
     frames, masks, x = render_truth(sd, specs, E=E_TRUE if E is None else E)
-    for k in range(N_FRAMES):
+    for k in range(n_frames):
         write_image(cap / "frames" / f"{k:06d}.png", frames[k])
         write_mask(cap / "masks" / f"{k:06d}.png", masks[k])
-    write_gt_json(root / "gt", sd, specs[0].trajectory)
+    write_gt_json(root / "gt", sd, specs[0].trajectory, release)
     return {"root": root, "capture": cap, "stage": stage, "gt": root / "gt", "positions": x,
             "hand": specs[0].indices, "support": specs[1].indices, "frames": frames, "masks": masks}
 

@@ -1,9 +1,26 @@
 """Analysis-by-synthesis: the joint fit of the material field and the interaction trajectory
-through the differentiable simulator and renderer. No USD here."""
+through the differentiable simulator and renderer. No USD here.
 
+`fit(problem, settings)` runs the schedule `settings.schedule` names: "ladder" (model selection,
+uniform E then regions split by score tests; `ladder.py`) or "bumps" (a coarse-to-fine field of
+Gaussian bumps; `optimize.py`)."""
+
+from .ladder import fit_ladder
 from .material import MaterialField
-from .optimize import FitResult, FitSettings, fit
+from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem, LossWeights, Observations
 
-__all__ = ["fit", "FitSettings", "FitResult", "FitProblem", "Observations", "LossWeights",
-           "MaterialField"]
+SCHEDULES = {"ladder": fit_ladder, "bumps": fit_bumps}
+
+
+def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResult:
+    """Fit `prob` with `settings` (defaults: FitSettings()); keyword arguments go to the schedule
+    (progress, log, start, on_iteration, uniform_e)."""
+    s = settings or FitSettings()
+    if s.schedule not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {s.schedule!r}")
+    return SCHEDULES[s.schedule](prob, s, **kw)
+
+
+__all__ = ["fit", "fit_ladder", "fit_bumps", "FitSettings", "FitResult", "FitProblem", "Observations",
+           "LossWeights", "MaterialField", "SCHEDULES"]

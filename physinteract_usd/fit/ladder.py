@@ -42,14 +42,16 @@ def _frames(T: int, every: int) -> tuple[list[int], list[int]]:
 
 
 class _Ladder:
-    def __init__(self, prob: FitProblem, s: FitSettings, log=None, progress: bool = True):
+    def __init__(self, prob: FitProblem, s: FitSettings, log=None, progress: bool = True, on_iteration=None):
         self.prob, self.s, self.log = prob, s, log or (lambda *a: None)
+        self.on_iteration = on_iteration
         st = prob.scene.settings
         self.feats = prob.particle_appearance() if s.appearance > 0 else None
         self.mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
                                  device=prob.tdev, seed=s.seed)
         self.mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
         self.trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
+        self.effect_raw = _effect_parameters(prob, s)      # {effect: {param: unconstrained leaf tensor}}
         self.train, self.val = _frames(prob.T, s.holdout_every)
         self.history: list[float] = []
         self.labels = np.zeros(len(prob.x0), np.int64)
@@ -66,6 +68,10 @@ class _Ladder:
         self.used = 0
 
     # ------------------------------------------------------------------ losses
+    def effects(self) -> dict | None:
+        """The fitted effects' parameters (tensors; None when none is fitted)."""
+        return _effect_values(self.effect_raw, self.prob.traj_scale) if self.effect_raw else None
+
     def loss(self, frames, E=None, trajs=None, grad=False):
         mat, prob = self.mat, self.prob
         E = mat.youngs() if E is None else E
@@ -73,7 +79,7 @@ class _Ladder:
         tr = self.trajs if trajs is None else trajs
         ctx = torch.enable_grad() if grad else torch.no_grad()
         with ctx:
-            out = prob.loss(E, nu if grad else nu.detach(), tr if tr else None, frames=frames)
+            out = prob.loss(E, nu if grad else nu.detach(), tr if tr else None, effects=self.effects(), frames=frames)
             return out["rec"] + (out["reg_traj"] if any(t.requires_grad for t in tr) else 0.0)
 
     def safe_loss(self, frames, E=None) -> float:
@@ -140,7 +146,8 @@ class _Ladder:
         mat = self.mat
         return {"B": mat.B, "K": mat.K, "theta": mat.theta.detach().clone(), "w_nu": mat.w_nu.detach().clone(),
                 "nu_basis": mat.nu_basis, "labels": self.labels.copy(),
-                "trajs": [t.detach().clone() for t in self.trajs]}
+                "trajs": [t.detach().clone() for t in self.trajs],
+                "effects": {e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in self.effect_raw.items()}}
 
     def restore(self, snap: dict) -> None:
         mat = self.mat
@@ -151,6 +158,10 @@ class _Ladder:
         for t, b in zip(self.trajs, snap["trajs"]):
             with torch.no_grad():
                 t.copy_(b)
+        for e, ps in snap.get("effects", {}).items():
+            for p, v in ps.items():
+                with torch.no_grad():
+                    self.effect_raw[e][p].copy_(v)
 
     def optimise(self, n: int, frames, *, fit_nu: bool, fit_traj: bool, lr: float | None = None) -> float:
         """`n` AdamW steps (cosine-annealed) on the regions' log E (and nu, the trajectory); keeps the
@@ -164,6 +175,9 @@ class _Ladder:
             for t in self.trajs:
                 t.requires_grad_(True)
             groups.append({"params": self.trajs, "lr": s.lr_trajectory})
+        eff = [v for ps in self.effect_raw.values() for v in ps.values()]
+        if eff:
+            groups.append({"params": eff, "lr": s.lr_effects})
         opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
         base = [g["lr"] for g in opt.param_groups]
         best_v, best = float("inf"), self.snapshot()
@@ -195,6 +209,8 @@ class _Ladder:
                         p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             opt.step()
             self.used += 1
+            if self.on_iteration is not None:
+                self.on_iteration(self.used, lv, mat, self.trajs)
             if self.bar is not None:
                 self.bar.set_postfix(loss=f"{lv:.4f}", regions=mat.K, E=f"{float(mat.youngs().median()):.3g}")
                 self.bar.update(1)
@@ -343,21 +359,58 @@ class _Ladder:
         return (e0 if e0 is not None else float(np.exp(np.mean(mat.region_log_e())))), interrupted
 
 
-def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, start=None, uniform_e=None) -> FitResult:
-    """The "ladder" schedule (module doc)."""
+# each effect parameter is fitted unconstrained: positive ones as their log, the ground's height as is
+_POSITIVE = {"coefficient", "yieldStress", "friction", "modulus", "relaxationTime"}
+
+
+def _effect_start(prob: FitProblem, effect: str, param: str, value: float) -> float:
+    """A finite starting value for a fitted parameter whose stage value is its null (0 / inf)."""
+    if math.isfinite(value) and value > 0:
+        return value
+    st = prob.scene.settings
+    e_mid = math.sqrt(st.youngs_min * st.youngs_max)
+    return {"coefficient": 1.0, "yieldStress": 0.05 * e_mid, "modulus": 0.2 * e_mid, "relaxationTime": 0.1,
+            "friction": 0.5}.get(param, value)
+
+
+def _effect_parameters(prob: FitProblem, s: FitSettings) -> dict:
+    """Leaf tensors for the parameters of the effects the stage asks to fit (`s.fit_effects`)."""
+    out = {}
+    for e in getattr(s, "fit_effects", ()) or ():
+        if e not in prob.effects:
+            continue
+        vals = prob.model.effects.params[e]
+        out[e] = {}
+        for p, v in vals.items():
+            v = _effect_start(prob, e, p, float(v))
+            raw = math.log(v) if p in _POSITIVE else v / prob.traj_scale   # a height in units of 5% of the object
+            out[e][p] = torch.tensor(raw, dtype=prob.tdtype, device=prob.tdev, requires_grad=True)
+    return out
+
+
+def _effect_values(raw: dict, length_scale: float) -> dict:
+    return {e: {p: (torch.exp(v) if p in _POSITIVE else v * length_scale) for p, v in ps.items()}
+            for e, ps in raw.items()}
+
+
+def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, start=None, uniform_e=None,
+               on_iteration=None) -> FitResult:
+    """The "ladder" schedule (module doc). `on_iteration(it, loss, mat, trajs)` after every step."""
     t0 = time.perf_counter()
     torch.manual_seed(s.seed)
     np.random.seed(s.seed)
-    lad = _Ladder(prob, s, log, progress)
+    lad = _Ladder(prob, s, log, progress, on_iteration)
     e_uniform, interrupted = lad.run(start, uniform_e)
     mat = lad.mat
     E, nu = mat.youngs().detach(), mat.poisson().detach()
     trajs = [t.detach() for t in lad.trajs]
+    effects = lad.effects()
     with torch.no_grad():
-        out = prob.loss(E, nu, trajs if trajs else None, frames=range(1, prob.T), keep_renders=True)
+        out = prob.loss(E, nu, trajs if trajs else None, effects=effects, frames=range(1, prob.T), keep_renders=True)
         final_loss = float(out["rec"] + out["reg_traj"])
         x, F = out["x"], out["F"]
         renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
+    fitted_effects = {e: {p: float(v) for p, v in ps.items()} for e, ps in (effects or {}).items()}
     metrics = frame_metrics(prob, renders)
     conf = np.ones(len(prob.x0))
     model = dict(lad.report)
@@ -373,4 +426,5 @@ def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, sta
             sg = float(np.median(sigma[lad.labels == r])) if np.any(lad.labels == r) else float("inf")
             model["region_interval"].append([float(np.exp(log_e[r] - 1.96 * sg)), float(np.exp(log_e[r] + 1.96 * sg))])
     return assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, lad.feats, lad.history, final_loss, t0,
-                           interrupted, e_uniform, regions=lad.labels.copy(), model=model)
+                           interrupted, e_uniform, regions=lad.labels.copy(), model=model,
+                           effect_parameters=fitted_effects)

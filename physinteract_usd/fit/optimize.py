@@ -60,6 +60,9 @@ class FitSettings:
     uniform_share: float = 0.2          # ladder budget: one E, each split, the final joint polish
     split_share: float = 0.15
     final_share: float = 0.2
+    fit_effects: tuple = ()             # ladder: the effects whose parameters are fitted (the stage's
+                                        # effect APIs with fit = true)
+    lr_effects: float = 0.05            # ... on their log values (the ground's height as is)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -90,6 +93,7 @@ class FitResult:
     regions: np.ndarray | None = None   # (P,) the material region of each particle (schedule "ladder")
     model: dict = field(default_factory=dict)  # the material model chosen and why (regions, their E and
                                         # intervals, the splits tried with predicted / realised drops)
+    effect_parameters: dict = field(default_factory=dict)  # {effect: {parameter: value}} fitted ones
 
 
 def _seed(s):
@@ -186,17 +190,11 @@ def select_supports(make_problem, contacts: list, x0: np.ndarray, spacing: float
     return best[0], best[1], best[2], tried
 
 
-def fit(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
-        start: dict | None = None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
+def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
+              start: dict | None = None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
     """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from.
     `uniform_e`: the uniform E to start from when a search already found it (`select_supports`)."""
     s = settings or FitSettings()
-    if s.schedule == "ladder":
-        from .ladder import fit_ladder
-
-        return fit_ladder(prob, s, progress=progress, log=log, start=start, uniform_e=uniform_e)
-    if s.schedule != "bumps":
-        raise ValueError(f"schedule must be 'ladder' or 'bumps', not {s.schedule!r}")
     _seed(s.seed)
     t0 = time.perf_counter()
     st = prob.scene.settings

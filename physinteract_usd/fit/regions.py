@@ -1,6 +1,6 @@
 """Material regions: a piecewise-constant E field whose parts are found from the data.
 
-The fit's model selection (`optimize.fit`, schedule "ladder") starts from one E for the whole
+The fit's model selection (`fit.fit`, schedule "ladder") starts from one E for the whole
 object and splits a region in two only when the data ask for it:
 
 - the *score* of a split is the loss's first derivative along the split's direction: with
