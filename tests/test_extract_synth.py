@@ -291,3 +291,35 @@ def test_support_hints_win(capture):
         extract(stage, hint=parse_hint(support_particles="1000000"), log=lambda *a: None)
     with pytest.raises(InputError, match="--support-particles"):
         parse_hint(support_particles="a,b")
+
+
+def test_grasp_and_release_frames_win_through_the_cli(capture, capsys):
+    """`extract --grasp-frame K --release-frame K|never`: the user's timing wins, is recorded on the
+    stage (the contact's frames, its source 'user') and in the notes; bad values exit 2 naming the
+    flag."""
+    from physinteract_usd.cli import main
+
+    stage = _stage(capture, "timing_cli")
+    assert main(["extract", str(stage), "--grasp-frame", "3", "--release-frame", "7", "--json", "--no-preview"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert (out["grasp_frame"], out["release_frame"]) == (3, 7)
+    assert out["evidence"]["timing_source"] == {"grasp": "user", "release": "user"}
+    assert any("--grasp-frame" in n for n in out["notes"]) or out["evidence"].get("grasp_frame") == 3
+    hand = next(c for c in read_stage(stage).contacts if c.type == "pointAdherent")
+    assert (hand.grasp_frame, hand.release_frame, hand.source) == (3, 7, "user")
+    assert not np.allclose(hand.trajectory[3], hand.trajectory[6])      # T0 moves inside the window ...
+    assert np.allclose(hand.trajectory[0], hand.trajectory[3])          # ... and not before the grasp
+    # never released; a grasp alone keeps a detected release that comes after it
+    assert main(["extract", str(stage), "--release-frame", "never", "--no-preview"]) == 0
+    hand = next(c for c in read_stage(stage).contacts if c.type == "pointAdherent")
+    assert hand.release_frame is None and hand.source == "user"
+    # detection alone: the source is the extraction's again
+    assert main(["extract", str(stage), "--no-preview"]) == 0
+    assert next(c for c in read_stage(stage).contacts if c.type == "pointAdherent").source == "extracted"
+    capsys.readouterr()
+    for args, flag in ((["--grasp-frame", "x"], "--grasp-frame"), (["--grasp-frame", "9"], "--grasp-frame"),
+                       (["--release-frame", "0"], "--release-frame"), (["--release-frame", "sometime"], "--release-frame"),
+                       (["--grasp-frame", "5", "--release-frame", "4"], "--release-frame")):
+        assert main(["extract", str(stage), "--no-preview", *args]) == 2, args
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and flag in err[0], (args, err)

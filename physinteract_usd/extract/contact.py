@@ -141,16 +141,17 @@ def contact_centres(an: Analysis, touching, hint_c2, hint_frame):
 
 
 def leading_part(an: Analysis, k: int, region: np.ndarray) -> np.ndarray:
-    """Of a contact region wider than 2.5 R, the toucher's leading part: the pixels within R of
+    """Of a contact region wider than 4 R, the toucher's leading part: the pixels within R of
     its farthest reach from the toucher's body (the centroid of the hand component it belongs to)
     toward the region. A fingertip, a stick's end, a sphere's front and a pinch's fingertips touch
-    with their leading part; the rest of a hand in front of the object only hides it."""
+    with their leading part; the rest of a hand in front of the object only hides it. Only where
+    the region is at most half the hand component (its body seen beside the object)."""
     import cv2
 
     if not region.any():
         return region
     ys, xs = np.nonzero(region)
-    if max(np.ptp(xs), np.ptp(ys)) + 1 <= 2.5 * an.R:
+    if max(np.ptp(xs), np.ptp(ys)) + 1 <= 4.0 * an.R:
         return region
     n, lab = cv2.connectedComponents(an.hand[k].astype(np.uint8), connectivity=8)
     labs = lab[region]
@@ -158,6 +159,8 @@ def leading_part(an: Analysis, k: int, region: np.ndarray) -> np.ndarray:
     if not len(labs):
         return region
     comp = lab == np.bincount(labs).argmax()
+    if region.sum() > 0.5 * comp.sum():
+        return region    # the hand mostly over the object: its body is not seen apart from where it touches
     body = pixel_centres(comp).mean(0)
     pix = pixel_centres(region)
     u = unit(pix.mean(0) - body)

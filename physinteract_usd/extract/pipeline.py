@@ -46,7 +46,7 @@ from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts
-from .timing import apply_overrides, find_timing
+from .timing import apply_overrides, collider_start, find_timing, timing_confidence
 
 
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
@@ -77,6 +77,14 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     hand = track_hand(timing, grasp.uv)
     itype, conf, tsource = classify(an, timing, grasp.uv, hand, evidence, models,           # 5: how
                                     interaction_type, frames)
+    if itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
+        g2 = collider_start(timing)
+        if g2 != g:   # a collider acts from when the object starts to give
+            timing.grasp = g = g2
+            evidence["grasp_frame"] = g
+            grasp = contact_at_grasp(an, seen, g)
+            hand = track_hand(timing, grasp.uv)
+    timing_confidence(timing, an.eps, evidence, notes)
     c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
     lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)

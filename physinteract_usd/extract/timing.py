@@ -30,33 +30,22 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     """Step 4: velocities and coupling next to the contact, the contact period, the grasp and the
     release (recorded in `evidence`).
 
-    The contact is the longest-supported run of frame pairs in which the toucher touches the
-    object and moves with it (`contact_run`): the object next to the contact follows it, or both
-    stay still; an approach (the toucher moves, the object does not) ends it before, a retreat (the
-    toucher moves away, the object does not follow) after. This reads the object's own motion and
-    the toucher's, whatever the toucher looks like; where no such run exists (the object never
-    seen to follow), the grasp is the toucher's slowest frame on the object (`contact_start`)."""
+    The grasp: the toucher comes to (near) rest on the object before it moves it (`contact_start`,
+    the last of its stillest frames before the motion). The release: the end of the contact from
+    there on (`release`): the toucher moves apart from the object (it moves and the object next to
+    it does not follow, or follows at less than half the share of its speed it kept while they
+    touched: `part_by_ratio`), or stops touching it. Both read the object's own motion and the
+    toucher's, whatever the toucher looks like."""
     vh, vo = velocities(an, seen.centres)
     coupled = coupling(vh, vo, an.eps)
     near = seen.touching | (np.array([c is not None for c in seen.centres]) & (seen.hint_uv is not None))
     p0, p1 = contact_period(near)
     speed = np.linalg.norm(vh, axis=1)
+    g = contact_start(speed, near, p0, p1, coupled, vh)
     run = contact_run(coupled, near, vh, vo, an.eps)
     if run is not None:
-        # the object next to the contact keeps to its own share of the toucher's speed while they
-        # touch (the held particles move with the hand, their neighbours lag): a pair in which it
-        # falls below half that share is the two parting, even the same way (a released end falling
-        # as the hand drops away)
         coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
-        run = contact_run(coupled, near, vh, vo, an.eps)
-    if run is not None:
-        g, e = run
-        r = None if e >= len(coupled) - 1 else e + 1
-        evidence["timing_rule"] = "contact run"
-    else:
-        g = contact_start(speed, near, p0, p1, coupled, vh)
-        r = release(coupled, near, g, speed)
-        evidence["timing_rule"] = "slowest frame"
+    r = release(coupled, near, g, speed)
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
@@ -145,6 +134,67 @@ def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing
                   timing.speed, g, r)
 
 
+def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -> str:
+    """A plain statement of how sure the timing is: "high", "medium" or "low" into
+    `evidence["timing_confidence"]`, with the reasons as notes (each naming the flag that fixes it).
+    User-given frames are not judged."""
+    src = evidence.get("timing_source", {})
+    g, r = timing.grasp, timing.release
+    T1 = len(timing.coupled)
+    end = T1 if r is None else min(T1, r)
+    so = np.linalg.norm(timing.object_velocity, axis=1)
+    sh = timing.speed
+    reasons = []
+    if src.get("grasp") != "user":
+        # how far back the toucher rests on the object before the motion (a grasp may be anywhere in it)
+        a = g
+        while a - 1 >= timing.period[0] and np.isfinite(sh[a - 1]) and sh[a - 1] < eps and timing.near[a - 1]:
+            a -= 1
+        moved = [k for k in range(g, end) if np.isfinite(so[k]) and so[k] >= eps]
+        if not moved:
+            peak = float(np.nanmax(so[g:end])) if end > g and np.isfinite(so[g:end]).any() else 0.0
+            reasons.append(f"timing uncertain: the object next to the contact moves little (at most {peak:.2f} px a "
+                           f"frame) while the hand touches it, frames {g}..{'end' if r is None else r}; "
+                           "--grasp-frame / --release-frame set them")
+        elif moved[0] - g >= 3:
+            reasons.append(f"grasp uncertain: the hand is on the object from frame {g}, the object moves little "
+                           f"before frame {moved[0]}; --grasp-frame sets it")
+        if g - a >= 2:
+            reasons.append(f"grasp uncertain: the hand rests on the object from frame {a} and starts to move it "
+                           f"after frame {g} (the grasp is put there); --grasp-frame sets it")
+        if g <= timing.period[0] and timing.near[0]:
+            reasons.append("grasp uncertain: the hand already touches the object in the first frame (the grasp may "
+                           "come before the video); --grasp-frame sets it")
+    if src.get("release") != "user":
+        if r is None and T1 > 0 and timing.near[-1]:
+            reasons.append("no release seen: the hand holds on to the end of the video; --release-frame sets it")
+        elif r is not None and r < len(timing.near) and not timing.near[r] and (r == 0 or timing.coupled[r - 1] >= 0):
+            reasons.append(f"release from the hand leaving the object at frame {r}, not from the object's motion; "
+                           "--release-frame sets it")
+    hidden = [k for k in range(g, end) if not np.isfinite(sh[k])]
+    if len(hidden) >= max(2, 0.3 * max(end - g, 1)):
+        reasons.append(f"the hand is hidden near the contact in {len(hidden)} of frames {g}..{end}: its motion "
+                       "there is the object's")
+    level = "high" if not reasons else ("low" if len(reasons) >= 2 or "moves little (at most" in reasons[0]
+                                        else "medium")
+    evidence["timing_confidence"] = level
+    evidence["timing_uncertain"] = reasons
+    notes.extend(reasons)
+    return level
+
+
+def collider_start(timing: Timing, reach: int = 3) -> int:
+    """A fingertip's or a palm's grasp: the first pair (within `reach` of the toucher's stillest
+    frame) in which the object follows it: a collider acts from the frame it touches, which is when
+    the object starts to give (a hand that grasps may rest on the object before it pulls)."""
+    c, g = timing.coupled, timing.grasp
+    end = len(c) if timing.release is None else min(len(c), timing.release)
+    for k in range(g, min(end, g + reach + 1)):
+        if c[k] > 0:
+            return k
+    return g
+
+
 def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> np.ndarray:
     """`coupled` with the pairs in which the object follows at less than half its usual share of the
     toucher's speed (the median over the run's pairs where the toucher moves at >= 2 eps; at least
@@ -154,12 +204,14 @@ def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps:
     a, b = run
     fast = [k for k in range(a, b + 1) if coupled[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k])
             and sh[k] >= 2 * eps]
-    if len(fast) < 3:
-        return coupled
-    share = float(np.percentile([so[k] / sh[k] for k in fast], 70))
+    share = float(np.percentile([so[k] / sh[k] for k in fast], 70)) if len(fast) >= 3 else 0.0
     out = coupled.copy()
     for k in range(len(coupled)):
         if out[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k]) and sh[k] >= 2 * eps and so[k] < 0.5 * share * sh[k]:
+            out[k] = -1
+        # the object next to a held point does not outrun the hand: moving at 2.5x its speed, it
+        # moves by itself (springs back after the release, while the hand drifts the same way)
+        if out[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k]) and so[k] >= 2 * eps and so[k] > 2.5 * max(sh[k], eps):
             out[k] = -1
     return out
 
@@ -218,7 +270,7 @@ def coupling(vh: np.ndarray, vo: np.ndarray, eps: float, floor: float = 0.05) ->
         na, nb = np.linalg.norm(a), np.linalg.norm(b)
         if max(na, nb) < eps:
             out[k] = 0
-        elif nb >= max(floor, 0.2 * na) and na >= floor and np.dot(a, b) >= 0.6 * na * nb:
+        elif nb >= max(floor, 0.2 * na) and na >= floor and np.dot(a, b) >= 0.7 * na * nb:
             out[k] = 1
         else:
             out[k] = -1
@@ -293,28 +345,41 @@ def skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: 
 
 def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | None = None):
     """The release: the object stops following the hand (two decoupled frame pairs in a row, or
-    the hand no longer touching) at some frame r_c; None: held to the end. A hand slows down
-    before it lets go and moves off after: with `speed`, the release is the frame after the
-    slowest of the frame pairs just before r_c (ties to the earlier: a late release would drag
-    the object along the hand's retreat)."""
+    one in which the hand moves fast, or the hand no longer touching) at some frame r_c; None: held
+    to the end. A slow pull may leave the object behind for a frame or two after the grasp:
+    decoupling counts only once the object has followed (bow_tie). A hand slows down before it
+    lets go and moves off after: with `speed`, when the hand was still moving in the pair before
+    r_c (the decoupling seen a pair late), the release is the frame after the slowest of the
+    pairs just before r_c in which it still moved (ties to the earlier); pairs in which both were
+    still (a hold before letting go) are not searched (the release would land at the hold's
+    start)."""
     T1 = len(coupled)
     r_c = None
-    # a slow pull may leave the object behind for a frame or two after the grasp: decoupling only
-    # counts once the object has followed the hand (bow_tie: released 2 frames after its grasp)
     first = next((k for k in range(g + 1, T1) if coupled[k] > 0), g)
     for k in range(first + 1 if first > g else g + 1, T1):
         if not near[k]:
             r_c = k
             break
-        if coupled[k] < 0 and (k + 1 >= T1 or coupled[k + 1] < 0 or not near[k + 1]):
+        fast = speed is not None and np.isfinite(speed[k]) and speed[k] >= 3 * 0.35
+        if coupled[k] < 0 and (fast or k + 1 >= T1 or coupled[k + 1] < 0 or not near[k + 1]):
+            # the object catching up again (a lagging pull round a bend) was not a release
+            ahead = [j for j in range(k + 1, min(T1, k + 5)) if near[j] and coupled[j] > 0]
+            if len(ahead) >= 2 and not fast:
+                continue
             r_c = k
             break
     if r_c is None or speed is None:
         return r_c
-    ks = [k for k in range(max(g + 1, r_c - 3), min(r_c, T1 - 1) + 1) if np.isfinite(speed[k])]
+    ks = []
+    for k in range(r_c - 1, max(g, r_c - 3), -1):
+        if not np.isfinite(speed[k]) or coupled[k] == 0:
+            break
+        ks.append(k)
     if not ks:
         return r_c
     best = min(speed[k] for k in ks)
+    if best >= speed[r_c]:
+        return r_c
     k_min = min(k for k in ks if speed[k] <= best + 0.1)
     return k_min + 1
 
