@@ -194,13 +194,13 @@ def build_shape(w: dict) -> Shape:
         a, b = -0.5 * L * axis + (r * axis), 0.5 * L * axis - (r * axis)
         return Shape([Capsule("bar", tuple(a), tuple(b), r)])
     if kind == "rope":
-        r = max(0.008, 0.06 * th * L)
+        r = max(0.009, 0.06 * th * L)
         s = np.linspace(-0.5, 0.5, 11)
         side = np.array([0.0, 0.0, 1.0]) if horizontal else np.array([1.0, 0.0, 0.0])
         pts = np.outer(s * L, axis) + np.outer(wig * 0.06 * L * np.sin(5.0 * s + 3 * wig), side)
         return Shape([Tube("rope", pts, r)])
     if kind == "sheet":
-        t = max(0.008, 0.08 * th * L) if sc in ("floor", "hanging") else max(0.014, 0.14 * th * L)
+        t = max(0.012, 0.08 * th * L) if sc in ("floor", "hanging") else max(0.014, 0.14 * th * L)
         if sc == "floor":
             half = (0.5 * L, 0.5 * t, 0.32 * L)
         elif horizontal:
@@ -335,6 +335,7 @@ class World:
                 break
             grid -= 2
         self.fit_grid = grid
+        h = min(h, self._thinnest() / 3.0)                  # at least 3 particles across its thinnest part
         x0 = self.shape.lattice(h)
         jit = rng.uniform(-0.35, 0.35, size=x0.shape) * h
         x0 = x0 + jit
@@ -360,6 +361,14 @@ class World:
         if speed > 0:
             dt = min(dt, 0.5 * dx / speed)
         return int(math.ceil(1.0 / (self.fps * dt)))
+
+    def _thinnest(self) -> float:
+        """The object's smallest thickness (twice the largest inscribed radius found by sampling)."""
+        lo, hi = self.lo, self.hi
+        rng = np.random.default_rng(6)
+        p = lo + (hi - lo) * rng.uniform(size=(20000, 3))
+        d = -self.shape.sdf(p)
+        return float(2 * max(d.max(), 1e-3))
 
     def _volume(self) -> float:
         lo, hi = self.lo, self.hi
@@ -924,10 +933,11 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     if not np.isfinite(x).all():
         raise RuntimeError(f"world {split}/{seed}: the ground truth went non-finite")
     it = w["interaction"]
-    # the truth's timing: the toucher arrives on the object (a hand takes hold then, and holds still
-    # through its dwell before it pulls); it lets go (a collider leaves the surface) when the motion
-    # ends, or never
-    g_true, r_true = world.arrive, (None if world.never else world.release)
+    # the truth's timing: the toucher starts to act on the object (a hand takes hold when it arrives
+    # and holds still through its dwell, which acts on nothing: the grasp is the last frame before it
+    # pulls, a poke's or a press's the last before it pushes); it lets go (a collider leaves the
+    # surface) when the motion ends, or never
+    g_true, r_true = world.grasp, (None if world.never else world.release)
     touched = touch_frames(world, x) if it != "pointAdherent" else None
     log(f"world {split}/{seed}: {w['shape']} {w['scenario']}, {w['interaction']} by {w['look']}; "
         f"{len(world.x0)} ground-truth particles, {world.substeps} substeps/frame, E {world.E.min():.3g}.."
