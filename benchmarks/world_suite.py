@@ -16,12 +16,14 @@ settings (its README: grid 24, padding 0.3, the E range, the density), `extract`
 with the ground truth:
 
 - type: right or not;
-- grasp / release: frame errors. Grasps (pointAdherent): the last frame before the hand pulls
-  (it takes hold when it arrives and may rest there a few frames first) and the frame it lets go;
-  colliders: the first frame the fingertip / palm touches the object (within 0.75 ground-truth
-  spacings of a particle) and the first frame after that it does not (gt.json's touch_frames). A
+- grasp / release: frame errors against gt.json's grasp_frame and release_frame, defined as in
+  the named scenes: the last frame before the toucher acts (a hand takes hold when it arrives and
+  may rest there a few frames first; a fingertip or a palm may rest on the surface before it
+  pushes) and the frame it lets go (a collider: the frame its motion ends and it leaves). A
   release that is never (held to the end) on one side and a frame on the other counts as wrong
-  (shown "never/K");
+  (shown "never/K"). (gt.json's touch_frames, a collider's first and last frames within 0.75
+  ground-truth spacings of a particle, are not the truth: a floppy object sags away from a
+  fingertip resting on it.);
 - contact [cm]: pointAdherent: between the centroids of the extracted and the true held
   particles (the extracted contact point when the type is wrong); pointNonAdherent: between the
   contact points on the surface at rest; surfaceNonAdherent: the plane's offset along its normal;
@@ -137,9 +139,6 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
            "encoding": g.get("noise", {}).get("encoding"), "e_max": g["youngs_modulus"]["max"]}
     row["grasp_true"], row["grasp"] = int(it["grasp_frame"]), int(result.grasp_frame)
     row["release_true"] = it.get("release_frame")
-    if it["type"] != "pointAdherent" and it.get("touch_frames"):
-        # a collider acts while it touches: the truth's first and last frames of contact
-        row["grasp_true"], row["release_true"] = it["touch_frames"][0], it["touch_frames"][1]
     row["release"] = result.release_frame
     row["grasp_err"] = abs(row["grasp"] - row["grasp_true"])
     rt, rm = row["release_true"], row["release"]

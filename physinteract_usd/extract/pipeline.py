@@ -78,7 +78,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     itype, conf, tsource = classify(an, timing, grasp.uv, hand, evidence, models,           # 5: how
                                     interaction_type, frames)
     if itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
-        g2 = collider_start(timing)
+        g2 = collider_start(timing, an.eps)
         if g2 != g:   # a collider acts from when the object starts to give
             timing.grasp = g = g2
             evidence["grasp_frame"] = g
@@ -88,8 +88,12 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
     lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
+    low = None
+    if lifted.contact.trajectory is not None:
+        tr = np.asarray(lifted.contact.trajectory)
+        low = float(tr[:, 1].min() - (lifted.contact.radius if itype == "pointNonAdherent" else 0.0))
     supports, motion_p = support_contacts(an, hint, held, hand.motion, lifted.push_dir,     # 8: supports
-                                          evidence, notes)
+                                          evidence, notes, lowest_contact_y=low)
     contact = lifted.contact
     return ExtractionResult(contacts=[contact] + supports, hand_masks=an.hand, interaction_type=itype,
                             type_source=tsource,

@@ -19,12 +19,12 @@ SUPPORT_HINT_RADIUS_M = 0.03  # a support the user points at where none was dete
 
 # ------------------------------------------------------------------------------ step
 def support_contacts(an: Analysis, hint, exclude, contact_motion_px: float, push_dir, evidence: dict,
-                     notes: list) -> tuple[list, np.ndarray]:
+                     notes: list, lowest_contact_y: float | None = None) -> tuple[list, np.ndarray]:
     """Step 8: the supports as `fixed` contact sets (the detected ones, or the user's hint's), none
     taking a particle of `exclude` (the hand's grasp). Returns (contact sets, motion per particle
     in px)."""
     fixed_sets, motion_p, sup_ev = find_supports(an, exclude=exclude, contact_motion_px=contact_motion_px,
-                                                 push_dir=push_dir)
+                                                 push_dir=push_dir, lowest_contact_y=lowest_contact_y)
     evidence["supports"] = sup_ev
     sup_source = "extracted"
     floor = sup_ev.get("floor")
@@ -62,7 +62,7 @@ def support_contacts(an: Analysis, hint, exclude, contact_motion_px: float, push
 def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px: float = 0.0,
                   push_dir=None, rel_threshold: float = 0.08, abs_threshold: float = 0.6,
                   core_rel: float = 0.0, core_abs: float = 0.0, margin: float = 1.05,
-                  shell_hidden_only: bool = True):
+                  shell_hidden_only: bool = True, lowest_contact_y: float | None = None):
     """Particles that stay put while the object moves: connected still regions -> fixed sets.
 
     Still: motion at most max(abs_threshold, rel_threshold x the contact's motion). Near a support
@@ -124,7 +124,7 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     still[np.asarray(exclude, np.int64)] = False
     if moving < 3 * abs_threshold:
         ev["note"] = "the object hardly moves: no support can be told from the motion"
-        floor = resting_base(x0, h, [])
+        floor = resting_base(x0, h, [], lowest_contact_y)
         if floor is not None:
             ev["floor"] = floor
         return [], motion, ev
@@ -149,7 +149,7 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     ev["core_threshold_px"] = max(low, split)
     # a floor is not a support: still regions at the object's bottom, on which it can stand, are
     # where it rests (held by friction, not pinned)
-    floor = resting_base(x0, h, sets)
+    floor = resting_base(x0, h, sets, lowest_contact_y)
     if floor is not None:
         ev["floor"] = floor
         ev["sets_on_floor"] = [int(len(s_)) for s_ in sets]
@@ -178,25 +178,41 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     return sets, motion, ev
 
 
-def resting_base(x0: np.ndarray, h: float, sets: list, slab_share: float = 0.12, tip_margin: float = 0.15):
+def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float | None = None,
+                 tip_margin: float = 0.15, flat: float = 0.6):
     """Whether the object rests on a floor (a dict: the floor's height, the base's particles) or
-    not (None). A floor holds an object from below by friction: it rests there when (a) it can stand
-    on its lowest part, its base (the particles within 1.5 spacings of its lowest point): the centre
-    of mass lies over the base's footprint with a margin of at least `tip_margin` x its height over
-    the base (a thin stem or a hanging end cannot stand on its tip), and (b) every still region
-    found (`sets`) lies at the bottom: 80% of it within max(1.5 spacings, `slab_share` x the object's
-    height) of the lowest point. With no still region at all, (a) alone decides (the whole object
-    moved: it slid or tipped on something that does not hold it)."""
+    not (None). A floor holds an object from below, by friction: it rests there when
+    (a) it can stand on its base (the particles within 1.5 spacings of its lowest point): the
+    centre of mass lies over the base's footprint with a margin of at least `tip_margin` x its
+    height above it (a thin stem or a hanging end cannot stand on its tip);
+    (b) every still region found (`sets`, specks aside) touches the floor (holds 3 base particles
+    or more) and is flat, as a contact patch is (its height at most max(1.5 spacings, `flat` x its
+    width): the still foot of a leg or a stem, or a clamped end as thick as it is wide, is held);
+    still regions at two places or more (the moved part between them) are held there: a strap on
+    its anchors, a toy on its feet (a video cannot tell them from a strap lying on a table lifted in
+    the middle: the prior is that a resting object stays still in one place);
+    (c) the contact is not pushed below it (`lowest_contact_y`, the lowest point of the toucher's
+    T0, more than a spacing under the base: something holds the object above the ground).
+    With no still region at all, (a) and (c) decide (the whole object moved: it slid or tipped on
+    something that does not hold it)."""
     from scipy.spatial import ConvexHull, QhullError
 
     y = x0[:, 1]
     ymin = float(y.min())
-    height = float(np.ptp(y))
-    slab = max(1.5 * h, slab_share * height)
-    for s_ in sets:
-        if np.mean(y[s_] <= ymin + slab) < 0.8:
-            return None
+    if lowest_contact_y is not None and lowest_contact_y < ymin - h:
+        return None
     base = y <= ymin + 1.5 * h
+    big = max((len(s_) for s_ in sets), default=0)
+    real = [np.asarray(s_, np.int64) for s_ in sets if len(s_) >= max(4, 0.05 * big)]   # specks aside
+    if len(real) > 1:
+        return None         # still at two places with the moved part between: held there (anchors, feet)
+    for s_ in real:
+        if base[s_].sum() < 3:
+            return None
+        height = float(np.ptp(y[s_]))
+        width = float(max(np.ptp(x0[s_, 0]), np.ptp(x0[s_, 2])))
+        if height > max(1.5 * h, flat * width):
+            return None
     com = x0.mean(0)
     pts = x0[base][:, [0, 2]]
     c = com[[0, 2]]

@@ -183,10 +183,10 @@ def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -
     return level
 
 
-def collider_start(timing: Timing, reach: int = 3) -> int:
+def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
     """A fingertip's or a palm's grasp: the first pair (within `reach` of the toucher's stillest
-    frame) in which the object follows it: a collider acts from the frame it touches, which is when
-    the object starts to give (a hand that grasps may rest on the object before it pulls)."""
+    frame) in which the object follows it: a collider acts from when the object starts to give (it
+    may rest on the surface before, acting on nothing)."""
     c, g = timing.coupled, timing.grasp
     end = len(c) if timing.release is None else min(len(c), timing.release)
     for k in range(g, min(end, g + reach + 1)):
