@@ -8,6 +8,9 @@ module per verb). The CLI, the Blender add-on's runner and the benchmarks use on
 """
 
 from .app.adapters import load_observations, measured_tracks, read_scene, stage_contacts, true_contacts
+from .app.effects import add as effects_add
+from .app.effects import list_effects as effects_list
+from .app.effects import remove as effects_remove
 from .app.evaluate import evaluate
 from .app.export import export
 from .app.extract import extract
@@ -25,4 +28,5 @@ from .extract import Hint, parse_hint
 __all__ = ["init", "info", "extract", "fit", "prepare_fit", "run_fit", "FitJob", "FitOutcome", "simulate",
            "evaluate", "export", "synth", "synth_scenes", "choose_sim_settings", "INTERACTION_DOC",
            "parse_interaction", "load_observations", "read_scene", "stage_contacts", "true_contacts", "Hint",
-           "parse_hint", "list_versions", "use_version", "report", "measured_tracks"]
+           "parse_hint", "list_versions", "use_version", "report", "measured_tracks", "effects_add",
+           "effects_remove", "effects_list"]
