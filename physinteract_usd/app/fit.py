@@ -40,6 +40,7 @@ from .adapters import load_observations, read_scene, stage_contacts, stage_effec
 from .fit_checkpoint import FitTracker, fingerprint, load_checkpoint, remove_checkpoint
 
 DEFAULT_ITERATIONS = 60
+WARM_ITERATIONS = 20     # a refit after `effects add / remove` starts where the current version ended
 CHECKPOINT_EVERY = 5
 
 
@@ -56,7 +57,7 @@ class FitJob:
     device: str = "cpu"
     start: dict | None = None            # resume: {"youngs", "poisson", "trajectories"}
     source: str = "extracted"            # where the contacts came from: extracted | groundTruth | caller
-    resumed_from: str = ""               # "" | "v<N>" | "checkpoint"
+    resumed_from: str = ""               # "" | "v<N>" | "checkpoint" | "warm:v<N>" (effects changed)
     history: list = field(default_factory=list)   # a resumed checkpoint's loss history
     problem: FitProblem | None = None    # built by run_fit (kept for the last pass after a late stop)
 
@@ -125,24 +126,58 @@ def resume_start(stage_path, sd: SceneData, contacts) -> tuple[dict, str, dict |
     return start, f"v{sd.current_version or newest['version']}", None
 
 
-def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=None, contacts=None,
+def warm_start(stage_path, sd: SceneData) -> tuple[dict, str, tuple, tuple] | None:
+    """Where a refit after `effects add / remove` starts: the current version's E field, nu and
+    trajectories, and the fitted values of the effects it already had. None when the stage's
+    effects are the ones the current version was fitted with (or it has none). Returns (start,
+    "v<N>", effects added, effects removed)."""
+    from ..sim.effects import EFFECT_NAMES
+
+    rep = sd.current_report
+    if rep is None or rep.get("status") == "interrupted":
+        return None
+    had, now = set(rep.get("effects") or []), set(sd.effects)
+    if had == now:
+        return None
+    if rep.get("snapshot"):
+        start = read_version_start(stage_path, int(rep["version"]))
+    else:   # a stage fitted before versions: the field it shows
+        start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
+                 "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
+    prev = rep.get("effect_parameters") or {}
+    start["effects"] = {e: dict(prev[e]) for e in now & had if e in prev}
+    added = tuple(e for e in EFFECT_NAMES if e in now - had)
+    removed = tuple(e for e in EFFECT_NAMES if e in had - now)
+    return start, f"v{rep['version']}", added, removed
+
+
+def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None,
                 hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
-                yes=True) -> FitJob:
+                yes=True, warm=True) -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
     when it has none. `resume`: go on from a killed fit's checkpoint or the newest version
-    (`iterations` None: the checkpoint's remaining iterations, else the default)."""
+    (`iterations` None: the checkpoint's remaining iterations, else the default). `warm`: when the
+    stage's effects differ from the current version's (`effects add / remove`), start from that
+    version (`warm_start`; `iterations` None: WARM_ITERATIONS) and search the start of the effects
+    just added; the effects with `fit = true` are fitted by either schedule."""
     check_iterations(iterations)
     stage_path = Path(stage_path)
     sd = read_scene(stage_path)
     # what can be refused is refused before extraction writes anything
     if resume and not sd.reports and not LayerPaths.of(stage_path).checkpoint.exists():
         raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
-    settings = FitSettings(iterations=iterations or DEFAULT_ITERATIONS, joint=joint, seed=seed)
+    warm_from = None if (resume or not warm) else warm_start(stage_path, sd)
+    default_its = WARM_ITERATIONS if warm_from is not None else DEFAULT_ITERATIONS
+    fit_effects = tuple(e for e, p in sd.effects.items() if p.get("fit", True))
+    # the start of an effect is searched when it is new: every fitted one on a fresh fit, the added ones on a warm start
+    search = tuple(e for e in (warm_from[2] if warm_from is not None else fit_effects) if e in fit_effects)
+    settings = FitSettings(iterations=iterations or default_its, joint=joint, seed=seed, fit_effects=fit_effects,
+                           search_effects=() if resume else search)
     if settings_overrides:
         settings = dataclasses.replace(settings, **settings_overrides)
-    check_cost(sd, settings, device, yes=yes, stage_path=stage_path, resumed=resume)
+    check_cost(sd, settings, device, yes=yes, stage_path=stage_path, resumed=resume or warm_from is not None)
     obs = load_observations(sd, with_hand_masks=False)
     source = "extracted"
     if contacts is not None:
@@ -173,6 +208,12 @@ def prepare_fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contac
                 f"{ck.get('budget')}, written {ck.get('created')}): {iterations} iterations more")
         else:
             log(f"resuming from {resumed_from}")
+    elif warm_from is not None:
+        start, ver, added, removed = warm_from
+        resumed_from = f"warm:{ver}"
+        change = ", ".join([f"+{e}" for e in added] + [f"-{e}" for e in removed])
+        log(f"effects changed since {ver} ({change}): warm start from {ver}'s field and trajectory, "
+            f"{iterations or default_its} iterations (--fresh: a fit from scratch)")
     if iterations is not None:
         settings.iterations = int(iterations)
     return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
@@ -236,13 +277,15 @@ def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
     return r
 
 
-def fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=None, contacts=None, hand_masks=None,
+def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None, hand_masks=None,
         device="cpu", seed=0, resume=False, progress=True, log=print, settings_overrides=None, keep_best=True,
-        checkpoint_every=CHECKPOINT_EVERY, yes=True) -> FitOutcome:
+        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True) -> FitOutcome:
     """Fit the stage's material field and trajectory to its video; write it as a new version
     (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `keep_best`: the new version becomes current
     only if its loss is below the current one's; `checkpoint_every`: iterations between
-    checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours.
+    checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours; `warm`: a
+    refit after the stage's effects changed starts from the current version (`prepare_fit`);
+    `iterations` None: DEFAULT_ITERATIONS, or WARM_ITERATIONS for such a warm start.
     SIGINT / SIGTERM stop it cleanly (the best iterate is written, `outcome.stopped_by` says so);
     a second signal quits without writing (the checkpoint stays)."""
     check_iterations(iterations)
@@ -251,7 +294,7 @@ def fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=N
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
-                      settings_overrides=settings_overrides, yes=yes)
+                      settings_overrides=settings_overrides, yes=yes, warm=warm)
     lp = LayerPaths.of(job.stage_path)
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built
@@ -282,6 +325,7 @@ def fit(stage_path, *, iterations=DEFAULT_ITERATIONS, joint=True, contact_from=N
         if job.history:   # resumed from a checkpoint: the version holds the whole fit's history
             result.loss_history = list(job.history) + list(result.loss_history)
         info = write_fit_layer(job.stage_path, job.scene, result, job.contacts, keep_best=keep_best,
+                               effect_parameters=result.effect_parameters,
                                confidence_estimated=conf_ok, resumed_from=job.resumed_from)
         remove_checkpoint(lp.checkpoint)
     job.settings.confidence_probes = probes

@@ -12,7 +12,8 @@ def add_parser(sub):
     s = sub.add_parser("fit", help="fit the material field and the trajectory to the video")
     s.add_argument("stage")
     s.add_argument("--iterations", type=int, default=None,
-                   help="optimiser iterations (default 60; with --resume after a killed fit: the ones it had left)")
+                   help="optimiser iterations (default 60; 20 for a warm start after `effects add/remove`; with "
+                        "--resume after a killed fit: the ones it had left)")
     s.add_argument("--no-joint", action="store_true",
                    help="keep the trajectory at its initialisation T0 (the paper's w/o JO ablation)")
     s.add_argument("--contact-from", metavar="DIR/gt", help="take contacts, supports and T0 from a synthetic "
@@ -21,6 +22,8 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=0, help="random seed (runs are repeatable)")
     s.add_argument("--resume", action="store_true", help="go on from a stopped fit's checkpoint, else from the "
                    "newest version")
+    s.add_argument("--fresh", action="store_true", help="fit from scratch even when the effects changed since the "
+                   "current version (default: a refit after `effects add/remove` warm-starts from it)")
     kb = s.add_mutually_exclusive_group()
     kb.add_argument("--keep-best", dest="keep_best", action="store_true", default=True,
                     help="the new version becomes current only if its loss is below the current one's (default)")
@@ -51,7 +54,7 @@ def run(a) -> int:
     over = {"appearance": a.appearance} if a.appearance is not None else None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,
-                      keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes)
+                      keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes, warm=not a.fresh)
     summary = outcome.summary()
     if a.json:
         print(json.dumps(summary, indent=2))

@@ -29,6 +29,7 @@ import torch
 
 from ..errors import SimulationError
 from . import regions as R
+from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, assemble_result, confidence, frame_metrics
 from .problem import FitProblem
@@ -51,7 +52,7 @@ class _Ladder:
                                  device=prob.tdev, seed=s.seed)
         self.mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
         self.trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
-        self.effect_raw = _effect_parameters(prob, s)      # {effect: {param: unconstrained leaf tensor}}
+        self.effect_raw = effect_parameters(prob, getattr(s, "fit_effects", ()))      # {effect: {param: unconstrained leaf tensor}}
         self.train, self.val = _frames(prob.T, s.holdout_every)
         self.history: list[float] = []
         self.labels = np.zeros(len(prob.x0), np.int64)
@@ -70,7 +71,7 @@ class _Ladder:
     # ------------------------------------------------------------------ losses
     def effects(self) -> dict | None:
         """The fitted effects' parameters (tensors; None when none is fitted)."""
-        return _effect_values(self.effect_raw, self.prob.traj_scale) if self.effect_raw else None
+        return effect_values(self.effect_raw, self.prob.traj_scale) if self.effect_raw else None
 
     def loss(self, frames, E=None, trajs=None, grad=False):
         mat, prob = self.mat, self.prob
@@ -302,6 +303,12 @@ class _Ladder:
                         with torch.no_grad():
                             self.trajs[i].copy_(torch.as_tensor(start["trajectories"][name], dtype=self.prob.tdtype))
                 self.report["resumed"] = True
+                if self.effect_raw and s.search_effects:   # effects just switched on: their start first
+                    st = self.prob.scene.settings
+                    self.report["effect_search"] = search_effects(
+                        lambda: self.loss(list(range(1, self.prob.T))), self.effect_raw, tuple(s.search_effects),
+                        (st.youngs_min, st.youngs_max), self.prob.traj_scale, points=s.effect_search_points,
+                        log=self.log)
             else:
                 e0 = uniform_e if uniform_e is not None else self.uniform_start()
                 mat.set_uniform(e0)
@@ -359,40 +366,6 @@ class _Ladder:
         return (e0 if e0 is not None else float(np.exp(np.mean(mat.region_log_e())))), interrupted
 
 
-# each effect parameter is fitted unconstrained: positive ones as their log, the ground's height as is
-_POSITIVE = {"coefficient", "yieldStress", "friction", "modulus", "relaxationTime"}
-
-
-def _effect_start(prob: FitProblem, effect: str, param: str, value: float) -> float:
-    """A finite starting value for a fitted parameter whose stage value is its null (0 / inf)."""
-    if math.isfinite(value) and value > 0:
-        return value
-    st = prob.scene.settings
-    e_mid = math.sqrt(st.youngs_min * st.youngs_max)
-    return {"coefficient": 1.0, "yieldStress": 0.05 * e_mid, "modulus": 0.2 * e_mid, "relaxationTime": 0.1,
-            "friction": 0.5}.get(param, value)
-
-
-def _effect_parameters(prob: FitProblem, s: FitSettings) -> dict:
-    """Leaf tensors for the parameters of the effects the stage asks to fit (`s.fit_effects`)."""
-    out = {}
-    for e in getattr(s, "fit_effects", ()) or ():
-        if e not in prob.effects:
-            continue
-        vals = prob.model.effects.params[e]
-        out[e] = {}
-        for p, v in vals.items():
-            v = _effect_start(prob, e, p, float(v))
-            raw = math.log(v) if p in _POSITIVE else v / prob.traj_scale   # a height in units of 5% of the object
-            out[e][p] = torch.tensor(raw, dtype=prob.tdtype, device=prob.tdev, requires_grad=True)
-    return out
-
-
-def _effect_values(raw: dict, length_scale: float) -> dict:
-    return {e: {p: (torch.exp(v) if p in _POSITIVE else v * length_scale) for p, v in ps.items()}
-            for e, ps in raw.items()}
-
-
 def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, start=None, uniform_e=None,
                on_iteration=None) -> FitResult:
     """The "ladder" schedule (module doc). `on_iteration(it, loss, mat, trajs)` after every step."""
@@ -400,6 +373,8 @@ def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, sta
     torch.manual_seed(s.seed)
     np.random.seed(s.seed)
     lad = _Ladder(prob, s, log, progress, on_iteration)
+    if start is not None and start.get("effects"):   # a warm start: the previous version's effect values
+        lad.effect_raw = effect_parameters(prob, s.fit_effects, start["effects"])
     e_uniform, interrupted = lad.run(start, uniform_e)
     mat = lad.mat
     E, nu = mat.youngs().detach(), mat.poisson().detach()
@@ -416,7 +391,8 @@ def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, sta
     model = dict(lad.report)
     model["regions"] = int(mat.K)
     if s.confidence_probes > 0 and not interrupted:
-        conf, sigma = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, return_sigma=True)
+        conf, sigma = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, return_sigma=True,
+                                  effects=effects)
         log_e = mat.region_log_e()
         model["region_e"] = [float(np.exp(v)) for v in log_e]
         model["region_particles"] = [int((lad.labels == r).sum()) for r in range(mat.K)]

@@ -25,6 +25,7 @@ import torch
 from .. import metrics as M
 from ..devices import device_name
 from ..errors import SimulationError
+from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
 
@@ -60,9 +61,11 @@ class FitSettings:
     uniform_share: float = 0.2          # ladder budget: one E, each split, the final joint polish
     split_share: float = 0.15
     final_share: float = 0.2
-    fit_effects: tuple = ()             # ladder: the effects whose parameters are fitted (the stage's
-                                        # effect APIs with fit = true)
+    fit_effects: tuple = ()             # the effects whose parameters are fitted, by either schedule (the
+                                        # stage's effect APIs with fit = true; fit/effect_params.py)
     lr_effects: float = 0.05            # ... on their log values (the ground's height as is)
+    search_effects: tuple = ()          # effects just switched on: their start found first by a 1-D search
+    effect_search_points: int = 6       # ... of this many log-spaced probes (+ 4 golden-section steps)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -220,6 +223,23 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     else:
         e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log)
         mat.set_uniform(e_uniform)
+    # the effects the stage asks to fit (a warm start: from the previous version's values)
+    eff_raw = effect_parameters(prob, s.fit_effects, (start or {}).get("effects"))
+
+    def eff_now():
+        return effect_values(eff_raw, prob.traj_scale) if eff_raw else None
+
+    searched = {}
+    if eff_raw and s.search_effects:
+        with torch.no_grad():
+            E_s, nu_s = mat.youngs().detach(), mat.poisson().detach()
+            tr_s = [t.detach() for t in trajs] if trajs else None
+        searched = search_effects(lambda: prob.loss(E_s, nu_s, tr_s, effects=eff_now())["rec"], eff_raw,
+                                  tuple(s.search_effects), (st.youngs_min, st.youngs_max), prob.traj_scale,
+                                  points=s.effect_search_points, log=log)
+        if log:
+            for e, r in searched.items():
+                log(f"{e}: start {r['parameter']} = {r['value']:.4g} (1-D search, loss {r['loss']:.5f})")
     pairs_np = neighbour_pairs(prob.x0, 1.6 * st.particle_spacing)
     pairs = torch.as_tensor(pairs_np, device=prob.tdev)
     pair_w = torch.as_tensor(pair_weights(pairs_np, feats, s.appearance), dtype=prob.tdtype, device=prob.tdev)
@@ -230,7 +250,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
 
     def snapshot(loss_value):
         best.update(loss=loss_value, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
-                    B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs])
+                    B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs],
+                    effects={e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in eff_raw.items()})
 
     budget = max(int(s.iterations), 0)
     per_level = _split(budget, shares, len(levels))
@@ -259,6 +280,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             fit_traj = s.joint and trajs and li >= len(levels) - s.trajectory_levels
             if fit_traj:  # material first: T0 is a guide, and early trajectory noise hides E's signal
                 groups.append({"params": trajs, "lr": s.lr_trajectory})
+            if eff_raw:   # the effects' parameters at every level
+                groups.append({"params": [v for ps in eff_raw.values() for v in ps.values()], "lr": s.lr_effects})
             opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]
             for j in range(n_it):
@@ -269,13 +292,13 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 E = mat.youngs()
                 nu = mat.poisson()
                 try:
-                    out = prob.loss(E, nu, trajs if trajs else None)
+                    out = prob.loss(E, nu, trajs if trajs else None, effects=eff_now())
                 except SimulationError as exc:
                     if log:
                         log(f"iteration {it}: {exc}; halving the step")
                     for g in opt.param_groups:
                         g["lr"] *= 0.5
-                    _restore(mat, trajs, best, s.joint)
+                    _restore(mat, trajs, best, s.joint, eff_raw)
                     it += 1
                     continue
                 reg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
@@ -309,13 +332,13 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
         if bar is not None:
             bar.close()
     if "theta" in best:
-        _restore(mat, trajs, best, s.joint)
+        _restore(mat, trajs, best, s.joint, eff_raw)
     E = mat.youngs().detach()
     nu = mat.poisson().detach()
     # final pass: renders, metrics, animation; the loss as the history counts it (frames 1.., the
     # smoothness term), so the reported final loss is the kept iterate's entry in the history
     with torch.no_grad():
-        out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None,
+        out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None, effects=eff_now(),
                         frames=range(1, prob.T), keep_renders=True)
         reg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
         final_loss = float(out["rec"] + out["reg_traj"] + reg)
@@ -333,9 +356,11 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             # value; what the video says about them alone is what the confidence reports)
             mat.centre_mask = None
             mat.refine(max(levels))
-        conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed)
+        conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now())
+    model = {"schedule": "bumps", "effect_search": searched} if searched else {}
     return assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, feats, history, final_loss, t0,
-                           interrupted, e_uniform)
+                           interrupted, e_uniform, model=model,
+                           effect_parameters=fitted_values(eff_raw, prob.traj_scale) if eff_raw else {})
 
 
 def assemble_result(prob: FitProblem, s: FitSettings, E, nu, conf, trajs, x, F, metrics, feats, history,
@@ -375,9 +400,13 @@ def _split(total, shares, n):
     return counts.tolist()
 
 
-def _restore(mat, trajs, best, joint):
+def _restore(mat, trajs, best, joint, eff_raw=None):
     if "theta" not in best:
         return
+    for e, ps in best.get("effects", {}).items():
+        for p, v in ps.items():
+            with torch.no_grad():
+                eff_raw[e][p].copy_(v)
     mat.B, mat.nu_basis = best["B"], best["nu_basis"]
     mat.K = mat.B.shape[1]
     with torch.no_grad():
@@ -440,7 +469,7 @@ def residual_correlation(residuals: list) -> float:
 
 
 def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
-               tol: float = math.log(1.2), return_sigma: bool = False):
+               tol: float = math.log(1.2), return_sigma: bool = False, effects: dict | None = None):
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
     the estimate, from the Gauss-Newton diagonal of the current basis coefficients.
 
@@ -462,7 +491,8 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     nu = mat.poisson().detach()
     for p in range(probes):
         E = mat.youngs()
-        x, F = prob.simulate(E, nu, tr)
+        x, F = prob.simulate(E, nu, tr, {e: {p: v.detach() for p, v in ps.items()} for e, ps in effects.items()}
+                             if effects else None)
         acc = 0.0
         for k in range(1, prob.T):
             out = prob.render_frame(k, x[k], F[k])
