@@ -12,6 +12,7 @@ from .app.batch import BatchResult, batch
 from .app.effects import add as effects_add
 from .app.effects import list_effects as effects_list
 from .app.effects import remove as effects_remove
+from .app.diagnose import diagnose
 from .app.evaluate import evaluate
 from .app.export import export
 from .app.extract import extract
@@ -30,4 +31,4 @@ __all__ = ["init", "info", "extract", "fit", "prepare_fit", "run_fit", "FitJob",
            "evaluate", "export", "synth", "synth_scenes", "choose_sim_settings", "INTERACTION_DOC",
            "parse_interaction", "load_observations", "read_scene", "stage_contacts", "true_contacts", "Hint",
            "parse_hint", "list_versions", "use_version", "report", "measured_tracks", "effects_add",
-           "effects_remove", "effects_list", "batch", "BatchResult"]
+           "effects_remove", "effects_list", "diagnose", "batch", "BatchResult"]

@@ -22,6 +22,7 @@ RANKS = {
     "simulation": 5,
     "fit": 6, "extract": 6, "synth": 6,
     "compare": 6.5,   # the report's analysis: above the fit and extraction (it may use their types), below usd
+    "diagnose": 6.5,  # what a fitted model lacks: score tests over the fit's problem (no USD)
     "usd": 7,
     "app": 8, "crosscheck": 8,
     "api": 9,

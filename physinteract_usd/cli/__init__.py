@@ -14,9 +14,9 @@ from .. import __version__
 from ..devices import check_device, quiet_warp_init
 from ..errors import InputError, SimulationError
 from ..stopping import sigterm_as_interrupt
-from . import batch, effects, evaluate, export, extract, fit, info, init, report, simulate, synth, versions
+from . import batch, diagnose, effects, evaluate, export, extract, fit, info, init, report, simulate, synth, versions
 
-VERBS = [init, info, synth, extract, fit, versions, report, effects, evaluate, simulate, export, batch]   # in the order `-h` lists them
+VERBS = [init, info, synth, extract, fit, versions, report, diagnose, effects, evaluate, simulate, export, batch]   # in the order `-h` lists them
 
 
 # what to change, in flags, for the simulator's failures (its own advice names its classes)

@@ -1,0 +1,60 @@
+"""`physinteract-usd diagnose`: rank what the fitted model lacks (the verb:
+`physinteract_usd.app.diagnose`)."""
+
+from __future__ import annotations
+
+import json
+
+
+def add_parser(sub):
+    s = sub.add_parser("diagnose", help="rank what the fitted model lacks: effects, material freedom, interaction",
+                       description="Rank what the stage's fitted model lacks by the loss drop each candidate would "
+                                   "bring (a projected score test at the fit, significance by block sign flips): "
+                                   "the effects damping, plasticity, ground, viscoelasticity; heterogeneity; and "
+                                   "the non-physical causes interaction:timing, interaction:contact, "
+                                   "interaction:grasp_size, interaction:support, camera:time_offset, "
+                                   "camera:depth_scale (with the flag that fixes each). The top candidates are "
+                                   "refitted briefly and kept only if the loss on held-back frames falls.")
+    s.add_argument("stage")
+    s.add_argument("--refit", type=int, default=3, metavar="N",
+                   help="refit the top N significant candidates briefly (default 3; 0: none)")
+    s.add_argument("--refit-iterations", type=int, default=8, metavar="K", help="iterations of each refit (default 8)")
+    s.add_argument("--candidates", metavar="A,B,...", help="test only these candidates (default: all)")
+    s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
+    s.add_argument("--device", default="cpu", help="cpu or cuda")
+    s.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
+    return s
+
+
+def run(a) -> int:
+    import sys
+
+    from .. import api
+
+    d = api.diagnose(a.stage, refit=a.refit, refit_iterations=a.refit_iterations, candidates=a.candidates,
+                     write_stage=not a.no_stage, device=a.device, progress=not a.json and sys.stderr.isatty(),
+                     log=(lambda *m: print(*m, file=sys.stderr)) if a.json else print)
+    if a.json:
+        print(json.dumps(d, indent=1, allow_nan=False))
+        return 0
+    print(f"{d['verdict'].upper()}: {d['reason']}")
+    if d["candidates"]:
+        print(f"{'#':>2} {'candidate':24} {'score':>6} {'predicted':>10} {'realised':>10}  estimate")
+        for i, c in enumerate(d["candidates"], 1):
+            r = "-" if c["realized_loss_drop"] is None else f"{c['realized_loss_drop']:.3g}"
+            est = ", ".join(f"{k}={_fmt(v)}" for k, v in (c["estimate"] or {}).items())
+            print(f"{i:2d} {c['effect']:24} {c['score']:6.2f} {c['predicted_loss_drop']:10.3g} {r:>10}  {est}")
+            if c["evidence"]:
+                print(f"   {c['evidence']}")
+    print(f"tested: " + ", ".join(f"{t['effect']} (p {t['marginal_p_value']:.2g})" for t in d["tested"]))
+    if d.get("stage_layer"):
+        print(f"stored in: {d['stage_layer']}")
+    return 0
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    if isinstance(v, list):
+        return "(" + ", ".join(_fmt(x) for x in v) + ")"
+    return str(v)

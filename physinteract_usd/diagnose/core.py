@@ -1,0 +1,706 @@
+"""`diagnose_problem`: rank what a fitted model lacks (docs/diagnose.md).
+
+At the fit (E field, nu, fitted trajectories, effects), in a superset simulator where every
+candidate effect is present at its null value:
+
+1. the residual r (`residual.ImageResidual`) and its Jacobian columns w.r.t. the base parameters
+   (log E per region, nu, a hat basis of each trajectory in x, y, z), by one-sided finite
+   differences (one forward each);
+2. per candidate, one or a few probe columns: the smooth effects (damping c, viscoelastic E_v at
+   two relaxation times) by a finite difference at their null; the threshold effects (plasticity,
+   ground) by a small grid of forward simulations (yield stress at quantiles of the fitted
+   stress; the ground plane between the lowest point the model reaches and its rest); the
+   non-physical causes by changing what they change (grasp / release frame +-1, the contact
+   moved along x, y, z, the grasp and the supports one particle layer larger or smaller, a
+   fractional time shift of the rendered sequence, gravity rescaled = a depth-scale error);
+   `heterogeneity` by the split directions of `fit.regions` from the residual's gradient in log E;
+3. each column projected off the base columns; predicted drop (r . j_perp)^2 / |j_perp|^2,
+   one-sided for bounded parameters; significance by block sign flips (`score.block_signflip`);
+4. a candidate is significant when its p-value is below alpha / (number of candidates) and its
+   predicted drop is at least `min_relative_drop` of the loss; significant ones are ranked by
+   predicted drop.
+
+No USD, no CLI: a `fit.FitProblem` and arrays in, a `Diagnosis` out.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..errors import SimulationError
+from ..simulation import build_simulation
+from . import score as S
+from .residual import ImageResidual, loss
+
+PHYSICAL = ("damping", "plasticity", "ground", "viscoelasticity")
+CANDIDATES = PHYSICAL + ("heterogeneity", "interaction:timing", "interaction:contact", "interaction:grasp_size",
+                         "interaction:support", "camera:time_offset", "camera:depth_scale")
+
+# what a person does about a non-physical cause
+FIXES = {
+    "interaction:timing": "extract --grasp-frame K / --release-frame K",
+    "interaction:contact": "extract --hint-pixel K,U,V",
+    "interaction:grasp_size": "extract --grasp-radius R",
+    "interaction:support": "extract --support-pixel K,U,V",
+    "camera:time_offset": "check the video's frame timing (fps, dropped or duplicated frames)",
+    "camera:depth_scale": "check the camera intrinsics / the object's metric size (init)",
+}
+
+CONFUSABLE = {
+    "damping": ("ground", "ground friction also slows the body, but only while it touches the floor; damping "
+                          "slows every motion, an exponential decay of the swing"),
+    "ground": ("damping", "damping slows every motion; a ground stops the lowest points at one height"),
+    "plasticity": ("heterogeneity", "gravity sag of a softer part recovers when the load goes; plastic "
+                                    "deformation stays after release (rest shape before vs after)"),
+    "viscoelasticity": ("damping", "viscoelastic creep changes the shape while it is held and recovers slowly; "
+                                   "damping only slows the motion"),
+    "heterogeneity": ("plasticity", "a softer part sags more but returns to its rest shape after release"),
+    "interaction:timing": ("damping", "a wrong release frame leaves a residual at the release itself; a missing "
+                                      "damping one that grows after it"),
+    "camera:time_offset": ("interaction:timing", "a time offset shifts every frame; a timing error only the grasp "
+                                                 "or release"),
+}
+
+
+@dataclass
+class BaseState:
+    """The fit the diagnosis is taken at."""
+
+    E: torch.Tensor                     # (P,) Pa
+    nu: torch.Tensor                    # (P,)
+    effects: dict                       # the superset's values: {effect: {param: float}} (nulls for the candidates)
+    labels: np.ndarray | None = None    # (P,) material regions (None: one)
+
+
+@dataclass
+class DiagnoseSettings:
+    max_pixels: int = 6000
+    frames_per_block: int = 2
+    tiles: int = 6
+    alpha: float = 0.05
+    min_relative_drop: float = 0.03
+    n_flips: int = 4000
+    seed: int = 0
+    traj_knots: int = 3
+    candidates: tuple = CANDIDATES
+    heterogeneity_parts: int = 3
+
+
+@dataclass
+class Probe:
+    label: str
+    column: np.ndarray              # dr / d(parameter), or r(probe) - r0 (unit amplitude)
+    sign: int = 0                   # +1: the amplitude must be positive
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass
+class CandidateResult:
+    effect: str
+    probes: list
+    drop: float = 0.0               # predicted drop of the mean-square loss
+    relative_drop: float = 0.0
+    step: float = 0.0
+    best: int = -1                  # index of the best probe
+    p_value: float = 1.0
+    statistic: float = 0.0
+    significant: bool = False
+    estimate: dict = field(default_factory=dict)
+    evidence: str = ""
+    realized_loss_drop: float | None = None
+    accepted: bool | None = None
+    note: str = ""
+    marginal: tuple = (1.0, 0.0)    # (p-value, predicted drop) before forward selection
+
+    def score(self) -> float:
+        return float(-math.log10(max(self.p_value, 1e-12)))
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "score": round(self.score(), 4), "predicted_loss_drop": float(self.drop),
+                "realized_loss_drop": None if self.realized_loss_drop is None else float(self.realized_loss_drop),
+                "estimate": self.estimate, "evidence": self.evidence}
+
+
+@dataclass
+class Diagnosis:
+    verdict: str
+    reason: str
+    results: list                   # every CandidateResult tested, ranked
+    loss: float
+    floor: float
+    notes: list = field(default_factory=list)
+    cost: dict = field(default_factory=dict)
+
+    @property
+    def significant(self) -> list:
+        return [c for c in self.results if c.significant]
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "reason": self.reason,
+                "candidates": [c.to_dict() for c in self.significant],
+                "tested": [{"effect": c.effect, "p_value": c.p_value, "predicted_loss_drop": c.drop,
+                            "marginal_p_value": c.marginal[0], "marginal_predicted_loss_drop": c.marginal[1],
+                            "relative_drop": c.relative_drop, "significant": c.significant,
+                            "accepted": c.accepted, "note": c.note} for c in self.results],
+                "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost)}
+
+
+# ---------------------------------------------------------------------------------------- runner
+class _Runner:
+    """Forward passes at the base state with one thing changed -> residual vectors."""
+
+    def __init__(self, prob, base: BaseState, res: ImageResidual, log):
+        self.prob, self.base, self.res, self.log = prob, base, res, log
+        self.forwards = 0
+        self._sims = {}
+
+    def sim_for(self, contacts=None, gravity_scale: float = 1.0):
+        if contacts is None and gravity_scale == 1.0:
+            return self.prob.sim
+        scene = self.prob.scene
+        if gravity_scale != 1.0:
+            st = dataclasses.replace(scene.settings, gravity=tuple(float(g) * gravity_scale
+                                                                   for g in scene.settings.gravity))
+            scene = dataclasses.replace(scene, settings=st)
+        return build_simulation(scene, self.prob.contacts if contacts is None else contacts, self.prob.T,
+                                effects=self.prob.sim.effects, device=self.prob.device, dtype=self.prob.sim.dtype)
+
+    def xf(self, E=None, nu=None, effects=None, trajs=None, sim=None):
+        b = self.base
+        sim = sim or self.prob.sim
+        eff = {e: dict(p) for e, p in b.effects.items()}
+        for e, ps in (effects or {}).items():
+            eff.setdefault(e, {}).update(ps)
+        with torch.no_grad():
+            x, F = sim.simulate(b.E if E is None else E, b.nu if nu is None else nu,
+                                trajs, effects=eff)
+        self.forwards += 1
+        return x, F
+
+    def r(self, **kw):
+        x, F = self.xf(**kw)
+        return self.res(x, F)
+
+
+def _hat(T: int, centre: float, width: float) -> np.ndarray:
+    k = np.arange(T, dtype=np.float64)
+    return np.clip(1.0 - np.abs(k - centre) / max(width, 1e-9), 0.0, 1.0)
+
+
+def _active(c, T: int) -> np.ndarray:
+    k = np.arange(T)
+    rel = T if c.release_frame is None else int(c.release_frame)
+    return (k >= int(c.grasp_frame)) & (k < rel)
+
+
+def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    prob, b = run.prob, run.base
+    cols, names = [], []
+    labels = b.labels if b.labels is not None else np.zeros(len(prob.x0), np.int64)
+    d = 0.05
+    for lab in np.unique(labels):
+        v = torch.as_tensor((labels == lab).astype(np.float64), dtype=b.E.dtype)
+        cols.append((run.r(E=b.E * torch.exp(d * v)) - r0) / d)
+        names.append(f"logE[{int(lab)}]")
+    st = prob.scene.settings
+    dn = 0.01 if float(b.nu.max()) + 0.01 <= st.poisson_max else -0.01
+    cols.append((run.r(nu=b.nu + dn) - r0) / dn)
+    names.append("nu")
+    T = prob.T
+    h = max(0.5 * prob.traj_scale, 1e-4)
+    for slot, (ci, t0) in enumerate(prob.traj_slots):
+        c = prob.contacts[ci]
+        act = _active(c, T)
+        if not act[1:].any():
+            continue
+        ks = np.where(act)[0]
+        lo, hi = max(int(ks.min()), 1), int(ks.max()) + 1
+        n = max(int(s.traj_knots), 1)
+        centres = np.linspace(lo, hi, n + 1)[1:] if n > 1 else [hi]
+        width = max((hi - lo) / n, 1.0)
+        for kc in centres:
+            w = _hat(T, float(kc), width)
+            w[0] = 0.0
+            for ax in range(3):
+                trajs = [t.clone() for _, t in prob.traj_slots]
+                trajs[slot][:, ax] += torch.as_tensor(h * w, dtype=trajs[slot].dtype)
+                cols.append((run.r(trajs=trajs) - r0) / h)
+                names.append(f"traj[{c.name}]@{kc:.0f}.{'xyz'[ax]}")
+    return np.column_stack(cols), names
+
+
+# ---------------------------------------------------------------------------------------- probes
+def _hencky_stress_peak(F: np.ndarray, E: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """(P,) each particle's peak von Mises stress (uniaxial equivalent) over the frames."""
+    T, P = F.shape[:2]
+    sv = np.linalg.svd(F.reshape(-1, 3, 3), compute_uv=False).reshape(T, P, 3)
+    e = np.log(np.clip(sv, 1e-9, None))
+    dev = e - e.mean(-1, keepdims=True)
+    mu = E / (2 * (1 + nu))
+    tau = 2 * mu[None] * np.linalg.norm(dev, axis=-1) * math.sqrt(1.5)
+    return tau.max(0)
+
+
+def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSettings, log) -> list[Probe]:
+    prob, b = run.prob, run.base
+    T = prob.T
+    out: list[Probe] = []
+    if effect in PHYSICAL and effect not in prob.effects:
+        return out
+    D = (T - 1) / prob.scene.fps                     # the clip's duration [s]
+    if effect == "damping":
+        # the derivative at the null (a small c) and secants to a strong damping: a swing that
+        # decays by e^-1, e^-3, e^-10 over the clip (the residual is far from linear in c)
+        for c in (0.25, 1.0 / D, 3.0 / D, 10.0 / D):
+            out.append(Probe(f"c={c:.3g}", (run.r(effects={"damping": {"coefficient": c}}) - r0) / c, +1,
+                             {"coefficient": c}))
+    elif effect == "viscoelasticity":
+        e_med = float(torch.median(b.E))
+        for tau in (2.0 / prob.scene.fps, max(T / 3.0, 3.0) / prob.scene.fps):
+            for a in (0.05, 0.5):
+                col = (run.r(effects={"viscoelasticity": {"modulus": a * e_med, "relaxationTime": tau}}) - r0) / a
+                out.append(Probe(f"tau={tau:.3g}s,Ev={a:g}E", col, +1, {"relaxationTime": tau,
+                                                                         "modulus_per_unit": e_med}))
+    elif effect == "plasticity":
+        peak = _hencky_stress_peak(F0.cpu().numpy().astype(np.float64), b.E.cpu().numpy().astype(np.float64),
+                                   b.nu.cpu().numpy().astype(np.float64))
+        for q in (0.5, 0.8, 0.95):
+            ty = float(np.quantile(peak, q))
+            if not ty > 0:
+                continue
+            col = run.r(effects={"plasticity": {"yieldStress": ty}}) - r0
+            out.append(Probe(f"tau_Y=q{int(q * 100)}", col, +1, {"yieldStress": ty}))
+    elif effect == "ground":
+        y = x0[..., 1].min(1).values.cpu().numpy()        # the lowest particle per frame
+        rest, low = float(y[0]), float(y.min())
+        sp = prob.scene.settings.particle_spacing
+        hs = [low + q * (rest - low) for q in (0.25, 0.5, 0.75)] if rest - low > 0.5 * sp else [rest - 0.25 * sp]
+        for h in hs:
+            col = run.r(effects={"ground": {"height": h}}) - r0
+            out.append(Probe(f"h={h:.4g}", col, +1, {"height": h}))
+    elif effect == "heterogeneity":
+        out += _heterogeneity_probes(run, r0, s)
+    elif effect == "interaction:timing":
+        for i, c in enumerate(prob.contacts):
+            if not c.is_interaction:
+                continue
+            for what in ("grasp_frame", "release_frame"):
+                for dk in (-1, 1):
+                    v = getattr(c, what)
+                    if what == "release_frame":
+                        if v is None:
+                            continue
+                        nv = int(v) + dk
+                        if nv <= int(c.grasp_frame) or nv >= T:
+                            continue
+                    else:
+                        nv = int(v) + dk
+                        if nv < 0 or (c.release_frame is not None and nv >= int(c.release_frame)):
+                            continue
+                    cs = list(prob.contacts)
+                    cs[i] = dataclasses.replace(c, **{what: nv})
+                    col = _sim_r(run, cs, log)
+                    if col is not None:
+                        out.append(Probe(f"{c.name}.{what}{dk:+d}", col - r0, +1,
+                                         {"contact": c.name, "what": what, "frame": nv, "was": int(v)}))
+    elif effect == "interaction:contact":
+        sp = prob.scene.settings.particle_spacing
+        d = 1.5 * sp
+        for i, c in enumerate(prob.contacts):
+            if not c.is_interaction:
+                continue
+            for ax in range(3):
+                for sgn in (-1, 1):
+                    off = np.zeros(3)
+                    off[ax] = sgn * d
+                    cs = list(prob.contacts)
+                    cs[i] = _moved(c, off, prob.x0, prob.contacts)
+                    col = _sim_r(run, cs, log)
+                    if col is not None:
+                        out.append(Probe(f"{c.name}.{'xyz'[ax]}{'+-'[sgn < 0]}", col - r0, +1,
+                                         {"contact": c.name, "offset": off.tolist()}))
+    elif effect == "interaction:grasp_size":
+        for i, c in enumerate(prob.contacts):
+            if not c.is_interaction:
+                continue
+            for way in ("more", "less"):
+                cs = list(prob.contacts)
+                nc = _resized(c, way, prob.x0, prob.contacts, prob.scene.settings.particle_spacing)
+                if nc is None:
+                    continue
+                cs[i] = nc
+                col = _sim_r(run, cs, log)
+                if col is not None:
+                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, {"contact": c.name, "direction": way,
+                                                                         "particles": int(len(nc.indices)),
+                                                                         "radius": float(nc.radius)}))
+    elif effect == "interaction:support":
+        for i, c in enumerate(prob.contacts):
+            if c.type != "fixed":
+                continue
+            for way in ("more", "less"):
+                cs = list(prob.contacts)
+                nc = _resized(c, way, prob.x0, prob.contacts, prob.scene.settings.particle_spacing)
+                if nc is None:
+                    continue
+                cs[i] = nc
+                col = _sim_r(run, cs, log)
+                if col is not None:
+                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, {"contact": c.name, "direction": way,
+                                                                         "particles": int(len(nc.indices))}))
+    elif effect == "camera:time_offset":
+        dt = 0.25
+        xs, Fs = _time_shift(x0, dt), _time_shift(F0, dt)
+        out.append(Probe("dt", (run.res(xs, Fs) - r0) / dt, 0, {"unit": "frames"}))
+    elif effect == "camera:depth_scale":
+        eps = 0.05
+        try:
+            sim = run.sim_for(gravity_scale=1.0 + eps)
+            out.append(Probe("g", (run.r(sim=sim) - r0) / eps, 0, {"unit": "relative gravity"}))
+        except (SimulationError, ValueError) as exc:
+            log(f"camera:depth_scale probe failed: {exc}")
+    return out
+
+
+def _sim_r(run: _Runner, contacts, log):
+    try:
+        return run.r(sim=run.sim_for(contacts=contacts))
+    except (SimulationError, ValueError) as exc:
+        log(f"probe skipped: {exc}")
+        return None
+
+
+def _time_shift(a: torch.Tensor, dt: float) -> torch.Tensor:
+    """a (T, ...) at time k + dt (linear in the neighbouring frames; frame 0 stays at rest)."""
+    nxt = torch.cat([a[1:], a[-1:]])
+    prv = torch.cat([a[:1], a[:-1]])
+    out = a + dt * 0.5 * (nxt - prv)
+    out[0] = a[0]
+    return out
+
+
+def _held_elsewhere(contacts, skip) -> np.ndarray:
+    idx = [np.asarray(c.indices, np.int64) for c in contacts if c is not skip and len(c.indices)]
+    return np.concatenate(idx) if idx else np.zeros(0, np.int64)
+
+
+def _moved(c, off: np.ndarray, x0: np.ndarray, contacts):
+    """The contact moved by `off` on the object: its held particles the nearest to the old ones
+    moved (a collider: its trajectory moved)."""
+    from scipy.spatial import cKDTree
+
+    tr = None if c.trajectory is None else np.asarray(c.trajectory) + off
+    if c.type == "pointAdherent" and len(c.indices):
+        other = set(_held_elsewhere(contacts, c).tolist())
+        free = np.array([i for i in range(len(x0)) if i not in other])
+        _, nn = cKDTree(x0[free]).query(x0[np.asarray(c.indices)] + off)
+        idx = np.unique(free[np.atleast_1d(nn)])
+        return dataclasses.replace(c, indices=idx.astype(np.int64), trajectory=tr,
+                                   contact_point=None if c.contact_point is None else np.asarray(c.contact_point) + off)
+    return dataclasses.replace(c, trajectory=tr)
+
+
+def _resized(c, way: str, x0: np.ndarray, contacts, spacing: float):
+    """The contact one particle layer larger ("more") or smaller ("less"); a collider's radius
+    x1.3 / x0.75. None when nothing changes."""
+    from scipy.spatial import cKDTree
+
+    if c.type == "pointNonAdherent":
+        return dataclasses.replace(c, radius=float(c.radius) * (1.3 if way == "more" else 0.75))
+    if not len(c.indices):
+        return None
+    g = np.asarray(c.indices, np.int64)
+    tree = cKDTree(x0)
+    nb = tree.query_ball_point(x0[g], 1.05 * spacing)
+    if way == "more":
+        near = np.unique(np.concatenate([np.asarray(n, np.int64) for n in nb]))
+        other = _held_elsewhere(contacts, c)
+        new = np.setdiff1d(near, other)
+        idx = np.union1d(g, new)
+    else:
+        inside = np.zeros(len(x0), bool)
+        inside[g] = True
+        edge = np.array([bool((~inside[np.asarray(n, np.int64)]).any()) for n in nb], bool)
+        if (~edge).sum() < 3:
+            return None
+        idx = g[~edge]
+    if len(idx) == len(g):
+        return None
+    return dataclasses.replace(c, indices=np.sort(idx).astype(np.int64))
+
+
+def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> list[Probe]:
+    from ..fit import regions as R
+
+    prob, b = run.prob, run.base
+    logE = torch.log(b.E.detach()).clone().requires_grad_(True)
+    with torch.enable_grad():
+        eff = {e: dict(p) for e, p in b.effects.items()}
+        x, F = prob.sim.simulate(torch.exp(logE), b.nu, None, effects=eff)
+        r = run.res.torch(x, F)
+        (r * r).sum().backward()
+    run.forwards += 2
+    g = logE.grad.detach().cpu().numpy().astype(np.float64)
+    held = prob.held_particles()
+    g[held] = 0.0
+    labels = b.labels if b.labels is not None else np.zeros(len(g), np.int64)
+    free_labels = np.where(held, -1, labels)
+    st = prob.scene.settings
+    graph = R.particle_graph(prob.x0, 1.6 * st.particle_spacing)
+    min_size = max(8, int(0.1 * len(g)))
+    parts = []
+    for reg in np.unique(labels):
+        for part in R.score_parts(g, free_labels, int(reg), graph, min_size):
+            v = R.split_direction(free_labels, int(reg), part)
+            parts.append((abs(float(g @ v)) / max(float(np.linalg.norm(v)), 1e-12), v, part, int(reg)))
+    parts.sort(key=lambda t: -t[0])
+    out = []
+    d = 0.1
+    for _, v, part, reg in parts[: int(s.heterogeneity_parts)]:
+        vt = torch.as_tensor(v, dtype=b.E.dtype)
+        col = (run.r(E=b.E * torch.exp(d * vt)) - r0) / d
+        centre = prob.x0[part].mean(0)
+        out.append(Probe(f"region{reg}:{len(part)}", col, 0, {"region": reg, "particles": int(len(part)),
+                                                               "centre": [float(c) for c in centre],
+                                                               "direction": v}))
+    return out
+
+
+# ---------------------------------------------------------------------------------------- test
+def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarray, blocks: np.ndarray,
+                   n_blocks: int, s: DiagnoseSettings) -> CandidateResult:
+    cr = CandidateResult(effect, probes)
+    if not probes:
+        cr.note = "not probed"
+        return cr
+    n = len(r0)
+    V, signs, drops, steps = [], [], [], []
+    for p in probes:
+        jp = S.project_out(J, p.column)
+        nn = float(np.linalg.norm(jp))
+        if nn <= 1e-12 * max(float(np.linalg.norm(p.column)), 1e-300) or nn == 0.0:
+            V.append(np.zeros(n_blocks))
+            signs.append(p.sign)
+            drops.append(0.0)
+            steps.append(0.0)
+            continue
+        u = jp / nn
+        V.append(S.block_sums(r0 * u, blocks, n_blocks))
+        signs.append(p.sign)
+        dr, st = S.gauss_newton_drop(r0, jp, p.sign)
+        drops.append(dr / n)
+        steps.append(st)
+    stat, pv = S.block_signflip(np.stack(V, 1), signs, n_flips=s.n_flips, seed=s.seed)
+    cr.statistic, cr.p_value = stat / n, pv
+    cr.best = int(np.argmax(drops))
+    cr.drop = float(drops[cr.best])
+    cr.step = float(steps[cr.best])
+    if not any(d > 0 for d in drops):
+        cr.note = "no probe lowers the loss (or the base parameters absorb it)"
+    return cr
+
+
+def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float):
+    """Forward selection: the best significant candidate is taken, its column joins the base, and
+    the others are tested again on what it leaves (so a confusable cause that explains the same
+    residual is not reported twice). Sorts `results` in place: the selected ones first (in
+    selection order), then the rest by their marginal predicted drop."""
+    m = max(len([c for c in results if c.probes]), 1)
+    thr = s.alpha / m
+    for cr in results:
+        cr.marginal = (cr.p_value, cr.drop)
+    chosen: list = []
+    r, Jc = r0.copy(), J
+    pool = [c for c in results if c.probes]
+    while pool:
+        ok = [c for c in pool if c.p_value < thr and c.drop >= s.min_relative_drop * L0]
+        if not ok:
+            break
+        best = max(ok, key=lambda c: c.drop)
+        best.significant = True
+        chosen.append(best)
+        pool.remove(best)
+        col = best.probes[best.best].column
+        a, t = S.joint_step(r, Jc, col)
+        r = r + (Jc @ a if Jc.size else 0.0) + col * t     # what the model with it leaves (linearised)
+        Jc = np.column_stack([Jc, col])
+        for c in pool:
+            again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s)
+            c.p_value, c.statistic, c.drop, c.step, c.best = (again.p_value, again.statistic, again.drop, again.step,
+                                                                again.best)
+            c.relative_drop = c.drop / L0 if L0 > 0 else 0.0
+            c.note = f"given {', '.join(x.effect for x in chosen)}: " + (again.note or "tested on what is left")
+    rest = sorted([c for c in results if c not in chosen], key=lambda c: -c.marginal[1])
+    results[:] = chosen + rest
+
+
+def estimate_of(cr: CandidateResult, prob) -> dict:
+    """The candidate's parameter estimate from its best probe's Gauss-Newton step."""
+    if cr.best < 0:
+        return {}
+    p = cr.probes[cr.best]
+    m, t = p.meta, cr.step
+    e = cr.effect
+    if e == "damping":
+        return {"coefficient": max(t, 0.0)}
+    if e == "viscoelasticity":
+        return {"modulus": max(t, 0.0) * m["modulus_per_unit"], "relaxationTime": m["relaxationTime"]}
+    if e == "plasticity":
+        return {"yieldStress": m["yieldStress"], "amplitude": t}
+    if e == "ground":
+        return {"height": m["height"], "friction": 0.5, "amplitude": t}
+    if e == "heterogeneity":
+        return {"region": m["region"], "particles": m["particles"], "centre": m["centre"],
+                "factor": float(math.exp(float(np.clip(0.5 * t, -3, 3))))}
+    if e == "interaction:timing":
+        return {"contact": m["contact"], "what": m["what"], "frame": m["frame"], "was": m["was"],
+                "amplitude": t, "fix": f"extract --{m['what'].replace('_', '-')} {m['frame']}"}
+    if e == "interaction:contact":
+        off = (np.asarray(m["offset"]) * min(max(t, 0.0), 3.0)).tolist()
+        return {"contact": m["contact"], "offset_m": off, "fix": FIXES[e]}
+    if e == "interaction:grasp_size":
+        return {"contact": m["contact"], "direction": m["direction"], "particles": m["particles"],
+                "fix": FIXES[e]}
+    if e == "interaction:support":
+        return {"contact": m["contact"], "direction": m["direction"], "particles": m["particles"],
+                "fix": FIXES[e]}
+    if e == "camera:time_offset":
+        return {"frames": t, "fix": FIXES[e]}
+    if e == "camera:depth_scale":
+        return {"scale": 1.0 / max(1.0 + t, 1e-3), "fix": FIXES[e]}
+    return {}
+
+
+def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = None, *, log=None,
+                     progress=None, evidence=None) -> Diagnosis:
+    """Rank what the fitted model (`base` on `prob`, a FitProblem whose effects include every
+    candidate effect at its null) lacks. `evidence(effect, result, context) -> str` words a
+    candidate's evidence (diagnose.evidence). `progress(iterable, desc)` wraps the candidates."""
+    import time
+
+    t0 = time.perf_counter()
+    s = settings or DiagnoseSettings()
+    log = log or (lambda *a: None)
+    res = ImageResidual(prob, max_pixels=s.max_pixels)
+    run = _Runner(prob, base, res, log)
+    x0, F0 = run.xf()
+    r0 = res(x0, F0)
+    L0 = loss(r0)
+    blocks, nb = res.blocks(s.frames_per_block, s.tiles)
+    log(f"diagnose: residual of {len(r0)} values ({res.shape[0]} frames, stride {res.stride}), loss {L0:.3e}")
+    J, names = base_columns(run, s, r0)
+    log(f"diagnose: {J.shape[1]} base columns ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})")
+    floor = _floor(prob, res)
+    results = []
+    cands = [c for c in s.candidates if c in CANDIDATES]
+    it = progress(cands, "candidates") if progress else cands
+    for eff in it:
+        try:
+            probes = probes_for(eff, run, r0, x0, F0, s, log)
+        except SimulationError as exc:
+            log(f"{eff}: probe failed ({exc})")
+            probes = []
+        cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+        cr.relative_drop = cr.drop / L0 if L0 > 0 else 0.0
+        results.append(cr)
+    _forward_select(results, r0, J, blocks, nb, s, L0)
+    for cr in results:
+        cr.estimate = estimate_of(cr, prob)
+    ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "run": run}
+    if evidence is not None:
+        for cr in results:
+            if cr.significant:
+                try:
+                    cr.evidence = evidence(cr.effect, cr, ctx)
+                except Exception as exc:  # noqa: BLE001  (words, never the diagnosis itself)
+                    cr.evidence = f"(evidence unavailable: {exc})"
+    diag = Diagnosis("adequate", "", results, L0, floor, cost={"forwards": run.forwards,
+                                                               "base_columns": int(J.shape[1]),
+                                                               "seconds": 0.0})
+    diag._ctx = ctx   # for the refit and the verdict (not serialised)
+    diag._J = J
+    diag.cost["seconds"] = time.perf_counter() - t0
+    return diag
+
+
+def _floor(prob, res: ImageResidual) -> float:
+    """The residual's floor: the mean square residual of the rest frame (frame 0: no dynamics,
+    only the appearance model's and the video's own error)."""
+    with torch.no_grad():
+        x = torch.as_tensor(prob.x0, dtype=prob.tdtype, device=prob.tdev)
+        F = torch.eye(3, dtype=prob.tdtype, device=prob.tdev).expand(len(x), 3, 3)
+        r = res.frame(0, x, F).cpu().numpy()
+    return float(np.mean(np.square(r)))
+
+
+def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
+    """The candidate's Gauss-Newton step taken for real on the smooth candidates (damping,
+    viscoelasticity, heterogeneity): the loss with the base's joint step and the candidate's,
+    against the base's own step alone. None for the others."""
+    ctx = diag._ctx
+    run, r0, J = ctx["run"], ctx["r0"], diag._J
+    if cr.best < 0 or cr.effect not in ("damping", "viscoelasticity", "heterogeneity"):
+        return None
+    p = cr.probes[cr.best]
+    a, t = S.joint_step(r0, J, p.column)
+    if cr.effect == "damping":
+        kw = {"effects": {"damping": {"coefficient": max(t, 0.0)}}}
+    elif cr.effect == "viscoelasticity":
+        kw = {"effects": {"viscoelasticity": {"modulus": max(t, 0.0) * p.meta["modulus_per_unit"],
+                                              "relaxationTime": p.meta["relaxationTime"]}}}
+    else:
+        v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype)
+        kw = {"E": run.base.E * torch.exp(t * v)}
+    try:
+        r1 = run.r(**kw)
+    except SimulationError:
+        return None
+    # the base's own step (linear in its columns) with and without the candidate's
+    a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
+    return loss(r0 + J @ a0) - loss(r1 + J @ a)
+
+
+__all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Probe", "diagnose_problem",
+           "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "test_candidate", "base_columns", "estimate_of",
+           "realised_gauss_newton", "conclude"]
+
+
+def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
+    """The verdict: `missing_effect` when a candidate is significant (and, where refitted, at
+    least one held up on held-back frames), `unexplained` when the residual is well above the rest
+    frame's floor (x `excess_factor`) and nothing explains it (or every refit failed), else
+    `adequate`."""
+    sig = diag.significant
+    L, floor = diag.loss, diag.floor
+    above = floor > 0 and L > excess_factor * floor
+    if sig:
+        good = [c for c in sig if c.accepted is not False]
+        if not good:
+            diag.verdict = "unexplained"
+            diag.reason = (f"{', '.join(c.effect for c in sig)} predicted a loss drop, but none lowered the loss on "
+                           "held-back frames when refitted: the residual is explained by no candidate tested")
+            return diag
+        top = good[0]
+        share = 100.0 * top.drop / L if L > 0 else 0.0
+        also = [c.effect for c in sig if c is not top]
+        diag.verdict = "missing_effect"
+        diag.reason = (f"{top.effect} explains ~{share:.0f}% of the residual (p = {top.p_value:.2g}"
+                       + (f", refit: realised drop {top.realized_loss_drop:.3g}" if top.realized_loss_drop is not None
+                          else "") + ")"
+                       + (f"; also: {', '.join(also)}" if also else "")
+                       + (f". Fix: {FIXES[top.effect]}" if top.effect in FIXES else ""))
+        return diag
+    if above:
+        diag.verdict = "unexplained"
+        diag.reason = (f"the residual (loss {L:.3g}) is {L / floor:.1f}x the rest frame's floor ({floor:.3g}) and no "
+                       "candidate explains a significant part of it")
+        return diag
+    diag.verdict = "adequate"
+    diag.reason = (f"no candidate explains a significant part of the residual (loss {L:.3g}, "
+                   f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor)")
+    return diag

@@ -1,0 +1,123 @@
+"""The projected score test, as linear algebra (numpy only).
+
+With r (n,) the residual of the fitted model (model minus data), J_b (n, p) its Jacobian columns
+w.r.t. the base parameters (what the fit already adjusts: log E per region, nu, the trajectory's
+low-rank basis) and j (n,) the column of a candidate parameter the model lacks:
+
+    j_perp = j - J_b (J_b^+ j)               what the base parameters cannot absorb
+    drop   = (r . j_perp)^2 / |j_perp|^2     the Gauss-Newton loss drop of fitting the candidate
+                                             jointly with the base (loss = sum r^2)
+    step   = -(r . j_perp) / |j_perp|^2      the candidate's Gauss-Newton step
+
+A parameter bounded at its null (damping c >= 0) only gets the drop when its step points into its
+domain (`sign=+1`: the step must be positive).
+
+Significance (`block_signflip`): residuals are correlated in time and space, so the n terms
+r_i u_i (u = j_perp / |j_perp|) are summed over blocks (a few consecutive frames x a tile of the
+image) and the statistic (sum_b V_b)^2 is compared with its distribution under random sign flips
+of the blocks (exact when few blocks, Monte Carlo otherwise): a randomisation test that assumes
+only that blocks are independent and symmetric under the null, not that pixels are white.
+Several probes of one candidate (a grid of yield stresses, three contact offsets) share the
+flips, and the test uses their maximum, so probing more does not cry wolf more often.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+
+def project_out(J: np.ndarray | None, j: np.ndarray, ridge: float = 1e-8) -> np.ndarray:
+    """j less its least-squares fit by the columns of J (columns scaled to unit norm; a tiny ridge
+    keeps near-collinear base columns harmless)."""
+    j = np.asarray(j, np.float64)
+    if J is None or J.size == 0:
+        return j.copy()
+    J = np.asarray(J, np.float64)
+    if J.ndim == 1:
+        J = J[:, None]
+    norms = np.linalg.norm(J, axis=0)
+    keep = norms > 1e-300
+    if not keep.any():
+        return j.copy()
+    A = J[:, keep] / norms[keep]
+    G = A.T @ A + ridge * np.eye(A.shape[1])
+    coef = np.linalg.solve(G, A.T @ j)
+    return j - A @ coef
+
+
+def gauss_newton_drop(r: np.ndarray, j_perp: np.ndarray, sign: int = 0) -> tuple[float, float]:
+    """(predicted drop of sum r^2, step) along j_perp; `sign` +1 / -1: the step must have that sign
+    (a bounded parameter at its bound), else the drop is 0 and the step 0."""
+    r = np.asarray(r, np.float64)
+    nn = float(j_perp @ j_perp)
+    if nn <= 1e-300:
+        return 0.0, 0.0
+    d = float(r @ j_perp)
+    step = -d / nn
+    if sign and step * sign <= 0:
+        return 0.0, 0.0
+    return d * d / nn, step
+
+
+def predicted_drop(r: np.ndarray, J_base: np.ndarray | None, j: np.ndarray, sign: int = 0) -> tuple[float, float]:
+    """`gauss_newton_drop` of the candidate column j after projecting out the base columns."""
+    return gauss_newton_drop(r, project_out(J_base, j), sign)
+
+
+def joint_step(r: np.ndarray, J_base: np.ndarray | None, j: np.ndarray) -> tuple[np.ndarray, float]:
+    """The joint Gauss-Newton step (base coefficients a, candidate step t) minimising
+    |r + J_base a + j t|^2: t equals `gauss_newton_drop`'s step."""
+    if J_base is None or J_base.size == 0:
+        nn = float(j @ j)
+        return np.zeros(0), (-float(r @ j) / nn if nn > 0 else 0.0)
+    A = np.column_stack([J_base, j])
+    sol, *_ = np.linalg.lstsq(A, -r, rcond=None)
+    return sol[:-1], float(sol[-1])
+
+
+def block_sums(values: np.ndarray, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+    """Sum of `values` (n,) or (n, m) per block label (n,) -> (n_blocks,) or (n_blocks, m)."""
+    values = np.asarray(values, np.float64)
+    if values.ndim == 1:
+        return np.bincount(blocks, weights=values, minlength=n_blocks)
+    return np.stack([np.bincount(blocks, weights=values[:, c], minlength=n_blocks) for c in range(values.shape[1])], 1)
+
+
+def one_sided_square(z: np.ndarray, signs: np.ndarray) -> np.ndarray:
+    """z^2 where the step -z has the allowed sign (or any sign where signs == 0), else 0."""
+    ok = (signs == 0) | (np.sign(-z) == np.sign(signs))
+    return np.where(ok, z * z, 0.0)
+
+
+def block_signflip(V: np.ndarray, signs=None, n_flips: int = 4000, seed: int = 0) -> tuple[float, float]:
+    """(statistic, p-value) of the max over probes of the (one-sided) squared sum of block
+    contributions V (B, m) against random sign flips of the blocks."""
+    V = np.asarray(V, np.float64)
+    if V.ndim == 1:
+        V = V[:, None]
+    V = V[np.abs(V).sum(1) > 0]
+    m = V.shape[1]
+    signs = np.zeros(m) if signs is None else np.asarray(signs, np.float64).reshape(m)
+    B = len(V)
+    if B == 0:
+        return 0.0, 1.0
+    obs = float(one_sided_square(V.sum(0), signs).max())
+    if B <= 12:
+        E = np.array(list(itertools.product((1.0, -1.0), repeat=B)))
+    else:
+        rng = np.random.default_rng(seed)
+        E = rng.choice((1.0, -1.0), size=(n_flips, B))
+    Z = E @ V                                      # (S, m)
+    null = one_sided_square(Z, signs[None]).max(1)
+    # the identity flip is one of the draws (exact enumeration holds it; add it to Monte Carlo)
+    if B <= 12:
+        p = float(np.mean(null >= obs * (1 - 1e-12)))
+    else:
+        p = float((1 + np.sum(null >= obs * (1 - 1e-12))) / (1 + len(null)))
+    return obs, p
+
+
+__all__ = ["project_out", "gauss_newton_drop", "predicted_drop", "joint_step", "block_sums", "block_signflip",
+           "one_sided_square"]
