@@ -188,7 +188,8 @@ def test_added_damping_is_fitted_and_recovers_the_truth(tmp_path):
     over = dict(confidence_probes=0, search_evals=4, levels=(1,), level_share=(1.0,))
     base = api.fit(stage, iterations=4, warm=False, keep_best=False, settings_overrides=over, **QUIET)
     assert base.result.effect_parameters == {}
-    api.effects_add(stage, "damping")
+    added = api.effects_add(stage, "damping")
+    assert added["values"] == {"coefficient": 1.0} and added["source"]["coefficient"] in ("default", "diagnose v2")
     logs = []
     out = api.fit(stage, iterations=6, settings_overrides=over, progress=False, log=logs.append)
     assert any("warm start" in m for m in logs) and any("damping: start coefficient" in m for m in logs)
@@ -211,3 +212,18 @@ def test_added_damping_is_fitted_and_recovers_the_truth(tmp_path):
     assert any("-damping" in m for m in logs) and back.result.effect_parameters == {}
     assert back.result.final_loss > out.result.final_loss
     assert math.isfinite(back.result.final_loss)
+
+
+def test_add_starts_from_the_diagnosis_estimate_when_there_is_one(tmp_path):
+    """`diagnose` stores its result on the version it diagnosed; `effects add` starts from its estimate."""
+    dio = pytest.importorskip("physinteract_usd.usd.diagnosis_io")
+    b = rs.build(tmp_path / "d")
+    sd = api.read_scene(b["stage"])
+    dio.write_diagnosis(b["stage"], sd.fps, sd.n_frames, sd.current_version,
+                        {"verdict": "missing_effect", "reason": "", "candidates": [
+                            {"effect": "damping", "score": 3.0, "predicted_loss_drop": 0.01, "realized_loss_drop": None,
+                             "estimate": {"coefficient": 6.5}, "evidence": ""}]})
+    out = api.effects_add(b["stage"], "damping")
+    assert out["values"]["coefficient"] == pytest.approx(6.5) and out["source"]["coefficient"] == "diagnose v1"
+    out = api.effects_add(b["stage"], "ground", {"mu": 0.2})          # no estimate for it: defaults, and what was given
+    assert out["source"] == {"height": "default", "friction": "given"}

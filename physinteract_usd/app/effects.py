@@ -51,6 +51,31 @@ def start_values(sd: SceneData, name: str) -> dict:
     return {"height": y, "friction": 0.5}
 
 
+def diagnosed_values(stage_path, sd: SceneData, name: str) -> dict:
+    """The start values `diagnose` estimated for `name` on the current version, when its diagnosis
+    is on the stage (usd/diagnosis_io.py); {} otherwise. Only positive, finite parameter values."""
+    if sd.current_version is None:
+        return {}
+    try:
+        from ..usd.diagnosis_io import read_diagnosis
+    except ImportError:       # a physinteract-usd without `diagnose`
+        return {}
+    try:
+        d = read_diagnosis(stage_path, sd.current_version) or {}
+    except (InputError, OSError, ValueError):
+        return {}
+    for c in d.get("candidates") or []:
+        if c.get("effect") != name:
+            continue
+        out = {}
+        for p in PARAMETERS[name]:
+            v = (c.get("estimate") or {}).get(p)
+            if isinstance(v, (int, float)) and math.isfinite(v) and (v > 0 or p == "height"):
+                out[p] = float(v)
+        return out
+    return {}
+
+
 def _parse_params(stage_path, name: str, params: dict | None) -> dict:
     out = {}
     for k, v in (params or {}).items():
@@ -75,8 +100,10 @@ def _parse_params(stage_path, name: str, params: dict | None) -> dict:
 
 def add(stage_path, name: str, params: dict | None = None, *, fixed: bool = False) -> dict:
     """Switch `name` on in the root layer, with `params` ({parameter or alias: value}) over the
-    start values, fitted by the next `fit` unless `fixed`. Returns {"stage", "effect", "values",
-    "fit", "layer"}."""
+    start values (what the root already says of it, else what `diagnose` estimated on the current
+    version, else `start_values`), fitted by the next `fit` unless `fixed`. Returns {"stage",
+    "effect", "values", "source" (per parameter: given | yours | diagnose v<N> | default), "fit",
+    "layer"}."""
     stage_path = Path(stage_path)
     check_name(stage_path, name)
     given = _parse_params(stage_path, name, params)
@@ -84,11 +111,14 @@ def add(stage_path, name: str, params: dict | None = None, *, fixed: bool = Fals
     if name in sd.effects:
         raise InputError(stage_path, f"effect {name} is already on (`effects list` shows it; "
                          f"`effects remove {name}` first to start it afresh)")
-    authored_before = root_values(stage_path, name)
-    values = {**start_values(sd, name), **{k: v for k, v in authored_before.items() if k != "fit"}, **given}
+    authored_before = {k: v for k, v in root_values(stage_path, name).items() if k != "fit"}
+    diagnosed = diagnosed_values(stage_path, sd, name)
+    values = {**start_values(sd, name), **diagnosed, **authored_before, **given}
     authored = apply_effect(stage_path, name, values, fit=not fixed, keep_authored=False)
+    source = {p: ("given" if p in given else "yours" if p in authored_before else
+                  f"diagnose v{sd.current_version}" if p in diagnosed else "default") for p in values}
     return {"stage": str(stage_path), "effect": name, "values": {k: v for k, v in authored.items() if k != "fit"},
-            "fit": not fixed, "layer": str(stage_path)}
+            "source": source, "fit": not fixed, "layer": str(stage_path)}
 
 
 def remove(stage_path, name: str) -> dict:

@@ -51,7 +51,7 @@ def run(a) -> int:
         if a.json:
             print(json.dumps(out, indent=2))
         else:
-            vals = ", ".join(f"{k} {_num(v)}" for k, v in out["values"].items())
+            vals = ", ".join(f"{k} {_num(v)} ({out['source'][k]})" for k, v in out["values"].items())
             how = "fixed" if not out["fit"] else "fitted by the next `fit`"
             print(f"{out['effect']} on in {out['layer']}: {vals}; {how}")
         return 0
