@@ -56,6 +56,11 @@ def load_manifest(manifest) -> list[Item]:
     from ..fit import FitSettings
 
     known = {f.name for f in dataclasses.fields(FitSettings)} - {"iterations", "seed", "schedule", "joint"}
+    diag = diagnose_function()
+    diag_known = set()
+    if diag is not None:
+        diag_known = {n for n, prm in inspect.signature(diag).parameters.items()
+                      if prm.kind is prm.KEYWORD_ONLY} - {"device", "progress", "log", "write_stage"}
     items = read_manifest(manifest)
     for it in items:
         try:
@@ -66,6 +71,10 @@ def load_manifest(manifest) -> list[Item]:
             if k not in known:
                 raise InputError(manifest, f"row {it.row}, 'fit_settings': unknown setting {k!r} (known: "
                                  f"{', '.join(sorted(known))})")
+        for k in it.options.get("diagnose_settings") or {}:
+            if diag is not None and k not in diag_known:
+                raise InputError(manifest, f"row {it.row}, 'diagnose_settings': unknown option {k!r} (known: "
+                                 f"{', '.join(sorted(diag_known))})")
     return items
 
 
@@ -312,7 +321,8 @@ def _step_diagnose(p, s, stage, work, rec, log):
         for k in ("diagnosis", "diagnosis_reason", "top_candidate"):
             m.pop(k, None)
         return "skipped", "this build has no diagnose verb yet"
-    data = _call(fn, stage, device=s.get("device") or "cpu", progress=False, log=log)
+    opts = dict(s.get("diagnose_settings") or {})
+    data = _call(fn, stage, device=s.get("device") or "cpu", progress=False, log=log, **opts)
     if hasattr(data, "summary") and callable(data.summary):
         data = data.summary()
     if not isinstance(data, dict):

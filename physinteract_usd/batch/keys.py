@@ -29,7 +29,7 @@ STEP_SETTINGS = {
                 "support_particles", "grasp_radius"),
     "fit": ("iterations", "seed", "device", "schedule", "effects", "fit_settings"),
     "report": (),
-    "diagnose": ("diagnose_available",),
+    "diagnose": ("diagnose_available", "diagnose_settings"),
     "export": ("sim_ready",),
 }
 

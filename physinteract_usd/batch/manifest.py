@@ -57,6 +57,7 @@ KEYS = {
     "youngs_range": "init: MIN,MAX Young's modulus in Pa",
     "sim_ready": "also export the sim-ready TetMesh asset (true / false)",
     "fit_settings": "the fit's other settings by name (JSON: an object; CSV: name=value;name=value)",
+    "diagnose_settings": "the diagnosis's options by name, as fit_settings (refit, refit_iterations, candidates, ...)",
 }
 HINT_KEYS = ("type", "grasp_frame", "release_frame", "hint_pixel", "hint_particles", "support_pixel",
              "support_particles", "grasp_radius")
@@ -264,7 +265,7 @@ def _value(key, v, bad):
         raise bad(key, f"must be true or false, got {v!r}")
     if key == "support_pixel":
         return _list(v)
-    if key == "fit_settings":
+    if key in ("fit_settings", "diagnose_settings"):
         if isinstance(v, dict):
             return dict(v)
         out = {}
