@@ -26,6 +26,7 @@ No USD, no CLI: a `fit.FitProblem` and arrays in, a `Diagnosis` out.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -290,7 +291,7 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
             if not c.is_interaction:
                 continue
             for what in ("grasp_frame", "release_frame"):
-                for dk in (-1, 1):
+                for dk in (-3, -2, -1, 1, 2, 3):
                     v = getattr(c, what)
                     if what == "release_frame":
                         if v is None:
@@ -310,20 +311,18 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                                          {"contact": c.name, "what": what, "frame": nv, "was": int(v)}))
     elif effect == "interaction:contact":
         sp = prob.scene.settings.particle_spacing
-        d = 1.5 * sp
         for i, c in enumerate(prob.contacts):
             if not c.is_interaction:
                 continue
-            for ax in range(3):
-                for sgn in (-1, 1):
-                    off = np.zeros(3)
-                    off[ax] = sgn * d
-                    cs = list(prob.contacts)
-                    cs[i] = _moved(c, off, prob.x0, prob.contacts)
-                    col = _sim_r(run, cs, log)
-                    if col is not None:
-                        out.append(Probe(f"{c.name}.{'xyz'[ax]}{'+-'[sgn < 0]}", col - r0, +1,
-                                         {"contact": c.name, "offset": off.tolist()}))
+            for ax, sgn, d in itertools.product(range(3), (-1, 1), (1.5 * sp, 3.0 * sp)):
+                off = np.zeros(3)
+                off[ax] = sgn * d
+                cs = list(prob.contacts)
+                cs[i] = _moved(c, off, prob.x0, prob.contacts)
+                col = _sim_r(run, cs, log)
+                if col is not None:
+                    out.append(Probe(f"{c.name}.{'xyz'[ax]}{'+-'[sgn < 0]}{d:.3g}", col - r0, +1,
+                                     {"contact": c.name, "offset": off.tolist()}))
     elif effect == "interaction:grasp_size":
         for i, c in enumerate(prob.contacts):
             if not c.is_interaction:
@@ -441,6 +440,8 @@ def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> 
     logE = torch.log(b.E.detach()).clone().requires_grad_(True)
     with torch.enable_grad():
         eff = {e: dict(p) for e, p in b.effects.items()}
+        if "plasticity" in eff and not math.isfinite(eff["plasticity"].get("yieldStress", 0.0)):
+            eff["plasticity"]["yieldStress"] = 1e20      # never reached; the adjoint of inf is not finite
         x, F = prob.sim.simulate(torch.exp(logE), b.nu, None, effects=eff)
         r = run.res.torch(x, F)
         (r * r).sum().backward()
@@ -483,7 +484,7 @@ def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarr
     for p in probes:
         jp = S.project_out(J, p.column)
         nn = float(np.linalg.norm(jp))
-        if nn <= 1e-12 * max(float(np.linalg.norm(p.column)), 1e-300) or nn == 0.0:
+        if nn <= S.ABSORBED * float(np.linalg.norm(p.column)) or nn == 0.0:
             V.append(np.zeros(n_blocks))
             signs.append(p.sign)
             drops.append(0.0)
@@ -561,11 +562,31 @@ def estimate_of(cr: CandidateResult, prob) -> dict:
         return {"contact": m["contact"], "what": m["what"], "frame": m["frame"], "was": m["was"],
                 "amplitude": t, "fix": f"extract --{m['what'].replace('_', '-')} {m['frame']}"}
     if e == "interaction:contact":
-        off = (np.asarray(m["offset"]) * min(max(t, 0.0), 3.0)).tolist()
-        return {"contact": m["contact"], "offset_m": off, "fix": FIXES[e]}
+        off = np.asarray(m["offset"]) * min(max(t, 0.0), 3.0)
+        fix = FIXES[e]
+        c = next((c for c in prob.contacts if c.name == m["contact"]), None)
+        if c is not None:
+            at = (np.asarray(c.contact_point) if c.contact_point is not None else
+                  prob.x0[np.asarray(c.indices)].mean(0) if len(c.indices) else np.asarray(c.trajectory)[0])
+            k = int(c.grasp_frame)
+            uv, _ = prob.cameras[min(k, prob.T - 1)].project((at + off)[None])
+            fix = f"extract --hint-pixel {k},{uv[0, 0]:.0f},{uv[0, 1]:.0f}"
+        return {"contact": m["contact"], "offset_m": off.tolist(), "fix": fix}
     if e == "interaction:grasp_size":
-        return {"contact": m["contact"], "direction": m["direction"], "particles": m["particles"],
-                "fix": FIXES[e]}
+        fix = FIXES[e]
+        c = next((c for c in prob.contacts if c.name == m["contact"]), None)
+        out = {"contact": m["contact"], "direction": m["direction"], "particles": m["particles"]}
+        if c is not None and c.type == "pointAdherent" and len(c.indices):
+            pts = prob.x0[np.asarray(c.indices)]
+            r = float(np.linalg.norm(pts - pts.mean(0), axis=1).max())
+            sp = prob.scene.settings.particle_spacing
+            r = r + sp if m["direction"] == "more" else max(r - sp, sp)
+            fix = f"extract --grasp-radius {r:.3f}"
+            out["radius_m"] = r
+        elif c is not None and c.type == "pointNonAdherent":
+            out["radius_m"] = m.get("radius")
+        out["fix"] = fix
+        return out
     if e == "interaction:support":
         return {"contact": m["contact"], "direction": m["direction"], "particles": m["particles"],
                 "fix": FIXES[e]}
@@ -693,7 +714,7 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
                        + (f", refit: realised drop {top.realized_loss_drop:.3g}" if top.realized_loss_drop is not None
                           else "") + ")"
                        + (f"; also: {', '.join(also)}" if also else "")
-                       + (f". Fix: {FIXES[top.effect]}" if top.effect in FIXES else ""))
+                       + (f". Fix: {top.estimate.get('fix') or FIXES[top.effect]}" if top.effect in FIXES else ""))
         return diag
     if above:
         diag.verdict = "unexplained"

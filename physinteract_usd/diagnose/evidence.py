@@ -119,11 +119,13 @@ def describe(effect: str, cr, ctx) -> str:
                      f"{est.get('frame')}: re-run `{est.get('fix')}` (then fit again)")
     elif effect == "interaction:contact":
         off = np.asarray(est.get("offset_m", [0, 0, 0])) * 1000
-        parts.append(f"the hand's contact on {est.get('contact')} fits better moved by ({off[0]:.0f}, {off[1]:.0f}, "
-                     f"{off[2]:.0f}) mm: give the contact with `{FIXES[effect]}`")
+        parts.append(f"the contact {est.get('contact')} fits better moved by ({off[0]:.0f}, {off[1]:.0f}, "
+                     f"{off[2]:.0f}) mm on the object: give it with `{est.get('fix', FIXES[effect])}` (then fit "
+                     "again)")
     elif effect == "interaction:grasp_size":
         parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} grasp on {est.get('contact')} "
-                     f"({est.get('particles')} particles) fits better: set it with `{FIXES[effect]}`")
+                     f"({est.get('particles')} particles) fits better: set it with "
+                     f"`{est.get('fix', FIXES[effect])}` (then fit again)")
     elif effect == "interaction:support":
         parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} support {est.get('contact')} "
                      f"({est.get('particles')} particles) fits better: mark it with `{FIXES[effect]}`")

@@ -24,10 +24,18 @@ from .residual import ImageResidual, loss
 _POSITIVE = {"coefficient", "yieldStress", "friction", "modulus", "relaxationTime"}
 
 
-def held_back_frames(T: int, every: int = 4) -> list[int]:
+def held_back_frames(T: int, every: int = 4, res: ImageResidual | None = None, column=None) -> list[int]:
+    """Frames left out of the refit to judge it. With the candidate's column: every other frame
+    among those where the candidate changes the model most (its column's energy above the median:
+    frames it cannot change cannot judge it); else the ladder's every `every`-th frame."""
     from ..fit.ladder import _frames
 
-    return _frames(T, every)[1]
+    if res is None or column is None or T < 6:
+        return _frames(T, every)[1]
+    e = np.square(np.asarray(column)).reshape(res.shape).sum((1, 2, 3))
+    order = [res.frames[i] for i in np.argsort(-e) if e[i] > 0]
+    strong = sorted(order[: max(2, len(order) // 2)])
+    return strong[1::2] if len(strong) > 1 else strong
 
 
 def _frame_mask(res: ImageResidual, frames) -> np.ndarray:
@@ -45,7 +53,8 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
     prob, base, res, r0 = ctx["prob"], ctx["base"], ctx["res"], ctx["r0"]
     if cr.effect not in PHYSICAL or cr.effect not in prob.effects:
         return None
-    val = held_back_frames(prob.T, holdout_every)
+    col = cr.probes[cr.best].column if cr.best >= 0 else None
+    val = held_back_frames(prob.T, holdout_every, res, col)
     s = FitSettings(iterations=int(iterations), joint=True, fit_effects=(cr.effect,), holdout_every=holdout_every,
                     confidence_probes=0)
     lad = _Ladder(prob, s, log, progress=False)
@@ -117,7 +126,7 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4) ->
         r1 = r0 + p.column * cr.step           # render-only / gravity: the linear step itself
     else:
         r1 = r0 + p.column                      # the probe itself (amplitude 1)
-    val = held_back_frames(prob.T, holdout_every)
+    val = held_back_frames(prob.T, holdout_every, res, p.column)
     a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
     a1, *_ = np.linalg.lstsq(J, -r1, rcond=None)
     b0, b1 = r0 + J @ a0, r1 + J @ a1

@@ -28,9 +28,9 @@ import itertools
 import numpy as np
 
 
-def project_out(J: np.ndarray | None, j: np.ndarray, ridge: float = 1e-8) -> np.ndarray:
-    """j less its least-squares fit by the columns of J (columns scaled to unit norm; a tiny ridge
-    keeps near-collinear base columns harmless)."""
+def project_out(J: np.ndarray | None, j: np.ndarray, ridge: float = 1e-10) -> np.ndarray:
+    """j less its least-squares fit by the columns of J (columns scaled to unit norm; singular
+    values below `ridge` of the largest are cut, so near-collinear base columns are harmless)."""
     j = np.asarray(j, np.float64)
     if J is None or J.size == 0:
         return j.copy()
@@ -42,8 +42,7 @@ def project_out(J: np.ndarray | None, j: np.ndarray, ridge: float = 1e-8) -> np.
     if not keep.any():
         return j.copy()
     A = J[:, keep] / norms[keep]
-    G = A.T @ A + ridge * np.eye(A.shape[1])
-    coef = np.linalg.solve(G, A.T @ j)
+    coef, *_ = np.linalg.lstsq(A, j, rcond=ridge)
     return j - A @ coef
 
 
@@ -61,9 +60,16 @@ def gauss_newton_drop(r: np.ndarray, j_perp: np.ndarray, sign: int = 0) -> tuple
     return d * d / nn, step
 
 
+ABSORBED = 1e-6   # |j_perp| / |j| below this: the base parameters absorb the candidate (round-off is left)
+
+
 def predicted_drop(r: np.ndarray, J_base: np.ndarray | None, j: np.ndarray, sign: int = 0) -> tuple[float, float]:
-    """`gauss_newton_drop` of the candidate column j after projecting out the base columns."""
-    return gauss_newton_drop(r, project_out(J_base, j), sign)
+    """`gauss_newton_drop` of the candidate column j after projecting out the base columns (0 when
+    the base absorbs all but round-off of it)."""
+    jp = project_out(J_base, j)
+    if np.linalg.norm(jp) <= ABSORBED * np.linalg.norm(j):
+        return 0.0, 0.0
+    return gauss_newton_drop(r, jp, sign)
 
 
 def joint_step(r: np.ndarray, J_base: np.ndarray | None, j: np.ndarray) -> tuple[np.ndarray, float]:
@@ -119,5 +125,5 @@ def block_signflip(V: np.ndarray, signs=None, n_flips: int = 4000, seed: int = 0
     return obs, p
 
 
-__all__ = ["project_out", "gauss_newton_drop", "predicted_drop", "joint_step", "block_sums", "block_signflip",
+__all__ = ["ABSORBED", "project_out", "gauss_newton_drop", "predicted_drop", "joint_step", "block_sums", "block_signflip",
            "one_sided_square"]
