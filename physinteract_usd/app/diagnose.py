@@ -11,7 +11,6 @@ tested ("tested"), the loss and its floor, and the cost."""
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
@@ -25,10 +24,11 @@ from .adapters import effects_with_fitted, load_observations, read_scene, stage_
 
 def superset_effects(sd, present: dict) -> dict:
     """The stage's effects (with their fitted values) plus every other effect at its null: no
-    damping, infinite yield stress, a ground plane a metre below the grid, no Maxwell branch."""
+    damping, a yield stress never reached, a ground plane a metre below the grid, no Maxwell branch."""
     out = {e: dict(p) for e, p in present.items()}
     out.setdefault("damping", {"coefficient": 0.0})
-    out.setdefault("plasticity", {"yieldStress": math.inf})
+    # a yield stress no stress reaches (the adjoint of tau_Y = inf is not finite)
+    out.setdefault("plasticity", {"yieldStress": 1e6 * float(sd.settings.youngs_max)})
     out.setdefault("ground", {"height": float(sd.settings.domain_min[1]) - 1.0, "friction": 0.5})
     out.setdefault("viscoelasticity", {"modulus": 0.0, "relaxationTime": 0.1})
     return out
