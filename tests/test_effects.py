@@ -227,3 +227,14 @@ def test_add_starts_from_the_diagnosis_estimate_when_there_is_one(tmp_path):
     assert out["values"]["coefficient"] == pytest.approx(6.5) and out["source"]["coefficient"] == "diagnose v1"
     out = api.effects_add(b["stage"], "ground", {"mu": 0.2})          # no estimate for it: defaults, and what was given
     assert out["source"] == {"height": "default", "friction": "given"}
+
+
+def test_the_ladder_schedule_fits_an_added_effect_too(tmp_path):
+    """The same refit through the "ladder" schedule: warm start, the effect's start searched, fitted."""
+    b = rs.build(tmp_path / "damped", hidden_damping=8.0, n_frames=12)
+    api.effects_add(b["stage"], "damping")
+    over = dict(schedule="ladder", confidence_probes=0, max_regions=1)
+    out = api.fit(b["stage"], iterations=3, keep_best=False, settings_overrides=over, **QUIET)
+    assert out.result.model.get("resumed") and "damping" in out.result.model["effect_search"]
+    c = out.result.effect_parameters["damping"]["coefficient"]
+    assert 4.0 < c < 16.0, c

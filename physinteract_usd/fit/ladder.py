@@ -385,7 +385,7 @@ def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, sta
         final_loss = float(out["rec"] + out["reg_traj"])
         x, F = out["x"], out["F"]
         renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
-    fitted_effects = {e: {p: float(v) for p, v in ps.items()} for e, ps in (effects or {}).items()}
+    fitted_effects = {e: {p: float(v.detach()) for p, v in ps.items()} for e, ps in (effects or {}).items()}
     metrics = frame_metrics(prob, renders)
     conf = np.ones(len(prob.x0))
     model = dict(lad.report)
