@@ -175,3 +175,51 @@ def test_ray_end_to_end_and_rerun(captures):
         assert ray.is_initialized()          # the cluster the caller started is left running
     finally:
         ray.shutdown()
+
+
+@pytest.mark.slow
+def test_sigterm_stops_cleanly_keeping_what_finished(captures, tmp_path):
+    """SIGTERM to a running `batch`: the finished item is kept, the running fit writes its best
+    iterate (an interrupted version) and its item is recorded as interrupted, exit 130; a rerun
+    would start that item from its fit."""
+    import signal
+    import subprocess
+    import sys
+
+    from physinteract_usd.batch.keys import first_stale_step
+
+    m = tmp_path / "m.csv"
+    m.write_text("source,name,iterations,grid,fit_settings,skip\n"
+                 f"{captures / 'a'},quick,2,12,{TINY_FIT},diagnose\n"
+                 f"{captures / 'b'},long,400,12,{TINY_FIT},diagnose\n")
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "physinteract_usd", "batch", str(m), "--out", str(out), "--workers", "1",
+                          "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = out / "items" / "long" / "log.txt"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (log.exists() and "--- fit" in log.read_text()):
+        assert p.poll() is None, p.communicate()
+        time.sleep(0.5)
+    time.sleep(4.0)   # a few iterations into the fit
+    t0 = time.perf_counter()
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    took = time.perf_counter() - t0
+    assert p.returncode == 130, err
+    print(f"SIGTERM to exit: {took:.1f} s")
+    assert took < 30
+    recs = {n: json.loads((out / "items" / n / "batch.json").read_text()) for n in ("quick", "long")}
+    assert recs["quick"]["status"] == "done"
+    assert recs["long"]["status"] == "interrupted" and recs["long"]["error"].startswith("fit: interrupted")
+    sd = api.read_scene(out / "items" / "long" / "scene.usda")
+    assert [r.get("status") for r in sd.reports] == ["interrupted"]
+    rows = {r["name"]: r["status"] for r in csv.DictReader(open(out / "summary.csv"))}
+    assert rows == {"quick": "done", "long": "interrupted"}
+    from physinteract_usd.app.batch import load_manifest, resolve_settings
+    from physinteract_usd.batch.keys import fingerprint, step_keys
+
+    item = [i for i in load_manifest(m) if i.name == "long"][0]
+    s = resolve_settings(item, {})
+    s["diagnose_available"] = diagnose_function() is not None
+    keys = step_keys(s, fingerprint(item.source, item.kind), physinteract_usd.__version__)
+    assert first_stale_step(recs["long"]["keys"], keys) == "fit"

@@ -91,6 +91,7 @@ def resolve_settings(item: Item, defaults: dict) -> dict:
     s.update(item.options)
     s["effects"] = list(s.get("effects") or [])
     s["sim_ready"] = bool(s.get("sim_ready"))
+    s["skip"] = list(s.get("skip") or [])
     return s
 
 
@@ -176,7 +177,13 @@ def run_item(p: dict) -> dict:
                 continue
             ts = time.perf_counter()
             log(f"--- {step}")
-            status, note = _STEP[step](p, s, stage, work, rec, log)
+            if step in (s.get("skip") or []):
+                status, note = "skipped", "left out as asked"
+                for k in _STEP_METRICS.get(step, ()):   # nothing of an earlier run's step stays as if current
+                    rec["metrics"].pop(k, None)
+                    rec["outputs"].pop(k, None)
+            else:
+                status, note = _STEP[step](p, s, stage, work, rec, log)
             rec["steps"][step] = {"status": status, "seconds": round(time.perf_counter() - ts, 3)}
             if note:
                 rec["steps"][step]["note"] = note
@@ -197,7 +204,8 @@ def run_item(p: dict) -> dict:
     for st in STEPS:
         if st not in ok:
             break
-        if st == "diagnose" and rec["steps"][st]["status"] == "skipped":
+        if (st == "diagnose" and rec["steps"][st]["status"] == "skipped"
+                and "diagnose" not in (s.get("skip") or [])):
             continue   # a diagnosis skipped for want of the verb runs once the verb is there
         rec["keys"][st] = keys[st]
     rec["seconds"] = round(time.perf_counter() - t0, 2)
@@ -352,6 +360,11 @@ def _step_export(p, s, stage, work, rec, log):
     return "ran", ""
 
 
+_STEP_METRICS = {"report": ("psnr", "psnr_masked", "ssim", "iou", "track_error_px", "verdict", "headline",
+                             "frames_psnr", "reported_version", "report_html", "report_json"),
+                 "diagnose": ("diagnosis", "diagnosis_reason", "top_candidate", "diagnose_json"),
+                 "export": ("asset", "sim_ready")}
+
 _STEP = {"init": _step_init, "extract": _step_extract, "fit": _step_fit, "report": _step_report,
          "diagnose": _step_diagnose, "export": _step_export}
 
@@ -489,12 +502,12 @@ class _Progress(Events):
 
 
 def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations=None, schedule=None, seed=None,
-          grid=None, gpus_per_item=1.0, retries=2, force=False, progress=True, log=print) -> BatchResult:
+          grid=None, skip=None, gpus_per_item=1.0, retries=2, force=False, progress=True, log=print) -> BatchResult:
     """Run every manifest item (module doc). `ray`: None for the local process pool of `workers`
     processes (default: one per CPU core, one in all when an item uses CUDA); "" or an address for
     Ray (one task per item, `gpus_per_item` GPUs each when it uses CUDA, `retries` when its worker
-    dies). `device`, `iterations`, `schedule`, `seed`, `grid`: the defaults an item's own columns
-    override. `force`: run every item from its first step. Returns a BatchResult; items that fail
+    dies). `device`, `iterations`, `schedule`, `seed`, `grid`, `skip` (steps left out: report,
+    diagnose, export): the defaults an item's own columns override. `force`: run every item from its first step. Returns a BatchResult; items that fail
     are in `.failed` (with their one-line errors in `.records`), not raised."""
     t0 = time.perf_counter()
     manifest = Path(manifest)
@@ -505,7 +518,15 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
         raise InputError("--retries", f"must be >= 0, got {retries}")
     if not (float(gpus_per_item) > 0):
         raise InputError("--gpus-per-item", f"must be positive, got {gpus_per_item}")
-    defaults = {"device": device, "iterations": iterations, "schedule": schedule, "seed": seed, "grid": grid}
+    if skip:
+        from ..batch.manifest import SKIPPABLE
+
+        skip = [x.strip() for x in (skip.split(",") if isinstance(skip, str) else skip) if x.strip()]
+        bad = [x for x in skip if x not in SKIPPABLE]
+        if bad:
+            raise InputError("--skip", f"{bad[0]!r} cannot be skipped (only {', '.join(SKIPPABLE)})")
+    defaults = {"device": device, "iterations": iterations, "schedule": schedule, "seed": seed, "grid": grid,
+                "skip": skip or None}
     if ray is not None:
         from ..batch.ray_runner import import_ray
 

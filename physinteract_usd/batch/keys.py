@@ -28,7 +28,7 @@ STEP_SETTINGS = {
     "extract": ("type", "grasp_frame", "release_frame", "hint_pixel", "hint_particles", "support_pixel",
                 "support_particles", "grasp_radius"),
     "fit": ("iterations", "seed", "device", "schedule", "effects", "fit_settings"),
-    "report": (),
+    "report": ("skip",),
     "diagnose": ("diagnose_available", "diagnose_settings"),
     "export": ("sim_ready",),
 }

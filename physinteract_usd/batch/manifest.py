@@ -58,7 +58,9 @@ KEYS = {
     "sim_ready": "also export the sim-ready TetMesh asset (true / false)",
     "fit_settings": "the fit's other settings by name (JSON: an object; CSV: name=value;name=value)",
     "diagnose_settings": "the diagnosis's options by name, as fit_settings (refit, refit_iterations, candidates, ...)",
+    "skip": "steps left out: report, diagnose, export (';' between)",
 }
+SKIPPABLE = ("report", "diagnose", "export")
 HINT_KEYS = ("type", "grasp_frame", "release_frame", "hint_pixel", "hint_particles", "support_pixel",
              "support_particles", "grasp_radius")
 INIT_KEYS = ("grid", "fps", "youngs_range")
@@ -265,6 +267,12 @@ def _value(key, v, bad):
         raise bad(key, f"must be true or false, got {v!r}")
     if key == "support_pixel":
         return _list(v)
+    if key == "skip":
+        names = _list(v)
+        for n in names:
+            if n not in SKIPPABLE:
+                raise bad(key, f"{n!r} cannot be skipped (only {', '.join(SKIPPABLE)})")
+        return sorted(set(names), key=SKIPPABLE.index)
     if key in ("fit_settings", "diagnose_settings"):
         if isinstance(v, dict):
             return dict(v)

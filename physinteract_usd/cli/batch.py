@@ -49,6 +49,9 @@ def add_parser(sub):
     s.add_argument("--seed", type=int, default=None, help="the fit's seed for items that do not say (default 0)")
     s.add_argument("--grid", type=_workers, default=None, metavar="N",
                    help="init's grid cells along the longest side for items that do not say")
+    s.add_argument("--skip", metavar="STEP,...", default=None,
+                   help="steps left out for items that do not say: report, diagnose, export (the diagnosis refits "
+                        "the model several times: the costliest step after the fit)")
     s.add_argument("--force", action="store_true", help="run every item from its first step, even when done")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -60,7 +63,7 @@ def run(a) -> int:
 
     log = progress_log(a.json)
     res = api.batch(a.manifest, out=a.out, workers=a.workers, ray=a.ray, device=a.device, iterations=a.iterations,
-                    schedule=a.schedule, seed=a.seed, grid=a.grid, gpus_per_item=a.gpus_per_item, retries=a.retries,
+                    schedule=a.schedule, seed=a.seed, grid=a.grid, skip=a.skip, gpus_per_item=a.gpus_per_item, retries=a.retries,
                     force=a.force, progress=not a.no_progress and not a.json, log=log)
     summ = res.summary()
     if a.json:
