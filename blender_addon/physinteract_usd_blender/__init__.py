@@ -180,8 +180,12 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
                                ("fixedCorotated", "Fixed corotated", ""), ("neoHookean", "Neo-Hookean", "")])
     fit_iterations: IntProperty(name="Iterations", default=0, min=0,
                                 description="fit --iterations (0: the CLI's default)")
-    export_sim_ready: BoolProperty(name="Sim-ready (TetMesh)", default=False,
-                                   description="export --sim-ready: a TetMesh with the deformable-physics schemas")
+    sim_ready_path: StringProperty(name="Sim-ready", subtype="FILE_PATH",
+                                   description="Where the Simulation-ready export writes (export --sim-ready "
+                                               "--force): a TetMesh with the deformable-physics schemas. "
+                                               "Empty: <export>_simready.usdc beside the export")
+    sim_ready_summary: StringProperty(name="Sim-ready summary", default="",
+                                      description="What the last Simulation-ready export wrote")
     # hints for extract
     hint_type: EnumProperty(
         name="Type", default="AUTO",
@@ -286,7 +290,10 @@ def resolved_paths(settings) -> dict:
     export = _abs(settings.export_path, "export path")
     if not export:
         export = str(Path(stage).with_name(Path(stage).stem + "_twin.usdc"))
-    return {"capture": capture, "stage": stage, "export": export,
+    sim_ready = _abs(settings.sim_ready_path, "sim-ready path")
+    if not sim_ready:
+        sim_ready = str(Path(export).with_name(Path(export).stem + "_simready.usdc"))
+    return {"capture": capture, "stage": stage, "export": export, "sim_ready": sim_ready,
             "video": _abs(settings.video, "video"), "camera": _abs(settings.camera, "camera"),
             "masks": _abs(settings.masks, "masks")}
 
@@ -523,8 +530,8 @@ def report_at(report: dict, frame: int) -> dict | None:
 
 
 # ------------------------------------------------------------------------------------- jobs
-STEP_CHOICES = ("init", "extract", "fit", "export", "import", "import_stage", "all", "simulate",
-                "report", "diagnose")
+STEP_CHOICES = ("init", "extract", "fit", "export", "export_sim_ready", "import", "import_stage", "all",
+                "simulate", "report", "diagnose")
 
 
 def _parse_steps(steps: str) -> list[str]:
@@ -711,13 +718,15 @@ def build_job(context, steps: str) -> runner.Job:
         elif name == "fit":
             job_steps.append(runner.CliStep("fit", fit_argv))
         elif name == "export":
-            argv = runner.verb_argv(cli, "export", p["stage"], p["export"])
-            if settings.export_sim_ready:
-                if has("export", "--sim-ready"):
-                    argv.append("--sim-ready")
-                else:
-                    notes.append("exported without --sim-ready: this physinteract-usd's export lacks it")
-            job_steps.append(runner.CliStep("export", argv))
+            job_steps.append(runner.CliStep("export", runner.verb_argv(cli, "export", p["stage"], p["export"])))
+        elif name == "export_sim_ready":   # its own file: the plain export stays what the panel imports
+            if not has("export", "--sim-ready"):
+                raise UserError("this physinteract-usd's export has no --sim-ready yet: update the project")
+            if os.path.normcase(os.path.abspath(p["sim_ready"])) == os.path.normcase(os.path.abspath(p["stage"])):
+                raise UserError(f"the sim-ready path {p['sim_ready']} is the stage itself: choose another file")
+            job_steps.append(runner.CliStep(
+                "export --sim-ready", runner.verb_argv(cli, "export", p["stage"], p["sim_ready"], "--sim-ready", "--force"),
+                on_done=lambda out: setattr(bpy.context.scene.physinteract, "sim_ready_summary", sim_ready_summary(out))))
         elif name in ("import", "import_stage"):
             job_steps += import_steps(name)
         elif name == "simulate":
@@ -760,6 +769,12 @@ def parse_json(out: str) -> dict:
     return json.loads(out[start:])
 
 
+def sim_ready_summary(out: str) -> str:
+    """`export --sim-ready`'s own summary line (tetrahedra, regions, tolerance, unmapped effects)."""
+    lines = [ln.strip() for ln in out.splitlines() if ln.strip()]
+    return next((ln for ln in lines if ln.startswith("sim-ready:")), lines[-1] if lines else "")
+
+
 def _redraw(context) -> None:
     wm = context.window_manager
     for window in wm.windows if wm else []:
@@ -776,8 +791,8 @@ class PHYSINTERACT_OT_run(bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     steps: StringProperty(name="Steps", default="all",
-                          description="Comma-separated: init, extract, fit, export, import, import_stage, "
-                                      "simulate, report, diagnose, effect:NAME, version:N, or all")
+                          description="Comma-separated: init, extract, fit, export, export_sim_ready, import, "
+                                      "import_stage, simulate, report, diagnose, effect:NAME, version:N, or all")
 
     _timer = None
 
@@ -1077,6 +1092,7 @@ class PHYSINTERACT_PT_fit(bpy.types.Panel):
         col = layout.column(align=True)
         col.prop(s, "stage_path")
         col.prop(s, "export_path")
+        col.prop(s, "sim_ready_path")
         row = layout.row(align=True)
         row.prop(s, "grid")
         row.prop(s, "fps")
@@ -1094,6 +1110,12 @@ class PHYSINTERACT_PT_fit(bpy.types.Panel):
         row = col.row(align=True)
         row.operator("physinteract.run", text="Fit").steps = "fit"
         row.operator("physinteract.run", text="Export").steps = "export"
+        known = _caps(context, "export", "--sim-ready")
+        if known:
+            col.operator("physinteract.run", text="Simulation-ready export", icon="MESH_ICOSPHERE").steps = \
+                "export_sim_ready"
+        else:
+            _missing(col, "export --sim-ready", known)
         col.operator("physinteract.run", text="Run all and import", icon="PLAY").steps = "all"
         row = col.row(align=True)
         row.operator("physinteract.run", text="Import twin", icon="IMPORT").steps = "import"
@@ -1115,6 +1137,8 @@ def draw_status(layout, s, busy) -> None:
         layout.label(text=s.status, icon="CHECKMARK")
     if not busy and s.note:
         layout.label(text=f"note: {s.note}", icon="INFO")
+    if not busy and s.sim_ready_summary:
+        layout.label(text=s.sim_ready_summary, icon="MESH_ICOSPHERE")
 
 
 class _Sub:
@@ -1146,11 +1170,6 @@ class PHYSINTERACT_PT_settings(_Sub, bpy.types.Panel):
         if _caps(context, "init", "--yes"):
             layout.prop(s, "accept_slow")
         layout.prop(s, "fit_iterations")
-        known = _caps(context, "export", "--sim-ready")
-        if known:
-            layout.prop(s, "export_sim_ready")
-        else:
-            _missing(layout, "export --sim-ready", known)
 
 
 class PHYSINTERACT_PT_hints(_Sub, bpy.types.Panel):

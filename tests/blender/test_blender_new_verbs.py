@@ -105,7 +105,7 @@ def test_without_the_verbs_the_panel_says_so(addon, cli, twin):
         with pytest.raises(RuntimeError, match="no `versions` verb"):
             bpy.ops.physinteract.run(steps="version:1")
     if not addon.clicaps.has([cli], "export", "--sim-ready"):
-        labels = [e[1] for e in draw(bpy.types.PHYSINTERACT_PT_settings) if e[0] == "label"]
+        labels = [e[1] for e in draw(bpy.types.PHYSINTERACT_PT_fit) if e[0] == "label"]
         assert "export --sim-ready: not in this physinteract-usd (update it)" in labels
     assert s.error.startswith("this physinteract-usd has no") or not (
         {"diagnose", "effects", "versions"} - have)
@@ -159,13 +159,30 @@ def test_add_effect_refits_and_versions_use_reimports(addon, newer_cli, twin):
     assert [e[2] for e in log if e[0] == "operator"].count("Use") == 1      # not for the current one
 
 
-def test_export_sim_ready_when_offered(addon, newer_cli, twin, tmp_path):
+def test_sim_ready_export_button(addon, cli, twin, tmp_path):
+    """The panel's "Simulation-ready export" runs `export <stage> <out> --sim-ready --force` with the
+    project's CLI into its own file (the plain export, which the panel imports, is left alone), shows
+    the command's summary line, and runs again over its own output."""
+    from pxr import Usd
     from test_blender_resimulate import import_twin
 
+    known_caps(addon, cli)
+    assert addon.clicaps.has([cli], "export", "--sim-ready"), "the project's CLI lacks export --sim-ready"
     s = import_twin(addon, twin["stage"])
     s.export_path = str(tmp_path / "twin.usdc")
-    s.export_sim_ready = True
-    props = [e[1] for e in draw(bpy.types.PHYSINTERACT_PT_settings) if e[0] == "prop"]
-    assert "export_sim_ready" in props
-    job = addon.build_job(bpy.context, "export")
-    assert job.steps[0].argv[-1] == "--sim-ready" and job.notes == []
+    log = draw(bpy.types.PHYSINTERACT_PT_fit)
+    assert ("operator", "physinteract.run", "Simulation-ready export") in log
+    assert ("prop", "sim_ready_path") in log
+    job = addon.build_job(bpy.context, "export_sim_ready")
+    out = tmp_path / "twin_simready.usdc"                        # the default: beside the export
+    assert job.steps[0].argv[-5:] == ["export", str(twin["stage"]), str(out), "--sim-ready", "--force"]
+    for _ in range(2):                                          # the second run replaces the first (--force)
+        assert bpy.ops.physinteract.run(steps="export_sim_ready") == {"FINISHED"}, s.error
+    assert not (tmp_path / "twin.usdc").exists()
+    st = Usd.Stage.Open(str(out))
+    assert [p.GetPath().pathString for p in st.Traverse() if p.GetTypeName() == "TetMesh"] == ["/World/Twin/SimMesh"]
+    assert s.sim_ready_summary.startswith("sim-ready: ") and " tetrahedra, " in s.sim_ready_summary
+    assert ("label", s.sim_ready_summary) in draw(bpy.types.PHYSINTERACT_PT_fit)
+    s.sim_ready_path = str(twin["stage"])                        # never over the stage
+    with pytest.raises(RuntimeError, match="is the stage itself"):
+        bpy.ops.physinteract.run(steps="export_sim_ready")
