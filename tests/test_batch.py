@@ -20,6 +20,7 @@ from pxr import Usd, UsdGeom, UsdValidation
 import physinteract_usd  # noqa: F401  (registers the schemas)
 from physinteract_usd import api
 from physinteract_usd.app.batch import diagnose_function
+from physinteract_usd.batch.keys import STEPS
 from physinteract_usd.cli import main
 from physinteract_usd.errors import InputError
 
@@ -150,6 +151,49 @@ def test_pool_changed_setting_reruns_from_its_step(pool_run):
     assert res.records["bee"]["metrics"]["version"] == 2 and res.records["bee"]["metrics"]["iterations"] == 3
 
 
+def test_stage_item_fitted_in_place_then_reused(pool_run, tmp_path):
+    """An existing stage as an item (JSON manifest): no init, its own contacts kept, a new fit
+    version on it; a rerun reuses it although the run changed the stage's fit layer."""
+    m, out, _ = pool_run
+    src = out / "items" / "a"
+    copy = out.parent / "stage_copy.batch" / "items" / "a"        # the same depth: its capture paths hold
+    shutil.copytree(src, copy, ignore=shutil.ignore_patterns("batch.json", "log.txt", "*.html", "*.json"))
+    stage = copy / "scene.usda"
+    man = tmp_path / "m.json"
+    man.write_text(json.dumps({"defaults": {"fit_settings": {"search_evals": 1, "confidence_probes": 0,
+                                                             "levels": [1], "level_share": [1.0]},
+                                            "skip": ["diagnose"]},
+                               "items": [{"source": str(stage), "name": "staged", "iterations": 2}]}))
+    res = api.batch(man, out=tmp_path / "out", workers=1, progress=False, log=lambda *a: None)
+    r = res.records["staged"]
+    assert r["status"] == "done", r["error"]
+    assert [r["steps"][s]["status"] for s in STEPS] == ["skipped", "skipped", "ran", "ran", "skipped", "ran"]
+    assert r["metrics"]["version"] == 2                           # the copy held v1: a new version on it
+    assert len(api.read_scene(stage).reports) == 2
+    assert (tmp_path / "out" / "items" / "staged" / "asset.usdc").is_file()
+    res = api.batch(man, out=tmp_path / "out", workers=1, progress=False, log=lambda *a: None)
+    assert res.reused == ["staged"] and not res.ran
+
+
+def test_effects_switched_through_the_effects_verb(pool_run, tmp_path):
+    """The manifest's effects go on through `effects add`; on a capture's own stage the ones it no
+    longer lists go off, on a user's stage they stay."""
+    from physinteract_usd.app.adapters import stage_effects
+    from physinteract_usd.app.batch import _apply_effects
+
+    _, out, _ = pool_run
+    copy = out.parent / "fx.batch" / "items" / "a"
+    shutil.copytree(out / "items" / "a", copy)
+    stage = copy / "scene.usda"
+    have = lambda: sorted(stage_effects(api.read_scene(stage)))   # noqa: E731
+    assert _apply_effects({"kind": "capture"}, {"effects": ["damping", "ground"]}, stage, print) == "+damping, +ground"
+    assert have() == ["damping", "ground"]
+    assert _apply_effects({"kind": "stage"}, {"effects": ["damping"]}, stage, print) == ""
+    assert have() == ["damping", "ground"]
+    assert _apply_effects({"kind": "capture"}, {"effects": ["damping"]}, stage, print) == "-ground"
+    assert have() == ["damping"]
+
+
 def test_out_folder_not_ours_is_refused(captures, tmp_path):
     m = write_manifest(captures)
     (tmp_path / "x").write_text("mine")
@@ -158,6 +202,7 @@ def test_out_folder_not_ours_is_refused(captures, tmp_path):
     assert (tmp_path / "x").read_text() == "mine" and not (tmp_path / "items").exists()
 
 
+@pytest.mark.slow   # ~45 s alone (Ray's start ~8 s, its workers import torch and Warp afresh): the file's budget
 def test_ray_end_to_end_and_rerun(captures):
     """On a local Ray cluster the test starts (2 CPUs): one task per item, the broken one fails
     alone, a rerun reuses what is done."""
