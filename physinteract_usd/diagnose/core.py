@@ -366,6 +366,18 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
     return out
 
 
+def _refined(effect: str, cr, run: _Runner, r0: np.ndarray) -> Probe:
+    """A secant probe of a smooth effect to the value its best probe's Gauss-Newton step estimates."""
+    p = cr.probes[cr.best]
+    if effect == "damping":
+        c = float(cr.step)
+        return Probe(f"c={c:.3g}*", (run.r(effects={"damping": {"coefficient": c}}) - r0) / c, +1, {"coefficient": c})
+    a = float(cr.step)
+    e_med, tau = p.meta["modulus_per_unit"], p.meta["relaxationTime"]
+    col = (run.r(effects={"viscoelasticity": {"modulus": a * e_med, "relaxationTime": tau}}) - r0) / a
+    return Probe(f"tau={tau:.3g}s,Ev={a:.3g}E*", col, +1, {"relaxationTime": tau, "modulus_per_unit": e_med})
+
+
 def _sim_r(run: _Runner, contacts, log):
     try:
         return run.r(sim=run.sim_for(contacts=contacts))
@@ -627,6 +639,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
             log(f"{eff}: probe failed ({exc})")
             probes = []
         cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+        if eff in ("damping", "viscoelasticity") and cr.best >= 0 and cr.step > 0:
+            # the residual is far from linear in c / E_v: one more secant, to the estimate itself
+            probes.append(_refined(eff, cr, run, r0))
+            cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
         cr.relative_drop = cr.drop / L0 if L0 > 0 else 0.0
         results.append(cr)
     _forward_select(results, r0, J, blocks, nb, s, L0)
