@@ -112,3 +112,25 @@ def test_block_sign_flips_find_a_real_signal():
     # one-sided: the same signal in the forbidden direction is no evidence
     _, p1 = S.block_signflip(S.block_sums(r * u, blocks, nb), [+1], n_flips=2000)
     assert p1 > 0.5
+
+
+def test_verdicts():
+    """adequate / missing_effect / unexplained from the tested candidates, the loss and its floor."""
+    from physinteract_usd.diagnose.core import CandidateResult, Diagnosis, conclude
+
+    def cand(effect, sig, drop, accepted=None):
+        c = CandidateResult(effect, probes=[object()], drop=drop, p_value=1e-3 if sig else 0.5, significant=sig,
+                            accepted=accepted, estimate={"fix": "extract --release-frame 8"})
+        return c
+
+    d = conclude(Diagnosis("", "", [cand("damping", False, 0.0)], loss=1.1e-3, floor=1e-3))
+    assert d.verdict == "adequate" and d.to_dict()["candidates"] == []
+    d = conclude(Diagnosis("", "", [cand("damping", False, 0.0)], loss=5e-3, floor=1e-3))
+    assert d.verdict == "unexplained" and "5.0x" in d.reason
+    d = conclude(Diagnosis("", "", [cand("damping", True, 2e-3, True), cand("ground", False, 0.0)], 5e-3, 1e-3))
+    assert d.verdict == "missing_effect" and d.reason.startswith("damping explains ~40%")
+    assert [c["effect"] for c in d.to_dict()["candidates"]] == ["damping"]
+    d = conclude(Diagnosis("", "", [cand("damping", True, 2e-3, False)], 5e-3, 1e-3))
+    assert d.verdict == "unexplained" and "held-back" in d.reason
+    d = conclude(Diagnosis("", "", [cand("interaction:timing", True, 4e-3, True)], 5e-3, 1e-3))
+    assert d.verdict == "missing_effect" and "extract --release-frame 8" in d.reason
