@@ -60,13 +60,24 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
         started_here = True
     remote = ray.remote(fn)
     refs: dict = {}
+    # Ray does not say cheaply which tasks run and which wait: the first ones, as many as the
+    # cluster has CPUs, are reported as started, then one more as each ends (Ray runs tasks of one
+    # shape roughly in submission order)
+    try:
+        slots = max(1, int(ray.cluster_resources().get("CPU", 1)))
+    except Exception:  # noqa: BLE001
+        slots = 1
+    waiting: list[str] = []
     try:
         with stopping.graceful():
             for name, payload in tasks:
                 ref = remote.options(num_cpus=1, num_gpus=float(gpus(payload)), max_retries=int(retries),
                                      name=f"physinteract-batch:{name}").remote(payload)
                 refs[ref] = name
-                events.started(name)
+                if len(refs) <= slots:
+                    events.started(name)
+                else:
+                    waiting.append(name)
             stop_at = None
             while refs:
                 if stopping.requested() is not None and stop_at is None:
@@ -79,6 +90,10 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
                 events.tick()
                 for ref in ready:
                     name = refs.pop(ref)
+                    if name in waiting:          # ended before it was reported as started
+                        waiting.remove(name)
+                    elif waiting:
+                        events.started(waiting.pop(0))
                     try:
                         record = ray.get(ref)
                     except ray.exceptions.TaskCancelledError:
