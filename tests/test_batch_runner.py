@@ -222,3 +222,22 @@ def test_ray_missing_says_how_to_install(tmp_path, monkeypatch):
         from physinteract_usd.batch.ray_runner import import_ray
 
         import_ray()
+
+
+def test_ray_runner_failures_and_dying_workers():
+    """One Ray task per item on a local 2-CPU cluster: an exception is the item's one-line error, a
+    worker that dies is retried (max_retries) and then failed, the rest go on."""
+    ray = pytest.importorskip("ray", reason="Ray is an optional extra: pip install physinteract-usd[ray]")
+    from physinteract_usd.batch.ray_runner import run_ray
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])   # Ray's workers do not see tests/
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        ev = Rec()
+        run_ray([("ok", {"do": "ok"}), ("raises", {"do": "raise"}), ("dies", {"do": "die"})], fake_item,
+                address=None, events=ev, retries=1)
+        ends = ev.ends()
+        assert ends["ok"] == ("done",) and ends["raises"] == ("RuntimeError: boom",)
+        assert "worker died" in ends["dies"][0] and "tried 2 times" in ends["dies"][0]
+    finally:
+        ray.shutdown()

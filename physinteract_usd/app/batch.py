@@ -142,6 +142,36 @@ def _json_default(o):
     return str(o)
 
 
+class _StopWatcher:
+    """On Ray, the driver asks running items to stop by creating a stop file beside the outputs
+    (a signal cannot reach a task, and Ray's own cancel interrupts it wherever it stands): while
+    the file exists a thread asks this process's run to stop, as a signal would (`stopping`), so
+    a fit writes its best iterate; the steps check `seen` between them."""
+
+    def __init__(self, path):
+        import threading
+
+        self.path, self.seen = path, bool(path) and os.path.exists(path)
+        self._done = threading.Event()
+        if path:
+            threading.Thread(target=self._watch, daemon=True).start()
+
+    def _watch(self):
+        from .. import stopping
+
+        while not self._done.wait(0.5):
+            if os.path.exists(self.path):
+                self.seen = True
+                stopping.request("SIGTERM")   # again after a fit's graceful() starts afresh
+
+    def close(self):
+        from .. import stopping
+
+        self._done.set()
+        if self.seen:   # a reused worker process must not carry the request into its next item
+            stopping._STATE.reset()
+
+
 def run_item(p: dict) -> dict:
     """Run one item's steps from `p["start"]` (the earlier ones are reused); returns its record.
     Never raises for the item's own failures: they are the record's one-line `error`."""
@@ -167,11 +197,14 @@ def run_item(p: dict) -> dict:
     log(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} batch item {p['name']} ({kind} {source}), from step {p['start']}")
     start = STEPS.index(p["start"])
     step = STEPS[0]
+    watcher = _StopWatcher(p.get("stop_file"))
     try:
         from ..devices import quiet_warp_init
 
         quiet_warp_init(device)
         for i, step in enumerate(STEPS):
+            if watcher.seen:
+                raise KeyboardInterrupt("stop requested")
             if i < start:
                 rec["steps"][step] = {"status": "reused"}
                 continue
@@ -195,6 +228,8 @@ def run_item(p: dict) -> dict:
     except Exception as exc:  # noqa: BLE001  (one item's failure is its record, whatever it is)
         rec["error"] = f"{step}: {_first_line(exc)}"
         log(traceback.format_exc())
+    finally:
+        watcher.close()
     if step is not None:
         rec["failed_step"] = step
         rec["steps"].setdefault(step, {"status": "interrupted" if rec["status"] == "interrupted" else "failed"})
@@ -452,6 +487,7 @@ class _Progress(Events):
 
     def _record(self, name: str, rec: dict) -> None:
         plan = self.plans[name]
+        plan.work.mkdir(parents=True, exist_ok=True)
         atomic_write_text(plan.work / RECORD, json.dumps(rec, indent=1, default=_json_default))
         self.result.records[name] = rec
         self.running.discard(name)
@@ -589,8 +625,11 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
             if ray is not None:
                 from ..batch.ray_runner import run_ray
 
+                stop_file = out / f".stop-{os.getpid()}-{int(time.time())}"
+                for _, pl in tasks:
+                    pl["stop_file"] = str(stop_file)
                 result.not_started = run_ray(
-                    tasks, run_item, address=ray or None, events=ev, retries=int(retries),
+                    tasks, run_item, address=ray or None, events=ev, retries=int(retries), stop_file=stop_file,
                     gpus=lambda pl: float(gpus_per_item) if str(pl["settings"].get("device") or "cpu").startswith("cuda")
                     else 0.0)
             else:

@@ -10,9 +10,11 @@ and reports through `events` like the process pool (`runner.Events`).
 Every node must see the manifest's paths and the output folder at the same place (a shared file
 system) and have physinteract-usd installed (or pass a runtime_env when joining the cluster).
 
-Stopping: the first SIGINT / SIGTERM cancels the items not started and asks the running ones to
-stop (`ray.cancel`, a KeyboardInterrupt in the task: a fit keeps its best iterate); they come back
-"interrupted". A second signal force-cancels them (their workers are killed) and returns.
+Stopping: the first SIGINT / SIGTERM cancels the items not started and creates `stop_file`, which
+the running tasks watch (a signal cannot reach a task; Ray's own cancel raises KeyboardInterrupt
+wherever the task stands): a fit there writes its best iterate and the item comes back
+"interrupted". A second signal, or `grace_s` without an end, force-cancels them (their workers
+are killed) and returns.
 
 Layer 2: the standard library and `stopping`; `ray` is imported here only (an optional extra).
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 from .. import stopping
 from ..errors import InputError
@@ -38,16 +41,18 @@ def import_ray():
     return ray
 
 
-def _describe(exc: BaseException) -> str:
+def _describe(exc: BaseException, first: bool = False) -> str:
+    """One line: the exception's first line (its own), or the last (Ray's wrappers end with it)."""
     text = [ln for ln in str(exc).strip().splitlines() if ln.strip()]
-    last = text[-1].strip() if text else ""
-    return f"{type(exc).__name__}: {last}" if last else type(exc).__name__
+    line = (text[0] if first else text[-1]).strip() if text else ""
+    return f"{type(exc).__name__}: {line}" if line else type(exc).__name__
 
 
 def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda payload: 0.0, retries: int = 2,
-            poll_s: float = 0.25, grace_s: float = 60.0) -> list[str]:
+            stop_file=None, poll_s: float = 0.25, grace_s: float = 60.0) -> list[str]:
     """Run `fn(payload)` for each `(name, payload)` of `tasks` as Ray tasks; returns the names
-    never started (a stop came first)."""
+    never started (a stop came first). `stop_file`: created on the first stop (the tasks watch it
+    and stop cleanly; without one, running tasks get Ray's cancel), removed at the end."""
     ray = import_ray()
     started_here = False
     if not ray.is_initialized():
@@ -68,6 +73,8 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
     except Exception:  # noqa: BLE001
         slots = 1
     waiting: list[str] = []
+    dropped: set[str] = set()       # waiting when the stop came: cancelled before they ran
+    not_started: list[str] = []
     try:
         with stopping.graceful():
             for name, payload in tasks:
@@ -82,8 +89,12 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
             while refs:
                 if stopping.requested() is not None and stop_at is None:
                     stop_at = time.monotonic()
-                    for ref in refs:
-                        ray.cancel(ref, force=False)
+                    if stop_file is not None:
+                        Path(stop_file).touch()
+                    for ref, name in refs.items():   # the waiting ones are dropped; running ones stop
+                        if stop_file is None or name in waiting:
+                            ray.cancel(ref, force=False)
+                    dropped = set(waiting)
                 if stop_at is not None and time.monotonic() - stop_at > grace_s:
                     raise KeyboardInterrupt
                 ready, _ = ray.wait(list(refs), num_returns=1, timeout=poll_s)
@@ -97,15 +108,20 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
                     try:
                         record = ray.get(ref)
                     except ray.exceptions.TaskCancelledError:
-                        events.interrupted(name)
+                        if name in dropped:
+                            not_started.append(name)
+                        else:
+                            events.interrupted(name)
                     except (ray.exceptions.WorkerCrashedError, ray.exceptions.NodeDiedError) as exc:
                         events.failed(name, f"its Ray worker died ({type(exc).__name__}); tried {int(retries) + 1} times")
                     except ray.exceptions.RayTaskError as exc:
                         cause = getattr(exc, "cause", None)
                         if isinstance(cause, KeyboardInterrupt):
                             events.interrupted(name)
+                        elif isinstance(cause, BaseException):
+                            events.failed(name, _describe(cause, first=True))
                         else:
-                            events.failed(name, _describe(cause if isinstance(cause, BaseException) else exc))
+                            events.failed(name, _describe(exc))
                     except Exception as exc:  # noqa: BLE001  (object lost, out of memory, ...)
                         events.failed(name, _describe(exc))
                     else:
@@ -116,6 +132,8 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
             events.interrupted(name)
         refs.clear()
     finally:
+        if stop_file is not None:
+            Path(stop_file).unlink(missing_ok=True)
         if started_here:
             ray.shutdown()
-    return []
+    return not_started
