@@ -6,8 +6,8 @@ the regions' log E, the trajectory and the effect's log-parametrised parameters,
 held-back frames left out), warm-started at the fitted field and trajectory and at the probe's
 value of the effect. A non-physical cause is judged on its probe taken for real (the changed
 timing, contact, grasp or support, with the base parameters re-adjusted by their linear step).
-Both report the drop of the diagnosis's loss (`residual.loss`) on all frames and on the held-back
-ones."""
+Both report the drop of the diagnosis's loss (`residual.loss`) on all frames beyond what the base
+parameters' own (linear) step gives, as the prediction is, and judge it on the held-back frames."""
 
 from __future__ import annotations
 
@@ -96,11 +96,16 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
         cr.accepted = False
         return None
     m = _frame_mask(res, val) if val else np.ones(len(r0), bool)
-    cr.realized_loss_drop = loss(r0) - loss(r1)
+    # the drop beyond what the base parameters alone would give (their linear step), as predicted
+    J = diag._J
+    a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
+    b0 = r0 + J @ a0
+    cr.realized_loss_drop = loss(b0) - loss(r1)
     v0, v1 = loss(r0[m]), loss(r1[m])
     cr.accepted = bool(v1 < v0)
     cr.estimate = {**eff.get(cr.effect, {})}
-    cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {v0:.3e} -> {v1:.3e}"
+    cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {v0:.3e} -> {v1:.3e}; "
+               f"loss {loss(r0):.3e} -> {loss(r1):.3e} ({loss(b0):.3e} with the base's own step alone)"
                + ("" if cr.accepted else ": not accepted"))
     return {"E": lad.mat.youngs().detach(), "nu": lad.mat.poisson().detach(),
             "trajectories": [t.detach() for t in lad.trajs], "effects": eff}
