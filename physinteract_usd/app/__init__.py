@@ -11,6 +11,7 @@ load one verb without the others.)
     evaluate.py  evaluate        a fit against synthetic ground truth
     export.py    export          a self-contained asset
     synth.py     synth           a synthetic capture
+    batch.py     batch           init -> ... -> export over a manifest (pool or Ray: physinteract_usd.batch)
     adapters.py  the stage -> the core's inputs (observations, contacts, effects)
 
 Where new code goes: a new verb is a new module here (its whole story: what it reads, what it

@@ -458,6 +458,14 @@ def _read_record(work: Path) -> dict | None:
     return r if isinstance(r, dict) else None
 
 
+def _cores() -> int:
+    """The CPU cores this process may use (its affinity: a container's share, not the host's)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
 class _Progress(Events):
     def __init__(self, result: BatchResult, plans: dict, total: int, progress: bool, log, write_summary):
         self.result, self.plans, self.log, self.write_summary = result, plans, log, write_summary
@@ -634,7 +642,7 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
                     else 0.0)
             else:
                 uses_cuda = any(str(pl["settings"].get("device") or "cpu").startswith("cuda") for _, pl in tasks)
-                n = int(workers) if workers is not None else (1 if uses_cuda else max(1, os.cpu_count() or 1))
+                n = int(workers) if workers is not None else (1 if uses_cuda else _cores())
                 result.not_started = run_pool(tasks, run_item, workers=min(n, len(tasks)), events=ev,
                                               retries=int(retries))
     finally:
