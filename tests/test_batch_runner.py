@@ -215,6 +215,7 @@ def test_ray_missing_says_how_to_install(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)   # import ray -> ImportError
     m = tmp_path / "m.csv"
     m.write_text("source\na\n")
+    assert main(["batch", str(m), "--ray", "--workers", "2"]) == 2   # the pool's size means nothing on Ray
     code = main(["batch", str(m), "--ray"])
     assert code == 2
     assert not (tmp_path / "m.batch").exists()      # refused before anything was written

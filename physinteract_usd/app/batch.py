@@ -558,6 +558,9 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
     items = load_manifest(manifest)
     if workers is not None and (isinstance(workers, bool) or int(workers) < 1):
         raise InputError("--workers", f"must be at least 1, got {workers}")
+    if ray is not None and workers is not None:
+        raise InputError("--workers", "is the local pool's size: with --ray the cluster's CPUs and GPUs decide "
+                         "how many items run at once")
     if retries is None or int(retries) < 0:
         raise InputError("--retries", f"must be >= 0, got {retries}")
     if not (float(gpus_per_item) > 0):
