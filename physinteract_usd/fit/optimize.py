@@ -104,30 +104,57 @@ def _seed(s):
     np.random.seed(s)
 
 
-def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None, with_loss: bool = False):
+def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None, with_loss: bool = False,
+                          skipped: list | None = None):
     """Golden-section search of the reconstruction loss over a uniform log E (no gradients): the
-    best E (and, `with_loss`, its loss)."""
+    best E (and, `with_loss`, its loss). A probe whose simulation goes unstable or leaves the grid
+    (or whose loss is not finite) is reported (`log`; its E appended to `skipped`) and skipped: the
+    search moves away from it and it is never the answer. Where the search meets nothing finite, a
+    sweep over the range looks for a finite probe before giving up with a SimulationError."""
     lo, hi = mat.lo, mat.hi
     g = (math.sqrt(5) - 1) / 2
     cache = {}
 
     def f(le):
+        if le in cache:
+            return cache[le]
         E = torch.full((len(mat.points),), math.exp(le), dtype=mat.dtype, device=mat.device)
+        why = ""
         with torch.no_grad():
             try:
                 v = float(prob.loss(E, mat.poisson().detach())["rec"])
-            except SimulationError:
-                v = float("inf")
-        cache[le] = v
-        if log:
+                if not math.isfinite(v):
+                    why = f"loss {v}"
+            except SimulationError as exc:
+                v, why = float("inf"), exc.kind or "unstable"
+        if why:
+            v = float("inf")
+            if skipped is not None:
+                skipped.append(math.exp(le))
+            if log:
+                log(f"uniform E {math.exp(le):.4g} Pa: the simulation went unstable or left the grid ({why}): skipped")
+        elif log:
             log(f"uniform E {math.exp(le):.4g} Pa: loss {v:.5f}")
+        cache[le] = v
         return v
 
     a, b = lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo)
     c, d = b - g * (b - a), a + g * (b - a)
     fc, fd = f(c), f(d)
+    if not (math.isfinite(fc) or math.isfinite(fd)):
+        # both first probes failed: a coarse sweep finds where the simulation holds, the search
+        # continues around the best finite probe
+        for le in np.linspace(a, b, 5):
+            f(float(le))
+        fin = [k for k in cache if math.isfinite(cache[k])]
+        if fin:
+            k = min(fin, key=cache.get)
+            step = (b - a) / 4
+            a, b = max(a, k - step), min(b, k + step)
+            c, d = b - g * (b - a), a + g * (b - a)
+            fc, fd = f(c), f(d)
     for _ in range(max(evals - 2, 0)):
-        if fc < fd:
+        if fc < fd or (math.isfinite(fc) and not math.isfinite(fd)):
             b, d, fd = d, c, fc
             c = b - g * (b - a)
             fc = f(c)
@@ -135,7 +162,13 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
             a, c, fc = c, d, fd
             d = a + g * (b - a)
             fd = f(d)
-    best = min(cache, key=cache.get)
+    fin = [k for k in cache if math.isfinite(cache[k])]
+    if not fin:
+        raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
+                              advice="check the contacts (extract) and the Young's modulus range (init "
+                                     "--youngs-range); a wider grid padding (init --padding) if the object "
+                                     "leaves the domain")
+    best = min(fin, key=cache.get)
     return (math.exp(best), cache[best]) if with_loss else math.exp(best)
 
 
@@ -179,7 +212,10 @@ def select_supports(make_problem, contacts: list, x0: np.ndarray, spacing: float
             if cs is None:
                 break
             p = make_problem(cs)
-            e, loss = uniform_loss(p, settings.search_evals)
+            try:
+                e, loss = uniform_loss(p, settings.search_evals)
+            except SimulationError:  # unstable at every uniform E with these supports: not taken
+                e, loss = float("nan"), float("inf")
             label = f"{step} layer{'s' if step > 1 else ''} {direction}"
             tried.append((label, held(cs), loss))
             if log:
@@ -208,6 +244,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
     trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
     levels, shares = tuple(int(k) for k in s.levels), tuple(s.level_share)
+    start_skipped: list = []
     if start is not None:
         # resume where the last fit ended: on the finest basis (a coarse one would flatten the
         # field it left), all iterations there
@@ -221,7 +258,11 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                                            device=prob.tdev).requires_grad_(s.joint)
         e_uniform = float(np.exp(np.mean(np.log(start["youngs"]))))
     else:
-        e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log)
+        skipped: list = []
+        e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log,
+                                                                                  skipped=skipped)
+        if skipped:
+            start_skipped = sorted(skipped)
         mat.set_uniform(e_uniform)
     # the effects the stage asks to fit (a warm start: from the previous version's values)
     eff_raw = effect_parameters(prob, s.fit_effects, (start or {}).get("effects"))
@@ -358,6 +399,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now())
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
+    if start_skipped:
+        model["uniform_skipped"] = start_skipped  # start-search probes that went unstable / left the grid
     return assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, feats, history, final_loss, t0,
                            interrupted, e_uniform, model=model,
                            effect_parameters=fitted_values(eff_raw, prob.traj_scale) if eff_raw else {})
