@@ -242,3 +242,22 @@ def test_ray_runner_failures_and_dying_workers():
         assert "worker died" in ends["dies"][0] and "tried 2 times" in ends["dies"][0]
     finally:
         ray.shutdown()
+
+
+def test_one_batch_at_a_time_per_output_folder(tmp_path):
+    """A live batch's lock refuses a second one on the same folder; a dead one's lock is taken over."""
+    from physinteract_usd import api
+    from physinteract_usd.app.batch import MARKER, _acquire_lock
+
+    m = tmp_path / "m.csv"
+    m.write_text("source\nmissing\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / MARKER).write_text("{}")
+    (out / ".lock").write_text(str(os.getpid()))            # a live process holds it
+    with pytest.raises(InputError, match="another batch"):
+        api.batch(m, out=out, workers=1, progress=False, log=lambda *a: None)
+    assert (out / ".lock").read_text() == str(os.getpid())   # left as it was
+    (out / ".lock").write_text("999999999")                  # a process that is gone
+    lock = _acquire_lock(out)
+    assert lock.read_text() == str(os.getpid())

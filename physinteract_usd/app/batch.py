@@ -450,6 +450,29 @@ def _prepare_out(out: Path, manifest: Path) -> None:
                                                 "manifest": str(manifest.resolve())}, indent=1))
 
 
+def _acquire_lock(out: Path) -> Path:
+    """OUT/.lock holding this process's id; InputError while another live `batch` holds it."""
+    lock = out / ".lock"
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or 0)
+                os.kill(pid, 0)
+            except (ValueError, ProcessLookupError, FileNotFoundError):
+                lock.unlink(missing_ok=True)      # left by a batch that is gone
+                continue
+            except PermissionError:
+                pass
+            raise InputError(out, f"another batch (process {pid}) is writing this folder; wait for it or "
+                             "choose another --out") from None
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        return lock
+    raise InputError(lock, "cannot take the output folder's lock")
+
+
 def _read_record(work: Path) -> dict | None:
     try:
         r = json.loads((work / RECORD).read_text())
@@ -585,83 +608,87 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
             check_device(d)
     out = Path(out) if out is not None else manifest.with_name(f"{manifest.stem}.batch")
     _prepare_out(out, manifest)
-    diag = diagnose_function() is not None
-    result = BatchResult(out=out)
-    plans: dict[str, _Plan] = {}
-    for it in items:
-        s = resolve_settings(it, defaults)
-        s["diagnose_available"] = diag
-        work = out / "items" / it.name
-        prev = _read_record(work)
-        if work.exists() and prev is None and any(work.iterdir()):
-            raise InputError(work, "exists and holds no batch record: not written by `batch`; move it away")
-        keys = step_keys(s, fingerprint(it.source, it.kind), __version__)
-        start = "init" if force or prev is None else first_stale_step(prev.get("keys"), keys)
-        if start is None and prev.get("status") != "done":
-            start = "init"
-        plans[it.name] = _Plan(it, work, s, keys, prev, start)
-    for name, plan in plans.items():
-        if plan.start is None:
-            result.records[name] = plan.previous
-            result.reused.append(name)
-    paths = {"summary_csv": out / "summary.csv", "summary_html": out / "summary.html",
-             "catalogue": out / "catalogue.usda"}
-
-    def ordered():
-        return [result.records[n] if n in result.records else
-                {"name": n, "source": str(plans[n].item.source), "status": "not run", "error": None}
-                for n in plans]
-
-    def write_summary():
-        recs = []
-        for r in ordered():
-            r = dict(r)
-            if r["name"] in result.reused:
-                r["status"] = "reused"
-            recs.append(r)
-        totals = {"items": len(plans), "ran": len(result.ran), "reused": len(result.reused),
-                  "failed": len(result.failed), "interrupted": len(result.interrupted)}
-        write_csv(paths["summary_csv"], recs, out)
-        write_html(paths["summary_html"], recs, out, title=f"physinteract-usd batch: {manifest.name}", totals=totals)
-
-    tasks = [(name, {"name": name, "source": str(pl.item.source), "kind": pl.item.kind, "work": str(pl.work),
-                     "settings": pl.settings, "keys": pl.keys, "start": pl.start, "previous": pl.previous})
-             for name, pl in plans.items() if pl.start is not None]
-    if result.reused:
-        log(f"{len(result.reused)} of {len(plans)} items done earlier with the same inputs and settings: reused "
-            f"({', '.join(result.reused[:5])}{', ...' if len(result.reused) > 5 else ''})")
-    ev = _Progress(result, plans, len(tasks), progress, log, write_summary)
+    lock = _acquire_lock(out)
     try:
-        if tasks:
-            if ray is not None:
-                from ..batch.ray_runner import run_ray
+        diag = diagnose_function() is not None
+        result = BatchResult(out=out)
+        plans: dict[str, _Plan] = {}
+        for it in items:
+            s = resolve_settings(it, defaults)
+            s["diagnose_available"] = diag
+            work = out / "items" / it.name
+            prev = _read_record(work)
+            if work.exists() and prev is None and any(work.iterdir()):
+                raise InputError(work, "exists and holds no batch record: not written by `batch`; move it away")
+            keys = step_keys(s, fingerprint(it.source, it.kind), __version__)
+            start = "init" if force or prev is None else first_stale_step(prev.get("keys"), keys)
+            if start is None and prev.get("status") != "done":
+                start = "init"
+            plans[it.name] = _Plan(it, work, s, keys, prev, start)
+        for name, plan in plans.items():
+            if plan.start is None:
+                result.records[name] = plan.previous
+                result.reused.append(name)
+        paths = {"summary_csv": out / "summary.csv", "summary_html": out / "summary.html",
+                 "catalogue": out / "catalogue.usda"}
 
-                stop_file = out / f".stop-{os.getpid()}-{int(time.time())}"
-                for _, pl in tasks:
-                    pl["stop_file"] = str(stop_file)
-                result.not_started = run_ray(
-                    tasks, run_item, address=ray or None, events=ev, retries=int(retries), stop_file=stop_file,
-                    gpus=lambda pl: float(gpus_per_item) if str(pl["settings"].get("device") or "cpu").startswith("cuda")
-                    else 0.0)
-            else:
-                uses_cuda = any(str(pl["settings"].get("device") or "cpu").startswith("cuda") for _, pl in tasks)
-                n = int(workers) if workers is not None else (1 if uses_cuda else _cores())
-                result.not_started = run_pool(tasks, run_item, workers=min(n, len(tasks)), events=ev,
-                                              retries=int(retries))
+        def ordered():
+            return [result.records[n] if n in result.records else
+                    {"name": n, "source": str(plans[n].item.source), "status": "not run", "error": None}
+                    for n in plans]
+
+        def write_summary():
+            recs = []
+            for r in ordered():
+                r = dict(r)
+                if r["name"] in result.reused:
+                    r["status"] = "reused"
+                recs.append(r)
+            totals = {"items": len(plans), "ran": len(result.ran), "reused": len(result.reused),
+                      "failed": len(result.failed), "interrupted": len(result.interrupted)}
+            write_csv(paths["summary_csv"], recs, out)
+            write_html(paths["summary_html"], recs, out, title=f"physinteract-usd batch: {manifest.name}", totals=totals)
+
+        tasks = [(name, {"name": name, "source": str(pl.item.source), "kind": pl.item.kind, "work": str(pl.work),
+                         "settings": pl.settings, "keys": pl.keys, "start": pl.start, "previous": pl.previous})
+                 for name, pl in plans.items() if pl.start is not None]
+        if result.reused:
+            log(f"{len(result.reused)} of {len(plans)} items done earlier with the same inputs and settings: reused "
+                f"({', '.join(result.reused[:5])}{', ...' if len(result.reused) > 5 else ''})")
+        ev = _Progress(result, plans, len(tasks), progress, log, write_summary)
+        try:
+            if tasks:
+                if ray is not None:
+                    from ..batch.ray_runner import run_ray
+
+                    stop_file = out / f".stop-{os.getpid()}-{int(time.time())}"
+                    for _, pl in tasks:
+                        pl["stop_file"] = str(stop_file)
+                    result.not_started = run_ray(
+                        tasks, run_item, address=ray or None, events=ev, retries=int(retries), stop_file=stop_file,
+                        gpus=lambda pl: float(gpus_per_item) if str(pl["settings"].get("device") or "cpu").startswith("cuda")
+                        else 0.0)
+                else:
+                    uses_cuda = any(str(pl["settings"].get("device") or "cpu").startswith("cuda") for _, pl in tasks)
+                    n = int(workers) if workers is not None else (1 if uses_cuda else _cores())
+                    result.not_started = run_pool(tasks, run_item, workers=min(n, len(tasks)), events=ev,
+                                                  retries=int(retries))
+        finally:
+            ev.close()
+            write_summary()
+            from ..usd.catalogue import write_catalogue
+
+            entries = []
+            for r in ordered():
+                if r.get("status") == "done" and (r.get("outputs") or {}).get("asset"):
+                    m = r.get("metrics") or {}
+                    data = {k: m[k] for k in ("version", "psnr", "psnr_masked", "ssim", "iou", "verdict", "diagnosis",
+                                              "top_candidate", "youngs_median_pa") if m.get(k) not in (None, "")}
+                    data["source"] = str(r.get("source", ""))
+                    entries.append({"name": r["name"], "asset": r["outputs"]["asset"], "data": data})
+            write_catalogue(paths["catalogue"], entries)
     finally:
-        ev.close()
-        write_summary()
-        from ..usd.catalogue import write_catalogue
-
-        entries = []
-        for r in ordered():
-            if r.get("status") == "done" and (r.get("outputs") or {}).get("asset"):
-                m = r.get("metrics") or {}
-                data = {k: m[k] for k in ("version", "psnr", "psnr_masked", "ssim", "iou", "verdict", "diagnosis",
-                                          "top_candidate", "youngs_median_pa") if m.get(k) not in (None, "")}
-                data["source"] = str(r.get("source", ""))
-                entries.append({"name": r["name"], "asset": r["outputs"]["asset"], "data": data})
-        write_catalogue(paths["catalogue"], entries)
+        lock.unlink(missing_ok=True)
     result.records = {n: result.records[n] for n in plans if n in result.records}
     result.outputs = {k: str(v) for k, v in paths.items()}
     result.seconds = time.perf_counter() - t0
