@@ -1,0 +1,151 @@
+"""Does the fitted interaction look wrong? A check `fit` prints at the end (#23).
+
+A material field cannot make up for an interaction that is wrong: a grasp that starts too early or
+too late, a release at the wrong frame, a contact in the wrong place. What is left of such an error
+after the fit is a residual where the interaction is wrong: at the frames around the grasp or the
+release (the model moves while the video does not, or the other way round) or at the contact (the
+model pulls the object from another place). `check_interaction` reads the fitted model's per-pixel
+residual for those two signatures and says what to try: `extract --grasp-frame K`,
+`--release-frame K` or `--hint-pixel K,U,V`. It only points: the residual of a good fit is largest
+somewhere too, so a peak counts only when it stands well above the rest (`peak_ratio`,
+`contact_ratio`).
+
+`residual_maps` renders the fit (no USD here) and `check_fit` joins the two for `app/fit.py`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+PEAK_RATIO = 1.6       # a frame's residual at least this many times the median frame's
+NEAR = 2               # frames either side of the grasp / release that count as "around" it
+CONTACT_RATIO = 3.0    # the contact disk's share of the residual over its share of the pixels
+CONTACT_SHARE = 0.2    # ... and at least this share of the residual over the contact frames
+MIN_RESIDUAL = 1e-4    # mean squared error per pixel (of [0, 1] RGB) below which nothing is "wrong"
+
+
+def check_interaction(residual: np.ndarray, region: np.ndarray, grasp: int, release: int | None, *,
+                      contact_uv: np.ndarray | None = None, radius_px: float = 0.0, kind: str = "hand") -> dict:
+    """`residual` (T, H, W): the fitted model's squared colour error per pixel; `region` (T, H, W)
+    bool: where it counts (the model's and the video's silhouettes, the hand left out). `grasp`,
+    `release`: the interaction's frames (release None: held to the end); `contact_uv` (T, 2): the
+    contact's pixel per frame, `radius_px` the disk around it that is "at the contact".
+
+    Returns {"frame_residual": per frame (nan where no region), "peak_frame", "suspect": a subset of
+    ("grasp", "release", "contact"), "notes": one plain sentence per suspect, naming the override}."""
+    residual = np.asarray(residual, np.float64)
+    region = np.asarray(region, bool)
+    T = len(residual)
+    per = np.full(T, np.nan)
+    for k in range(1, T):   # frame 0 is the rest pose: no interaction yet
+        if region[k].any():
+            per[k] = float(residual[k][region[k]].mean())
+    out = {"frame_residual": per.tolist(), "peak_frame": None, "suspect": [], "notes": []}
+    fin = np.isfinite(per)
+    if fin.sum() < 4:
+        return out
+    p = int(np.nanargmax(per))
+    med = float(np.nanmedian(per))
+    out["peak_frame"] = p
+    peaked = per[p] >= PEAK_RATIO * med and per[p] >= MIN_RESIDUAL
+    if peaked:
+        which = []
+        if abs(p - grasp) <= NEAR:
+            which.append("grasp")
+        if release is not None and abs(p - release) <= NEAR:
+            which.append("release")
+        for w in which:
+            k = grasp if w == "grasp" else release
+            flag = "--grasp-frame" if w == "grasp" else "--release-frame"
+            what = "takes hold of" if w == "grasp" else "lets go of"
+            out["suspect"].append(w)
+            out["notes"].append(
+                f"the interaction may be wrong: the fit's residual is largest at frame {p} "
+                f"({per[p] / med:.1f}x the median frame's), next to the {w} at frame {k}; check in the "
+                f"preview when the {kind} {what} the object and give it: extract {flag} K")
+    if contact_uv is not None and radius_px > 0:
+        last = T - 1 if release is None else min(int(release), T - 1)
+        ks = [k for k in range(max(grasp, 1), last + 1) if fin[k]]
+        share, area = [], []
+        H, W = residual.shape[1:]
+        yy, xx = np.mgrid[0:H, 0:W]
+        for k in ks:
+            u, v = contact_uv[k]
+            if not (np.isfinite(u) and np.isfinite(v)):
+                continue
+            disk = ((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2 <= radius_px ** 2) & region[k]
+            tot = residual[k][region[k]].sum()
+            if tot <= 0 or not disk.any():
+                continue
+            share.append(residual[k][disk].sum() / tot)
+            area.append(disk.sum() / region[k].sum())
+        if share:
+            s, a = float(np.mean(share)), float(np.mean(area))
+            out["contact_share"], out["contact_area_share"] = s, a
+            if s >= CONTACT_SHARE and s >= CONTACT_RATIO * a and med >= MIN_RESIDUAL:
+                k0 = max(grasp, 0)
+                out["suspect"].append("contact")
+                out["notes"].append(
+                    f"the contact may be in the wrong place: {100 * s:.0f}% of the fit's residual while the "
+                    f"{kind} holds the object lies within {radius_px:.0f} px of the contact ({100 * a:.0f}% of "
+                    f"the object's pixels); check the preview and give the pixel where it touches: extract "
+                    f"--hint-pixel {k0},U,V")
+    return out
+
+
+def residual_maps(prob, result) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted model rendered at every frame against the video: (residual (T, H, W) squared
+    colour error per pixel, region (T, H, W) the two silhouettes' union without the hand's pixels).
+    `prob` a FitProblem, `result` its FitResult."""
+    import torch
+
+    from ..render import render
+
+    obs = prob.obs
+    T = len(obs.frames)
+    res, reg = [], []
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
+    for k in range(T):
+        with torch.no_grad():
+            out = render(t(result.gaussian_means[k]), t(result.gaussian_covs[k]), prob.colors, prob.opacities,
+                         prob.cameras[k], background=prob.background)
+        rgb = out["rgb"].detach().cpu().numpy().astype(np.float64)
+        sil = out["alpha"].detach().cpu().numpy() > 0.5
+        true = np.asarray(obs.frames[k], np.float64)
+        r = ((rgb - true) ** 2).mean(-1)
+        m = sil | (obs.masks[k] if obs.masks is not None else sil)
+        if obs.hand_masks is not None:
+            m = m & ~obs.hand_masks[k]
+        res.append(r)
+        reg.append(m)
+    return np.stack(res), np.stack(reg)
+
+
+def check_fit(prob, result, contacts) -> dict | None:
+    """`check_interaction` on a finished fit: the first interaction contact's frames, its fitted
+    trajectory projected as the contact's pixel, a disk of its grasp size (at least 3 px). None
+    when the fit has no interaction contact."""
+    inter = [c for c in contacts if c.type != "fixed"]
+    if not inter:
+        return None
+    c = inter[0]
+    res, reg = residual_maps(prob, result)
+    T = len(res)
+    traj = result.trajectories.get(c.name)
+    if traj is None:
+        traj = c.trajectory
+    uv, rad = None, 0.0
+    if traj is not None and len(traj) == T:
+        cams = prob.cameras
+        uv = np.stack([cams[k].project(np.asarray(traj[k], float)[None])[0][0] for k in range(T)])
+        # the contact's size: its held particles' spread (a collider: its radius), at least 3 px
+        x0 = np.asarray(prob.x0.detach().cpu().numpy() if hasattr(prob.x0, "detach") else prob.x0, float)
+        size = c.radius if c.type != "pointAdherent" or not len(c.indices) else \
+            float(np.linalg.norm(x0[c.indices] - x0[c.indices].mean(0), axis=1).max())
+        g = max(min(int(c.grasp_frame), T - 1), 0)
+        z = cams[g].world_to_camera(np.asarray(traj[g], float)[None])[0, 2]
+        rad = max(3.0, 1.5 * cams[g].fx * max(size, 0.01) / max(z, 1e-6))
+    kind = {"pointAdherent": "hand", "pointNonAdherent": "fingertip", "surfaceNonAdherent": "palm"}.get(c.type, "hand")
+    out = check_interaction(res, reg, int(c.grasp_frame), c.release_frame, contact_uv=uv, radius_px=rad, kind=kind)
+    out["contact"] = c.name
+    return out

@@ -1,0 +1,82 @@
+"""The check `fit` prints at the end (fit/interaction_check.py): a residual that peaks around the
+grasp or the release frame, or that sits at the contact, is said, with the override that fixes it;
+a residual spread evenly over frames and pixels is not."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from physinteract_usd.fit.interaction_check import check_interaction
+
+T, H, W = 24, 40, 60
+
+
+def _base(seed=0):
+    rng = np.random.default_rng(seed)
+    res = 0.002 * (1 + 0.2 * rng.random((T, H, W)))
+    reg = np.zeros((T, H, W), bool)
+    reg[:, 10:30, 10:50] = True
+    return res, reg
+
+
+def test_an_even_residual_is_not_a_wrong_interaction():
+    res, reg = _base()
+    res *= np.linspace(1, 1.4, T)[:, None, None]      # a slow drift, the usual
+    uv = np.tile([30.0, 20.0], (T, 1))
+    out = check_interaction(res, reg, 5, 15, contact_uv=uv, radius_px=4)
+    assert out["suspect"] == [] and out["notes"] == []
+    assert 0 < out["contact_share"] < 0.2
+
+
+def test_a_peak_at_the_grasp_names_the_grasp_flag():
+    res, reg = _base()
+    res[6] *= 4          # the model starts to pull a frame after the video's hand did
+    out = check_interaction(res, reg, 5, 15)
+    assert out["suspect"] == ["grasp"] and out["peak_frame"] == 6
+    assert "extract --grasp-frame K" in out["notes"][0] and "frame 6" in out["notes"][0]
+
+
+def test_a_peak_at_the_release_names_the_release_flag_and_a_far_peak_nothing():
+    res, reg = _base()
+    res[16] *= 4
+    out = check_interaction(res, reg, 5, 15)
+    assert out["suspect"] == ["release"] and "--release-frame" in out["notes"][0]
+    res, reg = _base()
+    res[10] *= 4          # mid-pull, far from both: not the timing's signature
+    assert check_interaction(res, reg, 3, 20)["suspect"] == []
+    # held to the end: no release to blame
+    res, reg = _base()
+    res[16] *= 4
+    assert check_interaction(res, reg, 5, None)["suspect"] == []
+
+
+def test_a_residual_at_the_contact_names_the_hint_pixel():
+    res, reg = _base()
+    uv = np.tile([40.0, 20.0], (T, 1))
+    yy, xx = np.mgrid[0:H, 0:W]
+    disk = (xx + 0.5 - 40) ** 2 + (yy + 0.5 - 20) ** 2 <= 16
+    res[5:16, disk] *= 12   # the model pulls from elsewhere: the video's contact area stays wrong
+    out = check_interaction(res, reg, 5, 15, contact_uv=uv, radius_px=4)
+    assert "contact" in out["suspect"]
+    assert any("--hint-pixel 5,U,V" in n for n in out["notes"])
+    # the same blob elsewhere on the object is not at the contact
+    out = check_interaction(res, reg, 5, 15, contact_uv=np.tile([15.0, 12.0], (T, 1)), radius_px=4)
+    assert "contact" not in out["suspect"]
+
+
+def test_fit_prints_the_check(tmp_path):
+    """A real (tiny) fit ends with the check's line: the cantilever of tests/fit_scene.py, fitted
+    from its true contacts, is not flagged."""
+    import fit_scene as fs
+
+    from physinteract_usd import api
+
+    sc = fs.build(tmp_path / "base")
+    stage = fs.copy_scene(sc["root"], tmp_path / "run")
+    lines = []
+    out = api.fit(stage, iterations=2, contact_from=stage.parent / "gt", settings_overrides=fs.SMOKE_SETTINGS,
+                  progress=False, log=lambda *m: lines.append(" ".join(map(str, m))))
+    assert out.result is not None
+    said = [s for s in lines if s.startswith("interaction check") or "may be" in s]
+    assert said == ["interaction check: the residual is not largest around the grasp or release frames, "
+                    "nor at the contact"], lines[-5:]
