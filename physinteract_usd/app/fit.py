@@ -263,6 +263,21 @@ def run_fit(job: FitJob, *, progress=True, log=print, on_iteration=None) -> FitR
                     on_iteration=on_iteration)
 
 
+def interaction_notes(job: FitJob, result: FitResult) -> list[str]:
+    """What the fit's residual says about the interaction (`fit.interaction_check`, #23): a residual
+    largest around the grasp or release frames, or at the contact, named with the override to try."""
+    from ..fit.interaction_check import check_fit
+
+    try:
+        chk = check_fit(job.problem, result, job.contacts)
+    except Exception as exc:  # noqa: BLE001 - a check never costs the fit
+        return [f"interaction check skipped ({type(exc).__name__}: {exc})"]
+    if chk is None:
+        return []
+    return chk["notes"] or ["interaction check: the residual is not largest around the grasp or release "
+                            "frames, nor at the contact"]
+
+
 def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
     """A stop that landed outside the optimiser's loop (in its last pass or its confidence
     estimate): the tracker's best iterate, through the optimiser's last pass alone."""
@@ -320,6 +335,9 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
                 log(f"{stop.signal}: stopped before the first iteration; nothing written")
                 raise KeyboardInterrupt from None
         stopped_by = stopping.requested()
+        if not late and not stopped_by:
+            for line in interaction_notes(job, result):
+                log(line)
         conf_ok = probes > 0 and not late and int(result.settings.get("confidence_probes", 0)) > 0
         result.settings["confidence_probes"] = probes   # what was asked; confidenceEstimated says what ran
         if job.history:   # resumed from a checkpoint: the version holds the whole fit's history
