@@ -199,9 +199,14 @@ def run_item(p: dict) -> dict:
     step = STEPS[0]
     watcher = _StopWatcher(p.get("stop_file"))
     try:
-        from ..devices import quiet_warp_init
+        from ..devices import cpu_threads, quiet_warp_init
 
         quiet_warp_init(device)
+        cpu_threads(device)   # one torch thread on the CPU: Warp is single-threaded, the ops are small
+        if os.environ.get("OMP_NUM_THREADS", "").isdigit():   # a pool's share of the cores (OpenCV's own pool too)
+            import cv2
+
+            cv2.setNumThreads(int(os.environ["OMP_NUM_THREADS"]))
         for i, step in enumerate(STEPS):
             if watcher.seen:
                 raise KeyboardInterrupt("stop requested")
@@ -671,8 +676,13 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
                 else:
                     uses_cuda = any(str(pl["settings"].get("device") or "cpu").startswith("cuda") for _, pl in tasks)
                     n = int(workers) if workers is not None else (1 if uses_cuda else _cores())
-                    result.not_started = run_pool(tasks, run_item, workers=min(n, len(tasks)), events=ev,
-                                                  retries=int(retries))
+                    n = min(n, len(tasks))
+                    # the workers' native thread pools (OpenMP, OpenCV) share the cores instead of
+                    # each spinning on all of them
+                    threads = str(max(1, _cores() // n))
+                    env = {k: threads for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+                    result.not_started = run_pool(tasks, run_item, workers=n, events=ev, retries=int(retries),
+                                                  env=env)
         finally:
             ev.close()
             write_summary()

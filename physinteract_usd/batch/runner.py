@@ -51,10 +51,12 @@ def _on_sigterm(signum, frame):
         raise KeyboardInterrupt
 
 
-def worker_init() -> None:
-    """In each pool worker: its own process group (a terminal's Ctrl-C goes to the driver, which
-    forwards one SIGTERM), and SIGTERM raises KeyboardInterrupt in a running item outside a fit
-    (inside one, the fit's own handler keeps its best iterate)."""
+def worker_init(env: dict | None = None) -> None:
+    """In each pool worker: `env` set (thread counts, before any library reads them), its own
+    process group (a terminal's Ctrl-C goes to the driver, which forwards one SIGTERM), and SIGTERM
+    raises KeyboardInterrupt in a running item outside a fit (inside one, the fit's own handler
+    keeps its best iterate)."""
+    os.environ.update(env or {})
     try:
         os.setpgrp()
     except OSError:
@@ -87,9 +89,10 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
-def run_pool(tasks, fn, *, workers: int, events: Events, retries: int = 1, poll_s: float = 0.25) -> list[str]:
+def run_pool(tasks, fn, *, workers: int, events: Events, retries: int = 1, env: dict | None = None,
+             poll_s: float = 0.25) -> list[str]:
     """Run `fn(payload)` for each `(name, payload)` of `tasks`; returns the names never started
-    (a stop came first)."""
+    (a stop came first). `env`: environment variables for the workers (e.g. OMP_NUM_THREADS)."""
     queue = list(tasks)
     attempts: dict[str, int] = {}
     solo: set[str] = set()      # items running when a worker died among several: run alone next
@@ -97,7 +100,8 @@ def run_pool(tasks, fn, *, workers: int, events: Events, retries: int = 1, poll_
     ctx = mp.get_context("spawn")
 
     def new_pool():
-        return cf.ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=ctx, initializer=worker_init)
+        return cf.ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=ctx, initializer=worker_init,
+                                      initargs=(dict(env or {}),))
 
     ex = new_pool()
     try:
