@@ -6,6 +6,7 @@
 # the error falling across versions. CPU only. Outputs in out/walkthrough/ (ignored by git); the
 # figures the README shows are copied to docs/walkthrough/ with WALKTHROUGH_DOCS=1.
 #   bash scripts/walkthrough.sh            # FRAMES=14 GRID=16 ITERATIONS=30 by default
+#   SKIP_DIAGNOSE=1 bash scripts/walkthrough.sh   # without diagnose (about one more fit's time)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ -x .venv/bin/python ] || bash scripts/setup.sh
@@ -28,12 +29,13 @@ else
 fi
 
 step "2. init + fit with the base model (fit extracts the hand, contact and supports from the video first)"
-rm -rf "$S" "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/scene.versions "$OUT"/scene.extract "$OUT"/scene.report
+rm -rf "$S" "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/scene.versions "$OUT"/scene.extract "$OUT"/scene.report \
+  "$OUT"/frames_v1 "$OUT"/frames_v2
 physinteract-usd init "$S" --capture "$CAP" --grid "$GRID" --padding 0.3 --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
 physinteract-usd fit "$S" --iterations "$ITERATIONS"
 
 step "3. report on v1: where and when the base model fails"
-physinteract-usd report "$S" --html "$OUT/report_v1.html" --force --json > "$OUT/report_v1.json"
+physinteract-usd report "$S" --html "$OUT/report_v1.html" --frames "$OUT/frames_v1" --force --json > "$OUT/report_v1.json"
 python - "$OUT/report_v1.json" <<'EOF'
 import json, sys
 d = json.load(open(sys.argv[1]))
@@ -42,7 +44,9 @@ print(f"v{d['version']}: PSNR {d['psnr']:.2f} dB (masked {d['psnr_masked']:.2f})
 EOF
 
 step "4. diagnose: what does the model lack?"
-if physinteract-usd diagnose -h >/dev/null 2>&1; then
+if [ "${SKIP_DIAGNOSE:-0}" = 1 ]; then
+  echo "(skipped: SKIP_DIAGNOSE=1)"
+elif physinteract-usd diagnose -h >/dev/null 2>&1; then
   physinteract-usd diagnose "$S" || echo "(diagnose failed: see above; the walkthrough goes on with damping)"
 else
   echo "(this physinteract-usd has no diagnose verb yet: issue #22's other half; the report's"
@@ -56,7 +60,7 @@ physinteract-usd fit "$S"
 physinteract-usd effects list "$S"
 
 step "6. report on v2: the error falling across versions"
-physinteract-usd report "$S" --html "$OUT/report_v2.html" --force --json > "$OUT/report_v2.json"
+physinteract-usd report "$S" --html "$OUT/report_v2.html" --frames "$OUT/frames_v2" --force --json > "$OUT/report_v2.json"
 physinteract-usd versions list "$S"
 python - "$OUT" "$CAP/gt/gt.json" <<'EOF'
 import base64, json, re, sys
@@ -87,6 +91,9 @@ EOF
 if [ "${WALKTHROUGH_DOCS:-0}" = 1 ]; then
   mkdir -p docs/walkthrough
   cp "$OUT"/v1_metrics.png "$OUT"/v2_metrics.png "$OUT"/v2_versions.png "$OUT"/summary.json docs/walkthrough/
+  last=$(printf "frame_%06d.png" $((FRAMES - 1)))   # the last frame: the video has settled, v1 has not
+  cp "$OUT/frames_v1/$last" docs/walkthrough/v1_last_frame.png
+  cp "$OUT/frames_v2/$last" docs/walkthrough/v2_last_frame.png
   echo "figures copied to docs/walkthrough/"
 fi
 step "done: open $OUT/report_v1.html and $OUT/report_v2.html"
