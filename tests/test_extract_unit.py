@@ -12,7 +12,7 @@ from physinteract_usd.errors import InputError
 from physinteract_usd.extract import Hint, classify_interaction, parse_hint
 from physinteract_usd.extract.geometry import back_project, particles_near, render_rest
 from physinteract_usd.extract.hints import check_hint
-from physinteract_usd.extract.segmentation import ColourMotionSegmenter
+from physinteract_usd.extract.segmentation import ColourMotionSegmenter, dilate
 from physinteract_usd.extract.supports import components
 from physinteract_usd.extract.timing import contact_period, release
 from physinteract_usd.gaussians import Gaussians
@@ -227,3 +227,28 @@ def test_support_core_keeps_the_still_core_and_only_the_hidden_part_of_its_shell
     assert set(keep) == {2, 3, 4, 5}
     keep, n = support_core(x0, ids, np.full(6, 0.5), 0.1, h)               # nothing below the limit
     assert len(keep) >= 3 and n >= 1
+
+
+def test_hand_coloured_spots_on_the_object_are_not_the_hand_without_masks():
+    """No silhouettes (the object is where it rests): spots of the hand's colour on the object that
+    never connect to the toucher coming in from outside are the object's own (#23: a pale sheet
+    under a white glove was 'touched' from frame 0)."""
+    frames, masks, hands = _toy_video()
+    yy, xx = np.mgrid[0:48, 0:64] + 0.5
+    spots = np.zeros((48, 64), bool)
+    for cx, cy in ((19, 20), (21, 30), (26, 17)):
+        spots |= (xx - cx) ** 2 + (yy - cy) ** 2 <= 2.2 ** 2
+    tex = 0.05 * np.sin(xx / 2.0)[..., None]
+    skin = (np.array([0.87, 0.66, 0.54]) + tex).astype(np.float32)
+    for k in range(len(frames)):
+        keep = spots & ~dilate(hands[k], 2)
+        frames[k][keep] = skin[keep]
+    rest = ((xx - 28) ** 2 + (yy - 24) ** 2 <= 11 ** 2).astype(np.float32)
+    seg = ColourMotionSegmenter()(frames, None, rest_alpha=rest,
+                                  object_colors=np.tile([[0.15, 0.3, 0.75]], (10, 1)))
+    far = spots & ~dilate(hands.any(0), 3)
+    assert far.any()
+    assert not (seg.hand & far[None]).any()
+    # the moving hand is still found where it is clear of the object
+    clear = hands & ~dilate((xx - 28) ** 2 + (yy - 24) ** 2 <= 13 ** 2, 0)[None]
+    assert (seg.hand & clear).sum() >= 0.8 * clear.sum()

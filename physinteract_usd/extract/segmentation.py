@@ -187,6 +187,11 @@ class ColourMotionSegmenter:
             hand = np.stack([_connected_to(sure[k] | strong[k], sure[k]) if sure[k].any() else sure[k]
                              for k in range(T)])
             hand = np.stack([drop_small(open_close(h, 1, 1), min_area) for h in hand])
+            if masks_amodal or not have_masks:
+                # the toucher comes in from outside the object: a blob of "hand" wholly inside the
+                # object's region is the object's own colour (a pale sheet under a white glove)
+                free = ~dilate_all(cover, 1)
+                hand = np.stack([_connected_to(hand[k], free[k]) if hand[k].any() else hand[k] for k in range(T)])
             if _pass == 0:
                 bg, seen = estimate_background(f, cover | hand, dilate=2, return_seen=True)
                 bg = _inpaint(bg, seen == 0)
