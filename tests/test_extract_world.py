@@ -167,7 +167,11 @@ def _bench(name):
         sys.path.remove(str(BENCH))
 
 
-def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys):
+def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monkeypatch):
+    from physinteract_usd.synth import scenes as S
+
+    # eval_extract registers its extra scene (balloon_poke) in the scene registry: on a copy here
+    monkeypatch.setattr(S, "SCENES", dict(S.SCENES))
     work = _fake_validation(tmp_path)
     eval_extract, world_suite, world_fit = _bench("eval_extract"), _bench("world_suite"), _bench("world_fit")
     with pytest.raises(InputError, match="validation split"):
