@@ -139,6 +139,7 @@ def test_pool_rerun_reuses_what_is_done(pool_run, capsys):
     print(f"rerun: {took:.1f} s")
 
 
+@pytest.mark.slow   # ~25-55 s: a refit; the file's 3-minute budget (the keys' logic is unit-tested in test_batch_runner)
 def test_pool_changed_setting_reruns_from_its_step(pool_run):
     """More iterations for one item: it runs again from its fit (a new version on its stage), the
     other is reused."""
