@@ -261,3 +261,17 @@ def test_one_batch_at_a_time_per_output_folder(tmp_path):
     (out / ".lock").write_text("999999999")                  # a process that is gone
     lock = _acquire_lock(out)
     assert lock.read_text() == str(os.getpid())
+
+
+def test_the_docs_manifest_example_parses(tmp_path):
+    import re
+    from pathlib import Path
+
+    from physinteract_usd.app.batch import load_manifest
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "batch.md").read_text()
+    m = tmp_path / "manifest.csv"
+    m.write_text(re.search(r"```csv\n(.*?)```", doc, re.S).group(1))
+    items = load_manifest(m)
+    assert [(i.name, i.kind) for i in items] == [("rope", "capture"), ("glove_b", "capture"), ("cap", "stage")]
+    assert items[1].options["schedule"] == "ladder" and items[1].options["effects"] == ["damping"]
