@@ -43,12 +43,15 @@ class Events:
         """Called between waits (progress bars refresh their ETA here)."""
 
 
-_BUSY = False   # in a worker: an item is running (a SIGTERM while idle is ignored: it would break the pool)
+_BUSY = False        # in a worker: an item is running
+_STOP_SEEN = False   # a SIGTERM came while none was (raising then would break the pool): the next one won't start
 
 
 def _on_sigterm(signum, frame):
+    global _STOP_SEEN
     if _BUSY:
         raise KeyboardInterrupt
+    _STOP_SEEN = True
 
 
 def worker_init(env: dict | None = None) -> None:
@@ -67,6 +70,8 @@ def worker_init(env: dict | None = None) -> None:
 
 def _run_task(fn, payload):
     global _BUSY
+    if _STOP_SEEN:   # the stop came while this worker was still starting (importing) or idle
+        raise KeyboardInterrupt("stopped before it started")
     _BUSY = True
     try:
         return fn(payload)
