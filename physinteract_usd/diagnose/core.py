@@ -168,8 +168,11 @@ class _Runner:
             st = dataclasses.replace(scene.settings, gravity=tuple(float(g) * gravity_scale
                                                                    for g in scene.settings.gravity))
             scene = dataclasses.replace(scene, settings=st)
-        return build_simulation(scene, self.prob.contacts if contacts is None else contacts, self.prob.T,
-                                effects=self.prob.sim.effects, device=self.prob.device, dtype=self.prob.sim.dtype)
+        sim = build_simulation(scene, self.prob.contacts if contacts is None else contacts, self.prob.T,
+                               effects=self.prob.sim.effects, device=self.prob.device, dtype=self.prob.sim.dtype)
+        for ro in sim._rollouts.values():   # one forward: capturing its frames' graphs would cost another
+            ro.graphs = False
+        return sim
 
     def xf(self, E=None, nu=None, effects=None, trajs=None, sim=None):
         b = self.base
