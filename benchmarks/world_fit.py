@@ -49,7 +49,7 @@ def add_ground(stage: Path, height: float, friction: float = 0.5) -> None:
     st.GetRootLayer().Save()
 
 
-def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=print) -> dict:
+def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=print, overrides=None) -> dict:
     src = work / f"{n}.stage"
     gt = work / f"{n}.gt"
     if not (src / "scene.usda").exists() or not (gt / "gt.json").exists():
@@ -66,13 +66,17 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
         add_ground(stage, floor["height"], floor.get("friction", 0.5))
         effects["ground"] = {"height": floor["height"]}
     t0 = time.perf_counter()
-    api.fit(stage, iterations=iterations, device=device, seed=seed, progress=False, log=lambda *a: None)
+    said = []
+    out = api.fit(stage, iterations=iterations, device=device, seed=seed, progress=False,
+            log=lambda *m: said.append(" ".join(map(str, m))), settings_overrides=overrides or None)
     fit_s = time.perf_counter() - t0
     ev = api.evaluate(stage, gt, device=device)
     row = {"scene": n, "ma": ev["ma"], "ma_best_uniform": ev.get("ma_best_uniform"), "psnr": ev["psnr"],
            "psnr_masked": ev["psnr_masked"], "ssim": ev.get("ssim"), "iou": ev.get("iou"),
            "position_error_m": ev.get("position_error_m"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
-           "device": device, "effects": effects}
+           "device": device, "effects": effects, "settings": dict(overrides or {}), "stopped_by": out.stopped_by,
+           "interaction_check": [m for m in said if m.startswith(("interaction check", "the interaction may",
+                                                                  "the contact may"))]}
     log(f"{n}: MA {row['ma']:.3f}, masked PSNR {row['psnr_masked']:.2f} dB ({fit_s:.0f} s)", flush=True)
     return row
 
@@ -88,7 +92,12 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0, help="the fit's seed")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--fit-settings", default="", help="FitSettings overrides key=value,... (e.g. a quick smoke "
+                    "test: search_evals=2,confidence_probes=0)")
     a = ap.parse_args(argv)
+    from eval_extract import parse_overrides
+
+    overrides = parse_overrides(a.fit_settings)
     work = Path(a.work)
     try:
         guard(work, a.split, a.final, "world_fit.py --split dev")
@@ -106,7 +115,7 @@ def main(argv=None):
         if n in done:
             continue
         try:
-            row = fit_one(work, n, a.iterations, a.seed, a.device)
+            row = fit_one(work, n, a.iterations, a.seed, a.device, overrides=overrides)
         except Exception as exc:
             row = {"scene": n, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}
             print(f"{n}: FAILED {row['error']}", flush=True)

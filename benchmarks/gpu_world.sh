@@ -1,0 +1,100 @@
+#!/usr/bin/env bash
+# The world suite on a GPU machine, end to end under one deadline (#23):
+#     OUT=/dir bash benchmarks/gpu_world.sh SPLIT SEEDS DEADLINE_S
+#     OUT=/dir bash benchmarks/gpu_world.sh dev 0-23 540
+#     OUT=/dir bash benchmarks/gpu_world.sh validation 0-23 540      # the final table: reads it with --final
+# Per seed, one worker: `world_suite.py generate` (synth --random/--validation SEED, --device cuda),
+# `world_suite.py extract` (init with the capture's suggested settings, extract, compared with the
+# truth) and `world_fit.py` (fit from the extracted interaction, ITER iterations, evaluate: MA and
+# masked PSNR). JOBS workers share the GPU (the simulator is launch-bound: several processes keep
+# it busy; extraction is CPU work). Rows are written per seed as each step ends, so whatever ends
+# before the deadline is in the table; at DEADLINE_S - 45 s the workers are stopped (a fit by SIGTERM: it writes its
+# best iterate, its row says stopped_by) and
+# `world_suite.py table --fits` prints the table (also into $OUT/world_<split>.md, with the rows as
+# JSON and the logs). Captures already generated in WORK are reused (a warm machine's second call).
+# Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
+# JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
+# world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test).
+# Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
+set -u
+SPLIT="${1:?split: dev or validation}"
+SEEDS="${2:?seeds, e.g. 0-23}"
+DEADLINE="${3:-540}"
+OUT="${OUT:-out/gpu_world}"
+WORK="${WORK:-/tmp/world_$SPLIT}"
+ITER="${ITER:-25}"
+JOBS="${JOBS:-4}"
+DEVICE="${DEVICE:-cuda}"
+FIT_SETTINGS="${FIT_SETTINGS:-}"
+PY="${PYTHON:-python3}"
+T_START=$(date +%s)
+mkdir -p "$OUT" "$WORK/rows"
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+FINAL=""
+[ "$SPLIT" = validation ] && FINAL="--final"
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version --format=csv,noheader | sed 's/^/device: /'
+echo "split $SPLIT seeds $SEEDS deadline ${DEADLINE}s iterations $ITER jobs $JOBS device $DEVICE work $WORK"
+
+SEED_LIST=$($PY -c "import sys; sys.path.insert(0, 'benchmarks'); from world_suite import parse_seeds; print(' '.join(map(str, parse_seeds('$SEEDS'))))") || exit 2
+
+END=$(( T_START + DEADLINE - 45 ))   # the workers' steps end here (a fit stopped by SIGTERM writes its best iterate)
+
+step() {  # step SECONDS_GRACE cmd...: run cmd until END (SIGTERM, then SIGKILL after the grace)
+  local grace=$1 left
+  shift
+  left=$(( END - $(date +%s) ))
+  [ "$left" -gt 3 ] || return 124
+  timeout -s TERM -k "$grace" "$left" "$@"
+}
+
+worker() {
+  local s=$1 n t0 t1 t2
+  n=$(printf '%s_%04d' "$SPLIT" "$s")
+  {
+    t0=$(date +%s)
+    step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" || return
+    t1=$(date +%s)
+    step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
+      --json "$WORK/rows/extract_$n.json" --device "$DEVICE" || return
+    t2=$(date +%s)
+    step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
+      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS"
+    echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s, fit $(( $(date +%s) - t2 )) s"
+  } > "$WORK/rows/$n.log" 2>&1
+  grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
+}
+export -f worker step
+export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END
+
+# the first seed alone until its capture is written (Warp's kernel cache is built once, not by
+# every worker at the same time), then the others, JOBS at a time
+FIRST=${SEED_LIST%% *}
+REST=${SEED_LIST#"$FIRST"}
+bash -c "worker $FIRST" &
+PID_FIRST=$!
+while kill -0 $PID_FIRST 2>/dev/null && [ ! -e "$WORK/$(printf '%s_%04d' "$SPLIT" "$FIRST")/transforms.json" ] \
+      && [ "$(date +%s)" -lt "$END" ]; do sleep 2; done
+if [ -n "${REST// /}" ]; then
+  echo $REST | tr ' ' '\n' | xargs -P "$JOBS" -I{} bash -c 'worker {}'
+fi
+wait $PID_FIRST 2>/dev/null
+
+# merge the per-seed rows and print the table
+$PY - "$WORK/rows" "$OUT" "$SPLIT" <<'EOF'
+import json, sys
+from pathlib import Path
+rows, out, split = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+for kind in ("extract", "fit"):
+    merged = []
+    for p in sorted(rows.glob(f"{kind}_*.json")):
+        try:
+            merged += json.loads(p.read_text())
+        except ValueError:
+            pass
+    (out / f"world_{split}_{kind}.json").write_text(json.dumps(merged, indent=1))
+    print(f"{kind}: {len(merged)} rows")
+EOF
+$PY benchmarks/world_suite.py table --split "$SPLIT" $FINAL --work "$WORK" --json "$OUT/world_${SPLIT}_extract.json" \
+  --fits "$OUT/world_${SPLIT}_fit.json" | tee "$OUT/world_${SPLIT}.md"
+cat "$WORK"/rows/*.log > "$OUT/world_${SPLIT}_logs.txt" 2>/dev/null
+echo "total $(( $(date +%s) - T_START )) s"
