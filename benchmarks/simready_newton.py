@@ -31,8 +31,9 @@ ARCHETYPES = {"hemp_rope": "rope", "bow_tie": "flat", "balloon": "inflated", "fl
               "glove": "flat, fingers", "balloon_dog": "inflated, limbs", "tow_rope": "rope, two anchors"}
 
 
-def synthetic_scene(name: str, work: Path):
-    """(SceneData with the ground-truth field and contacts, its stage path)."""
+def synthetic_scene(name: str, work: Path, grid: int | None = None):
+    """(SceneData with the ground-truth field and contacts, its stage path). `grid`: init's grid
+    instead of the capture's suggested one (a finer lattice: more particles, smaller cells)."""
     from physinteract_usd import api
 
     from eval_extract import init_stage
@@ -40,9 +41,15 @@ def synthetic_scene(name: str, work: Path):
     cap = work / name
     if not (cap / "gt" / "gt.json").exists():
         api.synth(name, cap, size="small", force=True, log=lambda *a: None)
-    stage = work / f"{name}.stage" / "scene.usda"
+    stage = work / (f"{name}.grid{grid}.stage" if grid else f"{name}.stage") / "scene.usda"
     if not stage.exists():
-        init_stage(cap, cap / "gt", stage)
+        if grid:
+            g = json.loads((cap / "gt" / "gt.json").read_text())["suggested_init"]
+            stage.parent.mkdir(parents=True, exist_ok=True)
+            api.init(stage, cap, grid=grid, padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
+                     max_poisson=g["max_poisson"], density=g["density"])
+        else:
+            init_stage(cap, cap / "gt", stage)
     sd = api.read_scene(stage)
     gtp = np.load(cap / "gt" / "particles.npz")            # the ground-truth simulation's particles
     _, nn = cKDTree(gtp["rest"]).query(sd.particles_positions)
@@ -64,8 +71,13 @@ def run_one(label: str, archetype: str, sd, out: Path, args) -> list[dict]:
     print(f"{label}: {len(asset.tets)} tetrahedra, {len(asset.points)} points, {len(asset.regions)} regions, "
           f"surface within {asset.info['surfaceDistanceMax'] / asset.info['particleSpacing']:.2f} h of the Gaussians, "
           f"exported in {export_s:.1f} s", flush=True)
+    from physinteract_usd.crosscheck import loads_for
+    from physinteract_usd.usd.simready import read_sim_ready
+
+    wanted = set(args.loads.split(","))
+    loads = [ld for ld in loads_for(read_sim_ready(out)) if ld.name in wanted]
     r = crosscheck(sd, out, duration=args.duration, damping=args.damping, newton_substeps=args.rate,
-                   iterations=args.iterations, log=lambda m: print(f"{label}{m}", flush=True))
+                   iterations=args.iterations, loads=loads, log=lambda m: print(f"{label}{m}", flush=True))
     if args.one_material:   # what add_usd gives alone: the body's one material (subset bindings ignored)
         from physinteract_usd.crosscheck import Load
 
@@ -106,6 +118,9 @@ def main():
     ap.add_argument("--damping", type=float, default=25.0, help="mass-proportional damping c [1/s]")
     ap.add_argument("--rate", type=int, default=2000, help="Newton steps per second")
     ap.add_argument("--iterations", type=int, default=10, help="Newton VBD iterations per step")
+    ap.add_argument("--grid", type=int, help="init the synthetic scenes on this grid instead of their suggested "
+                    "one (the refined rows: e.g. 48 for 2x finer than 24)")
+    ap.add_argument("--loads", default="sag,pull", help="which loads (comma list of sag, pull)")
     ap.add_argument("--one-material", action="store_true",
                     help="also the sag with the body's one material (what add_usd resolves), not per tetrahedron")
     args = ap.parse_args()
@@ -117,12 +132,20 @@ def main():
     rows = []
     jobs = []
     if args.sample:
-        jobs.append(("foam_bar (sample, fitted)", "bar (sample)", lambda: api.read_scene(args.sample)))
+        jobs.append(("bar (sample)", lambda: ("foam_bar (sample, fitted)", api.read_scene(args.sample))))
+
+    def synthetic(name):
+        sd = synthetic_scene(name, work, args.grid)[0]
+        if not args.grid:
+            return name, sd
+        g = json.loads((work / name / "gt" / "gt.json").read_text())["suggested_init"]["grid"]
+        return f"{name}, grid {args.grid} ({args.grid / g:g}x finer)", sd
+
     for name in filter(None, args.scenes.split(",")):
-        jobs.append((name, ARCHETYPES.get(name, "?"), lambda n=name: synthetic_scene(n, work)[0]))
-    for label, arch, load in jobs:
-        sd = load()
-        out = work / f"{label.split()[0]}.simready.usdc"
+        jobs.append((ARCHETYPES.get(name, "?"), lambda n=name: synthetic(n)))
+    for arch, load in jobs:
+        label, sd = load()
+        out = work / (label.split()[0].rstrip(",") + (f".grid{args.grid}" if "grid" in label else "") + ".simready.usdc")
         new = run_one(label, arch, sd, out, args)
         rows += new
         if args.json:
