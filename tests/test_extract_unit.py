@@ -252,3 +252,32 @@ def test_hand_coloured_spots_on_the_object_are_not_the_hand_without_masks():
     # the moving hand is still found where it is clear of the object
     clear = hands & ~dilate((xx - 28) ** 2 + (yy - 24) ** 2 <= 13 ** 2, 0)[None]
     assert (seg.hand & clear).sum() >= 0.8 * clear.sum()
+
+
+def _lattice(lo, hi, h):
+    ax = [np.arange(a, b + 1e-9, h) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_a_floor_from_the_underside_not_its_deepest_trough():
+    """resting_base: a 20 cm sheet lying still, with a few particles of a trough 2 spacings below
+    the rest (a wavy sheet), rests on a floor (#23: dev_0002 got a fixed support); a bar clamped
+    upright at its foot, and a bar hanging from a still region at its top, do not."""
+    from physinteract_usd.extract.supports import resting_base
+
+    h = 0.01
+    sheet = _lattice((-0.1, 0.0, -0.06), (0.1, 0.01, 0.06), h)
+    trough = np.array([[0.0, -0.02, 0.0], [0.01, -0.02, 0.0], [0.0, -0.02, 0.01]])
+    x0 = np.concatenate([sheet, trough])
+    still = np.flatnonzero(x0[:, 1] >= 0.0)            # the trough moved (poked), the rest lay still
+    f = resting_base(x0, h, [still])
+    assert f is not None and abs(f["height"] - (-0.02 - 0.5 * h)) < 1e-9   # under its lowest particle
+    # the same sheet without the trough: a floor too (as before)
+    assert resting_base(sheet, h, [np.arange(len(sheet))]) is not None
+    # an upright bar clamped at its foot: the still region is as tall as it is wide, held
+    bar = _lattice((-0.02, 0.0, -0.02), (0.02, 0.2, 0.02), h)
+    foot = np.flatnonzero(bar[:, 1] <= 0.05)
+    assert resting_base(bar, h, [foot]) is None
+    # a bar hanging from its top: its still region does not touch the floor
+    top = np.flatnonzero(bar[:, 1] >= 0.17)
+    assert resting_base(bar, h, [top]) is None

@@ -182,7 +182,8 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
                  tip_margin: float = 0.15, flat: float = 0.6):
     """Whether the object rests on a floor (a dict: the floor's height, the base's particles) or
     not (None). A floor holds an object from below, by friction: it rests there when
-    (a) it can stand on its base (the particles within 1.5 spacings of its lowest point): the
+    (a) it can stand on its base (the particles within 1.5 spacings of its lowest point, the 1st
+    percentile of the heights: a few deep troughs of a wavy sheet are not what it lies on): the
     centre of mass lies over the base's footprint with a margin of at least `tip_margin` x its
     height above it (a thin stem or a hanging end cannot stand on its tip);
     (b) every still region found (`sets`, specks aside) touches the floor (holds 3 base particles
@@ -201,7 +202,10 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     ymin = float(y.min())
     if lowest_contact_y is not None and lowest_contact_y < ymin - h:
         return None
-    base = y <= ymin + 1.5 * h
+    # the base from the underside's 1st percentile, not its single lowest particle: a wavy sheet's
+    # few deepest troughs (or particles the fill put under the surface) are not what it lies on
+    ylow = max(ymin, float(np.percentile(y, 1)))
+    base = y <= ylow + 1.5 * h
     big = max((len(s_) for s_ in sets), default=0)
     real = [np.asarray(s_, np.int64) for s_ in sets if len(s_) >= max(4, 0.05 * big)]   # specks aside
     if len(real) > 1:
@@ -224,7 +228,7 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     except (QhullError, ValueError):
         inside = -float(np.min(np.linalg.norm(pts - c, axis=1))) if len(pts) else -np.inf
     inside += 0.5 * h                                     # the particles sit half a spacing in from the edge
-    lift = float(com[1] - ymin)
+    lift = float(com[1] - ylow)
     if inside < tip_margin * max(lift, h):
         return None
     return {"height": float(ymin - 0.5 * h), "friction": 0.5, "base_particles": int(base.sum()),
