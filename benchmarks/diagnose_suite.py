@@ -6,7 +6,7 @@ sigma 0.015 like `synth --noise 0.015`), whose video has something the fitted mo
 without it, written as fit version 1) lacks:
 
 - a hidden effect at 0.5, 1, 2, 4 times its calibrated strength (damping c = 4/s; plasticity
-  yield stress 400 Pa / s; a ground plane cutting s x 6 mm into the lowest swing; a Maxwell
+  yield stress 400 Pa / s; a ground plane cutting s x 6 mm (`--ground-cut`) into the lowest swing; a Maxwell
   branch E_v = s x 0.3 E, tau = 0.1 s);
 - a deliberately wrong interaction: the release 3 frames late in truth, the grasp 3 cm off;
 - controls: nothing hidden, noise only (one seed per run).
@@ -38,6 +38,7 @@ EFFECTS = ("damping", "plasticity", "ground", "viscoelasticity")
 TRUTH_PARAM = {"damping": "coefficient", "plasticity": "yieldStress", "ground": "height",
                "viscoelasticity": "modulus"}
 NOISE = 0.015
+GROUND_CUT = 0.006   # metres the ground cuts into the lowest swing at strength 1 (--ground-cut)
 
 
 def hidden_for(effect: str, s: float) -> dict:
@@ -51,7 +52,7 @@ def hidden_for(effect: str, s: float) -> dict:
     if effect == "viscoelasticity":
         return {"viscoelasticity": {"modulus": 0.3 * s * rs.E_TRUE, "relaxationTime": 0.1}}
     if effect == "ground":
-        return {"ground": {"height": _lowest_swing() + 0.006 * s, "friction": 0.5}}
+        return {"ground": {"height": _lowest_swing() + GROUND_CUT * s, "friction": 0.5}}
     raise ValueError(effect)
 
 
@@ -194,7 +195,10 @@ def main(argv=None) -> int:
     ap.add_argument("--refit-iterations", type=int, default=6)
     ap.add_argument("--deadline", type=float, default=0, help="stop starting cases after this many seconds")
     ap.add_argument("--write", help="write the markdown tables here")
+    ap.add_argument("--ground-cut", type=float, default=GROUND_CUT,
+                    help="metres the hidden ground cuts into the lowest swing at strength 1")
     a = ap.parse_args(argv)
+    globals()["GROUND_CUT"] = a.ground_cut
     import torch
 
     torch.set_num_threads(1)
