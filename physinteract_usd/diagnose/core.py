@@ -381,6 +381,53 @@ def _refined(effect: str, cr, run: _Runner, r0: np.ndarray) -> Probe:
     return Probe(f"tau={tau:.3g}s,Ev={a:.3g}E*", col, +1, {"relaxationTime": tau, "modulus_per_unit": e_med})
 
 
+def _threshold_search(effect: str, cr, run: _Runner, r0: np.ndarray, J: np.ndarray, evals: int = 6):
+    """Golden-section search of the yield stress (log) or the ground height between the grid's
+    neighbours of the best probe, on the loss left after the base's linear step; the best value as
+    a probe (None when the search fails)."""
+    key = "yieldStress" if effect == "plasticity" else "height"
+    vals = sorted(p.meta[key] for p in cr.probes if key in p.meta)
+    best = cr.probes[cr.best].meta[key]
+    i = vals.index(best)
+    if effect == "plasticity":
+        lo = math.log(vals[i - 1] if i > 0 else best / 4.0)
+        hi = math.log(vals[i + 1] if i + 1 < len(vals) else best * 4.0)
+        to_v = math.exp
+    else:
+        step = (vals[-1] - vals[0]) / max(len(vals) - 1, 1) if len(vals) > 1 else 0.25 * run.prob.scene.settings.particle_spacing
+        lo = vals[i - 1] if i > 0 else best - step
+        hi = vals[i + 1] if i + 1 < len(vals) else best + step
+        to_v = float
+    cache = {}
+
+    def f(u):
+        if u not in cache:
+            try:
+                r = run.r(effects={effect: {key: to_v(u)}})
+            except SimulationError:
+                cache[u] = (math.inf, None)
+                return cache[u]
+            a, *_ = np.linalg.lstsq(J, -r, rcond=None)
+            cache[u] = (float(np.sum((r + J @ a) ** 2)), r)
+        return cache[u]
+
+    g = (math.sqrt(5) - 1) / 2
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    for _ in range(max(evals - 2, 0)):
+        if f(c)[0] < f(d)[0]:
+            b, d = d, c
+            c = b - g * (b - a)
+        else:
+            a, c = c, d
+            d = a + g * (b - a)
+    u = min(cache, key=lambda k: cache[k][0])
+    if cache[u][1] is None:
+        return None
+    v = to_v(u)
+    return Probe(f"{key}={v:.4g}*", cache[u][1] - r0, +1, {key: v})
+
+
 def _sim_r(run: _Runner, contacts, log):
     try:
         return run.r(sim=run.sim_for(contacts=contacts))
@@ -646,6 +693,13 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
             # the residual is far from linear in c / E_v: one more secant, to the estimate itself
             probes.append(_refined(eff, cr, run, r0))
             cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+        if (eff in ("plasticity", "ground") and cr.best >= 0 and cr.p_value < s.alpha
+                and cr.drop >= s.min_relative_drop * L0):
+            # a threshold's grid is coarse: a 1-D search between its points for a candidate that counts
+            extra = _threshold_search(eff, cr, run, r0, J)
+            if extra is not None:
+                probes.append(extra)
+                cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
         cr.relative_drop = cr.drop / L0 if L0 > 0 else 0.0
         results.append(cr)
     _forward_select(results, r0, J, blocks, nb, s, L0)
