@@ -163,3 +163,22 @@ def test_cli_json_exit_codes_and_errors(damped, tmp_path, capsys):
     assert main(["diagnose", str(damped["stage"]), "--candidates", "gravity"]) == 2
     assert "unknown candidate" in capsys.readouterr().err
     assert main(["diagnose", str(damped["stage"]), "--refit", "-1"]) == 2
+
+
+@pytest.fixture(scope="module")
+def plastic(tmp_path_factory):
+    return ds.build(tmp_path_factory.mktemp("plastic"), hidden={"plasticity": {"yieldStress": 400.0}}, noise=0.015)
+
+
+def test_hidden_plasticity_is_ranked_first_with_its_yield_stress(plastic):
+    """A bar that keeps part of its bend after release: plasticity first (not damping, not a softer
+    part), its yield stress from the threshold search within 30%, the evidence about the rest shape."""
+    from physinteract_usd import api
+
+    d = api.diagnose(plastic["stage"], refit=0, progress=False, log=lambda *a: None, write_stage=False,
+                     candidates="plasticity,damping,heterogeneity,camera:time_offset")
+    assert d["verdict"] == "missing_effect"
+    top = d["candidates"][0]
+    assert top["effect"] == "plasticity"
+    assert top["estimate"]["yieldStress"] == pytest.approx(400.0, rel=0.3)
+    assert "rest shape" in top["evidence"]
