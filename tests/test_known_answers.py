@@ -39,20 +39,19 @@ def test_uniform_e_recovered_across_three_decades(E, tmp_path):
     assert abs(e / E - 1) < 0.10, (E, e, out.result.model.get("uniform_sweep"))
 
 
-def test_cantilever_sag_and_frequency_against_beam_theory(tmp_path):
-    """The bar clamped at its left end, released from straight at rest: its tip's mean position over
-    the first swing is the static sag, its swing's period the first mode's."""
-    from physinteract_usd.contacts import ContactSet
+def cantilever_vs_beam_theory(tmp_path, T: int = 80, fps: float = 240.0):
+    """The bar clamped at its left end (two grid cells thick), released from straight at rest,
+    simulated with the stage's simulator: (tip sag / q L^4 / (8 E I), first frequency / the
+    Euler-Bernoulli cantilever's). The sag is half the first lowest point (the swing's middle),
+    the period from the first two lowest points."""
+    import dataclasses
+
     from physinteract_usd.simulation import build_simulation
     from physinteract_usd.usd.stage import read_stage
 
     E, rho = 1e5, 1e5 / E_OVER_RHO
     b = fs.build(tmp_path / "beam", E=E, density=rho, n_frames=4, release=1, e_range=(1e3, 1e7), lift=0 * LIFT)
-    sd = read_stage(b["stage"])
-    import dataclasses
-
-    T = 40
-    sd = dataclasses.replace(sd, end_frame=T - 1, fps=120.0)
+    sd = dataclasses.replace(read_stage(b["stage"]), end_frame=T - 1, fps=fps)
     hand, support = fs.contacts(sd, lift=0 * LIFT, release=1)
     sim = build_simulation(sd, [hand.replace(trajectory=np.repeat(hand.trajectory[:1], T, 0)), support], T)
     P = len(sd.particles_positions)
@@ -68,8 +67,26 @@ def test_cantilever_sag_and_frequency_against_beam_theory(tmp_path):
     sag = 1.5 * rho * 9.81 * L ** 4 / (E * h ** 2)          # q L^4 / (8 E I), q = rho g h^2, I = h^4 / 12
     f1 = 1.875 ** 2 / (2 * math.pi) * math.sqrt(E * h ** 2 / 12 / (rho * L ** 4))
     lows = [k for k in range(1, T - 1) if y[k] < y[k - 1] and y[k] <= y[k + 1]]
-    assert lows, "the tip does not swing"
-    period = 2.0 * lows[0] / sd.fps                          # from rest to the first lowest point: half a swing
-    mean_sag = -0.5 * y[lows[0]]                             # the swing's middle is the static sag
-    assert 0.7 < mean_sag / sag < 1.6, (mean_sag, sag)
-    assert 0.7 < (1.0 / period) / f1 < 1.3, (1.0 / period, f1)
+    assert len(lows) >= 2, "the tip does not swing twice"
+    period = (lows[1] - lows[0]) / sd.fps
+    return -0.5 * y[lows[0]] / sag, (1.0 / period) / f1
+
+
+def test_cantilever_with_the_clamp_band_against_beam_theory(tmp_path, monkeypatch):
+    """The simulator against beam theory at the fit's coarse resolution (two cells through the
+    thickness), the clamp's grid blend a band (simulation.CLAMP_BAND): first frequency within 10%,
+    static sag within 25% (the sag read from one swing)."""
+    from physinteract_usd import simulation
+
+    monkeypatch.setattr(simulation, "PIN_RULE", simulation.CLAMP_BAND)
+    sag, f = cantilever_vs_beam_theory(tmp_path)
+    assert abs(f - 1) < 0.10, f
+    assert abs(sag - 1) < 0.25, sag
+
+
+@pytest.mark.xfail(strict=True, reason="the default clamp rule (a quarter held -> fully held) stiffens a "
+                   "two-cell-thick cantilever: 1.47x the frequency, 0.3x the sag (issue #24)")
+def test_cantilever_with_the_default_clamp_against_beam_theory(tmp_path):
+    sag, f = cantilever_vs_beam_theory(tmp_path)
+    assert abs(f - 1) < 0.10, f
+    assert abs(sag - 1) < 0.25, sag

@@ -573,7 +573,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     @wp.func
     def node_velocity(m: T, mv: vec3, pm: T, pmv: vec3, xn: vec3,
-                      eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, band: T, pin_gain: T,
+                      eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, band: T, pin_gain: T, pin_floor: T,
                       n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                       col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                       col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
@@ -582,7 +582,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if (flags & 1) != 0:
             vel = vel * wp.exp(-eff[0] * dt)
         if pm > T(0.0):
-            wpin = rate_weight(wp.min(pin_gain * pm / m, T(1.0)), blend_r)
+            wpin = rate_weight(wp.clamp(pin_gain * (pm / m - pin_floor), T(0.0), T(1.0)), blend_r)
             vel = vel * (T(1.0) - wpin) + (wpin / pm) * pmv
         if (flags & 4) != 0:
             wg = rate_weight(soft_weight(xn[1] - eff[2], band), blend_r)
@@ -599,7 +599,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def grid_update(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
                     gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
                     eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
-                    pin_gain: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                    pin_gain: T, pin_floor: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
                     frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int, m_eps: T, blend_r: T,
@@ -619,7 +619,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 k = t % res[2]
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                 vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
-                                    pin_gain, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
+                                    pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
                                     frame, alpha, fps, blend_r)
             gv[t] = vel
 

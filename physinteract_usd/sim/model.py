@@ -89,9 +89,11 @@ class SimModel:
     E_max: float                        # the CFL bound was taken here; larger E is refused
     nu_max: float
     contact_band: float                 # width [m] of the smoothed contact boundary (0 = hard)
-    pin_gain: float                     # grid nodes with >= 1/pin_gain of their mass pinned are fully pinned
+    pin_gain: float                     # a node's pin blend: clamp(pin_gain * (share - pin_floor), 0, 1), share =
+                                        # its pinned mass / its mass (pin_floor 0: >= 1/pin_gain pinned is fully pinned)
     blend_dt: float = 0.0               # partial pin / collider blends act at their weight once per this
                                         # time [s] (a rate, whatever the substep); 0: once per substep
+    pin_floor: float = 0.0              # nodes with a pinned share below this are free (see pin_gain)
     _dev: dict = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ construction
@@ -101,7 +103,8 @@ class SimModel:
                E_max: float | None = None, nu_max: float = 0.45, E_v_max: float | None = None,
                cfl: float = 0.4, max_speed: float = 0.0, gravity=(0.0, -9.81, 0.0),
                effects: Effects | dict | None = None, dtype: str = "float32", device: str = "cpu",
-               contact_band: float | None = None, pin_gain: float = 4.0, blend_dt: float = 0.0) -> "SimModel":
+               contact_band: float | None = None, pin_gain: float = 4.0, blend_dt: float = 0.0,
+               pin_floor: float = 0.0) -> "SimModel":
         x0 = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         P = x0.shape[0]
         if P == 0:
@@ -138,7 +141,8 @@ class SimModel:
         m = cls(x0=x0, volume=vol, density=float(density), E=Ea, nu=nua, material=material, grid=grid,
                 fps=float(fps), substeps=int(substeps), gravity=tuple(float(g) for g in gravity),
                 effects=effects, dtype=dtype, device=str(wp.get_device(device)), E_max=E_max, nu_max=nu_max,
-                contact_band=band, pin_gain=float(pin_gain), blend_dt=float(blend_dt))
+                contact_band=band, pin_gain=float(pin_gain), blend_dt=float(blend_dt),
+                pin_floor=float(pin_floor))
         lo, hi = grid.valid_lower, grid.valid_upper
         if np.any(x0 < lo) or np.any(x0 >= hi):
             raise ValueError(f"particles at rest lie outside the grid's valid box [{lo}, {hi}); "

@@ -85,6 +85,7 @@ class MPMSolver:
         self.gravity = K.vec3(*model.gravity)
         self.band = model.contact_band
         self.pin_gain = model.pin_gain
+        self.pin_floor = model.pin_floor
         # the pins' and colliders' partial blends are rates per `model.blend_dt` (0: per substep)
         self.blend_r = float(self.dt / model.blend_dt) if model.blend_dt > 0 else 1.0
         self.m_eps = float(1e-9 * np.min(model.mass))  # grid nodes lighter than this are empty
@@ -124,7 +125,7 @@ class MPMSolver:
         alpha = (substep + 1) / self.S
         f = self._flat
         return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], p.eff, self.flags, self.gravity, self.dt, self.lo,
-                self.dx, self.band, self.pin_gain, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
+                self.dx, self.band, self.pin_gain, self.pin_floor, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
                 c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.chunk, self.m_eps, self.blend_r]
 
     def _update_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
@@ -204,7 +205,7 @@ class MPMSolver:
         wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
                   [adj_in.x, ag["gv"]], device=d, record_tape=False)
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
-        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0,
+        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, 0, 0.0, 0.0]
         wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
