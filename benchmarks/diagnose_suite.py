@@ -42,7 +42,6 @@ GROUND_CUT = 0.006   # metres the ground cuts into the lowest swing at strength 
 
 
 def hidden_for(effect: str, s: float) -> dict:
-    import fit_scene as fs
     import report_scene as rs
 
     if effect == "damping":

@@ -5,7 +5,6 @@ finite differences, a control scene with realistic noise is `adequate`, and the 
 JSON schema and stored diagnosis."""
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -11,7 +11,6 @@ parameters' own (linear) step gives, as the prediction is, and judge it on the h
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
