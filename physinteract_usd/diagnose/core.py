@@ -208,7 +208,7 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.
     labels = b.labels if b.labels is not None else np.zeros(len(prob.x0), np.int64)
     d = 0.05
     for lab in np.unique(labels):
-        v = torch.as_tensor((labels == lab).astype(np.float64), dtype=b.E.dtype)
+        v = torch.as_tensor((labels == lab).astype(np.float64), dtype=b.E.dtype, device=b.E.device)
         cols.append((run.r(E=b.E * torch.exp(d * v)) - r0) / d)
         names.append(f"logE[{int(lab)}]")
     st = prob.scene.settings
@@ -232,7 +232,7 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.
             w[0] = 0.0
             for ax in range(3):
                 trajs = [t.clone() for _, t in prob.traj_slots]
-                trajs[slot][:, ax] += torch.as_tensor(h * w, dtype=trajs[slot].dtype)
+                trajs[slot][:, ax] += torch.as_tensor(h * w, dtype=trajs[slot].dtype, device=trajs[slot].device)
                 cols.append((run.r(trajs=trajs) - r0) / h)
                 names.append(f"traj[{c.name}]@{kc:.0f}.{'xyz'[ax]}")
     return np.column_stack(cols), names
@@ -525,7 +525,7 @@ def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> 
     out = []
     d = 0.1
     for _, v, part, reg in parts[: int(s.heterogeneity_parts)]:
-        vt = torch.as_tensor(v, dtype=b.E.dtype)
+        vt = torch.as_tensor(v, dtype=b.E.dtype, device=b.E.device)
         col = (run.r(E=b.E * torch.exp(d * vt)) - r0) / d
         centre = prob.x0[part].mean(0)
         out.append(Probe(f"region{reg}:{len(part)}", col, 0, {"region": reg, "particles": int(len(part)),
@@ -748,7 +748,7 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
         kw = {"effects": {"viscoelasticity": {"modulus": max(t, 0.0) * p.meta["modulus_per_unit"],
                                               "relaxationTime": p.meta["relaxationTime"]}}}
     else:
-        v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype)
+        v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype, device=run.base.E.device)
         kw = {"E": run.base.E * torch.exp(t * v)}
     try:
         r1 = run.r(**kw)

@@ -78,7 +78,7 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
         else:
             v = v / prob.traj_scale
         with torch.no_grad():
-            raw.copy_(torch.tensor(v, dtype=raw.dtype))
+            raw.copy_(torch.tensor(v, dtype=raw.dtype, device=raw.device))
     train = [k for k in range(1, prob.T) if k not in val]
     try:
         lad.optimise(int(iterations), train, fit_nu=False, fit_traj=True)
