@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..errors import SimulationError
+from .search import golden_section
 
 POSITIVE = {"coefficient", "yieldStress", "friction", "modulus", "relaxationTime"}
 
@@ -80,7 +81,6 @@ def search_effects(loss, raw: dict, effects: tuple, e_range: tuple[float, float]
     `points` log-spaced probes over the range, then `refine` golden-section steps around the best.
     A probe that goes unstable counts as infinite. Returns {effect: {"value", "loss", "probes"}}."""
     report = {}
-    g = (math.sqrt(5) - 1) / 2
     for e in effects:
         if e not in raw or e not in SEARCHED:
             continue
@@ -108,18 +108,7 @@ def search_effects(loss, raw: dict, effects: tuple, e_range: tuple[float, float]
         grid = np.linspace(lo, hi, max(int(points), 3))
         vals = [f(float(x)) for x in grid]
         i = int(np.argmin(vals))
-        a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-        c, d = b - g * (b - a), a + g * (b - a)
-        fc, fd = f(c), f(d)
-        for _ in range(max(int(refine) - 2, 0)):
-            if fc < fd:
-                b, d, fd = d, c, fc
-                c = b - g * (b - a)
-                fc = f(c)
-            else:
-                a, c, fc = c, d, fd
-                d = a + g * (b - a)
-                fd = f(d)
+        golden_section(f, grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)], refine)
         best = min(cache, key=cache.get)
         with torch.no_grad():
             leaf.fill_(best)

@@ -33,6 +33,7 @@ from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, assemble_result, confidence, frame_metrics
 from .problem import FitProblem
+from .search import golden_section
 
 
 def _frames(T: int, every: int) -> tuple[list[int], list[int]]:
@@ -121,20 +122,8 @@ class _Ladder:
                 and (i == 0 or vals[i] <= vals[i - 1]) and (i == len(grid) - 1 or vals[i] <= vals[i + 1])]
         starts = [i for i in mins if vals[i] <= best_v * (1 + s.flat_tolerance)][:2]
         step = grid[1] - grid[0]
-        g = (math.sqrt(5) - 1) / 2
         for i in starts:
-            a, b = grid[i] - step, grid[i] + step
-            c, d = b - g * (b - a), a + g * (b - a)
-            fc, fd = f(c), f(d)
-            for _ in range(max(int(s.search_evals) - 2, 0)):
-                if fc < fd:
-                    b, d, fd = d, c, fc
-                    c = b - g * (b - a)
-                    fc = f(c)
-                else:
-                    a, c, fc = c, d, fd
-                    d = a + g * (b - a)
-                    fd = f(d)
+            golden_section(f, grid[i] - step, grid[i] + step, s.search_evals)
         le = min((k for k in cache if math.isfinite(cache[k])), key=cache.get)
         self.report["uniform_sweep"] = {f"{math.exp(k):.4g}": (round(v, 6) if math.isfinite(v) else None)
                                         for k, v in sorted(cache.items())}

@@ -28,6 +28,7 @@ from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
+from .search import GOLDEN, golden_section
 
 
 @dataclass
@@ -112,7 +113,6 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
     search moves away from it and it is never the answer. Where the search meets nothing finite, a
     sweep over the range looks for a finite probe before giving up with a SimulationError."""
     lo, hi = mat.lo, mat.hi
-    g = (math.sqrt(5) - 1) / 2
     cache = {}
 
     def f(le):
@@ -139,9 +139,7 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
         return v
 
     a, b = lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo)
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = f(c), f(d)
-    if not (math.isfinite(fc) or math.isfinite(fd)):
+    if not (math.isfinite(f(b - GOLDEN * (b - a))) or math.isfinite(f(a + GOLDEN * (b - a)))):
         # both first probes failed: a coarse sweep finds where the simulation holds, the search
         # continues around the best finite probe
         for le in np.linspace(a, b, 5):
@@ -151,17 +149,7 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
             k = min(fin, key=cache.get)
             step = (b - a) / 4
             a, b = max(a, k - step), min(b, k + step)
-            c, d = b - g * (b - a), a + g * (b - a)
-            fc, fd = f(c), f(d)
-    for _ in range(max(evals - 2, 0)):
-        if fc < fd or (math.isfinite(fc) and not math.isfinite(fd)):
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = f(d)
+    golden_section(f, a, b, evals)
     fin = [k for k in cache if math.isfinite(cache[k])]
     if not fin:
         raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
