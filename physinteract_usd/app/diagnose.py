@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .jsonsafe import json_safe
 from ..diagnose import CANDIDATES, PHYSICAL, BaseState, DiagnoseSettings, conclude, describe, diagnose_problem
 from ..diagnose.refit import judge_probe, refit_effect
 from ..errors import InputError
@@ -107,27 +108,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         except Exception as exc:  # noqa: BLE001
             cr.evidence = f"(evidence unavailable: {exc})"
     diag.cost["seconds"] = time.perf_counter() - t0
-    out = _finite(diag.to_dict())
+    out = json_safe(diag.to_dict())
     out.update({"stage": str(stage_path), "version": version})
     if write_stage:
         from ..usd.diagnosis_io import write_diagnosis
 
         out["stage_layer"] = write_diagnosis(stage_path, sd.fps, sd.n_frames, version, out)
     return out
-
-
-def _finite(o):
-    """JSON without nan / inf (None) and numpy scalars (lists instead of arrays)."""
-    if isinstance(o, dict):
-        return {str(k): _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _finite(o.tolist())
-    if isinstance(o, (bool, np.bool_)):
-        return bool(o)
-    if isinstance(o, (int, np.integer)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        return float(o) if np.isfinite(o) else None
-    return o

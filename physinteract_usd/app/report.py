@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .jsonsafe import json_safe
 from .. import __version__
 from ..compare import Measurements, ModelAnimation, SceneInfo, compare, render_frames
 from ..compare import figures
@@ -277,22 +278,7 @@ def report(stage_path, *, html=None, video=None, frames_dir=None, write_stage: b
             outputs.record(Path(html))
         outputs.save()
     data["runtime_s"] = time.perf_counter() - t0
-    return _finite(data)
-
-
-def _finite(o):
-    """The JSON without nan / inf (None instead) and without numpy scalars."""
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    if isinstance(o, (bool, np.bool_)):
-        return bool(o)
-    if isinstance(o, (int, np.integer)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        return float(o) if np.isfinite(o) else None
-    return o
+    return json_safe(data)
 
 
 def _html_frames(cmp, T: int) -> list[int]:
