@@ -326,9 +326,10 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                 if col is not None:
                     out.append(Probe(f"{c.name}.{'xyz'[ax]}{'+-'[sgn < 0]}{d:.3g}", col - r0, +1,
                                      {"contact": c.name, "offset": off.tolist()}))
-    elif effect == "interaction:grasp_size":
+    elif effect in ("interaction:grasp_size", "interaction:support"):
+        grasp = effect == "interaction:grasp_size"     # the hand's grasp, else a fixed support
         for i, c in enumerate(prob.contacts):
-            if not c.is_interaction:
+            if not (c.is_interaction if grasp else c.type == "fixed"):
                 continue
             for way in ("more", "less"):
                 cs = list(prob.contacts)
@@ -338,23 +339,10 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                 cs[i] = nc
                 col = _sim_r(run, cs, log)
                 if col is not None:
-                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, {"contact": c.name, "direction": way,
-                                                                         "particles": int(len(nc.indices)),
-                                                                         "radius": float(nc.radius)}))
-    elif effect == "interaction:support":
-        for i, c in enumerate(prob.contacts):
-            if c.type != "fixed":
-                continue
-            for way in ("more", "less"):
-                cs = list(prob.contacts)
-                nc = _resized(c, way, prob.x0, prob.contacts, prob.scene.settings.particle_spacing)
-                if nc is None:
-                    continue
-                cs[i] = nc
-                col = _sim_r(run, cs, log)
-                if col is not None:
-                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, {"contact": c.name, "direction": way,
-                                                                         "particles": int(len(nc.indices))}))
+                    meta = {"contact": c.name, "direction": way, "particles": int(len(nc.indices))}
+                    if grasp:
+                        meta["radius"] = float(nc.radius)
+                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, meta))
     elif effect == "camera:time_offset":
         dt = 0.25
         xs, Fs = _time_shift(x0, dt), _time_shift(F0, dt)
