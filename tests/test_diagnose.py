@@ -181,3 +181,21 @@ def test_hidden_plasticity_is_ranked_first_with_its_yield_stress(plastic):
     assert top["effect"] == "plasticity"
     assert top["estimate"]["yieldStress"] == pytest.approx(400.0, rel=0.3)
     assert "rest shape" in top["evidence"]
+
+
+
+def test_grasp_size_and_support_probes_resize_their_own_contacts(control):
+    """interaction:grasp_size probes grow / shrink the hand's grasp (with its radius),
+    interaction:support probes a fixed support: each only its own kind of contact."""
+    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
+
+    prob, base = _problem(control)
+    kinds = {c.name: ("grasp" if c.is_interaction else c.type) for c in prob.contacts}
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("interaction:grasp_size", "interaction:support")))
+    by = {r.effect: r for r in d.results}
+    grasp, support = by["interaction:grasp_size"].probes, by["interaction:support"].probes
+    assert grasp and support
+    assert {kinds[p.meta["contact"]] for p in grasp} == {"grasp"}
+    assert {kinds[p.meta["contact"]] for p in support} == {"fixed"}
+    assert all("radius" in p.meta for p in grasp) and not any("radius" in p.meta for p in support)
+    assert {p.meta["direction"] for p in grasp + support} <= {"more", "less"}
