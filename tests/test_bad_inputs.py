@@ -362,3 +362,18 @@ def test_yes_goes_on_where_the_cost_warning_stopped(base, tmp_path, capfd):
     assert count > 10_000
     assert main(args + ["--yes"]) == 0
     assert api.info(w / "new" / "scene.usda")["simulation"]["substeps_per_frame"] == count
+
+
+def test_a_corrupt_sublayer_is_named_not_skipped(tmp_path):
+    """USD skips a sublayer it cannot read (a warning); the stage would read as unfitted. Our open
+    names the layer instead."""
+    from physinteract_usd.errors import InputError
+    from physinteract_usd.usd.stage import open_stage
+
+    root = tmp_path / "scene.usda"
+    root.write_text('#usda 1.0\n(\n    subLayers = [@./scene.fit.usdc@]\n)\n')
+    (tmp_path / "scene.fit.usdc").write_bytes(b"PXR-USDC" + bytes(range(200)))
+    before = (tmp_path / "scene.fit.usdc").read_bytes()
+    with pytest.raises(InputError, match="scene.fit.usdc: cannot be read as a USD layer"):
+        open_stage(root)
+    assert (tmp_path / "scene.fit.usdc").read_bytes() == before

@@ -275,6 +275,20 @@ def open_stage(path) -> Usd.Stage:
     path = Path(path)
     if not path.exists():
         raise InputError(path, "file not found")
+    # USD skips a sublayer it cannot read with a warning: a corrupt layer would read as missing data
+    try:
+        root = Sdf.Layer.FindOrOpen(str(path))
+    except Exception:  # noqa: BLE001  (the stage's own open below says what is wrong)
+        root = None
+    for sub in root.subLayerPaths if root is not None else ():
+        sub_path = Path(root.ComputeAbsolutePath(sub))
+        if sub_path.exists():
+            try:
+                ok = Sdf.Layer.FindOrOpen(str(sub_path)) is not None
+            except Exception:  # noqa: BLE001
+                ok = False
+            if not ok:
+                raise InputError(sub_path, f"cannot be read as a USD layer (a sublayer of {path.name})")
     try:
         stage = Usd.Stage.Open(str(path))
     except Exception as exc:  # Tf errors surface as RuntimeError-ish
