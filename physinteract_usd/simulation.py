@@ -90,6 +90,7 @@ class Simulation:
         self.control = Control([sim_contact(c) for c in self.contacts], n_frames=self.T - 1)
         self.adaptive = bool(adaptive_substeps)
         self._rollouts: dict[float, Rollout] = {}
+        self._batch_rollouts: dict = {}          # (rung, copies) -> (Tiled, Rollout)
         self.e_bound = float(st.youngs_max)
         self._use_bound(self.e_bound if not self.adaptive else
                         self.bound_for(float(np.max(scene.youngs_modulus.clip(st.youngs_min, st.youngs_max)))))
@@ -175,6 +176,61 @@ class Simulation:
         if self.adaptive:
             self.ensure_stable(float(E.detach().max()))
         return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+
+    def simulate_batch(self, E, nu, trajectories=None, effects=None, copies_per_rollout: int | None = None):
+        """B rollouts in few: copies of the scene side by side on one grid (`sim.batch`), each with
+        its own E, nu (B, P) (nu may be (P,)), sharing the trajectories and effects. Returns x (B,
+        T, P, 3), F (B, T, P, 3, 3) and `escaped` (B,) bool: copies that went unstable or left their
+        own box (their x is not to be trusted). The substep is the one for the largest E of all
+        copies. `copies_per_rollout` caps the copies per rollout (default: as many as fit, <= 16)."""
+        from .errors import SimulationError
+        from .sim.batch import max_copies, tile
+
+        E = torch.as_tensor(E).to(device=self.tdev, dtype=self.tdtype)
+        if E.dim() != 2 or E.shape[1] != len(self.x0):
+            raise ValueError(f"E must be (copies, {len(self.x0)}), got {tuple(E.shape)}")
+        B = E.shape[0]
+        nu = torch.as_tensor(nu).to(device=self.tdev, dtype=self.tdtype)
+        nu = nu.expand(B, len(self.x0)) if nu.dim() == 1 else nu
+        if self.adaptive:
+            self.ensure_stable(float(E.detach().max()))
+        trajs = None
+        if trajectories is not None:
+            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
+        cap = min(max_copies(self.control), copies_per_rollout or 16)
+        xs, Fs, bad = [], [], []
+        for start in range(0, B, cap):
+            n = min(cap, B - start)
+            key = (self.e_bound, n)
+            if key not in self._batch_rollouts:
+                tl = tile(self.model, self.control, n)
+                if len(self._batch_rollouts) >= 2:
+                    self._batch_rollouts.pop(next(iter(self._batch_rollouts)))
+                self._batch_rollouts[key] = (tl, Rollout(tl.model, tl.control))
+            tl, ro = self._batch_rollouts[key]
+            try:
+                x, F = ro(tl.stack(E[start:start + n]), tl.stack(nu[start:start + n]), effects=effects,
+                          trajectories=tl.trajectories(trajs, like=E))
+            except SimulationError:
+                if n == 1:
+                    x = torch.full((self.T, len(self.x0), 3), float("nan"), dtype=self.tdtype, device=self.tdev)
+                    xs.append(x[None])
+                    Fs.append(torch.full((1, self.T, len(self.x0), 3, 3), float("nan"), dtype=self.tdtype,
+                                         device=self.tdev))
+                    bad.append(np.ones(1, bool))
+                    continue
+                # one copy failed the whole rollout: find which, one at a time
+                out = self.simulate_batch(E[start:start + n], nu[start:start + n], trajectories, effects,
+                                          copies_per_rollout=1)
+                xs.append(out[0])
+                Fs.append(out[1])
+                bad.append(out[2])
+                continue
+            xb, Fb = tl.split(x), tl.split(F)
+            xs.append(xb)
+            Fs.append(Fb)
+            bad.append(tl.escaped(xb.detach()))
+        return torch.cat(xs), torch.cat(Fs), np.concatenate(bad)
 
     def gaussians_at(self, x_k, F_k):
         """(means (N, 3), covariances (N, 3, 3)) of the splats for particle state x_k, F_k."""

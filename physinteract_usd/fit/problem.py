@@ -168,6 +168,29 @@ class FitProblem:
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
 
 
+    def losses_batch(self, E, nu, trajectories=None, effects=None, frames=None) -> np.ndarray:
+        """(B,) reconstruction losses of B material fields E (B, P) (nu (P,) or (B, P)) under the
+        same trajectories and effects, simulated as copies side by side in few rollouts
+        (`Simulation.simulate_batch`; on a GPU B small probes cost about one). No gradients. A copy
+        that went unstable or left its box gets inf. All copies take the substep of the largest E
+        among them: a soft copy's loss may differ from its own rollout's (a finer time step) by the
+        time discretisation; group the probes by stiffness where that matters, or where the copies
+        are many and large (then the batch costs about the sum of its copies, at the finest step)."""
+        with torch.no_grad():
+            x, F, bad = self.sim.simulate_batch(E, nu, trajectories, effects)
+            ks = range(1, self.T) if frames is None else frames
+            out = np.full(len(x), np.inf)
+            for b in range(len(x)):
+                if bad[b]:
+                    continue
+                total = 0.0
+                for k in ks:
+                    total = total + self.frame_loss(k, self.render_frame(k, x[b, k], F[b, k]))["total"]
+                out[b] = float(total) / max(len(ks), 1)
+        out[~np.isfinite(out)] = np.inf
+        return out
+
+
 def support_layer(x0: np.ndarray, spacing: float, contacts: list, direction: str) -> list | None:
     """The contact list with every guessed `fixed` set (extracted, `guessed`: no still region was in
     view, e.g. a ball on a stand the camera never sees) one layer of particles larger (`direction`
