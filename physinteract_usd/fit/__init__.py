@@ -2,15 +2,17 @@
 through the differentiable simulator and renderer. No USD here.
 
 `fit(problem, settings)` runs the schedule `settings.schedule` names: "ladder" (model selection,
-uniform E then regions split by score tests; `ladder.py`) or "bumps" (a coarse-to-fine field of
-Gaussian bumps; `optimize.py`)."""
+uniform E then regions split by score tests; `ladder.py`), "bumps" (a coarse-to-fine field of
+Gaussian bumps; `optimize.py`) or "select" (a dense uniform sweep, then uniform vs the bumps field
+by held-back frames; `select.py`)."""
 
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem, LossWeights, Observations
+from .select import fit_select
 
-SCHEDULES = {"ladder": fit_ladder, "bumps": fit_bumps}
+SCHEDULES = {"ladder": fit_ladder, "bumps": fit_bumps, "select": fit_select}
 
 
 def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResult:
@@ -22,5 +24,5 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     return SCHEDULES[s.schedule](prob, s, **kw)
 
 
-__all__ = ["fit", "fit_ladder", "fit_bumps", "FitSettings", "FitResult", "FitProblem", "Observations",
+__all__ = ["fit", "fit_ladder", "fit_bumps", "fit_select", "FitSettings", "FitResult", "FitProblem", "Observations",
            "LossWeights", "MaterialField", "SCHEDULES"]

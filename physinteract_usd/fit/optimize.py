@@ -50,7 +50,18 @@ class FitSettings:
     seed: int = 0
     fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
     schedule: str = "bumps"             # "ladder": model selection, uniform E -> regions split by score
-                                        # (fit/ladder.py); "bumps": the coarse-to-fine RBF field below
+                                        # (fit/ladder.py); "bumps": the coarse-to-fine RBF field below;
+                                        # "select": uniform vs field by held-back frames (fit/select.py)
+    select_holdout_every: int = 3       # select: every this-many-th frame from frame 2 is held back
+    select_sweep_points: int = 15       # ... log-spaced uniform E probes (forward only) over the range
+    select_minima: int = 3              # ... local minima of the sweep refined (golden, search_evals each)
+    select_minima_tolerance: float = 0.5  # ... those within this (relative) of the best one
+    select_flat: float = 0.01           # ... the curve is "flat" when it spans less than this (relative)
+    select_interval_rise: float = 0.01  # ... a minimum's interval: where the loss rises by this share
+    select_penalty: float = 0.002       # ... the field is kept when its held-back drop exceeds this x added
+    select_t: float = 2.0               # coefficients x the uniform's held-back loss, with paired t >= this
+    select_uniform_share: float = 0.3   # ... iteration budget: the uniform model, the final polish on all
+    select_final_share: float = 0.15    # frames (the field gets the rest)
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
     sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
     flat_tolerance: float = 0.02        # ... minima within this (relative) of the best are refined too
