@@ -30,6 +30,7 @@ from ..errors import InputError
 from ..fit import FitProblem, FitResult, FitSettings
 from ..fit import fit as optimise
 from ..fit.optimize import select_supports
+from ..fit.select import model_summary
 from ..fit.problem import Observations
 from ..scene import SceneData
 from ..usd.fit_io import write_fit_layer
@@ -90,7 +91,8 @@ class FitOutcome:
                 "ssim": float(np.mean([f["ssim"] for f in fm])), "iou": float(np.mean([f["iou"] for f in fm])),
                 "youngs_modulus_pa": {"min": float(r.youngs.min()), "median": float(np.median(r.youngs)),
                                       "max": float(r.youngs.max())},
-                "confidence_mean": float(r.confidence.mean())}
+                "confidence_mean": float(r.confidence.mean()),
+                "model": model_summary(r.model)}
 
 
 def check_iterations(iterations) -> None:

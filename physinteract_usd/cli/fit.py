@@ -37,6 +37,9 @@ def add_parser(sub):
                    help="weight of the appearance prior (material parts follow colour edges; default 1, "
                         "0 turns it off, with the smoothness back to its weak edge-blind 0.02: for objects whose "
                         "colour says nothing about their material)")
+    s.add_argument("--schedule", choices=("bumps", "select", "ladder"), default=None,
+                   help="the fit's schedule (default bumps): select = a dense uniform-E sweep, then the uniform "
+                        "model vs the bumps field chosen on held-back frames; ladder = uniform then regions")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -51,7 +54,10 @@ def run(a) -> int:
         raise InputError("--checkpoint-every", f"must be >= 0, got {a.checkpoint_every}")
     if a.appearance is not None and not a.appearance >= 0:
         raise InputError(a.stage, f"--appearance must be >= 0, got {a.appearance}")
-    over = {"appearance": a.appearance} if a.appearance is not None else None
+    over = {"appearance": a.appearance} if a.appearance is not None else {}
+    if a.schedule is not None:
+        over["schedule"] = a.schedule
+    over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,
                       keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes, warm=not a.fresh)

@@ -183,6 +183,28 @@ def select_rule(uniform_val: list[float], field_val: list[float], added: int, s:
     return {"keep_field": keep, "mean_drop": mean, "penalty": penalty, "t": tstat, "why": why}
 
 
+def model_summary(model: dict | None) -> dict:
+    """The material model a fit chose, in short (`fit --json`, the report): the schedule, the model
+    chosen, the uniform stage's E, curve shape and minima, each model's training and held-back
+    losses and the test's verdict."""
+    m = model or {}
+    out = {"schedule": m.get("schedule", "bumps")}
+    if "chosen" in m:
+        out["chosen"] = m["chosen"]
+    uni = m.get("uniform_stage")
+    if uni:
+        out["uniform_e"] = uni["e"]
+        out["uniform_curve"] = uni["shape"]
+        out["uniform_minima"] = [{"e": x["e"], "loss": x["loss"], "interval": x["interval"]} for x in uni["minima"]]
+    if "models" in m:
+        out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"]} for k, v in m["models"].items()}
+    if "test" in m:
+        out["test"] = m["test"].get("why", "")
+    if "regions" in m:          # the ladder's
+        out["regions"] = m["regions"]
+    return out
+
+
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
                on_iteration=None, uniform_e: float | None = None) -> FitResult:
     """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field."""

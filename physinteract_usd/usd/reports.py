@@ -33,7 +33,7 @@ def read_report(prim: Usd.Prim) -> dict:
     report written before versions had one), "effects", "frames", per-frame "psnr",
     "psnr_masked", "ssim", "iou", their means in "metrics", "loss_history", "final_loss",
     "runtime_s", "device", "settings", "effect_parameters", "confidence_estimated",
-    "resumed_from"}."""
+    "resumed_from", "material_model" (the model the fit chose and why, `FitResult.model`; {} if none)}."""
     g = lambda n: prim.GetAttribute(f"physinteract:{n}").Get()  # noqa: E731
     arr = lambda n: list(g(n) or [])  # noqa: E731
     settings = g("settings") or ""
@@ -48,7 +48,8 @@ def read_report(prim: Usd.Prim) -> dict:
            "settings": json.loads(settings) if settings else {},
            "effect_parameters": json.loads(params) if params else {},
            "confidence_estimated": True if ce is None else bool(ce),
-           "resumed_from": str(g("resumedFrom") or "")}
+           "resumed_from": str(g("resumedFrom") or ""),
+           "material_model": json.loads(g("materialModel") or "{}")}
     out["metrics"] = {k: _mean(out[k]) for k in ("psnr", "psnr_masked", "ssim", "iou")}
     return out
 
@@ -90,6 +91,7 @@ def write_report(stage: Usd.Stage, parent: Sdf.Path, version: int, result, effec
     ra("device", str(result.device))
     ra("settings", json.dumps(result.settings, default=json_default))
     ra("effectParameters", json.dumps(effect_parameters or {}, default=json_default))
+    ra("materialModel", json.dumps(getattr(result, "model", None) or {}, default=json_default))
     ra("confidenceEstimated", bool(confidence_estimated))
     ra("resumedFrom", str(resumed_from))
     return rp
