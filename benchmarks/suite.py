@@ -81,11 +81,14 @@ def one(scene: str, a, work: Path) -> dict:
                                          capture_output=True, text=True).stdout)
         row.update(particles=info["particles"]["count"], substeps=info["simulation"]["substeps_per_frame"],
                    frames=info["frames"]["count"], grid=grid)
-        fit_cmd = ["fit", str(st), "--iterations", str(a.iterations), "--device", a.device]
+        fit_cmd = ["fit", str(st), "--iterations", str(a.iterations), "--device", a.device, "--schedule", a.schedule]
         if not a.extracted:
             fit_cmd += ["--contact-from", str(gt_dir)]
         rc, t_fit = run(fit_cmd, log)
         row["fit_s"] = round(t_fit, 1)
+        row["schedule"] = a.schedule
+        if not rc:
+            row["model"] = chosen_model(st)
         row["iterations"] = a.iterations
         if rc:
             if a.extracted:
@@ -103,6 +106,17 @@ def one(scene: str, a, work: Path) -> dict:
                                         "position_error_m")})
         row["hidden_effect"] = gt.get("hidden_effect")
     return row
+
+
+def chosen_model(stage: Path) -> dict:
+    """The material model the fit recorded in its report (fit/select.py's model_summary)."""
+    from physinteract_usd.app.adapters import read_scene
+    from physinteract_usd.fit.select import model_summary
+
+    try:
+        return model_summary(read_scene(stage).reports[-1].get("material_model"))
+    except Exception as exc:  # noqa: BLE001 - a benchmark row is written whatever the report holds
+        return {"error": f"{type(exc).__name__}: {exc}"}
 
 
 def table(rows: list[dict], a) -> str:
@@ -127,7 +141,8 @@ def table(rows: list[dict], a) -> str:
                f"*{PAPER['psnr']}* | | *{PAPER['ssim']}* | | |")
     dev = rows[0]["device"] if rows else a.device
     src = "extracted by `fit` (gt/ moved away)" if a.extracted else "`--contact-from gt` (contacts, supports, T0)"
-    return (f"Size `{a.size}`, device: {dev}; contacts: {src}.\n\n" + head + "\n".join(out) + "\n")
+    return (f"Size `{a.size}`, device: {dev}; contacts: {src}; schedule `{a.schedule}`.\n\n" + head
+            + "\n".join(out) + "\n")
 
 
 def main(argv=None):
@@ -139,6 +154,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--grid", type=int, default=None, help="override the suggested init grid")
     ap.add_argument("--extracted", action="store_true", help="fit from extracted contacts, not gt")
+    ap.add_argument("--schedule", default="bumps", choices=("bumps", "select", "ladder"),
+                    help="the fit's schedule (rows are kept per scene and schedule: two schedules can share --out "
+                         "and its captures; the table shows this schedule's)")
     ap.add_argument("--out", default="out/suite")
     ap.add_argument("--write", default=None, help="markdown file to (re)write with the table")
     a = ap.parse_args(argv)
@@ -150,9 +168,9 @@ def main(argv=None):
     work.mkdir(parents=True, exist_ok=True)
     jl = work / "results.jsonl"
     rows = [json.loads(line) for line in jl.read_text().splitlines()] if jl.exists() else []
-    done = {r["scene"] for r in rows}
+    done = {(r["scene"], r.get("schedule", "bumps")) for r in rows}
     for n in names:
-        if n in done:
+        if (n, a.schedule) in done:
             continue
         t = time.perf_counter()
         r = one(n, a, work)
@@ -161,10 +179,10 @@ def main(argv=None):
         with open(jl, "a") as f:
             f.write(json.dumps(r) + "\n")
         print(json.dumps(r), flush=True)
-        md = table(rows, a)
+        md = table([r for r in rows if r.get("schedule", "bumps") == a.schedule], a)
         if a.write:
             Path(a.write).write_text(md)
-    print(table(rows, a))
+    print(table([r for r in rows if r.get("schedule", "bumps") == a.schedule], a))
 
 
 if __name__ == "__main__":
