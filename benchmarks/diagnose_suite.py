@@ -82,7 +82,7 @@ def case_list(strengths, controls: int) -> list[str]:
     return out
 
 
-def run_case(case: str, work: Path, refit: int, refit_iterations: int) -> dict:
+def run_case(case: str, work: Path, refit: int, refit_iterations: int, device: str = "cpu") -> dict:
     import diagnose_scene as ds
     from physinteract_usd import api
 
@@ -107,7 +107,8 @@ def run_case(case: str, work: Path, refit: int, refit_iterations: int) -> dict:
         truth.update({"truth": None, "strength": 0.0, "true_value": None})
     t0 = time.perf_counter()
     d = api.diagnose(info["stage"], refit=refit, refit_iterations=refit_iterations, progress=False,
-                     log=lambda *a: None, write_stage=False)
+                     log=lambda *a: None, write_stage=False, device=device)
+    truth["device"] = device
     truth["seconds"] = time.perf_counter() - t0
     cands = d["candidates"]
     names = [c["effect"] for c in cands]
@@ -195,6 +196,7 @@ def main(argv=None) -> int:
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--refit", type=int, default=3)
     ap.add_argument("--refit-iterations", type=int, default=6)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the diagnosis' simulator and renderer)")
     ap.add_argument("--deadline", type=float, default=0, help="stop starting cases after this many seconds")
     ap.add_argument("--write", help="write the markdown tables here")
     ap.add_argument("--ground-cut", type=float, default=GROUND_CUT,
@@ -222,7 +224,7 @@ def main(argv=None) -> int:
             print("deadline: stopping")
             break
         try:
-            r = run_case(case, out / "work", a.refit, a.refit_iterations)
+            r = run_case(case, out / "work", a.refit, a.refit_iterations, a.device)
         except Exception as exc:  # noqa: BLE001  (a failing case is a row, not the end of the suite)
             r = {"case": case, "truth": None, "verdict": f"error: {exc}", "candidates": [], "seconds": 0.0,
                  "kind": case.split("@")[0]}
