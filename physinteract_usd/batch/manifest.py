@@ -32,7 +32,7 @@ from ..errors import InputError
 
 STAGE_SUFFIXES = (".usda", ".usdc", ".usd")
 EFFECTS = ("damping", "plasticity", "ground", "viscoelasticity")
-SCHEDULES = ("bumps", "ladder")
+SCHEDULES = ("bumps", "select", "ladder")
 TYPES = ("pointAdherent", "pointNonAdherent", "surfaceNonAdherent")
 
 # key -> what it holds (the docs' table is built from this)
@@ -42,7 +42,7 @@ KEYS = {
     "iterations": "fit iterations (>= 1)",
     "seed": "the fit's random seed",
     "device": "cpu or cuda",
-    "schedule": "the fit's schedule: bumps or ladder",
+    "schedule": "the fit's schedule: bumps, select or ladder",
     "effects": "effects switched on before the fit: damping plasticity ground viscoelasticity (';' between)",
     "type": "interaction type: pointAdherent pointNonAdherent surfaceNonAdherent",
     "grasp_frame": "the hand takes hold at frame K",

@@ -44,7 +44,7 @@ def add_parser(sub):
     s.add_argument("--device", default=None, help="cpu or cuda for items that do not say (default cpu)")
     s.add_argument("--iterations", type=_workers, default=None, metavar="N",
                    help="fit iterations for items that do not say (default 60)")
-    s.add_argument("--schedule", choices=["bumps", "ladder"], default=None,
+    s.add_argument("--schedule", choices=["bumps", "select", "ladder"], default=None,
                    help="the fit's schedule for items that do not say")
     s.add_argument("--seed", type=int, default=None, help="the fit's seed for items that do not say (default 0)")
     s.add_argument("--grid", type=_workers, default=None, metavar="N",
