@@ -76,9 +76,10 @@ def occupancy(points: np.ndarray, spacing: float) -> np.ndarray:
     return occ
 
 
-def local_thickness(occ: np.ndarray, voxel: float = 1.0):
+def local_thickness(occ: np.ndarray, voxel: float = 1.0, min_thickness: float = 0.0):
     """(thickness map over `occ` in units of `voxel`, inf where no ridge ball covers the voxel;
-    ridge pair thicknesses; the distance transform)."""
+    ridge pair thicknesses; the distance transform). Ridge pairs thinner than `min_thickness`
+    (metres, like `voxel`) are dropped."""
     occ = np.pad(np.asarray(occ, bool), 1)
     dist, feat = ndimage.distance_transform_edt(occ, return_indices=True)
     ridge = np.full(occ.shape, -np.inf)
@@ -101,7 +102,7 @@ def local_thickness(occ: np.ndarray, voxel: float = 1.0):
         na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
         cos = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12)
         sep = np.linalg.norm(a - b, axis=1)
-        keep = (cos <= cos_max) & (sep >= MIN_SEPARATION)
+        keep = (cos <= cos_max) & (sep >= MIN_SEPARATION) & (na + nb - 1.0 >= min_thickness / voxel)
         t = na[keep] + nb[keep] - 1.0
         for v in (p[keep], q[keep]):
             np.maximum.at(ridge, tuple(v.T), t)
@@ -131,12 +132,14 @@ def local_thickness(occ: np.ndarray, voxel: float = 1.0):
     return tmap[crop] * voxel, pairs * voxel, dist[crop] * voxel
 
 
-def thinnest_part(occ: np.ndarray, voxel: float) -> Thickness:
-    """The thinnest part of the solid `occ` (voxels of size `voxel` metres): see the module doc."""
+def thinnest_part(occ: np.ndarray, voxel: float, min_thickness: float = 0.0) -> Thickness:
+    """The thinnest part of the solid `occ` (voxels of size `voxel` metres): see the module doc.
+    `min_thickness` (metres): thinner ridges are not parts (e.g. the bumps a surface of splats of
+    that size leaves on the filled solid)."""
     occ = np.asarray(occ, bool)
     if not occ.any():
         raise ValueError("the solid is empty")
-    tmap, pairs, dist = local_thickness(occ, voxel)
+    tmap, pairs, dist = local_thickness(occ, voxel, min_thickness)
     # the largest inscribed ball: EDT to the nearest empty voxel centre, half a voxel beyond the boundary
     ball = 2.0 * float(dist.max()) - voxel
     solid = occ & np.isfinite(tmap)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..usd.stage import read_grid_choice
 from .adapters import read_scene
 
 
@@ -31,7 +32,8 @@ def info(stage_path) -> dict:
         "simulation": {"grid": list(sd.settings.grid_resolution), "cell_size_m": sd.settings.cell_size,
                        "domain": [sd.settings.domain_min.round(4).tolist(), sd.settings.domain_max.round(4).tolist()],
                        "substeps_per_frame": sd.settings.substeps,
-                       "youngs_range_pa": [sd.settings.youngs_min, sd.settings.youngs_max]},
+                       "youngs_range_pa": [sd.settings.youngs_min, sd.settings.youngs_max],
+                       "grid_choice": read_grid_choice(sd.path)},
         "effects": sd.effects,
         "contacts": [{"name": c.name, "type": c.type, "particles": int(len(c.indices)),
                       "grasp": c.grasp_frame, "release": c.release_frame, "source": c.source} for c in sd.contacts],

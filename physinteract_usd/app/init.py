@@ -8,6 +8,7 @@ user's root (`--force` keeps it and replaces the generated layers) or a fit (`--
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +18,30 @@ from ..errors import InputError
 from ..fill import fill_from_gaussians, fill_from_mesh
 from ..scene import SimSettings
 from ..sim.cfl import substeps_per_frame
+from ..thickness import Thickness, occupancy, thinnest_part
 from ..usd.layout import LayerPaths, check_our_root, check_owned, check_writable_dir
 from ..usd.stage import write_init_stage
 from ..usd.versions import discard_versions, fit_history
 from . import budget
 
 DEFAULT_GRID = 32
+AUTO = "auto"
+# `--grid auto`: MPM's quadratic B-spline spreads a particle over 3 cells, so a part 1-2 cells thick
+# has its whole thickness in one kernel footprint: the grid velocity varies too little across it to
+# carry the linear strain of bending, and its bending stiffness is off by far more than MA's 20%
+# (the suite's ropes at grid 24; the clamped cantilever in tests/test_known_answers.py). Four cells
+# across is the fewest that leave two kernel footprints' worth of independent nodes through the
+# thickness (docs/init.md has the measured cantilever frequencies).
+CELLS_ACROSS = 4
+MIN_AUTO_GRID = 24          # never coarser than the synthetic captures' suggestion (motion, contact)
+MAX_AUTO_GRID = 128         # cells along the longest side: a GPU's budget (--max-grid lowers it)
+MAX_AUTO_PARTICLES = 60_000  # ~1 min per fit iteration on an H100 at 128 cells (--max-particles)
+MEASURE_VOXELS_ACROSS = 10  # the thickness is measured on a fill with ~10 voxels across the thinnest part
+MAX_MEASURE_VOXELS = 4_000_000
+FIRST_PASS_VOXELS = 96      # the first measurement: the extent in 96 voxels
+SPLAT_BUMPS = 1.0           # a fill from splats has bumps ~ their size: parts thinner than the median
+#                             splat radius (largest axis) are not told from them (the fill puts samples
+#                             within a splat's 1-sigma ellipsoid)
 DEFAULT_PADDING = 0.5
 DEFAULT_E_RANGE = (1e3, 1e6)
 MAX_POISSON = 0.45  # default: the fit keeps nu in (0, max_poisson]: the CFL bound is taken there
@@ -71,6 +90,67 @@ def check_target(stage_path: Path, force: bool, discard_fits: bool) -> None:
                          "discard them; add --discard-fits to do so, or init a new stage name")
 
 
+@dataclass
+class GridChoice:
+    """How init chose its grid (recorded on the stage's init layer and printed)."""
+
+    mode: str               # "auto" or "fixed" (the user's --grid N)
+    grid: int               # cells along the longest side of the domain
+    cell: float             # metres
+    thinnest: float         # metres: the thinnest part (thickness.thinnest_part)
+    cells_across: float     # thinnest / cell
+    particles: int
+    limit: str | None       # auto: "grid" or "particles" when a cap kept it from CELLS_ACROSS
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"mode": self.mode, "grid": self.grid, "cellSize": self.cell, "thinnestPart": self.thinnest,
+                "cellsAcross": self.cells_across, "particles": self.particles, "limit": self.limit or "",
+                "cellsAcrossWanted": CELLS_ACROSS}
+
+
+def measure_thickness(fill, bbox_size, min_thickness: float = 0.0) -> tuple[Thickness, float]:
+    """(The thinnest part, the solid's volume in m^3) of the object that `fill(spacing)` fills
+    (returns particles on a lattice). Measured on a fill at 1/FIRST_PASS_VOXELS of the extent, then again at a
+    tenth of the thinnest part found (at most MAX_MEASURE_VOXELS voxels) when that is finer. Parts
+    thinner than ~5 voxels of the first pass (5% of the extent) are not seen (thickness.MIN_SEPARATION),
+    nor any thinner than `min_thickness` (init: SPLAT_BUMPS x the splats' median size)."""
+    size = np.asarray(bbox_size, float)
+    floor = lambda: float(np.prod(size) / MAX_MEASURE_VOXELS) ** (1 / 3)  # noqa: E731
+    h = max(float(size.max()) / FIRST_PASS_VOXELS, floor())
+    parts = fill(h)
+    th = thinnest_part(occupancy(parts.positions, h), h, min_thickness)
+    h2 = max(th.thinnest / MEASURE_VOXELS_ACROSS, floor())
+    if h2 < 0.8 * h:
+        try:
+            parts, h = fill(h2), h2
+            th = thinnest_part(occupancy(parts.positions, h), h, min_thickness)
+        except ValueError:
+            pass  # too fine a lattice: keep the coarse measurement
+    return th, float(len(parts)) * h ** 3
+
+
+def splat_floor(g, mesh=None) -> float:
+    """The thinnest part the object's surface can show: SPLAT_BUMPS x the median splat radius
+    (its largest axis) for Gaussians; 0 for a mesh (exact)."""
+    if mesh is not None or g is None or not len(g):
+        return 0.0
+    return SPLAT_BUMPS * float(np.median(g.scales.max(axis=1)))
+
+
+def auto_grid(thick: Thickness, volume: float, extent: float, padding: float = DEFAULT_PADDING,
+              max_grid: int = MAX_AUTO_GRID, max_particles: int = MAX_AUTO_PARTICLES) -> tuple[int, str | None]:
+    """(Cells along the longest side, which cap bound it or None): CELLS_ACROSS cells across the
+    thinnest part, at least MIN_AUTO_GRID, at most `max_grid` and about `max_particles` particles
+    (a fill at half a cell holds volume / (dx / 2)^3)."""
+    side = extent * (1 + 2 * padding)
+    want = max(int(math.ceil(side * CELLS_ACROSS / thick.thinnest - 1e-9)), MIN_AUTO_GRID)
+    by_particles = int(math.floor(side / (2.0 * (volume / max_particles) ** (1 / 3))))
+    grid = min(want, max_grid, by_particles)
+    limit = None if grid >= want else ("grid" if max_grid <= by_particles else "particles")
+    return max(grid, 8), limit
+
+
 def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID,
                         padding: float = DEFAULT_PADDING, youngs_range=DEFAULT_E_RANGE,
                         poisson: float = 0.3, density: float = 1000.0,
@@ -115,31 +195,103 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
          fps=None, masks_amodal=False, grid=DEFAULT_GRID, padding=DEFAULT_PADDING,
          youngs_range=DEFAULT_E_RANGE, poisson=0.3, density=1000.0,
          constitutive_model="fixedCorotated", max_poisson=MAX_POISSON, spacing=None, force=False,
-         discard_fits=False, yes=True) -> LayerPaths:
-    """Build a stage from a capture. Returns the LayerPaths written. `force`: replace the generated
-    layers of an existing stage (the root layer is kept); `discard_fits`: and its fit versions;
-    `yes`: go on even when a frame would need more than budget.MAX_SUBSTEPS substeps."""
+         discard_fits=False, yes=True, max_grid=MAX_AUTO_GRID, max_particles=MAX_AUTO_PARTICLES,
+         log=print) -> LayerPaths:
+    """Build a stage from a capture. Returns the LayerPaths written. `grid`: cells along the
+    longest side, or "auto" (CELLS_ACROSS cells across the thinnest part, within `max_grid` cells
+    and about `max_particles` particles); `log` gets one line saying which grid and why. `force`:
+    replace the generated layers of an existing stage (the root layer is kept); `discard_fits`: and
+    its fit versions; `yes`: go on even when a frame would need more than budget.MAX_SUBSTEPS substeps."""
     stage_path = Path(stage_path)
+    auto = check_grid(grid, max_grid, max_particles)
     check_target(stage_path, force, discard_fits)
     check_youngs_range(youngs_range)
     cap = read_capture(capture_dir, object=object, video=video, camera=camera, masks=masks, fps=fps,
                        masks_amodal=masks_amodal)
     g = cap.object.gaussians
-    settings = choose_sim_settings(g.means if cap.object.mesh is None else cap.object.mesh.vertices,
-                                   cap.fps, grid, padding, youngs_range, poisson, density,
+    points = g.means if cap.object.mesh is None else cap.object.mesh.vertices
+
+    def fill(h, anchor=None):
+        try:
+            if cap.object.mesh is not None:
+                return fill_from_mesh(cap.object.mesh, h, anchor=anchor)
+            return fill_from_gaussians(g, h, anchor=anchor)
+        except ValueError as exc:
+            raise InputError(cap.object.path, str(exc)) from None
+
+    def settings_for(n):
+        return choose_sim_settings(points, cap.fps, n, padding, youngs_range, poisson, density,
                                    constitutive_model, max_poisson, spacing)
-    try:
-        if cap.object.mesh is not None:
-            parts = fill_from_mesh(cap.object.mesh, settings.particle_spacing, anchor=settings.domain_min)
-        else:
-            parts = fill_from_gaussians(g, settings.particle_spacing, anchor=settings.domain_min)
-    except ValueError as exc:
-        raise InputError(cap.object.path, str(exc)) from None
+
+    extent = float(np.max(points.max(0) - points.min(0))) if len(points) else 0.0
+    if not extent > 0:
+        settings_for(DEFAULT_GRID)  # the same clear error as a fixed grid gives
+    thick, volume = measure_thickness(fill, points.max(0) - points.min(0), splat_floor(g, cap.object.mesh))
+    suggested, limit = auto_grid(thick, volume, extent, padding, max_grid, max_particles)
+    n = suggested if auto else int(grid)
+    for _ in range(3):
+        settings = settings_for(n)
+        parts = fill(settings.particle_spacing, settings.domain_min)
+        if not auto or len(parts) <= 1.05 * max_particles or n <= 8:
+            break
+        n, limit = max(8, int(n * (max_particles / len(parts)) ** (1 / 3))), "particles"
+    choice = grid_choice(auto, n, settings.cell_size, thick.thinnest, len(parts), limit, max_grid, max_particles,
+                         suggested)
+    log(choice.message)
     budget.check_substeps(settings.substeps, len(parts), int(np.prod(settings.grid_resolution)), cap.n_frames,
                           flag="--youngs-range", yes=yes,
                           detail=f" (largest E {settings.youngs_max:g} Pa on a {settings.cell_size * 1000:.3g} mm grid "
                                  f"at {cap.fps:g} fps)")
-    lp = write_init_stage(stage_path, cap, parts, settings, force=force)
+    lp = write_init_stage(stage_path, cap, parts, settings, force=force, grid_choice=choice.to_dict())
     if discard_fits:
         discard_versions(stage_path)
     return lp
+
+
+def check_grid(grid, max_grid, max_particles) -> bool:
+    """True for `grid` "auto", False for a whole number of cells (>= 8); an InputError otherwise."""
+    if isinstance(grid, str):
+        if grid.strip().lower() == AUTO:
+            auto = True
+        else:
+            try:
+                grid = int(grid)
+            except ValueError:
+                raise InputError("--grid", f"must be a whole number of cells or 'auto', got {grid!r}") from None
+            auto = False
+    else:
+        auto = False
+    if not auto and (int(grid) != grid or grid < 8):
+        raise InputError("--grid", f"must be at least 8 cells (or 'auto'), got {grid}")
+    if int(max_grid) != max_grid or max_grid < 8:
+        raise InputError("--max-grid", f"must be a whole number of cells, at least 8, got {max_grid}")
+    if int(max_particles) != max_particles or max_particles < 100:
+        raise InputError("--max-particles", f"must be a whole number, at least 100, got {max_particles}")
+    return auto
+
+
+def grid_choice(auto: bool, grid: int, cell: float, thinnest: float, particles: int, limit, max_grid: int,
+                max_particles: int, suggested: int) -> GridChoice:
+    """The choice and its one-line explanation."""
+    across = thinnest / cell
+    mm = f"{thinnest * 1000:.3g} mm"
+    if auto and limit:
+        need = int(math.ceil(grid * CELLS_ACROSS / across))
+        cap, flag = ((f"the cap of {max_grid} cells", f"--max-grid {need}") if limit == "grid" else
+                     (f"the cap of {max_particles} particles (grid {grid})",
+                      f"--max-particles {int(math.ceil(particles * (need / grid) ** 3 / 1000)) * 1000}"
+                      + (f" --max-grid {need}" if need > max_grid else "")))
+        msg = (f"thinnest part {mm}: {across:.1f} cells across at {cap}; the bending stiffness of thin parts "
+               f"will be biased (use a GPU and {flag}, or accept)")
+    elif auto:
+        floor = grid == MIN_AUTO_GRID and across >= 1.05 * CELLS_ACROSS
+        why = f"the floor of {MIN_AUTO_GRID} cells; " if floor else ""
+        msg = (f"grid auto: {grid} cells along the longest side ({cell * 1000:.3g} mm cells, {particles} particles): "
+               f"{why}{across:.1f} cells across the thinnest part ({mm}; {CELLS_ACROSS} wanted)")
+    else:
+        msg = f"grid {grid} (--grid): {across:.1f} cells across the thinnest part ({mm}), {particles} particles"
+        if across < CELLS_ACROSS:
+            msg += (f"; below {CELLS_ACROSS} cells its bending stiffness is biased (--grid auto would choose "
+                    f"{suggested})")
+    return GridChoice("auto" if auto else "fixed", int(grid), float(cell), float(thinnest), float(across),
+                      int(particles), limit if auto else None, msg)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 from ..errors import InputError
 from .common import e_range, positive_float
 from .info import format_info
@@ -20,8 +22,16 @@ def add_parser(sub):
                    help="the masks include the object behind the hand (default: visible only)")
     s.add_argument("--fps", type=positive_float, help="frame rate, when neither transforms.json nor "
                    "the video gives one")
-    s.add_argument("--grid", type=int, default=32, help="MPM grid cells along the longest side of the "
-                   "domain (default 32; the paper uses 100)")
+    s.add_argument("--grid", type=grid_arg, default=32, metavar="N|auto",
+                   help="MPM grid cells along the longest side of the domain (default 32; the paper uses 100), "
+                   "or 'auto': 4 cells across the object's thinnest part (measured from its fill), at least 24, "
+                   "within --max-grid and --max-particles. A part 1-2 cells thick bends wrongly whatever E is; "
+                   "auto costs more (more particles and substeps): sized for a GPU. init prints the grid it "
+                   "chose and the cells across the thinnest part either way")
+    s.add_argument("--max-grid", type=int, default=128, metavar="N",
+                   help="with --grid auto: at most N cells along the longest side (default 128)")
+    s.add_argument("--max-particles", type=int, default=60_000, metavar="N",
+                   help="with --grid auto: at most about N particles (default 60000)")
     s.add_argument("--padding", type=positive_float, default=0.5, help="domain margin around the object, as a "
                    "fraction of its extent (default 0.5)")
     s.add_argument("--youngs-range", type=e_range, default=(1e3, 1e6), metavar="MIN,MAX",
@@ -42,13 +52,23 @@ def add_parser(sub):
     return s
 
 
+def grid_arg(s: str):
+    if s.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError("must be a whole number of cells or 'auto'") from None
+
+
 def run(a) -> int:
     from .. import api
 
     if a.capture is None and (a.object is None or a.video is None or a.camera is None):
         raise InputError(a.stage, "give --capture DIR, or all of --object, --video and --camera")
     lp = api.init(a.stage, a.capture, object=a.object, video=a.video, camera=a.camera, masks=a.masks,
-                  fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, padding=a.padding,
+                  fps=a.fps, masks_amodal=a.masks_amodal, grid=a.grid, max_grid=a.max_grid,
+                  max_particles=a.max_particles, padding=a.padding,
                   youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
                   constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force,
                   discard_fits=a.discard_fits, yes=a.yes)

@@ -139,8 +139,11 @@ def author_mesh(stage: Usd.Stage, mesh, path: Sdf.Path = MESH) -> UsdGeom.Mesh:
 
 
 # --------------------------------------------------------------------------------- write: init
-def write_init_stage(path, capture, particles, settings: SimSettings, *, force: bool = False) -> LayerPaths:
+def write_init_stage(path, capture, particles, settings: SimSettings, *, force: bool = False,
+                     grid_choice: dict | None = None) -> LayerPaths:
     """Write scene.usda (if absent), scene.init.usdc and an empty scene.fit.usdc, atomically.
+    `grid_choice`: how init chose the grid (app.init.GridChoice.to_dict()), kept in the init
+    layer's customLayerData (physinteract.gridChoice) beside the other init provenance.
 
     An existing root layer is the user's: without `force` it is an error; with `force` the root is
     kept as is (their choices survive) and only the generated layers are replaced.
@@ -228,6 +231,10 @@ def write_init_stage(path, capture, particles, settings: SimSettings, *, force: 
     init.customLayerData = {"physinteract": {"generator": GENERATOR, "layer": "init",
                                              "objectFile": _rel(capture.object.path, root_dir),
                                              "fpsSource": str(capture.fps_source)}}
+    if grid_choice:
+        d = dict(init.customLayerData)
+        d["physinteract"] = {**d["physinteract"], "gridChoice": dict(grid_choice)}
+        init.customLayerData = d
 
     fit = Sdf.Layer.CreateAnonymous("fit.usdc")
     set_stage_metadata(fit, fps, 0, n - 1)
@@ -376,6 +383,18 @@ def read_stage(path) -> SceneData:
 def _resolve(stage_path: Path, asset: str) -> str:
     p = Path(asset)
     return str(p if p.is_absolute() else (stage_path.parent / p).resolve())
+
+
+def read_grid_choice(stage_path) -> dict | None:
+    """How init chose the grid (its init layer's customLayerData physinteract.gridChoice), None for
+    a stage written before init recorded it."""
+    lp = LayerPaths.of(Path(stage_path))
+    layer = Sdf.Layer.FindOrOpen(str(lp.init)) if lp.init.exists() else None
+    if layer is None:
+        return None
+    d = dict(layer.customLayerData).get("physinteract") or {}
+    g = d.get("gridChoice")
+    return dict(g) if g else None
 
 
 # ------------------------------------------------------------------------------------- versions
