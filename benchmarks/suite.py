@@ -65,6 +65,7 @@ def one(scene: str, a, work: Path) -> dict:
         grid = a.grid or sug["grid"]
         for suffix in (".usda", ".init.usdc", ".fit.usdc"):
             (work / f"{scene}{suffix}").unlink(missing_ok=True)
+        shutil.rmtree(work / f"{scene}.versions", ignore_errors=True)   # a fresh stage: its old versions go too
         gt_dir = cap / "gt"
         if a.extracted:
             hidden = work / f"{scene}.gt"
