@@ -1,7 +1,9 @@
 """Fit results on the synthetic suite: synth -> init -> fit -> evaluate, through the CLI, per scene.
 
 Every step runs as the user would run it (`python -m physinteract_usd ...` in a subprocess), with
-the capture's suggested init settings (its README.txt / gt.json) unless --grid overrides the grid.
+the capture's suggested init settings (its README.txt / gt.json) unless --grid overrides the grid
+(a number of cells, or `auto`: init's choice from the object's thinnest part; each row records the
+grid init chose, its particles, the thinnest part and the cells across it).
 The fit never sees gt/ except through `--contact-from` (contacts, supports and T0), which this
 script uses so that fit quality is measured apart from extraction (docs/benchmarks/extract.md
 measures that); with `--extracted` gt/ is moved away first and the fit extracts its own contacts.
@@ -10,7 +12,7 @@ Rows are appended to a JSON-lines file as scenes finish (a long run can be stopp
 scenes already in the file are skipped), and the markdown table is rewritten after each scene.
 
     python benchmarks/suite.py --size small --device cpu --out out/suite_cpu \
-        --write docs/benchmarks/suite_cpu.md [--scenes a,b] [--iterations 60] [--frames N]
+        --write docs/benchmarks/suite_cpu.md [--scenes a,b] [--iterations 60] [--frames N] [--grid N|auto]
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ def device_name(device: str) -> str:
 def one(scene: str, a, work: Path) -> dict:
     cap = work / scene
     st = work / f"{scene}.usda"
-    row = {"scene": scene, "size": a.size, "device": device_name(a.device)}
+    row = {"scene": scene, "size": a.size, "device": device_name(a.device), "schedule": a.schedule,
+           "grid_arg": grid_key(a)}
     with open(work / f"{scene}.log", "a") as log:
         if not (cap / "gt" / "gt.json").exists():
             cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
@@ -63,6 +66,8 @@ def one(scene: str, a, work: Path) -> dict:
         gt = json.loads((cap / "gt" / "gt.json").read_text())
         sug = gt["suggested_init"]
         grid = a.grid or sug["grid"]
+        caps = ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
+            ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
         for suffix in (".usda", ".init.usdc", ".fit.usdc"):
             (work / f"{scene}{suffix}").unlink(missing_ok=True)
         shutil.rmtree(work / f"{scene}.versions", ignore_errors=True)   # a fresh stage: its old versions go too
@@ -75,13 +80,16 @@ def one(scene: str, a, work: Path) -> dict:
             gt_dir = hidden
         rc, _ = run(["init", str(st), "--capture", str(cap), "--grid", str(grid), "--padding", str(sug["padding"]),
                      "--youngs-range", ",".join(str(v) for v in sug["youngs_range"]),
-                     "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"])], log)
+                     "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"]), *caps], log)
         if rc:
             return {**row, "error": "init failed"}
         info = json.loads(subprocess.run([sys.executable, "-m", "physinteract_usd", "info", str(st), "--json"],
                                          capture_output=True, text=True).stdout)
+        gc = info["simulation"].get("grid_choice") or {}
         row.update(particles=info["particles"]["count"], substeps=info["simulation"]["substeps_per_frame"],
-                   frames=info["frames"]["count"], grid=grid)
+                   frames=info["frames"]["count"], grid=max(info["simulation"]["grid"]), grid_arg=grid_key(a),
+                   thinnest_mm=1000 * gc["thinnestPart"] if gc else None, cells_across=gc.get("cellsAcross"),
+                   grid_limit=gc.get("limit") or None)
         fit_cmd = ["fit", str(st), "--iterations", str(a.iterations), "--device", a.device, "--schedule", a.schedule]
         if not a.extracted:
             fit_cmd += ["--contact-from", str(gt_dir)]
@@ -120,30 +128,49 @@ def chosen_model(stage: Path) -> dict:
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
+def grid_key(a) -> str:
+    """Which grid a row was made with: "suggested" (the capture's), a number, or "auto"."""
+    return "suggested" if a.grid is None else str(a.grid)
+
+
+def _grid_cell(r: dict) -> str:
+    across = r.get("cells_across")
+    return f"{r.get('grid', '-')}" + (f" ({across:.1f})" if across is not None else "")
+
+
 def table(rows: list[dict], a) -> str:
-    head = ("| scene | particles | frames | substeps/frame | fit s | its | MA | best uniform MA | "
-            "PSNR | PSNR masked | SSIM | IoU | pos. err. mm |\n" + "|---" * 13 + "|\n")
+    head = ("| scene | grid (cells across thinnest) | particles | frames | substeps/frame | fit s | its | MA | "
+            "best uniform MA | PSNR | PSNR masked | SSIM | IoU | pos. err. mm |\n" + "|---" * 14 + "|\n")
     out = []
     for r in rows:
         if "error" in r:
-            out.append(f"| {r['scene']} | {r.get('particles', '-')} | {r.get('frames', '-')} | "
+            out.append(f"| {r['scene']} | {_grid_cell(r)} | {r.get('particles', '-')} | {r.get('frames', '-')} | "
                        f"{r.get('substeps', '-')} | | | {r['error']} | | | | | | |")
             continue
-        out.append(f"| {r['scene']} | {r['particles']} | {r['frames']} | {r['substeps']} | {r['fit_s']:.0f} | "
+        out.append(f"| {r['scene']} | {_grid_cell(r)} | {r['particles']} | {r['frames']} | {r['substeps']} | {r['fit_s']:.0f} | "
                    f"{r['iterations']} | {r['ma']:.3f} | {r['ma_best_uniform']:.3f} | {r['psnr']:.2f} | "
                    f"{r['psnr_masked']:.2f} | {r['ssim']:.3f} | {r['iou']:.3f} | {1000 * r['position_error_m']:.2f} |")
     ok = [r for r in rows if "error" not in r]
     if ok:
         mean = lambda k: sum(r[k] for r in ok) / len(ok)  # noqa: E731
-        out.append(f"| **mean ({len(ok)})** | | | | {mean('fit_s'):.0f} | | **{mean('ma'):.3f}** | "
+        out.append(f"| **mean ({len(ok)})** | | | | | {mean('fit_s'):.0f} | | **{mean('ma'):.3f}** | "
                    f"{mean('ma_best_uniform'):.3f} | {mean('psnr'):.2f} | {mean('psnr_masked'):.2f} | "
                    f"{mean('ssim'):.3f} | {mean('iou'):.3f} | {1000 * mean('position_error_m'):.2f} |")
-    out.append(f"| *paper (11 scenes, A40)* | | | | *{PAPER['runtime']}* | | *{PAPER['ma']}* | | "
+    out.append(f"| *paper (11 scenes, A40)* | | | | | *{PAPER['runtime']}* | | *{PAPER['ma']}* | | "
                f"*{PAPER['psnr']}* | | *{PAPER['ssim']}* | | |")
     dev = rows[0]["device"] if rows else a.device
     src = "extracted by `fit` (gt/ moved away)" if a.extracted else "`--contact-from gt` (contacts, supports, T0)"
-    return (f"Size `{a.size}`, device: {dev}; contacts: {src}; schedule `{a.schedule}`.\n\n" + head
+    return (f"Size `{a.size}`, device: {dev}; contacts: {src}; schedule `{a.schedule}`; grid `{grid_key(a)}`.\n\n" + head
             + "\n".join(out) + "\n")
+
+
+def grid_arg(s: str):
+    if s.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError("a number of cells or 'auto'") from None
 
 
 def main(argv=None):
@@ -153,7 +180,11 @@ def main(argv=None):
     ap.add_argument("--scenes", default=None, help="comma-separated (default: every scene)")
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--frames", type=int, default=None)
-    ap.add_argument("--grid", type=int, default=None, help="override the suggested init grid")
+    ap.add_argument("--grid", type=grid_arg, default=None,
+                    help="override the suggested init grid: N cells, or auto (rows are kept per grid too)")
+    ap.add_argument("--max-grid", type=int, default=None, help="init's cap with --grid auto (default init's, 128)")
+    ap.add_argument("--max-particles", type=int, default=None,
+                    help="init's particle cap with --grid auto (default init's, 60000)")
     ap.add_argument("--extracted", action="store_true", help="fit from extracted contacts, not gt")
     ap.add_argument("--schedule", default="bumps", choices=("bumps", "select", "ladder"),
                     help="the fit's schedule (rows are kept per scene and schedule: two schedules can share --out "
@@ -169,9 +200,10 @@ def main(argv=None):
     work.mkdir(parents=True, exist_ok=True)
     jl = work / "results.jsonl"
     rows = [json.loads(line) for line in jl.read_text().splitlines()] if jl.exists() else []
-    done = {(r["scene"], r.get("schedule", "bumps")) for r in rows}
+    mine = lambda r: (r.get("schedule", "bumps"), r.get("grid_arg", "suggested")) == (a.schedule, grid_key(a))  # noqa: E731
+    done = {r["scene"] for r in rows if mine(r)}
     for n in names:
-        if (n, a.schedule) in done:
+        if n in done:
             continue
         t = time.perf_counter()
         r = one(n, a, work)
@@ -180,10 +212,10 @@ def main(argv=None):
         with open(jl, "a") as f:
             f.write(json.dumps(r) + "\n")
         print(json.dumps(r), flush=True)
-        md = table([r for r in rows if r.get("schedule", "bumps") == a.schedule], a)
+        md = table([r for r in rows if mine(r)], a)
         if a.write:
             Path(a.write).write_text(md)
-    print(table([r for r in rows if r.get("schedule", "bumps") == a.schedule], a))
+    print(table([r for r in rows if mine(r)], a))
 
 
 if __name__ == "__main__":
