@@ -226,17 +226,8 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
     extent = float(np.max(points.max(0) - points.min(0))) if len(points) else 0.0
     if not extent > 0:
         settings_for(DEFAULT_GRID)  # the same clear error as a fixed grid gives
-    thick, volume = measure_thickness(fill, points.max(0) - points.min(0), splat_floor(g, cap.object.mesh))
-    suggested, limit = auto_grid(thick, volume, extent, padding, max_grid, max_particles)
-    n = suggested if auto else int(grid)
-    for _ in range(3):
-        settings = settings_for(n)
-        parts = fill(settings.particle_spacing, settings.domain_min)
-        if not auto or len(parts) <= 1.05 * max_particles or n <= 8:
-            break
-        n, limit = max(8, int(n * (max_particles / len(parts)) ** (1 / 3))), "particles"
-    choice = grid_choice(auto, n, settings.cell_size, thick.thinnest, len(parts), limit, max_grid, max_particles,
-                         suggested)
+    settings, parts, choice = plan_grid(fill, settings_for, points, grid if not auto else AUTO, padding, max_grid,
+                                        max_particles, splat_floor(g, cap.object.mesh))
     log(choice.message)
     budget.check_substeps(settings.substeps, len(parts), int(np.prod(settings.grid_resolution)), cap.n_frames,
                           flag="--youngs-range", yes=yes,
@@ -246,6 +237,38 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
     if discard_fits:
         discard_versions(stage_path)
     return lp
+
+
+def plan_grid(fill, settings_for, points, grid, padding=DEFAULT_PADDING, max_grid=MAX_AUTO_GRID,
+              max_particles=MAX_AUTO_PARTICLES, min_thickness=0.0):
+    """(SimSettings, the particles, GridChoice) for `grid` (cells, or AUTO): the thinnest part
+    measured (`fill(spacing, anchor=None)` fills the object), the grid chosen (auto: refilled at a
+    coarser grid, at most 3 times, while the fill holds more than 5% over `max_particles`)."""
+    auto = grid == AUTO
+    size = points.max(0) - points.min(0)
+    try:
+        thick, volume = measure_thickness(fill, size, min_thickness)
+    except ValueError:  # the object encloses no cell even at the measurement's spacing: say so, go on
+        thick, volume = None, 0.0
+    if thick is None:
+        suggested, limit = DEFAULT_GRID, None
+    else:
+        suggested, limit = auto_grid(thick, volume, float(size.max()), padding, max_grid, max_particles)
+    n = suggested if auto else int(grid)
+    for _ in range(3):
+        settings = settings_for(n)
+        parts = fill(settings.particle_spacing, settings.domain_min)
+        if not auto or len(parts) <= 1.05 * max_particles or n <= 8:
+            break
+        n, limit = max(8, int(n * (max_particles / len(parts)) ** (1 / 3))), "particles"
+    if thick is None:
+        return settings, parts, GridChoice("auto" if auto else "fixed", int(n), float(settings.cell_size), float("nan"),
+                                           float("nan"), len(parts), None,
+                                           f"grid {n}{' (auto)' if auto else ''}: the thinnest part could not be "
+                                           f"measured (the object fills no cell at 1/{FIRST_PASS_VOXELS} of its extent)")
+    choice = grid_choice(auto, n, settings.cell_size, thick.thinnest, len(parts), limit, max_grid, max_particles,
+                         suggested)
+    return settings, parts, choice
 
 
 def check_grid(grid, max_grid, max_particles) -> bool:
