@@ -59,7 +59,7 @@ class FitSettings:
     select_flat: float = 0.01           # ... the curve is "flat" when it spans less than this (relative)
     select_interval_rise: float = 0.01  # ... a minimum's interval: where the loss rises by this share
     select_penalty: float = 0.002       # ... the field is kept when its held-back drop exceeds this x added
-    select_t: float = 2.0               # coefficients x the uniform's held-back loss, with paired t >= this
+                                        # coefficients x the uniform's held-back loss, on most held-back frames
     select_uniform_share: float = 0.3   # ... iteration budget: the uniform model, the final polish on all
     select_final_share: float = 0.15    # frames (the field gets the rest)
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
