@@ -114,7 +114,30 @@ def one(scene: str, a, work: Path) -> dict:
         row.update({k: ev[k] for k in ("ma", "ma_best_uniform", "psnr", "psnr_masked", "ssim", "iou",
                                         "position_error_m")})
         row["hidden_effect"] = gt.get("hidden_effect")
+        row.update(uniform_mas(row.get("model") or {}, cap / "gt"))
     return row
+
+
+def uniform_mas(model: dict, gt_dir: Path) -> dict:
+    """The MA the select schedule's uniform candidates would have scored (what choosing "uniform"
+    would have given, and whether the uniform stage itself is biased): at the uniform stage's E and
+    at the polished uniform model's E."""
+    import numpy as np
+
+    from physinteract_usd import metrics as M
+    from physinteract_usd.synth.gt import read_gt_array
+
+    out = {}
+    try:
+        e_gt = read_gt_array(gt_dir, "youngs_modulus.npy")
+        if "uniform_e" in model:
+            out["ma_uniform_stage"] = M.material_accuracy(np.full(len(e_gt), model["uniform_e"]), e_gt)
+        e_u = (model.get("losses") or {}).get("uniform", {}).get("median_e")
+        if e_u is not None:
+            out["ma_uniform_model"] = M.material_accuracy(np.full(len(e_gt), e_u), e_gt)
+    except Exception:  # noqa: BLE001 - diagnostics only
+        pass
+    return out
 
 
 def chosen_model(stage: Path) -> dict:

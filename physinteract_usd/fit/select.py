@@ -200,7 +200,8 @@ def model_summary(model: dict | None) -> dict:
         out["uniform_curve"] = uni["shape"]
         out["uniform_minima"] = [{"e": x["e"], "loss": x["loss"], "interval": x["interval"]} for x in uni["minima"]]
     if "models" in m:
-        out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"]} for k, v in m["models"].items()}
+        out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"], "median_e": v.get("median_e")}
+                         for k, v in m["models"].items()}
     if "test" in m:
         out["test"] = m["test"].get("why", "")
     if "regions" in m:          # the ladder's
