@@ -25,6 +25,7 @@ import torch
 from .. import metrics as M
 from ..devices import device_name
 from ..errors import SimulationError
+from .converge import lr_scale, plateaued
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -78,6 +79,9 @@ class FitSettings:
     lr_effects: float = 0.05            # ... on their log values (the ground's height as is)
     search_effects: tuple = ()          # effects just switched on: their start found first by a 1-D search
     effect_search_points: int = 6       # ... of this many log-spaced probes (+ 4 golden-section steps)
+    plateau_patience: int = 3           # convergence stop (fit/converge.py): a level ends when its last this-many
+    plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
+    plateau_tail: int = 4               # ... after this many iterations from the best iterate at a falling LR (0: off)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -324,10 +328,13 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 groups.append({"params": [v for ps in eff_raw.values() for v in ps.values()], "lr": s.lr_effects})
             opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]
+            level_losses, tail, stop_at = [], None, n_it
             for j in range(n_it):
-                cos = 0.5 * (1 + math.cos(math.pi * j / max(n_it, 1)))
+                if j >= stop_at:   # the level plateaued and its tail is done (fit/converge.py)
+                    break
+                scale = lr_scale(j, n_it, tail)
                 for g, b0 in zip(opt.param_groups, base):
-                    g["lr"] = b0 * (0.1 + 0.9 * cos)
+                    g["lr"] = b0 * scale
                 opt.zero_grad(set_to_none=True)
                 E = mat.youngs()
                 nu = mat.poisson()
@@ -345,6 +352,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 total = out["rec"] + out["reg_traj"] + reg
                 lv = float(total.detach())
                 history.append(lv)
+                if not level_losses or lv < min(level_losses):   # this level's best (the tail's start)
+                    level_best = _level_params(mat, trajs, eff_raw)
+                level_losses.append(lv)
                 if lv < best["loss"]:
                     snapshot(lv)
                 total.backward()
@@ -364,6 +374,14 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                     bar.update(1)
                 if on_iteration is not None:
                     on_iteration(it, lv, mat, trajs)
+                if tail is None and plateaued(level_losses, s.plateau_patience, s.plateau_tol):
+                    # converged: the best iterate, a fresh optimiser state, a short annealed tail
+                    tail, stop_at = (j + 1, scale, s.plateau_tail), min(n_it, j + 1 + s.plateau_tail)
+                    _restore_in_place(mat, trajs, level_best, eff_raw)
+                    opt.state.clear()
+                    if log and stop_at < n_it:
+                        log(f"level {li + 1} (K={mat.K}) plateaued at iteration {j + 1} of {n_it}: "
+                            f"{s.plateau_tail} annealed iterations more")
     except KeyboardInterrupt:
         interrupted = True
         if log:
@@ -457,6 +475,25 @@ def _restore(mat, trajs, best, joint, eff_raw=None):
     for t, b in zip(trajs, best["trajs"]):
         with torch.no_grad():
             t.copy_(b)
+
+
+def _level_params(mat, trajs, eff_raw) -> dict:
+    """A copy of the parameters the level's optimiser holds."""
+    return {"theta": mat.theta.detach().clone(), "w_nu": mat.w_nu.detach().clone(),
+            "trajs": [t.detach().clone() for t in trajs],
+            "effects": {e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in (eff_raw or {}).items()}}
+
+
+def _restore_in_place(mat, trajs, saved, eff_raw=None):
+    """`_level_params`' copy back into the tensors the optimiser holds."""
+    with torch.no_grad():
+        mat.theta.copy_(saved["theta"])
+        mat.w_nu.copy_(saved["w_nu"])
+        for t, b in zip(trajs, saved["trajs"]):
+            t.copy_(b)
+        for e, ps in saved["effects"].items():
+            for p, v in ps.items():
+                eff_raw[e][p].copy_(v)
 
 
 def frame_metrics(prob: FitProblem, renders: dict) -> list:

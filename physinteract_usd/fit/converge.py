@@ -1,0 +1,41 @@
+"""The fit's convergence stop (one rule, shared by the schedules' gradient loops).
+
+A level of the schedule (one basis size, one optimiser) has plateaued when none of its last
+`patience` losses is more than `tol` (relative) below the best loss before them. It then ends
+with a short tail: the best iterate is restored and `tail` more iterations run with the learning
+rate annealed from where it was down to the floor (a cosine), instead of the rest of the level's
+budget. On the demo (samples/foam_bar, docs/benchmarks/cpu.md) the uniform level plateaus at once
+(the start search already found its E) and the bumps level plateaus after ~16 of its 45
+iterations; what the rest of the budget bought is measured there.
+"""
+
+from __future__ import annotations
+
+import math
+
+LR_FLOOR = 0.1   # the cosine schedule's last learning rate, as a share of the first
+
+
+def plateaued(losses, patience: int, tol: float) -> bool:
+    """True when none of the last `patience` of `losses` (one level's, in order) is more than `tol`
+    (relative) below the lowest before them; False while there are not more than `patience`
+    losses, or when `patience` is 0 (the stop is off). Non-finite losses never count as better."""
+    patience = int(patience)
+    if patience <= 0 or len(losses) <= patience:
+        return False
+    finite = [v for v in losses[:-patience] if math.isfinite(v)]
+    if not finite:
+        return False
+    before = min(finite)
+    return not any(math.isfinite(v) and v < before - tol * abs(before) for v in losses[-patience:])
+
+
+def lr_scale(j: int, n: int, tail: tuple | None = None) -> float:
+    """The learning-rate factor at iteration `j` of a level of `n` iterations: a cosine from 1 down
+    to LR_FLOOR; in a plateau's tail (`tail` = (first iteration of the tail, the factor there,
+    the tail's length)) a cosine from that factor down to LR_FLOOR over the tail."""
+    if tail is None:
+        return LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * j / max(n, 1)))
+    j0, s0, m = tail
+    frac = min(max(j - j0 + 1, 0) / max(m, 1), 1.0)
+    return LR_FLOOR + (s0 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * frac))

@@ -1,0 +1,49 @@
+"""The fit's convergence stop (fit/converge.py): the plateau rule and the learning-rate schedule
+with its tail, on loss sequences whose answer is known."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from physinteract_usd.fit.converge import LR_FLOOR, lr_scale, plateaued
+
+
+def test_a_falling_loss_has_not_plateaued():
+    losses = [1.0 * 0.9 ** k for k in range(20)]
+    assert not any(plateaued(losses[:n], 3, 0.005) for n in range(1, 21))
+
+
+def test_a_flat_loss_plateaus_after_patience_more_losses():
+    losses = [1.0, 0.999, 1.001, 0.998]          # the last 3: none 0.5% below 1.0
+    assert not plateaued(losses[:3], 3, 0.005)   # not more than `patience` losses yet
+    assert plateaued(losses, 3, 0.005)
+    assert not plateaued(losses, 3, 0.001)       # 0.998 is 0.2% below: a new best at this tolerance
+    assert not plateaued(losses, 0, 0.005)       # patience 0: the stop is off
+
+
+def test_a_rise_after_the_best_is_a_plateau_and_a_late_drop_is_not():
+    # the demo's bumps level: down to a best, then up (a too large step)
+    losses = [0.0143, 0.0132, 0.0122, 0.0103, 0.0084, 0.0066, 0.0056, 0.00534, 0.00541, 0.00554]
+    assert not plateaued(losses[:9], 3, 0.005)
+    assert plateaued(losses + [0.00566], 3, 0.005)
+    assert not plateaued(losses + [0.0053], 3, 0.005)   # 0.75% below the best before the last three
+
+
+def test_non_finite_losses_are_never_a_new_best():
+    assert plateaued([1.0, math.nan, math.inf, math.nan], 3, 0.005)
+    assert not plateaued([math.nan, math.nan, 1.0, 0.9], 2, 0.005)   # nothing finite before the window
+
+
+def test_lr_scale_is_the_cosine_and_the_tail_anneals_to_the_floor():
+    n = 40
+    assert lr_scale(0, n) == pytest.approx(1.0)
+    assert lr_scale(n // 2, n) == pytest.approx(LR_FLOOR + (1 - LR_FLOOR) * 0.5)
+    assert lr_scale(n, n) == pytest.approx(LR_FLOOR)
+    vals = [lr_scale(j, n) for j in range(n)]
+    assert all(a > b for a, b in zip(vals, vals[1:]))
+    j0, s0, m = 12, lr_scale(11, n), 4
+    tail = [lr_scale(j, n, (j0, s0, m)) for j in range(j0, j0 + m)]
+    assert all(a > b for a, b in zip(tail, tail[1:]))
+    assert tail[0] < s0 and tail[-1] == pytest.approx(LR_FLOOR)
