@@ -104,3 +104,18 @@ def test_auto_grid_puts_cells_across_the_thinnest_part_and_honours_the_caps():
     # a compact object: the floor
     big = Thickness(thinnest=0.3, median=0.3, voxel=0.003, ridge_pairs=1, compact=True)
     assert app_init.auto_grid(big, volume=1e-3, extent=extent, padding=pad) == (app_init.MIN_AUTO_GRID, None)
+
+
+def test_a_fill_from_sparse_splats_reads_its_bar():
+    """The fit tests' striped bar (50 mm square section, splats of 6 mm on a 10 mm lattice): its fill
+    is rough at the splats' size (notches and fins a few mm deep), which alone would read as parts
+    ~10 mm thick; smoothed at the splat size, init's measurement gives the bar's section."""
+    import fit_scene as fs
+    from physinteract_usd.app import init as app_init
+    from physinteract_usd.fill import fill_from_gaussians
+
+    g = fs.bar_gaussians()
+    th, volume = app_init.measure_thickness(lambda h, anchor=None: fill_from_gaussians(g, h, anchor=anchor),
+                                            np.ptp(g.means, 0), app_init.splat_floor(g))
+    assert abs(th.thinnest / fs.THICK - 1) < 0.2, th
+    assert abs(volume / (fs.LENGTH * fs.THICK ** 2) - 1) < 0.2
