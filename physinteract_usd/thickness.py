@@ -132,13 +132,28 @@ def local_thickness(occ: np.ndarray, voxel: float = 1.0, min_thickness: float = 
     return tmap[crop] * voxel, pairs * voxel, dist[crop] * voxel
 
 
-def thinnest_part(occ: np.ndarray, voxel: float, min_thickness: float = 0.0) -> Thickness:
+def smooth(occ: np.ndarray, radius: float) -> np.ndarray:
+    """`occ` closed, then opened, by a ball of `radius` voxels (through distance transforms, on a
+    grid grown by the radius): notches narrower than 2 radius filled, fins thinner removed."""
+    pad = int(np.ceil(radius)) + 2
+    a = np.pad(np.asarray(occ, bool), pad)
+    dilate = lambda x: ndimage.distance_transform_edt(~x) <= radius  # noqa: E731
+    erode = lambda x: ndimage.distance_transform_edt(x) > radius     # noqa: E731
+    return dilate(erode(erode(dilate(a))))
+
+
+def thinnest_part(occ: np.ndarray, voxel: float, min_thickness: float = 0.0, resolution: float = 0.0) -> Thickness:
     """The thinnest part of the solid `occ` (voxels of size `voxel` metres): see the module doc.
-    `min_thickness` (metres): thinner ridges are not parts (e.g. the bumps a surface of splats of
-    that size leaves on the filled solid)."""
+    `resolution` (metres): the surface's own detail size (a fill from splats is rough at their
+    size: notches and fins): the solid is closed and opened by a ball that size first.
+    `min_thickness` (metres): thinner ridges are not parts."""
     occ = np.asarray(occ, bool)
     if not occ.any():
         raise ValueError("the solid is empty")
+    if resolution >= voxel:
+        occ = smooth(occ, resolution / voxel)
+        if not occ.any():
+            raise ValueError("the solid is thinner than its surface's resolution everywhere")
     tmap, pairs, dist = local_thickness(occ, voxel, min_thickness)
     # the largest inscribed ball: EDT to the nearest empty voxel centre, half a voxel beyond the boundary
     ball = 2.0 * float(dist.max()) - voxel

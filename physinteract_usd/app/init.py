@@ -39,9 +39,9 @@ MAX_AUTO_PARTICLES = 60_000  # ~1 min per fit iteration on an H100 at 128 cells 
 MEASURE_VOXELS_ACROSS = 10  # the thickness is measured on a fill with ~10 voxels across the thinnest part
 MAX_MEASURE_VOXELS = 4_000_000
 FIRST_PASS_VOXELS = 96      # the first measurement: the extent in 96 voxels
-SPLAT_BUMPS = 1.0           # a fill from splats has bumps ~ their size: parts thinner than the median
-#                             splat radius (largest axis) are not told from them (the fill puts samples
-#                             within a splat's 1-sigma ellipsoid)
+SPLAT_BUMPS = 1.0           # a fill from splats is rough at their size (notches, fins): the thickness is
+#                             measured on the fill closed and opened by a ball of the median splat radius
+#                             (largest axis) x this, so parts thinner than ~2 splat radii are not seen
 DEFAULT_PADDING = 0.5
 DEFAULT_E_RANGE = (1e3, 1e6)
 MAX_POISSON = 0.45  # default: the fit keeps nu in (0, max_poisson]: the CFL bound is taken there
@@ -109,30 +109,32 @@ class GridChoice:
                 "cellsAcrossWanted": CELLS_ACROSS}
 
 
-def measure_thickness(fill, bbox_size, min_thickness: float = 0.0) -> tuple[Thickness, float]:
+def measure_thickness(fill, bbox_size, resolution: float = 0.0) -> tuple[Thickness, float]:
     """(The thinnest part, the solid's volume in m^3) of the object that `fill(spacing)` fills
     (returns particles on a lattice). Measured on a fill at 1/FIRST_PASS_VOXELS of the extent, then again at a
     tenth of the thinnest part found (at most MAX_MEASURE_VOXELS voxels) when that is finer. Parts
     thinner than ~5 voxels of the first pass (5% of the extent) are not seen (thickness.MIN_SEPARATION),
-    nor any thinner than `min_thickness` (init: SPLAT_BUMPS x the splats' median size)."""
+    nor, with `resolution` (the surface's detail size, init: splat_floor), any thinner than about
+    twice that (the solid is closed and opened by a ball of that radius first)."""
     size = np.asarray(bbox_size, float)
+    min_thickness = resolution
     floor = lambda: float(np.prod(size) / MAX_MEASURE_VOXELS) ** (1 / 3)  # noqa: E731
     h = max(float(size.max()) / FIRST_PASS_VOXELS, floor())
     parts = fill(h)
-    th = thinnest_part(occupancy(parts.positions, h), h, min_thickness)
+    th = thinnest_part(occupancy(parts.positions, h), h, min_thickness, resolution)
     h2 = max(th.thinnest / MEASURE_VOXELS_ACROSS, floor())
     if h2 < 0.8 * h:
         try:
             parts, h = fill(h2), h2
-            th = thinnest_part(occupancy(parts.positions, h), h, min_thickness)
+            th = thinnest_part(occupancy(parts.positions, h), h, min_thickness, resolution)
         except ValueError:
             pass  # too fine a lattice: keep the coarse measurement
     return th, float(len(parts)) * h ** 3
 
 
 def splat_floor(g, mesh=None) -> float:
-    """The thinnest part the object's surface can show: SPLAT_BUMPS x the median splat radius
-    (its largest axis) for Gaussians; 0 for a mesh (exact)."""
+    """The surface's detail size: SPLAT_BUMPS x the median splat radius (its largest axis) for
+    Gaussians; 0 for a mesh (exact)."""
     if mesh is not None or g is None or not len(g):
         return 0.0
     return SPLAT_BUMPS * float(np.median(g.scales.max(axis=1)))
@@ -240,14 +242,14 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
 
 
 def plan_grid(fill, settings_for, points, grid, padding=DEFAULT_PADDING, max_grid=MAX_AUTO_GRID,
-              max_particles=MAX_AUTO_PARTICLES, min_thickness=0.0):
+              max_particles=MAX_AUTO_PARTICLES, resolution=0.0):
     """(SimSettings, the particles, GridChoice) for `grid` (cells, or AUTO): the thinnest part
     measured (`fill(spacing, anchor=None)` fills the object), the grid chosen (auto: refilled at a
     coarser grid, at most 3 times, while the fill holds more than 5% over `max_particles`)."""
     auto = grid == AUTO
     size = points.max(0) - points.min(0)
     try:
-        thick, volume = measure_thickness(fill, size, min_thickness)
+        thick, volume = measure_thickness(fill, size, resolution)
     except ValueError:  # the object encloses no cell even at the measurement's spacing: say so, go on
         thick, volume = None, 0.0
     if thick is None:
