@@ -26,6 +26,10 @@ def add_parser(sub):
     s.add_argument("--noise", type=float, help="sensor noise sigma (default 0; 0.015 for real stand-ins)")
     s.add_argument("--blur", type=int, help="motion-blur samples per frame (default 1; 3 for real stand-ins)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--fit-grid", type=int, metavar="N",
+                   help="the init grid the capture suggests (default 24 small, 100 paper); the ground truth is "
+                        "simulated on a cell 0.7x (small) or 0.85x (paper) that grid's, so a larger N makes a "
+                        "finer truth, e.g. to compare `init --grid auto` against a truth finer than its grid")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
     return s
@@ -45,10 +49,10 @@ def run(a) -> int:
             raise InputError("synth", "give --random SEED OUT_DIR or --validation SEED OUT_DIR")
         split, seed = ("dev", a.random) if a.random is not None else ("validation", a.validation)
         api.synth(None, a.name, frames=a.frames, random=seed, split=split, device=a.device, force=a.force,
-                  size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur)
+                  size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur, fit_grid=a.fit_grid)
         return 0
     if not a.name or not a.out_dir:
         raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
-              noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force)
+              noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid)
     return 0

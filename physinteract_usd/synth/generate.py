@@ -18,6 +18,7 @@ gt/ (never read by init, extract or fit; documented in docs/synth.md):
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -334,8 +335,10 @@ def _render_all(g: Gaussians, binding, xs, Fs, hand: Gaussians, hand_pos, hand_R
 def generate(name: str, out_dir, *, size: str = "small", frames: int | None = None,
              hidden: str | None = None, strength: float = 1.0, noise: float | None = None,
              blur: int | None = None, seed: int = 0, device: str = "cpu", force: bool = False,
-             log=print) -> dict:
-    """Write the capture folder of scene `name` into `out_dir`. Returns gt.json's content."""
+             log=print, fit_grid: int | None = None) -> dict:
+    """Write the capture folder of scene `name` into `out_dir`. Returns gt.json's content.
+    `fit_grid`: the init grid the capture suggests, instead of the size's (the ground truth is
+    simulated on a cell gt_ratio x that grid's: a finer fit grid makes a finer truth)."""
     if name not in SCENES:
         raise InputError(name, "unknown scene; `physinteract-usd synth --list` lists them")
     if size not in SIZES:
@@ -351,6 +354,10 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
             raise InputError(out, "is not a synth capture folder: refusing to replace it")
         shutil.rmtree(out)
     sz = SIZES[size]
+    if fit_grid is not None:
+        if int(fit_grid) != fit_grid or fit_grid < 8:
+            raise InputError("--fit-grid", f"must be a whole number of cells, at least 8, got {fit_grid}")
+        sz = dataclasses.replace(sz, fit_grid=int(fit_grid))
     T = int(frames or sz.frames)
     if T < 3:
         raise InputError("--frames", "needs at least 3 frames")
