@@ -60,6 +60,8 @@ def one(scene: str, a, work: Path) -> dict:
             cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
             if a.frames:
                 cmd += ["--frames", str(a.frames)]
+            if a.synth_fit_grid:
+                cmd += ["--fit-grid", str(a.synth_fit_grid)]
             rc, t = run(cmd, log)
             if rc:
                 return {**row, "error": "synth failed"}
@@ -203,6 +205,9 @@ def main(argv=None):
     ap.add_argument("--scenes", default=None, help="comma-separated (default: every scene)")
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--synth-fit-grid", type=int, default=None,
+                    help="synth --fit-grid for captures it makes: the truth simulated on a cell 0.7x that grid's "
+                         "(use a separate --out: the captures differ)")
     ap.add_argument("--grid", type=grid_arg, default=None,
                     help="override the suggested init grid: N cells, or auto (rows are kept per grid too)")
     ap.add_argument("--max-grid", type=int, default=None, help="init's cap with --grid auto (default init's, 128)")
