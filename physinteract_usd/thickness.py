@@ -4,7 +4,9 @@ The MPM grid must put a few cells across a part for that part to bend as the con
 rope one or two cells thick is far too stiff or too soft, whatever E says); `init --grid auto`
 chooses its cell from the thickness measured here.
 
-Method, on an occupancy grid of voxel size v (the object's particles filled at a fine spacing):
+Method, on an occupancy grid of voxel size v (the object's particles filled at a fine spacing),
+first closed and opened by a ball of the surface's own detail size when one is given (a fill from
+splats is rough at the splats' size: notches and fins that would read as thin parts):
 - the Euclidean distance transform with its feature transform (`scipy.ndimage.distance_transform_edt`):
   for every voxel, the nearest empty voxel;
 - ridge pairs: two face-adjacent solid voxels whose nearest empty voxels lie on opposite sides
