@@ -127,6 +127,9 @@ class Simulation:
             if len(self._rollouts) >= 3:     # keep a few rungs' buffers and graphs
                 self._rollouts.pop(next(iter(self._rollouts)))
             self._rollouts[bound] = Rollout(model, self.control)
+        for b, r in self._rollouts.items():   # only the rung in use keeps its substep states (memory)
+            if b != bound:
+                r.drop_states()
         self.e_bound = bound
         self.rollout = self._rollouts[bound]
         self.model = self.rollout.model

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from physinteract_usd.errors import SimulationError
+from physinteract_usd.sim import rollout as rollout_mod
 from physinteract_usd.sim import (Contact, Control, GridSpec, MPMSolver, Rollout, SimModel, effect_inputs,
                                   simulate, substeps_per_frame, stable_dt)
 from sim_helpers import block, directional_check, rel_err
@@ -105,17 +106,25 @@ def test_gradients_at_null_values_and_initial_velocity():
 
 
 def test_effect_inputs_helper_and_memory_layout():
-    """effect_inputs gives leaf tensors for the enabled effects; the backward keeps S+1 particle
-    states and ONE grid (and its adjoint), whatever the number of substeps and frames."""
+    """effect_inputs gives leaf tensors for the enabled effects; beyond STORE_STATES_BYTES the
+    backward keeps S+1 particle states (a replay) and ONE grid (and its adjoint), whatever the
+    number of substeps and frames; within it, every substep's state of every frame."""
     eff = {"ground": {"height": 0.1, "friction": 0.4}, "damping": {"coefficient": 1.0}}
     m, ctrl, pts, _ = _scene(effects=eff)
     ei = effect_inputs(m)
     assert set(ei) == {"ground", "damping"} and set(ei["ground"]) == {"height", "friction"}
-    ro = Rollout(m, ctrl)
-    x, F = ro(effects=ei)
-    (x.sum() + F.sum()).backward()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rollout_mod, "STORE_STATES_BYTES", 0)
+        ro = Rollout(m, ctrl)
+        x, F = ro(effects=ei)
+        (x.sum() + F.sum()).backward()
     assert ei["ground"]["height"].grad is not None and ei["damping"]["coefficient"].grad is not None
-    assert len(ro._replay) == m.substeps + 1
+    assert len(ro._replay) == m.substeps + 1 and ro._states is None
+    stored = Rollout(m, ctrl)
+    x, F = stored(effects=effect_inputs(m))
+    (x.sum() + F.sum()).backward()
+    assert stored._replay is None and len(stored._states) == ctrl.n_frames
+    assert all(len(st) == m.substeps + 1 for st in stored._states)
     grid_arrays = [a for a in vars(ro.solver).values() if hasattr(a, "shape") and tuple(a.shape) == m.grid.resolution]
     adj_grid = list(ro.solver._adj_grid.values())
     assert len(grid_arrays) == 5 and len(adj_grid) == 5
@@ -148,11 +157,50 @@ def test_graphs_match_eager_launches():
             (x[-1, :, 0].sum() + F[2].sum()).backward()
             res.append((x.detach().clone(), E.grad.clone(), tr.grad.clone()))
         outs[g] = res
-    assert ros[True].graphs and len(ros[True]._fwd_graphs) == 3 and len(ros[True]._bwd_graphs) == 3
+    assert ros[True].graphs and len(ros[True]._fwd_store_graphs) == 3 and len(ros[True]._adj_graphs) == 3
     for a, b in zip(outs[True], outs[False]):
         for u, v in zip(a, b):
             assert torch.equal(u, v)
     assert not torch.equal(outs[True][0][1], outs[True][1][1])
+
+
+def test_stored_states_give_the_replayed_gradients_also_when_a_later_forward_overwrote_them():
+    """A backward from the states its forward stored equals, bitwise, one that replays them from
+    the frames' checkpoints; a backward whose states a later forward overwrote (two losses built,
+    then both backwards) replays and still gets its own forward's gradient."""
+    eff = {"damping": {"coefficient": 1.0}}
+    m, ctrl, pts, traj = _scene(effects=eff, T=3)
+
+    def run(store: bool, interleaved: bool):
+        with pytest.MonkeyPatch.context() as mp:
+            if not store:
+                mp.setattr(rollout_mod, "STORE_STATES_BYTES", 0)
+            ro = Rollout(m, ctrl)
+            Es = [torch.full((len(pts),), 3e3 * s_, dtype=torch.float64, requires_grad=True) for s_ in (1.0, 0.6)]
+            if interleaved:     # both forwards, then both backwards: the first one's states are gone
+                outs = [ro(E) for E in Es]
+                for (x, F) in reversed(outs):
+                    (x[-1, :, 0].sum() + F[2].sum()).backward()
+            else:
+                for E in Es:
+                    x, F = ro(E)
+                    (x[-1, :, 0].sum() + F[2].sum()).backward()
+            return ro, [E.grad.clone() for E in Es]
+
+    ro_r, ref = run(False, False)
+    ro_s, got = run(True, False)
+    ro_i, mixed = run(True, True)
+    assert ro_r._states is None and ro_s._states is not None and ro_i._replay_graphs
+    assert not ro_s._replay_graphs                     # the states were fresh: no replay ran
+    for a, b, c in zip(ref, got, mixed):
+        assert torch.equal(a, b) and torch.equal(a, c)
+    assert not torch.equal(ref[0], ref[1])
+    # states dropped between a forward and its backward (the simulation changed rung): replayed
+    E = torch.full((len(pts),), 3e3, dtype=torch.float64, requires_grad=True)
+    x, F = ro_s(E)
+    ro_s.drop_states()
+    (x[-1, :, 0].sum() + F[2].sum()).backward()
+    assert ro_s._states is None and torch.equal(E.grad, ref[0])
 
 
 def test_effect_parameters_outside_their_domain_are_refused():

@@ -11,6 +11,12 @@ step_adjoint`). The adjoint of the frame's first state carries into the previous
 checkpoints (T+1 frames x P particles) + S+1 replay states + one grid and its adjoint, whatever
 the number of substeps.
 
+A forward that gradients will flow back through (`_SimulateFn`) keeps every substep's particle
+state instead, when they fit in STORE_STATES_BYTES (T x (S+1) states of P particles): its backward
+then runs the adjoints at once, without the replay (a forward's worth of work per backward, ~18%
+of a CPU fit's iteration on the demo, docs/benchmarks/cpu.md). A backward whose stored states a
+later forward overwrote replays into them as above.
+
 Each frame's forward and backward is captured once into a graph (CUDA graph on a GPU, Warp's CPU
 graph on the CPU) and replayed on later calls, so the inner loop has no Python work.
 
@@ -36,6 +42,7 @@ from .solver import ControlAdjoint, MPMSolver, SimParams
 from .state import SimState
 
 _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
+STORE_STATES_BYTES = 1 << 30   # a rollout keeps every substep's state for its backward up to this size
 
 
 def _torch_device(model) -> torch.device:
@@ -103,6 +110,13 @@ class Rollout:
         self._fwd_graphs: dict[int, object] = {}
         self._bwd_graphs: dict[int, object] = {}
         self._warm: set = set()
+        # every substep's state of every frame (a forward for a backward, when they fit), and which
+        # forward they hold (`states_generation`: counts the forwards that stored states)
+        self._states: list[list[SimState]] | None = None
+        self.states_generation = 0
+        self._fwd_store_graphs: dict[int, object] = {}
+        self._replay_graphs: dict[int, object] = {}
+        self._adj_graphs: dict[int, object] = {}
 
     # ------------------------------------------------------------------ one frame, forward / backward
     def _forward_frame(self, k: int) -> None:
@@ -120,14 +134,40 @@ class Rollout:
         sol.check(a, k, self.status)
         self.ck.frame(k + 1).assign(a)
 
+    def _forward_frame_stored(self, k: int) -> None:
+        """`_forward_frame`, keeping every substep's state in `self._states[k]`."""
+        sol = self.solver
+        st = self._states[k]
+        if k == 0:
+            self.status.zero_()
+            st[0].set_rest(self.model, self.v0)
+            self.ck.frame(0).assign(st[0])
+        else:
+            st[0].assign(self.ck.frame(k))
+        for s in range(self.S):
+            sol.step(st[s], st[s + 1], k, s)
+        sol.check(st[self.S], k, self.status)
+        self.ck.frame(k + 1).assign(st[self.S])
+
+    def _replay_into(self, st: list, k: int) -> None:
+        st[0].assign(self.ck.frame(k))
+        for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
+            self.solver.step(st[s], st[s + 1], k, s)
+
     def _backward_frame(self, k: int) -> None:
+        self._replay_into(self._replay, k)
+        self._adjoint_frame(self._replay, k)
+
+    def _replay_frame_stored(self, k: int) -> None:
+        self._replay_into(self._states[k], k)
+
+    def _adjoint_frame_stored(self, k: int) -> None:
+        self._adjoint_frame(self._states[k], k)
+
+    def _adjoint_frame(self, st: list, k: int) -> None:
         sol = self.solver
         K = sol.K
         d = self.model.device
-        st = self._replay
-        st[0].assign(self.ck.frame(k))
-        for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
-            sol.step(st[s], st[s + 1], k, s)
         carry, other = self._adj
         wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False)
         wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False)
@@ -165,29 +205,75 @@ class Rollout:
             fn(k)
 
     # ------------------------------------------------------------------ warp-level passes
-    def run_forward(self) -> None:
+    def states_fit(self) -> bool:
+        """Whether every substep's state of every frame fits in STORE_STATES_BYTES."""
+        per_state = 33 * (4 if self.model.dtype == "float32" else 8) * self.P     # x, v, C, F, Fv
+        return self.T * (self.S + 1) * per_state <= STORE_STATES_BYTES
+
+    def drop_states(self) -> None:
+        """Free the stored substep states (and the graphs that use them); a later forward for a
+        backward allocates them again."""
+        if self._states is None:
+            return
+        for g in (self._fwd_store_graphs, self._replay_graphs, self._adj_graphs):
+            self._warm.discard(id(g))
+            g.clear()
+        self._states = None
+        self.states_generation += 1
+
+    def run_forward(self, store: bool = False) -> int | None:
         """Rollout from rest (with self.v0) into self.ck; raises SimulationError if a frame's state
-        is non-finite or left the domain (one host sync, after the last frame)."""
-        self._ensure_graphs(self._fwd_graphs, self._forward_frame)
+        is non-finite or left the domain (one host sync, after the last frame). `store`: keep every
+        substep's state for `run_backward` (when they fit); returns the stored states' generation
+        (None: not stored)."""
+        gen = None
+        if store and (self._states is not None or self.states_fit()):
+            if self._states is None:
+                m = self.model
+                self._states = [[SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
+                                for _ in range(self.T)]
+            self.states_generation += 1
+            gen = self.states_generation
+            graphs, fn = self._fwd_store_graphs, self._forward_frame_stored
+        else:
+            graphs, fn = self._fwd_graphs, self._forward_frame
+        self._ensure_graphs(graphs, fn)
         for k in range(self.T):
             stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
-            self._frame(self._fwd_graphs, self._forward_frame, k)
+            self._frame(graphs, fn, k)
         self.solver.raise_on_status(self.status)
+        return gen
 
-    def run_backward(self) -> SimState:
+    def run_backward(self, generation: int | None = None) -> SimState:
         """From self.ck (the forward's checkpoints) and self.grad_x / self.grad_F (dL/dx, dL/dF per
-        frame), fill self.adj_params / self.adj_ctrl; returns the adjoint of the initial state."""
+        frame), fill self.adj_params / self.adj_ctrl; returns the adjoint of the initial state.
+        `generation`: what `run_forward(store=True)` returned; the stored states are used as they
+        are while no later forward stored over them (else they are replayed from self.ck)."""
         m = self.model
-        if self._replay is None:
+        if self._replay is None and self._states is None:
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
-            self.solver._alloc_adj()
-        self._ensure_graphs(self._bwd_graphs, self._backward_frame)
+        self.solver._alloc_adj()
+        stored = self._states is not None
+        fresh = stored and generation is not None and generation == self.states_generation
+        if stored:
+            self._ensure_graphs(self._adj_graphs, self._adjoint_frame_stored)
+            if not fresh:
+                self._ensure_graphs(self._replay_graphs, self._replay_frame_stored)
+        else:
+            self._ensure_graphs(self._bwd_graphs, self._backward_frame)
         self.adj_params.zero_()
         self.adj_ctrl.zero_()
         self._adj[0].zero_()
         for k in reversed(range(self.T)):
             stopping.check("backward")
-            self._frame(self._bwd_graphs, self._backward_frame, k)
+            if not stored:
+                self._frame(self._bwd_graphs, self._backward_frame, k)
+                continue
+            if not fresh:
+                self._frame(self._replay_graphs, self._replay_frame_stored, k)
+            self._frame(self._adj_graphs, self._adjoint_frame_stored, k)
+        if stored:     # a replay (or a graph's warm-up run) may have overwritten the stored states
+            self.states_generation += 1 if not fresh else 0
         return self._adj[0]
 
     # ------------------------------------------------------------------ torch
@@ -293,7 +379,7 @@ class _SimulateFn(torch.autograd.Function):
     def forward(ctx, ro: Rollout, E, nu, eff, pin_pos, col_pos, v0):
         _torch_sync(ro.model)              # the inputs torch produced are complete
         ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
-        ro.run_forward()
+        ctx.generation = ro.run_forward(store=any(ctx.needs_input_grad))
         _warp_sync(ro.model)               # Warp's work is complete before torch reads it
         saved = {k: _wclone(t) for k, t in ro.ck.t.items()}
         ctx.ro = ro
@@ -318,7 +404,7 @@ class _SimulateFn(torch.autograd.Function):
             else:
                 _wcopy(wp.to_torch(buf, requires_grad=False), g)
         ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
-        adj0 = ro.run_backward()
+        adj0 = ro.run_backward(ctx.generation)
         _warp_sync(ro.model)
         gE = wp.to_torch(ro.adj_params.E).clone()
         gnu = wp.to_torch(ro.adj_params.nu).clone()
