@@ -100,3 +100,17 @@ def test_bad_grid_flags_are_one_line(argv, says, tmp_path, capsys):
     code, out, err = run(["init", tmp_path / "s.usda", "--capture", cap, *argv], capsys)
     assert code == 2 and says in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "s.usda").exists()
+
+
+def test_a_batch_manifest_may_ask_for_auto(tmp_path):
+    from physinteract_usd.batch.manifest import read_manifest
+
+    for n in ("a", "b"):
+        (tmp_path / n).mkdir()
+    m = tmp_path / "m.csv"
+    m.write_text("source,grid\na,auto\nb,32\n")
+    a, b = read_manifest(m)
+    assert a.options["grid"] == "auto" and b.options["grid"] == 32
+    m.write_text("source,grid\na,fine\n")
+    with pytest.raises(Exception, match="grid"):
+        read_manifest(m)

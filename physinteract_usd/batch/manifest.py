@@ -52,7 +52,7 @@ KEYS = {
     "support_pixel": "K,U,V: the object is held still there (';' between several)",
     "support_particles": "I,J,...: these particles are held still",
     "grasp_radius": "metres the hand holds around the contact",
-    "grid": "init: grid cells along the object's longest side",
+    "grid": "init: grid cells along the object's longest side, or auto (4 across its thinnest part)",
     "fps": "init: frames per second when the capture does not say",
     "youngs_range": "init: MIN,MAX Young's modulus in Pa",
     "sim_ready": "also export the sim-ready TetMesh asset (true / false)",
@@ -221,6 +221,8 @@ def _value(key, v, bad):
     if key == "seed":
         return _int(key, v, bad)
     if key == "grid":
+        if isinstance(v, str) and v.strip().lower() == "auto":
+            return "auto"
         return _int(key, v, bad, 4)
     if key == "grasp_frame":
         return _int(key, v, bad, 0)

@@ -12,6 +12,10 @@ import sys
 from .common import positive_float, progress_log
 
 
+def _grid(s: str):
+    return "auto" if s.strip().lower() == "auto" else _workers(s)
+
+
 def _workers(s: str) -> int:
     import argparse
 
@@ -47,8 +51,9 @@ def add_parser(sub):
     s.add_argument("--schedule", choices=["bumps", "select", "ladder"], default=None,
                    help="the fit's schedule for items that do not say")
     s.add_argument("--seed", type=int, default=None, help="the fit's seed for items that do not say (default 0)")
-    s.add_argument("--grid", type=_workers, default=None, metavar="N",
-                   help="init's grid cells along the longest side for items that do not say")
+    s.add_argument("--grid", type=_grid, default=None, metavar="N|auto",
+                   help="init's grid cells along the longest side (or auto: 4 across the object's thinnest "
+                        "part) for items that do not say")
     s.add_argument("--skip", metavar="STEP,...", default=None,
                    help="steps left out for items that do not say: report, diagnose, export (the diagnosis refits "
                         "the model several times: the costliest step after the fit)")
