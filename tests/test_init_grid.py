@@ -78,7 +78,7 @@ def test_a_fixed_grid_says_how_many_cells_cross_the_thinnest_part(rod_capture, t
     st = tmp_path / "rod.usda"
     code, out, err = run(["init", st, "--capture", rod_capture, "--grid", "16"], capsys)
     assert code == 0, err
-    assert out.startswith("grid 16 (--grid): ") and "--grid auto would choose" in out.splitlines()[0]
+    assert out.startswith("grid 16 (fixed): ") and "--grid auto would choose" in out.splitlines()[0]
     gc = grid_choice(st, capsys)["grid_choice"]
     assert gc["mode"] == "fixed" and gc["grid"] == 16 and gc["cellsAcross"] < 2
 

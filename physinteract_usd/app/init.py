@@ -314,7 +314,7 @@ def grid_choice(auto: bool, grid: int, cell: float, thinnest: float, particles: 
         msg = (f"grid auto: {grid} cells along the longest side ({cell * 1000:.3g} mm cells, {particles} particles): "
                f"{why}{across:.1f} cells across the thinnest part ({mm}; {CELLS_ACROSS} wanted)")
     else:
-        msg = f"grid {grid} (--grid): {across:.1f} cells across the thinnest part ({mm}), {particles} particles"
+        msg = f"grid {grid} (fixed): {across:.1f} cells across the thinnest part ({mm}), {particles} particles"
         if across < CELLS_ACROSS:
             msg += (f"; below {CELLS_ACROSS} cells its bending stiffness is biased (--grid auto would choose "
                     f"{suggested})")
