@@ -59,9 +59,8 @@ class FrameView:
     def __getattr__(self, name):
         return getattr(self._prob, name)
 
-    def loss(self, E, nu, trajectories=None, effects=None, frames=None, keep_renders=False) -> dict:
-        return self._prob.loss(E, nu, trajectories, effects, frames=self._frames if frames is None else frames,
-                               keep_renders=keep_renders)
+    def loss(self, *args, frames=None, **kw) -> dict:
+        return self._prob.loss(*args, frames=self._frames if frames is None else frames, **kw)
 
 
 def _shape(vals: np.ndarray, minima: list[int], flat: float) -> str:
