@@ -55,7 +55,13 @@ def request(signame: str = "SIGINT") -> None:
 
 def finishing() -> None:
     """The interruptible part of the run is over: forward passes run to their end from now on."""
-    _STATE.finishing = True
+    if _STATE.active:           # (outside graceful() there is nothing to finish)
+        _STATE.finishing = True
+
+
+def is_finishing() -> bool:
+    """Whether the run said its interruptible part is over (`finishing()`)."""
+    return _STATE.finishing
 
 
 def check(kind: str = "forward") -> None:

@@ -47,3 +47,28 @@ def test_lr_scale_is_the_cosine_and_the_tail_anneals_to_the_floor():
     tail = [lr_scale(j, n, (j0, s0, m)) for j in range(j0, j0 + m)]
     assert all(a > b for a, b in zip(tail, tail[1:]))
     assert tail[0] < s0 and tail[-1] == pytest.approx(LR_FLOOR)
+
+
+def test_a_fit_that_converges_ends_early_with_its_best_iterate(tmp_path):
+    """On the tiny bar (tests/fit_scene.py) a 40-iteration fit with the stop on runs fewer
+    iterations than one with it off, says where each level plateaued, and reports its best
+    iterate's loss, rendered from that iterate's own simulation."""
+    import fit_scene as fs
+
+    from physinteract_usd import api
+
+    sc = fs.build(tmp_path / "base")
+    runs = {}
+    for patience in (0, 3):
+        logs = []
+        stage = fs.copy_scene(sc["root"], tmp_path / f"p{patience}")
+        out = api.fit(stage, iterations=40, contact_from=sc["gt"], progress=False, log=logs.append,
+                      checkpoint_every=0, settings_overrides=dict(fs.SMOKE_SETTINGS, confidence_probes=1,
+                                                                  plateau_patience=patience))
+        runs[patience] = (out.result, logs)
+    off, on = runs[0][0], runs[3][0]
+    assert len(off.loss_history) == 40 and len(on.loss_history) < 40
+    assert any("plateaued" in m for m in runs[3][1]) and not any("plateaued" in m for m in runs[0][1])
+    for r in (off, on):
+        assert r.final_loss == pytest.approx(min(r.loss_history), rel=1e-6) and not r.interrupted
+    assert on.final_loss < 1.25 * off.final_loss

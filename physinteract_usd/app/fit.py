@@ -290,7 +290,7 @@ def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
     s = dataclasses.replace(job.settings, iterations=0, confidence_probes=0)
     r = optimise(job.problem, s, progress=False, log=None, start=start)
     r.loss_history = list(tracker.history)
-    r.interrupted = not tracker.loop_done
+    r.interrupted = not (tracker.loop_done or stopping.is_finishing())   # (a converged loop ends early)
     return r
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from .. import metrics as M
+from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
 from .converge import lr_scale, plateaued
@@ -292,8 +293,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     best = {"loss": float("inf")}
     interrupted = False
 
-    def snapshot(loss_value):
-        best.update(loss=loss_value, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
+    def snapshot(loss_value, sim=None):
+        best.update(loss=loss_value, sim=sim, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
                     B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs],
                     effects={e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in eff_raw.items()})
 
@@ -355,8 +356,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 if not level_losses or lv < min(level_losses):   # this level's best (the tail's start)
                     level_best = _level_params(mat, trajs, eff_raw)
                 level_losses.append(lv)
-                if lv < best["loss"]:
-                    snapshot(lv)
+                if lv < best["loss"]:   # with its simulation: the last pass renders it, no rerun
+                    snapshot(lv, (out["x"].detach(), out["F"].detach()))
                 total.backward()
                 for tr in trajs:  # the rest frame is observed: its position is not a parameter
                     if tr.grad is not None:
@@ -375,10 +376,12 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 if on_iteration is not None:
                     on_iteration(it, lv, mat, trajs)
                 if tail is None and plateaued(level_losses, s.plateau_patience, s.plateau_tol):
-                    # converged: the best iterate, a fresh optimiser state, a short annealed tail
+                    # converged: the level's best iterate, no momentum, a short annealed tail
                     tail, stop_at = (j + 1, scale, s.plateau_tail), min(n_it, j + 1 + s.plateau_tail)
                     _restore_in_place(mat, trajs, level_best, eff_raw)
-                    opt.state.clear()
+                    for st_ in opt.state.values():   # no momentum back into the overshoot; the
+                        if "exp_avg" in st_:         # step sizes Adam learnt stay (a cleared state's
+                            st_["exp_avg"].zero_()   # first step is a full-LR one in every coordinate)
                     if log and stop_at < n_it:
                         log(f"level {li + 1} (K={mat.K}) plateaued at iteration {j + 1} of {n_it}: "
                             f"{s.plateau_tail} annealed iterations more")
@@ -395,9 +398,10 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     nu = mat.poisson().detach()
     # final pass: renders, metrics, animation; the loss as the history counts it (frames 1.., the
     # smoothness term), so the reported final loss is the kept iterate's entry in the history
-    with torch.no_grad():
+    with torch.no_grad():   # (the kept iterate's own simulation when the loop ran it)
+        stopping.finishing()
         out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None, effects=eff_now(),
-                        frames=range(1, prob.T), keep_renders=True)
+                        frames=range(1, prob.T), keep_renders=True, simulated=best.get("sim"))
         reg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
         final_loss = float(out["rec"] + out["reg_traj"] + reg)
         x, F = out["x"], out["F"]

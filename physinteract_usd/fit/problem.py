@@ -144,9 +144,10 @@ class FitProblem:
         return reconstruction_loss(out["rgb"], self.frames[k], w, out["alpha"] if mask is not None else None, mask,
                                    lambda_ssim=self.weights.ssim, lambda_mask=self.weights.mask)
 
-    def loss(self, E, nu, trajectories=None, effects=None, frames=None, keep_renders=False) -> dict:
-        """The reconstruction loss over `frames` (default: all but the rest frame)."""
-        x, F = self.simulate(E, nu, trajectories, effects)
+    def loss(self, E, nu, trajectories=None, effects=None, frames=None, keep_renders=False, simulated=None) -> dict:
+        """The reconstruction loss over `frames` (default: all but the rest frame). `simulated`:
+        (x, F) the simulator already gave for these inputs (not simulated again)."""
+        x, F = self.simulate(E, nu, trajectories, effects) if simulated is None else simulated
         ks = range(1, self.T) if frames is None else frames
         total = 0.0
         renders = {}
