@@ -10,7 +10,7 @@ import torch
 
 import fit_scene as fs
 from physinteract_usd.sim.cfl import substeps_per_frame
-from physinteract_usd.simulation import build_simulation
+from physinteract_usd.simulation import CFL, build_simulation
 from physinteract_usd.usd.stage import read_stage
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -37,7 +37,7 @@ def test_substep_follows_the_field_and_agrees_with_the_range_top(bar):
     assert fixed.substeps == st.substeps
     # the rung above E_TRUE (5e3) on a sqrt(2) ladder below the range's top (5e4): far fewer substeps
     assert fs.E_TRUE <= adaptive.e_bound < np.sqrt(2) * fs.E_TRUE
-    cfl = substeps_per_frame(sd.fps, st.cell_size, adaptive.e_bound, st.poisson_max, st.density)
+    cfl = substeps_per_frame(sd.fps, st.cell_size, adaptive.e_bound, st.poisson_max, st.density, cfl=CFL)
     assert adaptive.substeps == cfl < 0.5 * st.substeps
     x, x_ref = x.numpy(), x_ref.numpy()
     moved = float(np.abs(x_ref[-1] - x_ref[0]).max())
