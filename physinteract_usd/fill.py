@@ -130,7 +130,79 @@ def _shell_and_solid(samples: np.ndarray, lat: Lattice, thicken: bool, max_close
         # a hole too large to close (an unseen underside): a cell is enclosed when rays along at
         # least 5 of the 6 axis directions hit the shell (one open side is tolerated)
         solid = shell | rays
+    # what closing or the ray vote added beyond the flood fill is a hole in one sheet (fill it) or
+    # the cavity of an open shell with a wall (a cap, a cup: leave it empty): ray parity decides
+    added = solid & ~ndimage.binary_fill_holes(shell)
+    if added.any():
+        solid &= ~open_cavities(samples, lat, added)
     return shell, solid
+
+
+CAVITY_DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], float) - 1.0
+CAVITY_DIRECTIONS /= np.linalg.norm(CAVITY_DIRECTIONS, axis=1, keepdims=True)
+CAVITY_PROBES = 4000  # at most this many cells are probed; the others follow their nearest probe
+_FINE_CELLS = 64_000_000
+MAX_CROSSING = 8  # fine voxels: a longer run along a ray is a graze, not a crossing  # the half-spacing surface grid is used up to this many voxels
+
+
+def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.ndarray:
+    """The cells of `added` (cells that only closing or the ray vote called enclosed) that lie in
+    the cavity of an open shell rather than inside the object.
+
+    Ray parity on the surface samples: they are binned on a grid of half the spacing (one voxel
+    of margin); from a probed cell, a ray along each of 26 directions counts the separate surface
+    layers it crosses (runs of occupied voxels); an odd count says inside, an even one (a wall's
+    inner then outer surface) outside, a ray that meets nothing (out through the opening) says
+    nothing. A cell is in a cavity when more rays say outside than inside (a tie keeps it: the
+    fill as before). A wall thinner than ~2 spacings reads as one layer, so at that resolution an
+    open shell is still closed (its wall is not resolved)."""
+    drop = np.zeros(added.shape, bool)
+    idx = np.argwhere(added)
+    if len(idx) == 0:
+        return drop
+    f = 2 if 8 * np.prod(lat.shape) <= _FINE_CELLS else 1
+    fine = Lattice(lat.lo, lat.spacing / f, tuple(f * s for s in lat.shape))
+    occ = np.zeros(fine.shape, bool)
+    c = fine.cell_of(samples)
+    ok = np.all((c >= 0) & (c < np.array(fine.shape)), axis=1)
+    occ[tuple(c[ok].T)] = True
+    occ = ndimage.binary_dilation(occ)
+    m = max(1, int(np.ceil((len(idx) / CAVITY_PROBES) ** (1 / 3))))
+    probes = idx[np.all(idx % m == 0, axis=1)] if m > 1 else idx
+    if len(probes) == 0:
+        probes = idx[:: max(1, len(idx) // CAVITY_PROBES)]
+    shape = np.array(fine.shape)
+    t = np.arange(1, int(np.ceil(np.linalg.norm(shape))) + 1)  # steps of one fine voxel
+    cavity = np.zeros(len(probes), bool)
+    for s in range(0, len(probes), 128):
+        x = (probes[s:s + 128] + 0.5) * f  # probe centres in fine-voxel units
+        pts = np.floor(x[:, None, None, :] + CAVITY_DIRECTIONS[None, :, None, :] * t[None, None, :, None]).astype(np.int64)
+        inbox = np.all((pts >= 0) & (pts < shape), axis=-1)
+        hit = np.zeros(inbox.shape, bool)
+        hit[inbox] = occ[tuple(pts[inbox].T)]
+        layers = hit[..., 0].astype(int) + (hit[..., 1:] & ~hit[..., :-1]).sum(-1)
+        # a ray that runs along a surface for long (a grazing chord that merges two layers) says nothing
+        clean = _longest_run(hit) <= MAX_CROSSING
+        odd = (clean & (layers % 2 == 1)).sum(1)
+        even = (clean & (layers > 0) & (layers % 2 == 0)).sum(1)
+        cavity[s:s + 128] = even > odd
+    if not cavity.any():
+        return drop
+    if m > 1:
+        _, near = cKDTree(probes).query(idx)
+        cavity = cavity[near]
+    drop[tuple(idx[cavity].T)] = True
+    return drop
+
+
+def _longest_run(hit: np.ndarray) -> np.ndarray:
+    """The longest run of True along the last axis."""
+    run = np.zeros(hit.shape[:-1], np.int32)
+    best = np.zeros_like(run)
+    for k in range(hit.shape[-1]):
+        run = np.where(hit[..., k], run + 1, 0)
+        np.maximum(best, run, out=best)
+    return best
 
 
 def _ray_votes(shell: np.ndarray) -> np.ndarray:
