@@ -11,6 +11,11 @@ particles on a lattice of spacing ``h`` aligned with the simulation grid (``h = 
 - from a watertight mesh: the same shell + flood fill, with the surface cells decided exactly by
   `trimesh`'s inside test (non-watertight meshes fall back to the Gaussian path on surface samples).
 
+Where the flood fill alone does not enclose the object (holes between sparse samples, an unseen
+underside), closing or an axis-ray vote adds cells; of those, `open_cavities` removes the ones in
+the cavity of an open shell with a wall (a cap, a cup, a bowl) by ray parity on the surface samples,
+so such a shell is filled to its wall thickness, not closed into a solid.
+
 Volumes are the lattice cell volume, so the total is the filled volume. (How the Gaussians follow
 the particles is the simulation's business: `simulation.build_simulation` binds each to its nearest
 few particles.)
