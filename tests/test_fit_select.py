@@ -82,3 +82,66 @@ def test_uniform_bar_chooses_uniform_within_10_percent(tmp_path):
 @pytest.mark.parametrize("E", [1e4, 1e6])
 def test_uniform_bar_chooses_uniform_across_decades(tmp_path, E):
     _check_uniform(tmp_path, E)
+
+
+def _two_colour_gaussians(step=0.01, seed=0):
+    """The bar's Gaussians, its left half (the clamp's) blue and its right half (the hand's) yellow:
+    the two parts differ in colour, as the appearance prior expects of parts of two materials."""
+    from physinteract_usd.gaussians import Gaussians
+
+    g = _BAR_GAUSSIANS(step, seed)
+    left = g.means[:, 0] < 0.5 * (fs.LO[0] + fs.HI[0])
+    col = np.where(left[:, None], [0.2, 0.3, 0.8], [0.9, 0.7, 0.2])
+    col = col + np.random.default_rng(seed).normal(0, 0.02, col.shape)
+    return Gaussians.from_colors(g.means, np.clip(col, 0, 1), 0.6 * step, opacities=np.full(len(left), 0.95))
+
+
+_BAR_GAUSSIANS = fs.bar_gaussians
+
+
+def _two_part_bar(root, e_soft, monkeypatch):
+    """The bar with its clamped half 10x stiffer than the half the hand lifts (both bend: the
+    moment is largest at the clamp), frames re-rendered from that field. Returns (build, stiff mask)."""
+    from physinteract_usd.fit import FitProblem, Observations
+    from physinteract_usd.frames import write_image, write_mask
+    from physinteract_usd.render import render
+    from physinteract_usd.usd.stage import read_stage
+
+    monkeypatch.setattr(fs, "bar_gaussians", _two_colour_gaussians)
+    b = fs.build(root, E=e_soft, density=e_soft / E_OVER_RHO, n_frames=12, release=4, e_range=(1e3, 1e7), lift=LIFT)
+    sd = read_stage(b["stage"])
+    x0 = sd.particles_positions
+    stiff = x0[:, 0] < 0.5 * (fs.LO[0] + fs.HI[0])
+    E = np.where(stiff, 10 * e_soft, e_soft)
+    specs = fs.contacts(sd, lift=LIFT, release=4)
+    T = sd.n_frames
+    prob = FitProblem(sd, Observations(frames=np.zeros((T, fs.HEIGHT, fs.WIDTH, 3), np.float32)), specs)
+    bg = torch.as_tensor(fs.BACKGROUND, dtype=prob.tdtype)
+    with torch.no_grad():
+        x, F = prob.simulate(torch.as_tensor(E, dtype=prob.tdtype), torch.full((len(x0),), fs.NU_TRUE, dtype=prob.tdtype))
+        for k in range(T):
+            m, c = prob.gaussians_at(x[k], F[k])
+            out = render(m, c, prob.colors, prob.opacities, prob.cameras[k], background=bg)
+            write_image(b["capture"] / "frames" / f"{k:06d}.png", out["rgb"].numpy())
+            write_mask(b["capture"] / "masks" / f"{k:06d}.png", out["alpha"].numpy() > 0.5)
+    return b, stiff
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (CPU, this exact case): the field stage from the "
+                   "uniform optimum (34 kPa) lowers the training loss 3% (0.0195 -> 0.0189) and raises the held-back "
+                   "loss 9% (0.039 -> 0.043, the frame after the release dominating): 'uniform' is chosen; with the "
+                   "appearance prior off and 30 iterations the field was chosen (held-back 0.033 -> 0.012, 4 of 4 "
+                   "frames) but its parts were 0.51x (stiff) and 0.78x (soft) the truth (#24)")
+def test_two_part_bar_chooses_the_field_and_recovers_each_part(tmp_path, monkeypatch):
+    e_soft = 1e4
+    b, stiff = _two_part_bar(tmp_path / "two", e_soft, monkeypatch)
+    out = _fit(b, 40, select_sweep_points=13, search_evals=5)
+    m = out.result.model
+    assert m["chosen"] == "field", m.get("test")
+    held = np.zeros(len(stiff), bool)
+    held[b["support"]] = True
+    e = out.result.youngs
+    e_stiff, e_soft_fit = float(np.median(e[stiff & ~held])), float(np.median(e[~stiff]))
+    assert abs(e_soft_fit / e_soft - 1) < 0.2, (e_stiff, e_soft_fit)
+    assert abs(e_stiff / (10 * e_soft) - 1) < 0.2, (e_stiff, e_soft_fit)
