@@ -72,3 +72,11 @@ def test_a_fit_that_converges_ends_early_with_its_best_iterate(tmp_path):
     for r in (off, on):
         assert r.final_loss == pytest.approx(min(r.loss_history), rel=1e-6) and not r.interrupted
     assert on.final_loss < 1.25 * off.final_loss
+
+
+def test_improved_says_whether_a_level_got_below_its_first_loss():
+    from physinteract_usd.fit.converge import improved
+
+    assert not improved([0.0143, 0.0148, 0.0143, 0.01429], 0.005)   # the demo's uniform level
+    assert improved([0.0143, 0.0132, 0.0122], 0.005)
+    assert not improved([math.nan, 0.5], 0.005) and improved([1.0, math.inf, 0.9], 0.005)

@@ -4,8 +4,8 @@ A level of the schedule (one basis size, one optimiser) has plateaued when none 
 `patience` losses is more than `tol` (relative) below the best loss before them. It then ends
 with a short tail: the best iterate is restored and `tail` more iterations run with the learning
 rate annealed from where it was down to the floor (a cosine), instead of the rest of the level's
-budget. On the demo (samples/foam_bar, docs/benchmarks/cpu.md) the uniform level plateaus at once
-(the start search already found its E) and the bumps level plateaus after ~16 of its 45
+budget; a level that never got below its first loss ends at once (nothing to anneal). On the demo (samples/foam_bar, docs/benchmarks/cpu.md) the uniform level plateaus at once
+(the start search already found its E: it ends after 4 iterations) and the bumps level plateaus after ~16 of its 45
 iterations; what the rest of the budget bought is measured there.
 """
 
@@ -28,6 +28,13 @@ def plateaued(losses, patience: int, tol: float) -> bool:
         return False
     before = min(finite)
     return not any(math.isfinite(v) and v < before - tol * abs(before) for v in losses[-patience:])
+
+
+def improved(losses, tol: float) -> bool:
+    """Whether a level's best loss is more than `tol` (relative) below its first one (a level
+    that plateaus without that ends without a tail)."""
+    finite = [v for v in losses if math.isfinite(v)]
+    return bool(finite) and math.isfinite(losses[0]) and min(finite) < losses[0] - tol * abs(losses[0])
 
 
 def lr_scale(j: int, n: int, tail: tuple | None = None) -> float:

@@ -26,7 +26,7 @@ from .. import metrics as M
 from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
-from .converge import lr_scale, plateaued
+from .converge import improved, lr_scale, plateaued
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -377,14 +377,16 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                     on_iteration(it, lv, mat, trajs)
                 if tail is None and plateaued(level_losses, s.plateau_patience, s.plateau_tol):
                     # converged: the level's best iterate, no momentum, a short annealed tail
-                    tail, stop_at = (j + 1, scale, s.plateau_tail), min(n_it, j + 1 + s.plateau_tail)
+                    # (a level that never beat its first loss has nothing to anneal: it ends here)
+                    n_tail = s.plateau_tail if improved(level_losses, s.plateau_tol) else 0
+                    tail, stop_at = (j + 1, scale, n_tail), min(n_it, j + 1 + n_tail)
                     _restore_in_place(mat, trajs, level_best, eff_raw)
                     for st_ in opt.state.values():   # no momentum back into the overshoot; the
                         if "exp_avg" in st_:         # step sizes Adam learnt stay (a cleared state's
                             st_["exp_avg"].zero_()   # first step is a full-LR one in every coordinate)
                     if log and stop_at < n_it:
                         log(f"level {li + 1} (K={mat.K}) plateaued at iteration {j + 1} of {n_it}: "
-                            f"{s.plateau_tail} annealed iterations more")
+                            + (f"{n_tail} annealed iterations more" if n_tail else "no better than its start, ends"))
     except KeyboardInterrupt:
         interrupted = True
         if log:
