@@ -28,6 +28,8 @@ def test_holdout_frames_interleave_and_never_fit_frame_0():
     assert val == [2, 5, 8, 11]
     assert sorted(train + val) == list(range(1, 12)) and not set(train) & set(val)
     assert holdout_frames(5, 3) == ([1, 2, 3, 4], [])      # too few frames: nothing held back
+    # the first frame after a release is always fitted: the next one is held back instead
+    assert holdout_frames(12, 3, keep=[5])[1] == [2, 6, 8, 11]
 
 
 def test_the_rule_keeps_the_field_only_for_a_consistent_drop_above_its_price():

@@ -11,7 +11,8 @@
    the optimiser on one basis function (`optimize.fit_bumps`, levels (1,)), training frames only.
 3. The "field" model: the bumps field (the finest level of `levels`) warm-started from the uniform
    model, training frames only.
-4. Selection on the held-back frames (every `select_holdout_every`-th frame from frame 2: neither
+4. Selection on the held-back frames (every `select_holdout_every`-th frame from frame 2, but never
+   the first frame after a release, which carries most of the free motion's evidence: neither
    model ever fits them; interleaved rather than a time split, so both halves see the grasp, the
    lift and the release alike, and the trajectory at a held-back frame is still pinned by the
    frames after it). The field is kept only if, over the held-back frames, its loss falls by more
@@ -42,10 +43,19 @@ from .problem import FitProblem
 from .search import golden_section
 
 
-def holdout_frames(T: int, every: int) -> tuple[list[int], list[int]]:
+def holdout_frames(T: int, every: int, keep=()) -> tuple[list[int], list[int]]:
     """(training frames, held-back frames): every `every`-th frame from frame 2 is held back (none
-    when `every` < 2 or the clip has fewer than 6 frames: too few to fit on what is left)."""
-    val = [k for k in range(2, T) if every > 1 and (k - 2) % every == 0] if T >= 6 else []
+    when `every` < 2 or the clip has fewer than 6 frames: too few to fit on what is left); a frame in
+    `keep` (the first frame after a release: the start of the free motion, which carries most of
+    what the video says about E) is fitted, the next frame held back in its place."""
+    keep = set(int(k) for k in keep)
+    val = []
+    if T >= 6 and every > 1:
+        for k in range(2, T, every):
+            while k in keep or k in val:
+                k += 1
+            if k < T:
+                val.append(k)
     return [k for k in range(1, T) if k not in val], val
 
 
@@ -216,7 +226,8 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     say = log or (lambda *a: None)
     st = prob.scene.settings
     nu0 = min(st.poisson_default, 0.98 * st.poisson_max)
-    train, val = holdout_frames(prob.T, int(s.select_holdout_every))
+    after_release = [c.release_frame + 1 for c in prob.contacts if getattr(c, "release_frame", None) is not None]
+    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
     view = FrameView(prob, train)
     N = max(int(s.iterations), 0)
     n_final = int(round(s.select_final_share * N)) if N else 0
