@@ -146,21 +146,26 @@ def _shell_and_solid(samples: np.ndarray, lat: Lattice, thicken: bool, max_close
 CAVITY_DIRECTIONS = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], float) - 1.0
 CAVITY_DIRECTIONS /= np.linalg.norm(CAVITY_DIRECTIONS, axis=1, keepdims=True)
 CAVITY_PROBES = 4000  # at most this many cells are probed; the others follow their nearest probe
-_FINE_CELLS = 64_000_000
-MAX_CROSSING = 8  # fine voxels: a longer run along a ray is a graze, not a crossing  # the half-spacing surface grid is used up to this many voxels
+_FINE_CELLS = 64_000_000  # the half-spacing surface grid is used up to this many voxels
+CAVITY_REACH = 3  # cells
+OCC_CLOSE = 2  # fine voxels: holes between samples up to twice this wide are closed
+MAX_CROSSING = 8  # fine voxels: a longer run along a ray is a graze, not a crossing
 
 
 def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.ndarray:
     """The cells of `added` (cells that only closing or the ray vote called enclosed) that lie in
     the cavity of an open shell rather than inside the object.
 
-    Ray parity on the surface samples: they are binned on a grid of half the spacing (one voxel
-    of margin); from a probed cell, a ray along each of 26 directions counts the separate surface
-    layers it crosses (runs of occupied voxels); an odd count says inside, an even one (a wall's
-    inner then outer surface) outside, a ray that meets nothing (out through the opening) says
-    nothing. A cell is in a cavity when more rays say outside than inside (a tie keeps it: the
-    fill as before). A wall thinner than ~2 spacings reads as one layer, so at that resolution an
-    open shell is still closed (its wall is not resolved)."""
+    Ray parity on the surface samples: they are binned on a grid of half the spacing (holes up to
+    2 * OCC_CLOSE voxels closed, one voxel of margin); from a probed cell, a ray along each of 26
+    directions counts the separate surface layers it crosses (runs of occupied voxels): an odd
+    count says inside, an even one (a wall's inner then outer surface) outside; a ray that meets
+    nothing (out through the opening) or runs along a surface (a graze, a run over MAX_CROSSING
+    voxels) says nothing, and a ray of n layers counts 1/n (each crossing may be misread). A cell
+    is in a cavity when the outside votes win; a cell where inside wins by less than 2:1 goes with
+    a cavity within CAVITY_REACH cells of it (the grazes under a rim), else it stays (the fill as
+    before). A wall thinner than ~2 spacings reads as one layer, so at that resolution an open
+    shell is still closed (its wall is not resolved)."""
     drop = np.zeros(added.shape, bool)
     idx = np.argwhere(added)
     if len(idx) == 0:
@@ -171,7 +176,7 @@ def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.nd
     c = fine.cell_of(samples)
     ok = np.all((c >= 0) & (c < np.array(fine.shape)), axis=1)
     occ[tuple(c[ok].T)] = True
-    occ = ndimage.binary_dilation(occ)
+    occ = ndimage.binary_dilation(ndimage.binary_closing(occ, iterations=OCC_CLOSE))
     m = max(1, int(np.ceil((len(idx) / CAVITY_PROBES) ** (1 / 3))))
     probes = idx[np.all(idx % m == 0, axis=1)] if m > 1 else idx
     if len(probes) == 0:
@@ -179,6 +184,7 @@ def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.nd
     shape = np.array(fine.shape)
     t = np.arange(1, int(np.ceil(np.linalg.norm(shape))) + 1)  # steps of one fine voxel
     cavity = np.zeros(len(probes), bool)
+    unsure = np.zeros(len(probes), bool)
     for s in range(0, len(probes), 128):
         x = (probes[s:s + 128] + 0.5) * f  # probe centres in fine-voxel units
         pts = np.floor(x[:, None, None, :] + CAVITY_DIRECTIONS[None, :, None, :] * t[None, None, :, None]).astype(np.int64)
@@ -188,16 +194,22 @@ def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.nd
         layers = hit[..., 0].astype(int) + (hit[..., 1:] & ~hit[..., :-1]).sum(-1)
         # a ray that runs along a surface for long (a grazing chord that merges two layers) says nothing
         clean = _longest_run(hit) <= MAX_CROSSING
-        odd = (clean & (layers % 2 == 1)).sum(1)
-        even = (clean & (layers > 0) & (layers % 2 == 0)).sum(1)
+        # each crossing may be misread (a hole, a graze): a ray counts 1 / its layers
+        w = np.where(clean & (layers > 0), 1.0 / np.maximum(layers, 1), 0.0)
+        odd = (w * (layers % 2 == 1)).sum(1)
+        even = (w * (layers % 2 == 0)).sum(1)
         cavity[s:s + 128] = even > odd
+        unsure[s:s + 128] = ~cavity[s:s + 128] & (odd < 2 * even)
     if not cavity.any():
         return drop
     if m > 1:
         _, near = cKDTree(probes).query(idx)
-        cavity = cavity[near]
+        cavity, unsure = cavity[near], unsure[near]
     drop[tuple(idx[cavity].T)] = True
-    return drop
+    # a cell with no clear majority (a graze near a rim) goes with a cavity within CAVITY_REACH cells
+    maybe = np.zeros(added.shape, bool)
+    maybe[tuple(idx[cavity | unsure].T)] = True
+    return ndimage.binary_dilation(drop, iterations=CAVITY_REACH, mask=maybe)
 
 
 def _longest_run(hit: np.ndarray) -> np.ndarray:
