@@ -182,15 +182,20 @@ def open_cavities(samples: np.ndarray, lat: Lattice, added: np.ndarray) -> np.nd
     if len(probes) == 0:
         probes = idx[:: max(1, len(idx) // CAVITY_PROBES)]
     shape = np.array(fine.shape)
-    t = np.arange(1, int(np.ceil(np.linalg.norm(shape))) + 1)  # steps of one fine voxel
+    t = np.arange(1, int(np.ceil(np.linalg.norm(shape))) + 1, dtype=np.float32)  # steps of one fine voxel
+    # a border of empty voxels: a step outside the grid is clipped onto it and reads empty
+    flat = np.pad(occ, 1).ravel()
+    strides = np.array([(shape[1] + 2) * (shape[2] + 2), shape[2] + 2, 1])
+    dirs = CAVITY_DIRECTIONS.astype(np.float32)
     cavity = np.zeros(len(probes), bool)
     unsure = np.zeros(len(probes), bool)
     for s in range(0, len(probes), 128):
-        x = (probes[s:s + 128] + 0.5) * f  # probe centres in fine-voxel units
-        pts = np.floor(x[:, None, None, :] + CAVITY_DIRECTIONS[None, :, None, :] * t[None, None, :, None]).astype(np.int64)
-        inbox = np.all((pts >= 0) & (pts < shape), axis=-1)
-        hit = np.zeros(inbox.shape, bool)
-        hit[inbox] = occ[tuple(pts[inbox].T)]
+        x = ((probes[s:s + 128] + 0.5) * f).astype(np.float32)  # probe centres in fine-voxel units
+        flat_idx = np.zeros((len(x), len(dirs), len(t)), np.int64)
+        for axis in range(3):
+            coord = np.floor(x[:, None, None, axis] + dirs[None, :, None, axis] * t[None, None, :])
+            flat_idx += (np.clip(coord, -1, shape[axis]).astype(np.int64) + 1) * strides[axis]
+        hit = flat[flat_idx]
         layers = hit[..., 0].astype(int) + (hit[..., 1:] & ~hit[..., :-1]).sum(-1)
         # a ray that runs along a surface for long (a grazing chord that merges two layers) says nothing
         clean = _longest_run(hit) <= MAX_CROSSING
