@@ -150,3 +150,27 @@ def test_two_part_bar_chooses_the_field_and_recovers_each_part(tmp_path, monkeyp
     e_stiff, e_soft_fit = float(np.median(e[stiff & ~held])), float(np.median(e[~stiff]))
     assert abs(e_soft_fit / e_soft - 1) < 0.2, (e_stiff, e_soft_fit)
     assert abs(e_stiff / (10 * e_soft) - 1) < 0.2, (e_stiff, e_soft_fit)
+
+
+def test_cli_schedule_select_prints_and_records_the_model(tmp_path, monkeypatch, capsys):
+    """`fit --schedule select --json`: the summary's model says the schedule and the model chosen
+    (5 frames: too few to hold any back, so the simpler model, and why), the version's report too."""
+    import json
+
+    import physinteract_usd.app.fit as app_fit
+    from physinteract_usd.app.adapters import read_scene
+    from physinteract_usd.cli import main
+
+    b = fs.build(tmp_path / "cli")
+    capsys.readouterr()          # what init printed
+    monkeypatch.setattr(app_fit, "FitSettings", fs.settings_factory(**{
+        **fs.SMOKE_SETTINGS, "select_sweep_points": 5, "search_evals": 3, "select_minima": 1, "confidence_probes": 0}))
+    code = main(["fit", str(b["stage"]), "--schedule", "select", "--iterations", "3", "--no-joint", "--contact-from",
+                 str(b["gt"]), "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    m = json.loads(out.out)["model"]
+    assert m["schedule"] == "select" and m["chosen"] == "uniform", m
+    assert "no held-back frames" in m["test"] and m["uniform_curve"] in ("flat", "single", "multimodal")
+    rep = read_scene(b["stage"]).reports[-1]["material_model"]
+    assert rep["chosen"] == "uniform" and rep["held_back_frames"] == []
