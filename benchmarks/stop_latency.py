@@ -1,6 +1,6 @@
 """How long a stopped fit takes to write its best iterate (docs/benchmarks/cpu.md, issue #26).
 
-    python benchmarks/stop_latency.py STAGE [--signal TERM|INT] [--after N] [--grid G] [--out DIR]
+    python benchmarks/stop_latency.py STAGE [--signal TERM|INT] [--after N] [--delay S] [--grid G] [--out DIR]
 
 Copies the stage's folder (root layer, its layers, extraction, versions) to --out, or, with
 --grid, builds a fresh stage of the bundled sample at that grid there (a bigger case: more
@@ -57,11 +57,24 @@ def iterations_done(ck: Path) -> int:
         return 0
 
 
+def cpu_seconds(pid: int) -> float:
+    """user + system CPU seconds of a running process (Linux /proc), 0.0 once it is gone."""
+    import os
+
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("stage", nargs="?", default=str(ROOT / "out" / "demo" / "scene.usda"))
     ap.add_argument("--signal", default="TERM", choices=["TERM", "INT"])
     ap.add_argument("--after", type=int, default=1, help="iterations checkpointed before the signal")
+    ap.add_argument("--delay", type=float, default=0.0, help="seconds more after that checkpoint (to land in a "
+                    "backward pass: the stop acts between frames)")
     ap.add_argument("--grid", type=int, default=0, help="build a fresh stage of the sample at this grid instead")
     ap.add_argument("--out", default=str(ROOT / "out" / "stop_latency"))
     args = ap.parse_args()
@@ -77,10 +90,13 @@ def main():
         if proc.poll() is not None:
             raise SystemExit(f"the fit ended before {args.after} iterations ({proc.returncode}); see {log.name}")
         time.sleep(0.05)
+    time.sleep(args.delay)
+    cpu0 = cpu_seconds(proc.pid)
     t_sig = time.perf_counter()
     proc.send_signal(getattr(signal, "SIG" + args.signal))
-    written = None
+    written, cpu1 = None, cpu0
     while proc.poll() is None:
+        cpu1 = max(cpu1, cpu_seconds(proc.pid) or cpu1)
         if written is None and versions.exists() and set(versions.glob("v*.usdc")) - before:
             written = time.perf_counter() - t_sig
         time.sleep(0.02)
@@ -96,9 +112,10 @@ def main():
         except ValueError:
             summary = {}
     print(f"stage {stage} ({'grid ' + str(args.grid) if args.grid else 'copy'}): SIG{args.signal} after "
-          f"{args.after} iteration(s), {t_sig - t0:.1f} s into the fit")
+          f"{args.after} iteration(s) + {args.delay:g} s, {t_sig - t0:.1f} s into the fit")
     print(f"  snapshot written {written if written is None else round(written, 2)} s after the signal; "
-          f"process exited {t_exit:.2f} s after it (code {proc.returncode})")
+          f"process exited {t_exit:.2f} s after it (code {proc.returncode}); the fit's CPU time from the "
+          f"signal to its last reading: {cpu1 - cpu0:.2f} s (wall inflated by other load)")
     if summary:
         print(f"  status {summary.get('status')}, stopped_by {summary.get('stopped_by')}, iterations "
               f"{summary.get('iterations')}, confidence_estimated {summary.get('confidence_estimated')}")
