@@ -39,7 +39,7 @@ def stage(scene, tmp_path):
 
 def _start_fit(stage, *extra):
     return subprocess.Popen([sys.executable, "-m", "physinteract_usd", "fit", str(stage), "--contact-from",
-                             str(stage.parent / "gt"), "--checkpoint-every", "1", *extra],
+                             str(stage.parent / "gt"), "--checkpoint-every", "1", "--patience", "0", *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
