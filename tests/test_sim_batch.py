@@ -116,3 +116,29 @@ def test_fit_problem_losses_batch_match_one_at_a_time(tiny_problem):
     batch = prob.losses_batch(torch.tensor(Es, dtype=prob.tdtype)[:, None].expand(3, P), nu)
     assert np.allclose(batch, one, rtol=1e-4), (batch, one)
     assert len(set(np.round(one, 8))) == 3          # the three fields render differently
+
+
+def test_select_uniform_sweep_batched_agrees_with_one_by_one(tiny_problem):
+    """The select schedule's uniform sweep as tiled copies ("always", as on a GPU) finds the same
+    uniform E as probing one by one; its values (taken at the stiffest probe's substep) stay close."""
+    from physinteract_usd.fit import FitSettings
+    from physinteract_usd.fit.select import uniform_stage
+
+    prob = tiny_problem
+    prob.sim.adaptive = True
+    frames = list(range(1, prob.T))
+    out = {}
+    for mode in ("never", "always"):
+        s = FitSettings(select_sweep_points=5, search_evals=4, select_sweep_batch=mode)
+        out[mode] = uniform_stage(prob, frames, s, 0.3)
+    a, b = out["never"], out["always"]
+    assert abs(np.log(a["e"] / b["e"])) < 0.05, (a["e"], b["e"])
+    va = {k: v for k, v in a["sweep"].items() if v is not None}
+    vb = {k: v for k, v in b["sweep"].items() if v is not None}
+    common = set(va) & set(vb)
+    assert len(common) >= 5
+    # the batch takes every probe at the stiffest one's (finer) substep: the soft probes' losses
+    # differ by the time discretisation (measured 9% at 1.6 kPa here), the curve's minimum does not
+    for k in common:
+        assert abs(va[k] - vb[k]) <= 0.15 * va[k], (k, va[k], vb[k])
+    assert min(common, key=va.get) == min(common, key=vb.get)

@@ -56,6 +56,7 @@ class FitSettings:
                                         # "select": uniform vs field by held-back frames (fit/select.py)
     select_holdout_every: int = 3       # select: every this-many-th frame from frame 2 is held back
     select_sweep_points: int = 15       # ... log-spaced uniform E probes (forward only) over the range
+    select_sweep_batch: str = "cuda"    # ... as tiled copies in few rollouts: "cuda" (on a GPU), "always", "never"
     select_minima: int = 3              # ... local minima of the sweep refined (golden, search_evals each)
     select_minima_tolerance: float = 0.5  # ... those within this (relative) of the best one
     select_flat: float = 0.01           # ... the curve is "flat" when it spans less than this (relative)

@@ -91,6 +91,33 @@ def _curvature(cache: dict, le: float, half_width: float) -> float:
     return float(2.0 * np.polyfit(x, y, 2)[0])
 
 
+def _batched_sweep(prob, grid, nu_t, frames, swept: dict, skipped: list, log=None, when: str = "cuda"):
+    """On a GPU, the sweep's probes as tiled copies in few rollouts (`FitProblem.losses_batch`: a
+    small scene's substep is launch-bound there, so the whole sweep costs about one probe at the
+    stiffest probe's substep); None elsewhere (on the CPU each copy costs its own arithmetic, at
+    the stiffest probe's substep: slower than probing one by one) or when the scene cannot be
+    tiled. The values go to `swept`, not to the refinement's cache: they were taken at a finer
+    time step than the refinement's own probes, so the two are not mixed."""
+    from ..sim.batch import TilingError
+
+    if when == "never" or (when == "cuda" and not str(prob.tdev).startswith("cuda")):
+        return None
+    E = torch.exp(torch.as_tensor(np.asarray(grid), dtype=prob.tdtype, device=prob.tdev))[:, None]
+    try:
+        vals = prob.losses_batch(E.expand(len(grid), len(prob.x0)), nu_t, frames=frames)
+    except TilingError:
+        return None
+    for le, v in zip(grid, vals):
+        swept[float(le)] = float(v)
+        if not math.isfinite(v):
+            skipped.append(math.exp(float(le)))
+            if log:
+                log(f"uniform E {math.exp(float(le)):.4g} Pa: the simulation went unstable or left the grid: skipped")
+        elif log:
+            log(f"uniform E {math.exp(float(le)):.4g} Pa: loss {v:.5f} (batched sweep)")
+    return np.asarray(vals, dtype=float)
+
+
 def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: bool = False) -> dict:
     """The uniform-E stage (module doc, 1.). Returns {"e", "loss", "shape", "minima": [{"e",
     "loss", "curvature", "interval"}], "sweep": {E: loss}, "skipped": [E]}."""
@@ -127,7 +154,10 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
         from tqdm import tqdm
 
         it = tqdm(grid, desc="uniform sweep", unit="E", dynamic_ncols=True, leave=False)
-    vals = np.array([f(le) for le in it])
+    swept: dict[float, float] = {}
+    vals = _batched_sweep(prob, grid, nu_t, frames, swept, skipped, log, s.select_sweep_batch)
+    if vals is None:
+        vals = np.array([f(le) for le in it])
     if not np.isfinite(vals).any():
         raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
                               advice="check the contacts (extract) and the Young's modulus range (init "
@@ -146,6 +176,8 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
     out = []
     for i in keep:
         ra, rb = max(a, grid[i] - step), min(b, grid[i] + step)
+        if swept:
+            f(grid[i])        # the batched sweep's point, at the refinement's own substep
         golden_section(f, ra, rb, s.search_evals)
         inside = [k for k in cache if ra - 1e-12 <= k <= rb + 1e-12 and math.isfinite(cache[k])]
         le = min(inside, key=cache.get)
@@ -158,7 +190,7 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
     out.sort(key=lambda m: m["loss"])
     return {"e": out[0]["e"], "loss": out[0]["loss"], "shape": shape, "minima": out,
             "sweep": {f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None)
-                      for k, v in sorted(cache.items())},
+                      for k, v in sorted({**swept, **cache}.items())},
             "skipped": sorted(skipped)}
 
 
