@@ -60,6 +60,18 @@ def sync(device):
     wp.synchronize_device(device)
 
 
+def median_wall(fn, device, reps: int) -> float:
+    """The median wall time [s] of `reps` calls of fn(), the device synchronised around each."""
+    out = []
+    for _ in range(reps):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        out.append(time.perf_counter() - t0)
+    return float(np.median(out))
+
+
 STAT = "min"
 
 

@@ -25,24 +25,9 @@ import warp as wp
 wp.config.quiet = True
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
-from bench_sim import device_name, make_scene  # noqa: E402
+from bench_sim import device_name, make_scene, median_wall, sync  # noqa: E402
 from physinteract_usd.sim import Rollout  # noqa: E402
 from physinteract_usd.sim.batch import tile  # noqa: E402
-
-
-def _sync(device):
-    wp.synchronize_device(device)
-
-
-def _median_time(fn, device, reps):
-    out = []
-    for _ in range(reps):
-        _sync(device)
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        out.append(time.perf_counter() - t0)
-    return float(np.median(out))
 
 
 def time_copies(P, n, B, T, S, device, reps):
@@ -64,7 +49,7 @@ def time_copies(P, n, B, T, S, device, reps):
         (x[-1].sum() + F[-1].sum()).backward()
 
     fb()
-    return m.n_particles, _median_time(fwd, device, reps), _median_time(fb, device, reps)
+    return m.n_particles, median_wall(fwd, device, reps), median_wall(fb, device, reps)
 
 
 def sweep(stage, gt, device, n_probes, reps):
@@ -91,8 +76,8 @@ def sweep(stage, gt, device, n_probes, reps):
         return prob.losses_batch(E, nu)
 
     a, b = seq(), bat()                        # warm up (compile, capture)
-    ts = _median_time(seq, device, reps)
-    tb = _median_time(bat, device, reps)
+    ts = median_wall(seq, device, reps)
+    tb = median_wall(bat, device, reps)
     return P, prob.sim.substeps, prob.T, Es, np.asarray(a), np.asarray(b), ts, tb
 
 

@@ -29,24 +29,9 @@ import warp as wp
 wp.config.quiet = True
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
-from bench_sim import device_name, make_scene  # noqa: E402
+from bench_sim import device_name, make_scene, median_wall, sync  # noqa: E402
 from physinteract_usd.sim import Rollout  # noqa: E402
 from physinteract_usd.sim import solver as solver_mod  # noqa: E402
-
-
-def _sync(device):
-    wp.synchronize_device(device)
-
-
-def _wall(fn, device, reps):
-    out = []
-    for _ in range(reps):
-        _sync(device)
-        t0 = time.perf_counter()
-        fn()
-        _sync(device)
-        out.append(time.perf_counter() - t0)
-    return float(np.median(out))
 
 
 class _HostLaunchTimer:
@@ -97,7 +82,7 @@ def profile(P, n, S, device, reps):
             x, F = ro(Eg)
             (x[-1].sum() + F[-1].sum()).backward()
 
-        rows[graphs] = (_wall(fwd, device, reps) / S, _wall(fb, device, reps) / S)
+        rows[graphs] = (median_wall(fwd, device, reps) / S, median_wall(fb, device, reps) / S)
 
     # per kernel: eager passes of the warp-level forward and backward
     ro = Rollout(m, ctrl, graphs=False)
@@ -113,7 +98,7 @@ def profile(P, n, S, device, reps):
             per[phase] = {k: (tm.t[k] / reps / S * 1e3, tm.n[k] / reps / S) for k in tm.t}
         else:
             fn()
-            _sync(device)
+            sync(device)
             wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMSET | wp.TIMING_MEMCPY)
             for _ in range(reps):
                 fn()

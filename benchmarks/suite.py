@@ -189,16 +189,9 @@ def table(rows: list[dict], a) -> str:
             + "\n".join(out) + "\n")
 
 
-def grid_arg(s: str):
-    if s.strip().lower() == "auto":
-        return "auto"
-    try:
-        return int(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError("a number of cells or 'auto'") from None
-
-
 def main(argv=None):
+    from physinteract_usd.cli.init import grid_arg      # N cells or "auto", as init takes it
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="small")
     ap.add_argument("--device", default="cpu")
