@@ -33,7 +33,7 @@ from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, assemble_result, confidence, frame_metrics
 from .problem import FitProblem
-from .search import golden_section
+from .search import golden_section, no_finite_uniform_probe
 
 
 def _frames(T: int, every: int) -> tuple[list[int], list[int]]:
@@ -111,10 +111,7 @@ class _Ladder:
         grid = np.linspace(lo, hi, max(int(s.sweep_points), 3))
         vals = np.array([f(le) for le in grid])
         if not np.isfinite(vals).any():
-            raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
-                                  advice="check the contacts (extract) and the Young's modulus range (init "
-                                         "--youngs-range); a wider grid padding (init --padding) if the object "
-                                         "leaves the domain")
+            raise no_finite_uniform_probe()
         # local minima of the sweep; where the loss is flat (two within flat_tolerance), refine both
         order = np.argsort(vals)
         best_v = vals[order[0]]

@@ -30,7 +30,7 @@ from .converge import improved, lr_scale, plateaued
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
-from .search import GOLDEN, golden_section
+from .search import GOLDEN, golden_section, no_finite_uniform_probe
 
 
 @dataclass
@@ -169,10 +169,7 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
     golden_section(f, a, b, evals)
     fin = [k for k in cache if math.isfinite(cache[k])]
     if not fin:
-        raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
-                              advice="check the contacts (extract) and the Young's modulus range (init "
-                                     "--youngs-range); a wider grid padding (init --padding) if the object "
-                                     "leaves the domain")
+        raise no_finite_uniform_probe()
     best = min(fin, key=cache.get)
     return (math.exp(best), cache[best]) if with_loss else math.exp(best)
 

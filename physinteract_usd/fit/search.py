@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+from ..errors import SimulationError
+
 GOLDEN = (math.sqrt(5) - 1) / 2
 
 
@@ -23,3 +25,11 @@ def golden_section(f, a: float, b: float, evals: int) -> tuple[float, float]:
             d = a + GOLDEN * (b - a)
             fd = f(d)
     return a, b
+
+
+def no_finite_uniform_probe() -> SimulationError:
+    """The error of a start-up whose every uniform-E probe went unstable or left the grid."""
+    return SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
+                           advice="check the contacts (extract) and the Young's modulus range (init "
+                                  "--youngs-range); a wider grid padding (init --padding) if the object "
+                                  "leaves the domain")

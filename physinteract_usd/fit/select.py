@@ -40,7 +40,7 @@ from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values
 from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem
-from .search import golden_section
+from .search import golden_section, no_finite_uniform_probe
 
 
 def holdout_frames(T: int, every: int, keep=()) -> tuple[list[int], list[int]]:
@@ -159,10 +159,7 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
     if vals is None:
         vals = np.array([f(le) for le in it])
     if not np.isfinite(vals).any():
-        raise SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
-                              advice="check the contacts (extract) and the Young's modulus range (init "
-                                     "--youngs-range); a wider grid padding (init --padding) if the object "
-                                     "leaves the domain")
+        raise no_finite_uniform_probe()
     n = len(grid)
     minima = [i for i in range(n) if np.isfinite(vals[i]) and (i == 0 or vals[i] <= vals[i - 1])
               and (i == n - 1 or vals[i] <= vals[i + 1])]
