@@ -30,7 +30,7 @@ from .converge import improved, lr_scale, plateaued
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
-from .search import GOLDEN, golden_section, no_finite_uniform_probe
+from .search import GOLDEN, UniformProbe, golden_section, no_finite_uniform_probe
 
 
 @dataclass
@@ -130,30 +130,9 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
     search moves away from it and it is never the answer. Where the search meets nothing finite, a
     sweep over the range looks for a finite probe before giving up with a SimulationError."""
     lo, hi = mat.lo, mat.hi
-    cache = {}
-
-    def f(le):
-        if le in cache:
-            return cache[le]
-        E = torch.full((len(mat.points),), math.exp(le), dtype=mat.dtype, device=mat.device)
-        why = ""
-        with torch.no_grad():
-            try:
-                v = float(prob.loss(E, mat.poisson().detach())["rec"])
-                if not math.isfinite(v):
-                    why = f"loss {v}"
-            except SimulationError as exc:
-                v, why = float("inf"), exc.kind or "unstable"
-        if why:
-            v = float("inf")
-            if skipped is not None:
-                skipped.append(math.exp(le))
-            if log:
-                log(f"uniform E {math.exp(le):.4g} Pa: the simulation went unstable or left the grid ({why}): skipped")
-        elif log:
-            log(f"uniform E {math.exp(le):.4g} Pa: loss {v:.5f}")
-        cache[le] = v
-        return v
+    nu = mat.poisson().detach()
+    f = UniformProbe(lambda E: prob.loss(E, nu)["rec"], len(mat.points), mat.dtype, mat.device, log, skipped)
+    cache = f.cache
 
     a, b = lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo)
     if not (math.isfinite(f(b - GOLDEN * (b - a))) or math.isfinite(f(a + GOLDEN * (b - a)))):

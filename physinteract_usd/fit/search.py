@@ -33,3 +33,42 @@ def no_finite_uniform_probe() -> SimulationError:
                            advice="check the contacts (extract) and the Young's modulus range (init "
                                   "--youngs-range); a wider grid padding (init --padding) if the object "
                                   "leaves the domain")
+
+
+class UniformProbe:
+    """The reconstruction loss at one uniform E, called with log E (no gradients) and cached per
+    log E in `cache`. `loss_of(E)` takes the (P,) tensor of that E and returns the loss. A probe
+    that goes unstable, leaves the grid or gives a non-finite loss is inf: it is logged and its E
+    appended to `skipped`, so a search moves away from it and never returns it."""
+
+    def __init__(self, loss_of, n: int, dtype, device, log=None, skipped: list | None = None):
+        self.loss_of, self.n, self.dtype, self.device = loss_of, int(n), dtype, device
+        self.log, self.skipped = log, skipped
+        self.cache: dict[float, float] = {}
+
+    def __call__(self, le) -> float:
+        import torch
+
+        le = float(le)
+        if le in self.cache:
+            return self.cache[le]
+        E = torch.full((self.n,), math.exp(le), dtype=self.dtype, device=self.device)
+        why = ""
+        try:
+            with torch.no_grad():
+                v = float(self.loss_of(E))
+            if not math.isfinite(v):
+                why = f"loss {v}"
+        except SimulationError as exc:
+            v, why = float("inf"), exc.kind or "unstable"
+        if why:
+            v = float("inf")
+            if self.skipped is not None:
+                self.skipped.append(math.exp(le))
+            if self.log:
+                self.log(f"uniform E {math.exp(le):.4g} Pa: the simulation went unstable or left the grid ({why}): "
+                         "skipped")
+        elif self.log:
+            self.log(f"uniform E {math.exp(le):.4g} Pa: loss {v:.5f}")
+        self.cache[le] = v
+        return v

@@ -40,7 +40,7 @@ from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values
 from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem
-from .search import golden_section, no_finite_uniform_probe
+from .search import UniformProbe, golden_section, no_finite_uniform_probe
 
 
 def holdout_frames(T: int, every: int, keep=()) -> tuple[list[int], list[int]]:
@@ -126,27 +126,9 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
     a, b = lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo)
     P = len(prob.x0)
     nu_t = torch.full((P,), float(nu), dtype=prob.tdtype, device=prob.tdev)
-    cache: dict[float, float] = {}
     skipped: list[float] = []
-
-    def f(le):
-        le = float(le)
-        if le not in cache:
-            E = torch.full((P,), math.exp(le), dtype=prob.tdtype, device=prob.tdev)
-            try:
-                with torch.no_grad():
-                    v = float(prob.loss(E, nu_t, frames=frames)["rec"])
-            except SimulationError:
-                v = float("nan")
-            if not math.isfinite(v):
-                v = float("inf")
-                skipped.append(math.exp(le))
-                if log:
-                    log(f"uniform E {math.exp(le):.4g} Pa: the simulation went unstable or left the grid: skipped")
-            elif log:
-                log(f"uniform E {math.exp(le):.4g} Pa: loss {v:.5f}")
-            cache[le] = v
-        return cache[le]
+    f = UniformProbe(lambda E: prob.loss(E, nu_t, frames=frames)["rec"], P, prob.tdtype, prob.tdev, log, skipped)
+    cache = f.cache
 
     grid = np.linspace(a, b, max(int(s.select_sweep_points), 3))
     it = grid
