@@ -51,6 +51,7 @@ from physinteract_usd import api
 from physinteract_usd.errors import InputError
 from physinteract_usd.frames import read_mask
 from physinteract_usd.synth.splits import log_validation_read, mark_validation, refuse_validation
+from physinteract_usd.cli.init import grid_arg  # N cells or "auto", as init takes it
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -111,8 +112,9 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print) -
             traceback.print_exc()
 
 
-def prepare(work: Path, n: str) -> tuple[Path, Path, Path]:
-    """gt/ moved out to <n>.gt; the stage initialised with the capture's suggested settings."""
+def prepare(work: Path, n: str, grid=None) -> tuple[Path, Path, Path]:
+    """gt/ moved out to <n>.gt; the stage initialised with the capture's suggested settings (`grid`:
+    init's --grid instead of the suggested one, e.g. "auto")."""
     cap, gt, stage = work / n, work / f"{n}.gt", work / f"{n}.stage" / "scene.usda"
     if (cap / "gt").exists():
         shutil.rmtree(gt, ignore_errors=True)
@@ -120,7 +122,7 @@ def prepare(work: Path, n: str) -> tuple[Path, Path, Path]:
     g = json.loads((gt / "gt.json").read_text())["suggested_init"]
     shutil.rmtree(stage.parent, ignore_errors=True)
     stage.parent.mkdir(parents=True)
-    api.init(stage, cap, grid=g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
+    api.init(stage, cap, grid=grid or g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
              max_poisson=g["max_poisson"], density=g["density"])
     return cap, gt, stage
 
@@ -236,7 +238,7 @@ def table(rows: list[dict]) -> str:
 
 
 def run_extract(work: Path, split: str, names: list[str], json_path: Path | None, redo: bool, device: str,
-                log=print) -> list[dict]:
+                log=print, grid=None) -> list[dict]:
     rows = json.loads(json_path.read_text()) if (json_path and json_path.exists() and not redo) else []
     done = {r["scene"] for r in rows if "error" not in r}
     rows = [r for r in rows if r["scene"] in done]
@@ -245,7 +247,7 @@ def run_extract(work: Path, split: str, names: list[str], json_path: Path | None
             continue
         row = {"scene": n}
         try:
-            cap, gt, stage = prepare(work, n)
+            cap, gt, stage = prepare(work, n, grid)
             t0 = time.perf_counter()
             res = api.extract(stage, log=lambda *m: None, device=device)
             row["extract_s"] = time.perf_counter() - t0
@@ -279,6 +281,8 @@ def main(argv=None):
     ap.add_argument("--fits", help="world_fit.py's JSON rows: their MA and masked PSNR go into the table")
     ap.add_argument("--redo", action="store_true", help="measure again the captures the JSON already holds")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--grid", default=None, type=grid_arg,
+                    help="init's --grid for every capture (e.g. auto) instead of the capture's suggested grid")
     a = ap.parse_args(argv)
     work = Path(a.work)
     tool = f"world_suite.py {a.command} --split dev"
@@ -292,7 +296,7 @@ def main(argv=None):
             log_validation_read(work, f"world_suite.py {a.command}", f"{len(names)} captures")
         jp = Path(a.json) if a.json else None
         if a.command == "extract":
-            rows = run_extract(work, a.split, names, jp, a.redo, a.device)
+            rows = run_extract(work, a.split, names, jp, a.redo, a.device, grid=a.grid)
         else:
             rows = json.loads(jp.read_text())
         if a.fits and Path(a.fits).exists():
