@@ -278,7 +278,8 @@ def parse_overrides(text: str) -> dict:
         k, _, v = item.partition("=")
         if k not in fields:
             raise SystemExit(f"--fit-settings: {k!r} is not a FitSettings field ({', '.join(fields)})")
-        out[k] = type(getattr(FitSettings(), k))(float(v) if isinstance(getattr(FitSettings(), k), float) else int(v))
+        d = getattr(FitSettings(), k)
+        out[k] = v if isinstance(d, str) else type(d)(float(v) if isinstance(d, float) else int(v))
     return out
 
 
