@@ -15,7 +15,7 @@
 # Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
 # JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
 # world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test, schedule=select), GRID (init's
-# --grid for every capture, e.g. auto; default the capture's suggested grid).
+# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
 set -u
 SPLIT="${1:?split: dev or validation}"
@@ -28,6 +28,7 @@ JOBS="${JOBS:-4}"
 DEVICE="${DEVICE:-cuda}"
 FIT_SETTINGS="${FIT_SETTINGS:-}"
 GRID="${GRID:-}"
+MAX_PARTICLES="${MAX_PARTICLES:-}"
 PY="${PYTHON:-python3}"
 T_START=$(date +%s)
 mkdir -p "$OUT" "$WORK/rows"
@@ -57,7 +58,8 @@ worker() {
     step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" || return
     t1=$(date +%s)
     step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
-      --json "$WORK/rows/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} || return
+      --json "$WORK/rows/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
+      ${MAX_PARTICLES:+--max-particles "$MAX_PARTICLES"} || return
     t2=$(date +%s)
     step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
       --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS"
@@ -66,7 +68,7 @@ worker() {
   grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
 }
 export -f worker step
-export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID
+export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time

@@ -112,7 +112,7 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print) -
             traceback.print_exc()
 
 
-def prepare(work: Path, n: str, grid=None) -> tuple[Path, Path, Path]:
+def prepare(work: Path, n: str, grid=None, max_particles=None) -> tuple[Path, Path, Path]:
     """gt/ moved out to <n>.gt; the stage initialised with the capture's suggested settings (`grid`:
     init's --grid instead of the suggested one, e.g. "auto")."""
     cap, gt, stage = work / n, work / f"{n}.gt", work / f"{n}.stage" / "scene.usda"
@@ -122,8 +122,9 @@ def prepare(work: Path, n: str, grid=None) -> tuple[Path, Path, Path]:
     g = json.loads((gt / "gt.json").read_text())["suggested_init"]
     shutil.rmtree(stage.parent, ignore_errors=True)
     stage.parent.mkdir(parents=True)
+    caps = {"max_particles": int(max_particles)} if max_particles else {}
     api.init(stage, cap, grid=grid or g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
-             max_poisson=g["max_poisson"], density=g["density"])
+             max_poisson=g["max_poisson"], density=g["density"], **caps)
     return cap, gt, stage
 
 
@@ -238,7 +239,7 @@ def table(rows: list[dict]) -> str:
 
 
 def run_extract(work: Path, split: str, names: list[str], json_path: Path | None, redo: bool, device: str,
-                log=print, grid=None) -> list[dict]:
+                log=print, grid=None, max_particles=None) -> list[dict]:
     rows = json.loads(json_path.read_text()) if (json_path and json_path.exists() and not redo) else []
     done = {r["scene"] for r in rows if "error" not in r}
     rows = [r for r in rows if r["scene"] in done]
@@ -247,7 +248,7 @@ def run_extract(work: Path, split: str, names: list[str], json_path: Path | None
             continue
         row = {"scene": n}
         try:
-            cap, gt, stage = prepare(work, n, grid)
+            cap, gt, stage = prepare(work, n, grid, max_particles)
             t0 = time.perf_counter()
             res = api.extract(stage, log=lambda *m: None, device=device)
             row["extract_s"] = time.perf_counter() - t0
@@ -283,6 +284,7 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--grid", default=None, type=grid_arg,
                     help="init's --grid for every capture (e.g. auto) instead of the capture's suggested grid")
+    ap.add_argument("--max-particles", type=int, default=None, help="init's --max-particles (a cap on grid auto)")
     a = ap.parse_args(argv)
     work = Path(a.work)
     tool = f"world_suite.py {a.command} --split dev"
@@ -296,7 +298,8 @@ def main(argv=None):
             log_validation_read(work, f"world_suite.py {a.command}", f"{len(names)} captures")
         jp = Path(a.json) if a.json else None
         if a.command == "extract":
-            rows = run_extract(work, a.split, names, jp, a.redo, a.device, grid=a.grid)
+            rows = run_extract(work, a.split, names, jp, a.redo, a.device, grid=a.grid,
+                               max_particles=a.max_particles)
         else:
             rows = json.loads(jp.read_text())
         if a.fits and Path(a.fits).exists():
