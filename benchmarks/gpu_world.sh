@@ -100,5 +100,7 @@ for kind in ("extract", "fit"):
 EOF
 $PY benchmarks/world_suite.py table --split "$SPLIT" $FINAL --work "$WORK" --json "$OUT/world_${SPLIT}_extract.json" \
   --fits "$OUT/world_${SPLIT}_fit.json" | tee "$OUT/world_${SPLIT}.md"
+$PY -c "import json, sys; sys.path.insert(0, 'benchmarks'); import world_fit; \
+print(world_fit.e_table([r for r in json.load(open('$OUT/world_${SPLIT}_fit.json')) if 'ma' in r]))" | tee -a "$OUT/world_${SPLIT}.md"
 cat "$WORK"/rows/*.log > "$OUT/world_${SPLIT}_logs.txt" 2>/dev/null
 echo "total $(( $(date +%s) - T_START )) s"

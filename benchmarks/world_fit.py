@@ -26,6 +26,8 @@ import time
 import traceback
 from pathlib import Path
 
+import numpy as np
+
 import physinteract_usd  # noqa: F401
 from physinteract_usd import api
 from physinteract_usd.errors import InputError
@@ -77,8 +79,38 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
            "device": device, "effects": effects, "settings": dict(overrides or {}), "stopped_by": out.stopped_by,
            "interaction_check": [m for m in said if m.startswith(("interaction check", "the interaction may",
                                                                   "the contact may"))]}
+    # the fitted E against the truth, the fit's own confidence and (schedule select) its uniform sweep's
+    # minima and intervals: is a wrong E at least said to be uncertain?
+    summ = out.summary()
+    e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
+    row.update({"e_true": e_true, "e_fit": summ["youngs_modulus_pa"]["median"],
+                "e_ratio": summ["youngs_modulus_pa"]["median"] / e_true, "best_uniform_e": ev.get("best_uniform_e"),
+                "confidence_mean": summ["confidence_mean"] if summ["confidence_estimated"] else None,
+                "model": summ.get("model")})
+    mins = (summ.get("model") or {}).get("uniform_minima") or []
+    if mins:
+        best = min(mins, key=lambda m: m["loss"])
+        row["uniform_interval"] = best["interval"]
+        row["interval_covers_truth"] = bool(best["interval"][0] <= e_true <= best["interval"][1])
     log(f"{n}: MA {row['ma']:.3f}, masked PSNR {row['psnr_masked']:.2f} dB ({fit_s:.0f} s)", flush=True)
     return row
+
+
+def e_table(rows: list[dict]) -> str:
+    """Per fit: E fitted / true, the fit's mean confidence, the select schedule's uniform interval and
+    whether it holds the truth, MA against the best single E."""
+    def f(v, spec):
+        return "-" if v is None else format(v, spec)
+    out = ["| capture | E true [Pa] | E fit [Pa] | fit / true | confidence | uniform interval [Pa] | holds truth | "
+           "MA | best single E MA |", "|" + "---|" * 9]
+    for r in rows:
+        iv = r.get("uniform_interval")
+        out.append(f"| {r['scene']} | {f(r.get('e_true'), '.3g')} | {f(r.get('e_fit'), '.3g')} | "
+                   f"{f(r.get('e_ratio'), '.2f')} | {f(r.get('confidence_mean'), '.2f')} | "
+                   f"{'-' if not iv else f'{iv[0]:.3g} .. {iv[1]:.3g}'} | "
+                   f"{'-' if 'interval_covers_truth' not in r else ('yes' if r['interval_covers_truth'] else 'no')} | "
+                   f"{f(r.get('ma'), '.3f')} | {f(r.get('ma_best_uniform'), '.3f')} |")
+    return "\n".join(out)
 
 
 def main(argv=None):
@@ -125,8 +157,7 @@ def main(argv=None):
         jp.write_text(json.dumps(rows, indent=1, default=float))
     ok = [r for r in rows if "ma" in r]
     if ok:
-        import numpy as np
-
+        print(e_table(ok))
         print(f"{len(ok)} fits: mean MA {np.mean([r['ma'] for r in ok]):.3f}, mean masked PSNR "
               f"{np.mean([r['psnr_masked'] for r in ok]):.2f} dB; {len(rows) - len(ok)} failed")
     return 0
