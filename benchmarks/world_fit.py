@@ -87,6 +87,11 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
                 "e_ratio": summ["youngs_modulus_pa"]["median"] / e_true, "best_uniform_e": ev.get("best_uniform_e"),
                 "confidence_mean": summ["confidence_mean"] if summ["confidence_estimated"] else None,
                 "model": summ.get("model")})
+    idf = summ.get("identifiability") or {}
+    row["identifiability"] = idf.get("level")
+    if idf.get("interval"):
+        row["sweep_interval"] = idf["interval"]
+        row["sweep_covers_truth"] = bool(idf["interval"][0] <= e_true <= idf["interval"][1])
     mins = (summ.get("model") or {}).get("uniform_minima") or []
     if mins:
         best = min(mins, key=lambda m: m["loss"])
@@ -101,12 +106,14 @@ def e_table(rows: list[dict]) -> str:
     whether it holds the truth, MA against the best single E."""
     def f(v, spec):
         return "-" if v is None else format(v, spec)
-    out = ["| capture | E true [Pa] | E fit [Pa] | fit / true | confidence | uniform interval [Pa] | holds truth | "
-           "MA | best single E MA |", "|" + "---|" * 9]
+    out = ["| capture | E true [Pa] | E fit [Pa] | fit / true | confidence | E determined | near-best sweep [Pa] | "
+           "holds truth | curvature interval [Pa] | holds truth | MA | best single E MA |", "|" + "---|" * 12]
     for r in rows:
-        iv = r.get("uniform_interval")
+        iv, sw = r.get("uniform_interval"), r.get("sweep_interval")
         out.append(f"| {r['scene']} | {f(r.get('e_true'), '.3g')} | {f(r.get('e_fit'), '.3g')} | "
                    f"{f(r.get('e_ratio'), '.2f')} | {f(r.get('confidence_mean'), '.2f')} | "
+                   f"{r.get('identifiability') or '-'} | {'-' if not sw else f'{sw[0]:.3g} .. {sw[1]:.3g}'} | "
+                   f"{'-' if 'sweep_covers_truth' not in r else ('yes' if r['sweep_covers_truth'] else 'no')} | "
                    f"{'-' if not iv else f'{iv[0]:.3g} .. {iv[1]:.3g}'} | "
                    f"{'-' if 'interval_covers_truth' not in r else ('yes' if r['interval_covers_truth'] else 'no')} | "
                    f"{f(r.get('ma'), '.3f')} | {f(r.get('ma_best_uniform'), '.3f')} |")

@@ -15,7 +15,7 @@ import torch
 import fit_scene as fs
 from physinteract_usd import api
 from physinteract_usd.fit.optimize import FitSettings
-from physinteract_usd.fit.select import holdout_frames, select_rule
+from physinteract_usd.fit.select import holdout_frames, identifiability, select_rule, sweep_interval
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -68,12 +68,45 @@ def _check_uniform(tmp_path, E):
     # the uniform stage's best minimum and its interval hold the truth
     lo, hi = m["uniform_stage"]["minima"][0]["interval"]
     assert lo <= E * 1.1 and hi >= E / 1.1, m["uniform_stage"]["minima"]
+    # the fit says E is determined (at least roughly) by a released bar, and its near-best hull holds the truth
+    idf = out.summary()["identifiability"]
+    assert idf["level"] in ("determined", "rough"), idf
+    assert idf["interval"][0] <= E * 1.1 and idf["interval"][1] >= E / 1.1, idf
     # the report on the stage records the choice and both models' held-back losses
     from physinteract_usd.app.adapters import read_scene
 
     rep = read_scene(b["stage"]).reports[-1]["material_model"]
     assert rep["chosen"] == "uniform" and set(rep["models"]) == {"uniform", "field"}
     assert all(v["held_back"] is not None for v in rep["models"].values())
+
+
+def test_sweep_interval_holds_every_near_best_stretch_of_a_bumpy_curve():
+    """The hull of the E whose loss is within 1% of the best: a sharp minimum gives a narrow hull; a
+    flat curve with a bump gives the whole flat stretch, not the bump's curvature; non-finite
+    probes never count."""
+    es = np.geomspace(1e3, 1e6, 13)
+    sharp = {f"{e:.5g}": 1.0 + 0.5 * np.log(e / 3e4) ** 2 for e in es}
+    lo, hi = sweep_interval(sharp, 0.01)
+    assert lo == hi and abs(np.log(lo / 3e4)) < 0.6
+    flat = {f"{e:.5g}": 1.0 + 0.004 * np.sin(7 * np.log(e)) for e in es}     # within +-0.4%
+    flat[f"{es[-1]:.5g}"] = 1.2
+    flat[f"{es[0]:.5g}"] = None
+    lo, hi = sweep_interval(flat, 0.01)
+    assert np.isclose(lo, float(f"{es[1]:.5g}")) and np.isclose(hi, float(f"{es[-2]:.5g}"))
+    assert sweep_interval({"1e4": None, "2e4": float("inf")}, 0.01) is None
+
+
+def test_identifiability_says_plainly_when_the_video_does_not_determine_e():
+    wide = identifiability({"uniform_sweep_interval": [2e3, 3e5]}, 0.9, 3e4)
+    assert wide["level"] == "undetermined" and "does not determine E" in wide["sentence"]
+    assert "2e+03 .. 3e+05 Pa" in wide["sentence"], wide["sentence"]
+    assert identifiability({"uniform_sweep_interval": [2.5e4, 3.5e4]}, 0.1, 3e4)["level"] == "determined"
+    assert identifiability({"uniform_sweep_interval": [1.5e4, 5e4]}, 0.9, 3e4)["level"] == "rough"
+    # no sweep (schedule bumps): the fit's own confidence, with the way to an interval
+    low = identifiability({}, 0.2, 3e4)
+    assert low["level"] == "undetermined" and "--schedule select" in low["sentence"]
+    assert identifiability({}, 0.95, 3e4)["sentence"] == ""
+    assert identifiability({}, None, 3e4)["level"] == "unknown"
 
 
 def test_uniform_bar_chooses_uniform_within_10_percent(tmp_path):

@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..fit import FitProblem, FitResult, FitSettings
 from ..fit import fit as optimise
 from ..fit.optimize import select_supports
-from ..fit.select import model_summary
+from ..fit.select import identifiability, model_summary
 from ..fit.problem import Observations
 from ..scene import SceneData
 from ..usd.fit_io import write_fit_layer
@@ -92,7 +92,9 @@ class FitOutcome:
                 "youngs_modulus_pa": {"min": float(r.youngs.min()), "median": float(np.median(r.youngs)),
                                       "max": float(r.youngs.max())},
                 "confidence_mean": float(r.confidence.mean()),
-                "model": model_summary(r.model)}
+                "model": model_summary(r.model),
+                "identifiability": identifiability(model_summary(r.model), float(r.confidence.mean())
+                                                   if self.confidence_estimated else None, float(np.median(r.youngs)))}
 
 
 def check_iterations(iterations) -> None:

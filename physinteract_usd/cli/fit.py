@@ -89,4 +89,7 @@ def run(a) -> int:
         conf = (f"mean confidence {summary['confidence_mean']:.2f}" if summary["confidence_estimated"]
                 else "confidence not estimated (stopped)")
         print(f"  E {e['min']:.3g} .. {e['max']:.3g} Pa (median {e['median']:.3g}), {conf}")
+        said = (summary.get("identifiability") or {}).get("sentence")
+        if said:
+            print(f"  {said}")
     return 130 if summary["interrupted"] or summary["stopped_by"] else 0

@@ -167,7 +167,7 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
             else [math.exp(lo), math.exp(hi)]
         out.append({"e": math.exp(le), "loss": cache[le], "curvature": h, "interval": interval})
     out.sort(key=lambda m: m["loss"])
-    return {"e": out[0]["e"], "loss": out[0]["loss"], "shape": shape, "minima": out,
+    return {"e": out[0]["e"], "loss": out[0]["loss"], "shape": shape, "minima": out, "rise": s.select_interval_rise,
             "sweep": {f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None)
                       for k, v in sorted({**swept, **cache}.items())},
             "skipped": sorted(skipped)}
@@ -206,6 +206,57 @@ def select_rule(uniform_val: list[float], field_val: list[float], added: int, s:
     return {"keep_field": keep, "mean_drop": mean, "penalty": penalty, "better_frames": better, "why": why}
 
 
+def sweep_interval(sweep: dict, rise: float) -> list[float] | None:
+    """The hull of the uniform E values whose loss is within `rise` (a share) of the best one seen
+    (the sweep's points and the refinements'): [E_lo, E_hi] Pa. Unlike the interval from the
+    curvature at a minimum, it holds a flat or bumpy curve's every near-best stretch, so a video
+    that does not determine E gets a wide interval. None without a finite value."""
+    pts = [(float(e), float(v)) for e, v in sweep.items() if v is not None and math.isfinite(float(v))]
+    if not pts:
+        return None
+    best = min(v for _, v in pts)
+    near = [e for e, v in pts if v <= best * (1.0 + rise)]
+    return [min(near), max(near)]
+
+
+# how wide (hi / lo) the uniform interval may be for E to count as determined within the MA
+# tolerance (+-20%: 1.2 / 0.8 = 1.5), roughly (within 2x either way: 4)
+DETERMINED_RATIO, ROUGH_RATIO = 1.5, 4.0
+
+
+def identifiability(model_sum: dict, confidence_mean: float | None, e_median: float,
+                    rise: float = 0.01) -> dict:
+    """What the video says about E, plainly: {"interval": [lo, hi] | None, "ratio", "level":
+    "determined" | "rough" | "undetermined" | "unknown", "sentence"}. The interval is the
+    uniform sweep's near-best hull (`sweep_interval`, schedule select); without a sweep the
+    level comes from the fit's mean confidence (the share of the object whose E is likely within
+    20%)."""
+    iv = model_sum.get("uniform_sweep_interval")
+    out = {"interval": iv, "ratio": None, "level": "unknown", "sentence": ""}
+    if iv:
+        ratio = iv[1] / iv[0]
+        out["ratio"] = ratio
+        level = "determined" if ratio <= DETERMINED_RATIO else "rough" if ratio <= ROUGH_RATIO else "undetermined"
+        out["level"] = level
+        span = f"a uniform E anywhere in {iv[0]:.3g} .. {iv[1]:.3g} Pa fits within {rise:.0%} of the best"
+        if level == "determined":
+            out["sentence"] = f"E is determined by this video: {span}"
+        elif level == "rough":
+            out["sentence"] = (f"E is determined only roughly ({ratio:.1f}x wide): {span}; take the interval, not "
+                               "the number")
+        else:
+            out["sentence"] = (f"this video does not determine E: {span} ({ratio:.0f}x wide); the median "
+                               f"{e_median:.3g} Pa is one choice among many. A release with free swinging, a sag "
+                               "under gravity or a larger deformation would pin it down")
+    elif confidence_mean is not None:
+        out["level"] = "determined" if confidence_mean >= 0.8 else "rough" if confidence_mean >= 0.4 else "undetermined"
+        if out["level"] != "determined":
+            out["sentence"] = (f"E may not be determined by this video: mean confidence {confidence_mean:.2f} (the "
+                               "share of the object whose E is likely within 20%); `fit --schedule select` sweeps "
+                               "a uniform E and gives the interval")
+    return out
+
+
 def model_summary(model: dict | None) -> dict:
     """The material model a fit chose, in short (`fit --json`, the report): the schedule, the model
     chosen, the uniform stage's E, curve shape and minima, each model's training and held-back
@@ -219,6 +270,8 @@ def model_summary(model: dict | None) -> dict:
         out["uniform_e"] = uni["e"]
         out["uniform_curve"] = uni["shape"]
         out["uniform_minima"] = [{"e": x["e"], "loss": x["loss"], "interval": x["interval"]} for x in uni["minima"]]
+        if uni.get("sweep"):
+            out["uniform_sweep_interval"] = sweep_interval(uni["sweep"], uni.get("rise", 0.01))
     if "models" in m:
         out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"], "median_e": v.get("median_e")}
                          for k, v in m["models"].items()}
