@@ -78,7 +78,7 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
            "position_error_m": ev.get("position_error_m"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
            "device": device, "effects": effects, "settings": dict(overrides or {}), "stopped_by": out.stopped_by,
            "interaction_check": [m for m in said if m.startswith(("interaction check", "the interaction may",
-                                                                  "the contact may"))]}
+                                                                  "the contact may", "the fitted"))]}
     # the fitted E against the truth, the fit's own confidence and (schedule select) its uniform sweep's
     # minima and intervals: is a wrong E at least said to be uncertain?
     summ = out.summary()

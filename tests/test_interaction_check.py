@@ -80,3 +80,45 @@ def test_fit_prints_the_check(tmp_path):
     said = [s for s in lines if s.startswith("interaction check") or "may be" in s]
     assert said == ["interaction check: the residual is not largest around the grasp or release frames, "
                     "nor at the contact"], lines[-5:]
+
+
+# ------------------------------------------------------------------ the fitted hand path (#22)
+
+def _path_and_cameras(T=20):
+    from physinteract_usd.camera import Camera
+
+    cam = Camera.look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), width=200, height=200, fov_y_deg=40.0)
+    measured = np.stack([np.linspace(-0.05, 0.05, T), np.zeros(T), np.zeros(T)], 1)
+    return measured, [cam] * T, cam.fx     # 1 m away: 1 mm of sideways motion is fx / 1000 px
+
+
+def test_a_fitted_path_that_strays_beyond_its_measurement_is_said_to_soak_up_model_error():
+    from physinteract_usd.fit.interaction_check import check_trajectory
+
+    measured, cams, fx = _path_and_cameras()
+    fitted = measured.copy()
+    mm = 10.0 / fx * 1e3                     # 10 px sideways, i.e. 5 sigma of 2 px
+    fitted[6:12, 1] += mm * 1e-3
+    out = check_trajectory(measured, fitted, cams, grasp=4, release=15)
+    assert out["suspect"] and out["frames_over"] == 6
+    assert abs(out["max_px"] - 10.0) < 0.2 and 6 <= out["max_frame"] < 12
+    assert "soaking up" in out["note"] and "diagnose" in out["note"]
+    # before the grasp and after the release the hand does not hold the object: not counted
+    assert np.isnan(out["deviation_px"][2]) and np.isnan(out["deviation_px"][17])
+
+
+def test_a_path_within_its_uncertainty_or_moved_only_in_depth_is_not_suspect():
+    from physinteract_usd.fit.interaction_check import check_trajectory
+
+    measured, cams, fx = _path_and_cameras()
+    near = measured.copy()
+    near[:, 1] += 4.0 / fx                    # 4 px: 2 sigma
+    assert not check_trajectory(measured, near, cams, grasp=0, release=None)["suspect"]
+    brief = measured.copy()
+    brief[8:10, 1] += 20.0 / fx               # far, but for 2 frames only
+    assert not check_trajectory(measured, brief, cams, grasp=0, release=None)["suspect"]
+    deep = measured.copy()
+    deep[:, 2] += 0.03                        # 3 cm towards the camera on the optical axis ...
+    deep[:, 0] *= 0.97                        # ... keeping every pixel where it was
+    out = check_trajectory(measured, deep, cams, grasp=0, release=None)
+    assert not out["suspect"] and out["max_px"] < 0.5 and abs(out["depth_mm"] + 30.0) < 1.0

@@ -10,7 +10,10 @@ residual for those two signatures and says what to try: `extract --grasp-frame K
 somewhere too, so a peak counts only when it stands well above the rest (`peak_ratio`,
 `contact_ratio`).
 
-`residual_maps` renders the fit (no USD here) and `check_fit` joins the two for `app/fit.py`.
+`check_trajectory` asks the same of the hand's path: a joint fit that moves it far beyond its
+measurement uncertainty is soaking up model error (#22), and says so.
+
+`residual_maps` renders the fit (no USD here) and `check_fit` joins them for `app/fit.py`.
 """
 
 from __future__ import annotations
@@ -93,6 +96,47 @@ def check_interaction(residual: np.ndarray, region: np.ndarray, grasp: int, rele
     return out
 
 
+TRAJ_SIGMA_PX = 2.0    # the measured hand path's uncertainty in the image plane (mask centroid, contact pixel)
+TRAJ_SIGMAS = 3.0      # a fitted path further than this many sigmas from the measured one is suspect ...
+TRAJ_FRAMES = 3        # ... over at least this many frames
+
+
+def check_trajectory(measured: np.ndarray, fitted: np.ndarray, cameras, grasp: int, release: int | None, *,
+                     sigma_px: float = TRAJ_SIGMA_PX, kind: str = "hand") -> dict:
+    """Is the fitted hand path soaking up model error? The joint fit may move the trajectory away
+    from the path the video shows (T0) to make up for what the model lacks (a missing effect, a
+    wrong material): a free trajectory can hide a missing effect completely. The image-plane
+    distance between the two, per frame the hand holds the object, is compared with the measured
+    path's uncertainty `sigma_px`; depth (along the camera ray) is reported, not judged (the video
+    hardly measures it). Returns {"deviation_px" per frame (nan outside the hold), "max_px",
+    "max_frame", "depth_mm" at that frame, "frames_over" (frames beyond TRAJ_SIGMAS sigma),
+    "suspect", "note"}."""
+    measured, fitted = np.asarray(measured, float), np.asarray(fitted, float)
+    T = min(len(measured), len(fitted), len(cameras))
+    last = T - 1 if release is None else min(int(release), T - 1)
+    dev = np.full(T, np.nan)
+    depth = np.full(T, np.nan)
+    for k in range(max(int(grasp), 0), last + 1):
+        (uv_m, uv_f), z = cameras[k].project(np.stack([measured[k], fitted[k]]))
+        dev[k] = float(np.linalg.norm(uv_f - uv_m))
+        depth[k] = float(z[1] - z[0])
+    out = {"deviation_px": dev.tolist(), "max_px": None, "max_frame": None, "depth_mm": None, "frames_over": 0,
+           "suspect": False, "note": "", "sigma_px": float(sigma_px)}
+    if not np.isfinite(dev).any():
+        return out
+    k = int(np.nanargmax(dev))
+    over = np.flatnonzero(np.nan_to_num(dev, nan=0.0) > TRAJ_SIGMAS * sigma_px)
+    out.update(max_px=float(dev[k]), max_frame=k, depth_mm=float(1e3 * depth[k]), frames_over=int(len(over)))
+    if len(over) >= TRAJ_FRAMES:
+        out["suspect"] = True
+        out["note"] = (f"the fitted {kind} path strays from the one the video shows: up to {dev[k]:.1f} px at frame "
+                       f"{k} ({dev[k] / sigma_px:.0f} sigma of its measurement, {len(over)} frames beyond "
+                       f"{TRAJ_SIGMAS:.0f} sigma): the trajectory is soaking up something the model lacks (an "
+                       f"effect, the material) or a wrong extraction; `diagnose` ranks the candidates, `fit "
+                       f"--no-joint` keeps the measured path")
+    return out
+
+
 def residual_maps(prob, result) -> tuple[np.ndarray, np.ndarray]:
     """The fitted model rendered at every frame against the video: (residual (T, H, W) squared
     colour error per pixel, region (T, H, W) the two silhouettes' union without the hand's pixels).
@@ -148,4 +192,11 @@ def check_fit(prob, result, contacts) -> dict | None:
     kind = {"pointAdherent": "hand", "pointNonAdherent": "fingertip", "surfaceNonAdherent": "palm"}.get(c.type, "hand")
     out = check_interaction(res, reg, int(c.grasp_frame), c.release_frame, contact_uv=uv, radius_px=rad, kind=kind)
     out["contact"] = c.name
+    if traj is not None and c.trajectory is not None and traj is not c.trajectory and len(traj) == T \
+            and len(c.trajectory) == T:
+        tc = check_trajectory(c.trajectory, traj, prob.cameras, int(c.grasp_frame), c.release_frame, kind=kind)
+        out["trajectory"] = tc
+        if tc["suspect"]:
+            out["suspect"].append("trajectory")
+            out["notes"].append(tc["note"])
     return out
