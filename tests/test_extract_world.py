@@ -178,6 +178,7 @@ def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monke
         eval_extract.main(["--work", str(work), "--scenes", "hemp_rope"])
     assert world_suite.main(["extract", "--split", "dev", "--work", str(work)]) == 2
     assert world_fit.main(["--work", str(work), "--json", str(tmp_path / "f.json")]) == 2
+    assert _bench("world_probe").main([str(work), "dev_0000", "sugg", "1"]) == 2     # the folder is validation's
     # reading it at all needs --final (and is logged in the marker)
     assert world_suite.main(["extract", "--split", "validation", "--work", str(work)]) == 2
     assert world_fit.main(["--work", str(work), "--split", "validation", "--json", str(tmp_path / "f.json")]) == 2
