@@ -15,7 +15,7 @@
 # Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
 # JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
 # world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test, schedule=select), GRID (init's
-# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap).
+# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
 set -u
 SPLIT="${1:?split: dev or validation}"
@@ -29,6 +29,7 @@ DEVICE="${DEVICE:-cuda}"
 FIT_SETTINGS="${FIT_SETTINGS:-}"
 GRID="${GRID:-}"
 MAX_PARTICLES="${MAX_PARTICLES:-}"
+TRUTH_SWEEP="${TRUTH_SWEEP:-}"
 PY="${PYTHON:-python3}"
 T_START=$(date +%s)
 mkdir -p "$OUT" "$WORK/rows"
@@ -62,13 +63,13 @@ worker() {
       ${MAX_PARTICLES:+--max-particles "$MAX_PARTICLES"} || return
     t2=$(date +%s)
     step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
-      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS"
+      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS" ${TRUTH_SWEEP:+--truth-sweep}
     echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s, fit $(( $(date +%s) - t2 )) s"
   } > "$WORK/rows/$n.log" 2>&1
   grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
 }
 export -f worker step
-export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES
+export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time
