@@ -107,6 +107,11 @@ def test_identifiability_says_plainly_when_the_video_does_not_determine_e():
     assert low["level"] == "undetermined" and "--schedule select" in low["sentence"]
     assert identifiability({}, 0.95, 3e4)["sentence"] == ""
     assert identifiability({}, None, 3e4)["level"] == "unknown"
+    # the bumps start search's probes: a near-best hull wider than 4x is undetermined for sure ...
+    few = identifiability({"uniform_probe_interval": [1e3, 2e5]}, 0.9, 3e4)
+    assert few["level"] == "undetermined" and "at least" in few["sentence"]
+    # ... a narrow one proves nothing (the probes cluster): the confidence decides
+    assert identifiability({"uniform_probe_interval": [2.9e4, 3.1e4]}, 0.95, 3e4)["level"] == "determined"
 
 
 def test_uniform_bar_chooses_uniform_within_10_percent(tmp_path):

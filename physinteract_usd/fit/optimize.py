@@ -123,7 +123,7 @@ def _seed(s):
 
 
 def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=None, with_loss: bool = False,
-                          skipped: list | None = None):
+                          skipped: list | None = None, seen: dict | None = None):
     """Golden-section search of the reconstruction loss over a uniform log E (no gradients): the
     best E (and, `with_loss`, its loss). A probe whose simulation goes unstable or leaves the grid
     (or whose loss is not finite) is reported (`log`; its E appended to `skipped`) and skipped: the
@@ -146,6 +146,8 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
             step = (b - a) / 4
             a, b = max(a, k - step), min(b, k + step)
     golden_section(f, a, b, evals)
+    if seen is not None:      # every probe, E -> loss (None: unstable), for what the video says about E
+        seen.update({f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None) for k, v in sorted(cache.items())})
     fin = [k for k in cache if math.isfinite(cache[k])]
     if not fin:
         raise no_finite_uniform_probe()
@@ -226,6 +228,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     trajs = [t.clone().requires_grad_(s.joint) for t in prob.initial_trajectories()]
     levels, shares = tuple(int(k) for k in s.levels), tuple(s.level_share)
     start_skipped: list = []
+    probes: dict = {}       # the start search's uniform E -> loss
     if start is not None:
         # resume where the last fit ended: on the finest basis (a coarse one would flatten the
         # field it left), all iterations there
@@ -241,7 +244,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     else:
         skipped: list = []
         e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log,
-                                                                                  skipped=skipped)
+                                                                                  skipped=skipped, seen=probes)
         if skipped:
             start_skipped = sorted(skipped)
         mat.set_uniform(e_uniform)
@@ -399,6 +402,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now())
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
+    if probes:
+        model["uniform_probes"] = probes          # the start search's uniform E -> loss
     if start_skipped:
         model["uniform_skipped"] = start_skipped  # start-search probes that went unstable / left the grid
     return assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, feats, history, final_loss, t0,

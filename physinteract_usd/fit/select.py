@@ -228,11 +228,21 @@ def identifiability(model_sum: dict, confidence_mean: float | None, e_median: fl
                     rise: float = 0.01) -> dict:
     """What the video says about E, plainly: {"interval": [lo, hi] | None, "ratio", "level":
     "determined" | "rough" | "undetermined" | "unknown", "sentence"}. The interval is the
-    uniform sweep's near-best hull (`sweep_interval`, schedule select); without a sweep the
-    level comes from the fit's mean confidence (the share of the object whose E is likely within
-    20%)."""
+    uniform sweep's near-best hull (`sweep_interval`, schedule select); without a sweep, the bumps
+    start search's probes (`uniform_probe_interval`, a lower bound of the width: wider than 4x is
+    "undetermined" for sure), else the fit's mean confidence (the share of the object whose E is
+    likely within 20%)."""
     iv = model_sum.get("uniform_sweep_interval")
+    pv = model_sum.get("uniform_probe_interval")
     out = {"interval": iv, "ratio": None, "level": "unknown", "sentence": ""}
+    if not iv and pv and pv[1] / pv[0] > ROUGH_RATIO:
+        # the bumps start search's few probes: their near-best hull is a lower bound of the width
+        out.update(interval=pv, ratio=pv[1] / pv[0], level="undetermined",
+                   sentence=f"this video does not determine E: uniform E from {pv[0]:.3g} to {pv[1]:.3g} Pa (at "
+                            f"least) fit within {rise:.0%} of the best the start search found; the median "
+                            f"{e_median:.3g} Pa is one choice among many (`fit --schedule select` sweeps the "
+                            "whole range)")
+        return out
     if iv:
         ratio = iv[1] / iv[0]
         out["ratio"] = ratio
@@ -272,6 +282,8 @@ def model_summary(model: dict | None) -> dict:
         out["uniform_minima"] = [{"e": x["e"], "loss": x["loss"], "interval": x["interval"]} for x in uni["minima"]]
         if uni.get("sweep"):
             out["uniform_sweep_interval"] = sweep_interval(uni["sweep"], uni.get("rise", 0.01))
+    if m.get("uniform_probes") and not uni:
+        out["uniform_probe_interval"] = sweep_interval(m["uniform_probes"], 0.01)
     if "models" in m:
         out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"], "median_e": v.get("median_e")}
                          for k, v in m["models"].items()}
