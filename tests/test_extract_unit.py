@@ -281,3 +281,44 @@ def test_a_floor_from_the_underside_not_its_deepest_trough():
     # a bar hanging from its top: its still region does not touch the floor
     top = np.flatnonzero(bar[:, 1] >= 0.17)
     assert resting_base(bar, h, [top]) is None
+
+
+def test_a_still_hand_coloured_prop_is_not_the_hand():
+    """A post the object hangs on, as brown as skin and touching the object, never moves: it is
+    background, not the toucher, though the hand passes next to it (a guard: this toy passed before
+    #23's dev_0011 fix too; `drop_still_props` below is what changed)."""
+    frames, masks, hands = _toy_video()
+    yy, xx = np.mgrid[0:48, 0:64] + 0.5
+    post = (np.abs(xx - 28) <= 3) & (yy >= 34)          # below the object, touching its silhouette
+    tex = 0.05 * np.sin(xx / 2.0)[..., None]
+    brown = (np.array([0.62, 0.42, 0.30]) + tex).astype(np.float32)
+    for k in range(len(frames)):
+        keep = post & ~hands[k] & ~masks[k]
+        frames[k][keep] = brown[keep]
+        hands[k] &= ~post  # (the hand never crosses it in this toy)
+    seg = ColourMotionSegmenter()(frames, masks, object_colors=np.tile([[0.15, 0.3, 0.75]], (10, 1)))
+    inner = post & ~dilate(masks.any(0) | hands.any(0), 2)
+    assert inner.sum() >= 20
+    assert not (seg.hand & inner[None]).any()
+    iou = (seg.hand & hands).sum() / (seg.hand | hands).sum()
+    assert iou > 0.8  # the moving hand is still found
+
+
+def test_drop_still_props_keeps_a_resting_hand_and_drops_a_prop_the_hand_never_meets():
+    from physinteract_usd.extract.segmentation import drop_still_props
+
+    T, H, W = 6, 30, 40
+    hand = np.zeros((T, H, W), bool)
+    seeds = np.zeros((T, H, W), bool)
+    hand[:, 20:28, 2:6] = True                     # a still prop, "hand" in every frame, never moving
+    for k in range(T):                              # the toucher comes in, then rests at x 20..26
+        x = max(30 - 4 * k, 20)
+        hand[k, 5:12, x:x + 6] = True
+        if k < 3:
+            seeds[k, 5:12, x:x + 6] = True           # it moved in the first frames only
+    out = drop_still_props(hand, seeds)
+    assert not out[:, 20:28, 2:6].any()
+    assert out[3:, 5:12, 20:26].all()                # the resting hand stays, where it moved to rest
+    prop = np.zeros((H, W), bool)
+    prop[20:28, 2:6] = True
+    assert (out == (hand & ~prop[None])).all()       # nothing else taken away

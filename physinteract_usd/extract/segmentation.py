@@ -192,6 +192,11 @@ class ColourMotionSegmenter:
                 # object's region is the object's own colour (a pale sheet under a white glove)
                 free = ~dilate_all(cover, 1)
                 hand = np.stack([_connected_to(hand[k], free[k]) if hand[k].any() else hand[k] for k in range(T)])
+            hand = drop_still_props(hand, seeds)
+            if _pass == 1:
+                # (the hand left out of the background, a hand at rest differs from it too: the
+                # toucher's pieces in a frame hold pixels that differ there)
+                hand = np.stack([_connected_to(hand[k], seeds[k]) for k in range(T)])
             if _pass == 0:
                 bg, seen = estimate_background(f, cover | hand, dilate=2, return_seen=True)
                 bg = _inpaint(bg, seen == 0)
@@ -222,6 +227,22 @@ class ColourMotionSegmenter:
         fg = (dist > thr) & (np.abs(raw).max(-1) > 0.5 * thr)
         fg = np.stack([open_close(x, 0, 1) for x in fg])
         return fg, float(sig.max()), thr
+
+
+def drop_still_props(hand: np.ndarray, seeds: np.ndarray, share: float = 0.5) -> np.ndarray:
+    """`hand` (T, H, W) less the places that are "hand" in most frames (`share`) but never
+    meet the moving toucher (`seeds`, its moving pixels, in any frame): a prop of the hand's colour
+    that stays put (a brown post the object hangs on, joined to the hand through the object's
+    moving rim) is background. A hand that rests in one place is kept: it moved there, next to
+    where it rests."""
+    cv2 = _cv2()
+    still = hand.mean(0) >= share
+    if not still.any():
+        return hand
+    n, lab = cv2.connectedComponents(still.astype(np.uint8), connectivity=8)
+    met = np.unique(lab[dilate(seeds.any(0), 2) & still])
+    drop = still & ~np.isin(lab, met)
+    return hand & ~drop[None] if drop.any() else hand
 
 
 def _inpaint(img: np.ndarray, holes: np.ndarray) -> np.ndarray:
