@@ -72,6 +72,7 @@ def _check_uniform(tmp_path, E):
     idf = out.summary()["identifiability"]
     assert idf["level"] in ("determined", "rough"), idf
     assert idf["interval"][0] <= E * 1.1 and idf["interval"][1] >= E / 1.1, idf
+    assert api.info(b["stage"])["material"]["identifiability"]["level"] == idf["level"]     # `info` says it too
     # the report on the stage records the choice and both models' held-back losses
     from physinteract_usd.app.adapters import read_scene
 
@@ -101,6 +102,8 @@ def test_identifiability_says_plainly_when_the_video_does_not_determine_e():
     assert wide["level"] == "undetermined" and "does not determine E" in wide["sentence"]
     assert "2e+03 .. 3e+05 Pa" in wide["sentence"], wide["sentence"]
     assert identifiability({"uniform_sweep_interval": [2.5e4, 3.5e4]}, 0.1, 3e4)["level"] == "determined"
+    point = identifiability({"uniform_sweep_interval": [3e4, 3e4]}, 0.1, 3e4)
+    assert point["level"] == "determined" and "no other uniform E" in point["sentence"]
     assert identifiability({"uniform_sweep_interval": [1.5e4, 5e4]}, 0.9, 3e4)["level"] == "rough"
     # no sweep (schedule bumps): the fit's own confidence, with the way to an interval
     low = identifiability({}, 0.2, 3e4)

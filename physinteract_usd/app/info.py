@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fit.select import identifiability, model_summary
 from ..usd.stage import read_grid_choice
 from .adapters import read_scene
 
@@ -55,4 +56,10 @@ def info(stage_path) -> dict:
         c = sd.confidence
         d["material"]["confidence"] = {"min": float(c.min()), "mean": float(c.mean()), "max": float(c.max()),
                                        "low_share": float(np.mean(c < 0.5))}
+    cur = [r for r in sd.reports if r.get("current")] or sd.reports[-1:]
+    if cur and cur[-1].get("material_model") is not None:
+        # what the current version's fit said about E (fit/select.identifiability, as `fit` printed it)
+        conf = d["material"].get("confidence", {}).get("mean")
+        d["material"]["identifiability"] = identifiability(model_summary(cur[-1]["material_model"]), conf,
+                                                           float(np.median(e)))
     return d

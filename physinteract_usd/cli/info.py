@@ -44,6 +44,9 @@ def format_info(d: dict) -> str:
         cf = m["confidence"]
         lines.append(f"confidence  mean {cf['mean']:.2f} (min {cf['min']:.2f}, max {cf['max']:.2f}); "
                      f"{cf['low_share'] * 100:.0f}% of particles below 0.5: the video says little about E there")
+    idf = m.get("identifiability") or {}
+    if idf.get("sentence"):
+        lines.append(f"identified  {idf['level']}: {idf['sentence']}")
     lines.append("effects     " + (", ".join(f"{k} {v}" for k, v in d["effects"].items()) or "none (base model)"))
     if d["contacts"]:
         for ct in d["contacts"]:

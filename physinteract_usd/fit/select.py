@@ -248,7 +248,9 @@ def identifiability(model_sum: dict, confidence_mean: float | None, e_median: fl
         out["ratio"] = ratio
         level = "determined" if ratio <= DETERMINED_RATIO else "rough" if ratio <= ROUGH_RATIO else "undetermined"
         out["level"] = level
-        span = f"a uniform E anywhere in {iv[0]:.3g} .. {iv[1]:.3g} Pa fits within {rise:.0%} of the best"
+        span = (f"a uniform E anywhere in {iv[0]:.3g} .. {iv[1]:.3g} Pa fits within {rise:.0%} of the best"
+                if ratio > 1.001 else
+                f"no other uniform E of the sweep comes within {rise:.0%} of the best, {iv[0]:.3g} Pa")
         if level == "determined":
             out["sentence"] = f"E is determined by this video: {span}"
         elif level == "rough":
