@@ -723,6 +723,55 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 wp.atomic_add(status, row, 1, 1)
                 wp.atomic_max(status, row, 3, p)
 
+    # fused zeroing: one launch clears what separate memsets did (each memset is a node of the
+    # substep's graph; at small sizes a substep is bound by the number of nodes, not their bytes)
+    @wp.kernel(module=module, enable_backward=False)
+    def zero_grid(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
+                  gpmv: wp.array(dtype=vec3)):
+        # the grid's scatter targets (flat views), ``chunk`` nodes per thread
+        n = gm.shape[0]
+        t0 = wp.tid() * chunk
+        for t in range(t0, wp.min(t0 + chunk, n)):
+            gm[t] = T(0.0)
+            gmv[t] = vec3()
+            gpm[t] = T(0.0)
+            gpmv[t] = vec3()
+
+    @wp.kernel(module=module, enable_backward=False)
+    def zero_grid_adj(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
+                      gpmv: wp.array(dtype=vec3), a_gm: wp.array(dtype=T), a_gmv: wp.array(dtype=vec3),
+                      a_gpm: wp.array(dtype=T), a_gpmv: wp.array(dtype=vec3), a_gv: wp.array(dtype=vec3)):
+        # the scatter targets and the five grid adjoints of a backward substep
+        n = gm.shape[0]
+        t0 = wp.tid() * chunk
+        for t in range(t0, wp.min(t0 + chunk, n)):
+            gm[t] = T(0.0)
+            gmv[t] = vec3()
+            gpm[t] = T(0.0)
+            gpmv[t] = vec3()
+            a_gm[t] = T(0.0)
+            a_gmv[t] = vec3()
+            a_gpm[t] = T(0.0)
+            a_gpmv[t] = vec3()
+            a_gv[t] = vec3()
+
+    @wp.kernel(module=module, enable_backward=False)
+    def zero_particle_adj(a_A: wp.array(dtype=mat33), a_vg: wp.array(dtype=vec3), a_Cg: wp.array(dtype=mat33),
+                          with_state: int, a_x: wp.array(dtype=vec3), a_v: wp.array(dtype=vec3),
+                          a_C: wp.array(dtype=mat33), a_F: wp.array(dtype=mat33), a_Fv: wp.array(dtype=mat33)):
+        # the particle-side adjoint buffers of a backward substep (and, with_state, the adjoint of
+        # the substep's input state that it accumulates into)
+        p = wp.tid()
+        a_A[p] = mat33()
+        a_vg[p] = vec3()
+        a_Cg[p] = mat33()
+        if with_state != 0:
+            a_x[p] = vec3()
+            a_v[p] = vec3()
+            a_C[p] = mat33()
+            a_F[p] = mat33()
+            a_Fv[p] = mat33()
+
     @wp.kernel(module=module, enable_backward=False)
     def add_vec3(a: wp.array(dtype=vec3), b: wp.array(dtype=vec3)):
         p = wp.tid()
@@ -762,6 +811,6 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
         p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
-        check=check,
+        check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
     )

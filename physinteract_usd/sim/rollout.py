@@ -172,8 +172,7 @@ class Rollout:
         wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False)
         wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False)
         for s in reversed(range(self.S)):
-            other.zero_()
-            sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl)
+            sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl, clear_adj_in=True)
             carry, other = other, carry
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)

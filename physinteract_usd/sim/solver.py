@@ -5,8 +5,16 @@ The forward substep is p2g_stress -> p2g_scatter -> grid_update -> g2p_gather ->
 state (so no grid is kept per substep), then runs the reverse kernels in reverse order: Warp's
 generated adjoints for the per-particle / per-node physics (stress, update, grid update) and
 hand-written adjoints for the two transfers (p2g_scatter_adj, g2p_gather_adj), which are gathers
-of the grid adjoints and much cheaper than the generated ones. Grid arrays are zeroed
-with ``array.zero_()`` and reused: nothing is allocated per substep.
+of the grid adjoints and much cheaper than the generated ones. Grid arrays are reused: nothing
+is allocated per substep.
+
+Zeroing: with ``fused_zero`` (the default, `FUSED_ZERO`) a forward substep clears its four grid
+arrays in one kernel over the nodes (kernels.zero_grid), and a backward substep clears those four
+and the five grid adjoints in one kernel over the nodes (zero_grid_adj) and its particle-side
+adjoint buffers (plus, when asked, the adjoint of its input state) in one kernel over the particles
+(zero_particle_adj): 3 launches where there were 21 memsets (each one a node of the captured graph).
+``fused_zero=False`` keeps the memsets (``array.zero_()``), for comparisons; results are bitwise
+the same.
 """
 
 from __future__ import annotations
@@ -19,6 +27,8 @@ from .control import Control, ControlArrays
 from .effects import N_PARAMS
 from .kernels import F_VISCO, get_kernels
 from .state import SimState
+
+FUSED_ZERO = True   # new solvers clear their grid / adjoint buffers with fused kernels (False: memsets)
 
 
 class SimParams:
@@ -111,6 +121,7 @@ class MPMSolver:
         self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
         self._adj_grid = None
         self._adj_flat = None
+        self.fused_zero = FUSED_ZERO     # read when launching: set it before a rollout captures its graphs
 
     # ------------------------------------------------------------------ argument lists
     def _stress_args(self, s: SimState, p: SimParams):
@@ -137,17 +148,16 @@ class MPMSolver:
         return [s.x, s.v, s.C, s.F, s.Fv]
 
     # ------------------------------------------------------------------ forward
-    def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None):
+    def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None, clear: bool = True):
         """Stress, p2g and the grid update of substep ``substep`` of frame ``frame`` (fills self.gv),
-        then the gather of the grid velocity and its gradient at the particles (self.vg, self.Cg)."""
+        then the gather of the grid velocity and its gradient at the particles (self.vg, self.Cg).
+        ``clear=False``: the caller has already zeroed the grid's scatter targets."""
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
         P = s.x.shape[0]
-        self.gm.zero_()
-        self.gmv.zero_()
-        self.gpm.zero_()
-        self.gpmv.zero_()
+        if clear:
+            self._clear_grid()
         wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
         wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c), [self.gm, self.gmv, self.gpm, self.gpmv],
                   device=d, record_tape=False)
@@ -155,6 +165,17 @@ class MPMSolver:
                   device=d, record_tape=False)
         wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg], device=d,
                   record_tape=False)
+
+    def _clear_grid(self):
+        if self.fused_zero:
+            f = self._flat
+            wp.launch(self.K.zero_grid, self.n_grid_threads, [self.chunk, f["gm"], f["gmv"], f["gpm"], f["gpmv"]],
+                      device=self.device, record_tape=False)
+        else:
+            self.gm.zero_()
+            self.gmv.zero_()
+            self.gpm.zero_()
+            self.gpmv.zero_()
 
     def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None):
         """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
@@ -180,10 +201,12 @@ class MPMSolver:
 
     def step_adjoint(self, s_in: SimState, s_out: SimState, adj_in: SimState, adj_out: SimState,
                      frame: int, substep: int, adj_params: SimParams, adj_ctrl: ControlAdjoint,
-                     params=None, ctrl=None):
+                     params=None, ctrl=None, clear_adj_in: bool = False):
         """Reverse one substep: given adj_out (dL/d s_out), ACCUMULATE dL/d s_in into adj_in and the
         parameter / trajectory gradients into adj_params / adj_ctrl. s_out is only written (it may
-        hold anything). The substep's grid is recomputed from s_in first."""
+        hold anything). The substep's grid is recomputed from s_in first. ``clear_adj_in``: zero
+        adj_in first (so it receives dL/d s_in itself), in the same launch as the substep's own
+        adjoint buffers."""
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
@@ -191,11 +214,22 @@ class MPMSolver:
         ag = self._alloc_adj()
         af = self._adj_flat
         ap = self._adj_part
-        self.grid(s_in, frame, substep, p, c)
-        for a in ag.values():
-            a.zero_()
-        for a in ap.values():
-            a.zero_()
+        if self.fused_zero:
+            f = self._flat
+            wp.launch(K.zero_grid_adj, self.n_grid_threads,
+                      [self.chunk, f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"], af["gpmv"],
+                       af["gv"]], device=d, record_tape=False)
+            self.grid(s_in, frame, substep, p, c, clear=False)
+            wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
+                                               adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
+        else:
+            if clear_adj_in:
+                adj_in.zero_()
+            self.grid(s_in, frame, substep, p, c)
+            for a in ag.values():
+                a.zero_()
+            for a in ap.values():
+                a.zero_()
         # particle update (Warp autodiff): -> adj x, F, Fv, vg, Cg, E, nu, effects, pins
         adj_upd = [adj_in.x, adj_in.F, adj_in.Fv, ap["vg"], ap["Cg"], adj_params.E, adj_params.nu, adj_params.eff, 0,
                    None, None, adj_ctrl.pin_pos, 0, 0.0, 0.0]
