@@ -157,7 +157,7 @@ def warm_start(stage_path, sd: SceneData) -> tuple[dict, str, tuple, tuple] | No
 
 def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None,
                 hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
-                yes=True, warm=True) -> FitJob:
+                yes=True, warm=True, progress=True) -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
@@ -165,8 +165,14 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     (`iterations` None: the checkpoint's remaining iterations, else the default). `warm`: when the
     stage's effects differ from the current version's (`effects add / remove`), start from that
     version (`warm_start`; `iterations` None: WARM_ITERATIONS) and search the start of the effects
-    just added; the effects with `fit = true` are fitted by either schedule."""
+    just added; the effects with `fit = true` are fitted by either schedule. With
+    `settings_overrides={"track_weight": W}` (W > 0) the video's point tracks are measured (cached
+    next to the stage, as the report's) and count in the loss (`fit_tracks`)."""
     check_iterations(iterations)
+    if settings_overrides and "track_weight" in settings_overrides:
+        tw = settings_overrides["track_weight"]
+        if isinstance(tw, bool) or not isinstance(tw, (int, float)) or not tw >= 0:
+            raise InputError("--track-weight", f"must be a number >= 0, got {tw!r}")
     stage_path = Path(stage_path)
     sd = read_scene(stage_path)
     # what can be refused is refused before extraction writes anything
@@ -220,8 +226,31 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
             f"{iterations or default_its} iterations (--fresh: a fit from scratch)")
     if iterations is not None:
         settings.iterations = int(iterations)
+    if settings.track_weight > 0:
+        obs.tracks = fit_tracks(sd, obs, device=device, log=log, progress=progress)
     return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
                   resumed_from, history)
+
+
+def fit_tracks(sd: SceneData, obs: Observations, *, device="cpu", log=print, progress=True):
+    """The video's point tracks for the fit's track term: the report's (`adapters.measured_tracks`:
+    DIS flow from the Gaussians the video shows at frame 0, forward-backward checked, lost on the
+    hand; cached in `<stem>.report/tracks.npz`). InputError when the video gives too few."""
+    from .adapters import measured_tracks
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = lambda it: tqdm(it, desc="tracks", unit="frame", leave=False, dynamic_ncols=True)  # noqa: E731
+    tr = measured_tracks(sd, obs, device=device, progress=bar)
+    n0 = int(np.asarray(tr.valid[0], bool).sum())
+    if n0 < 3:
+        raise InputError(sd.path, f"--track-weight: only {n0} point tracks start on the object at frame 0 "
+                         "(too little texture, or the object is not where the stage puts it)")
+    held = float(np.asarray(tr.valid[1:], bool).sum(1).mean() / n0) if len(tr.valid) > 1 else 1.0
+    log(f"tracks: {n0} points on the object at frame 0, {100 * held:.0f}% of them valid per later frame on average")
+    return tr
 
 
 def check_cost(sd: SceneData, settings: FitSettings, device: str, *, yes: bool, stage_path, resumed: bool = False):
@@ -313,7 +342,7 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
-                      settings_overrides=settings_overrides, yes=yes, warm=warm)
+                      settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress)
     lp = LayerPaths.of(job.stage_path)
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built

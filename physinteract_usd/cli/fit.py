@@ -43,6 +43,10 @@ def add_parser(sub):
     s.add_argument("--patience", type=int, default=None, metavar="N",
                    help="convergence stop: a level of the schedule ends when its last N iterations bring no new "
                         "best loss 0.5%% below the one before (default 3; 0: every iteration runs)")
+    s.add_argument("--track-weight", type=float, default=None, metavar="W",
+                   help="weight of the point-track term: the video's 2D point tracks (OpenCV DIS flow, the report's, "
+                        "cached) against the projected Gaussians, beside pixels and silhouette (default 0: off; "
+                        "1: a 1-px error on every track costs about a 1-px shift of the outline)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -64,6 +68,10 @@ def run(a) -> int:
         if a.patience < 0:
             raise InputError("--patience", f"must be >= 0, got {a.patience}")
         over["plateau_patience"] = a.patience
+    if a.track_weight is not None:
+        if not a.track_weight >= 0:
+            raise InputError("--track-weight", f"must be >= 0, got {a.track_weight}")
+        over["track_weight"] = a.track_weight
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,

@@ -21,6 +21,12 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     s = settings or FitSettings()
     if s.schedule not in SCHEDULES:
         raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, not {s.schedule!r}")
+    tw = float(getattr(s, "track_weight", 0.0) or 0.0)
+    if not tw >= 0:
+        raise ValueError(f"track_weight must be >= 0, got {tw}")
+    if tw > 0 and prob.tracks is None:
+        raise ValueError("track_weight > 0 needs point tracks in the fit's observations (Observations.tracks)")
+    prob.weights.track = tw      # the point tracks' term (fit/tracks_loss.py) counts in every schedule's loss
     return SCHEDULES[s.schedule](prob, s, **kw)
 
 

@@ -87,6 +87,8 @@ class FitSettings:
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
+    track_weight: float = 0.0           # the video's point tracks against the projected Gaussians as a loss term
+                                        # (fit/tracks_loss.py; 1: a 1-px error on every track ~ a 1-px outline shift)
 
 
 @dataclass

@@ -4,7 +4,9 @@
     L_rec   = mean over frames of |I^ - I|_1 + lambda_ssim (1 - SSIM) + lambda_mask |M^ - M|_2
     L_reg   = lambda_smooth |grad log E|^2 + lambda_traj |T - T0|^2 / scale^2
 
-with the hand's pixels left out of every image term (weight 0). No USD here: the fit gets a
+with the hand's pixels left out of every image term (weight 0); with point tracks in the
+observations and `weights.track` > 0, each frame's term also holds lambda_track L_track (the video's
+tracks against the projected Gaussians, fit/tracks_loss.py). No USD here: the fit gets a
 `SceneData` and arrays.
 """
 
@@ -27,6 +29,8 @@ class Observations:
     frames: np.ndarray                 # (T, H, W, 3) float32 in [0, 1]
     masks: np.ndarray | None = None    # (T, H, W) bool object silhouettes (visible)
     hand_masks: np.ndarray | None = None  # (T, H, W) bool pixels to leave out
+    tracks: object | None = None       # point tracks measured on the video (ids, uv, valid, fb_error, ...:
+                                       # `compare.GaussianTracks`); the track term (fit/tracks_loss.py)
 
     @property
     def n_frames(self) -> int:
@@ -42,6 +46,7 @@ class LossWeights:
                                 # it stays weak (0.02 measured best without the prior on foam_bar; x15: worse)
     trajectory: float = 1.0
     depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
+    track: float = 0.0         # the point tracks' term (fit/tracks_loss.py; FitSettings.track_weight sets it)
 
 
 class FitProblem:
@@ -79,6 +84,13 @@ class FitProblem:
             cover = self._silhouettes_at_rest()
         self.background = t(estimate_background(obs.frames, cover, dilate=2))
         self.cameras = [scene.camera.at(k) for k in range(T)]
+        self.tracks = None
+        if obs.tracks is not None:
+            from .tracks_loss import track_loss_from
+
+            outline = obs.masks[0] if obs.masks is not None else self._silhouettes_at_rest()[0]
+            self.tracks = track_loss_from(obs.tracks, self.cameras, scene.gaussians.means, outline=outline,
+                                          dtype=self.tdtype, device=self.tdev)
         scale = float(np.max(np.ptp(self.x0, axis=0)))
         self.traj_scale = max(0.05 * scale, 1e-3)
         self.traj_rays = []
@@ -136,13 +148,20 @@ class FitProblem:
 
     def render_frame(self, k, x_k, F_k):
         means, covs = self.gaussians_at(x_k, F_k)
-        return render(means, covs, self.colors, self.opacities, self.cameras[k], background=self.background)
+        out = render(means, covs, self.colors, self.opacities, self.cameras[k], background=self.background)
+        if self.tracks is not None:
+            out["means"] = means           # the track term's input
+        return out
 
     def frame_loss(self, k, out) -> dict:
         w = None if self.weight is None else self.weight[k]
         mask = None if self.masks is None else self.masks[k]
-        return reconstruction_loss(out["rgb"], self.frames[k], w, out["alpha"] if mask is not None else None, mask,
-                                   lambda_ssim=self.weights.ssim, lambda_mask=self.weights.mask)
+        res = reconstruction_loss(out["rgb"], self.frames[k], w, out["alpha"] if mask is not None else None, mask,
+                                  lambda_ssim=self.weights.ssim, lambda_mask=self.weights.mask)
+        if self.tracks is not None and self.weights.track > 0 and "means" in out:
+            res["track"] = self.tracks.frame_term(k, out["means"])
+            res["total"] = res["total"] + self.weights.track * res["track"]
+        return res
 
     def loss(self, E, nu, trajectories=None, effects=None, frames=None, keep_renders=False, simulated=None) -> dict:
         """The reconstruction loss over `frames` (default: all but the rest frame). `simulated`:
