@@ -10,6 +10,13 @@ every substep's grid) timed in the same run as the baseline.
 The scene: a block of P particles (2 per cell per axis) in the middle of an n^3 grid, fixed
 corotated, float32, gravity, damping, a grasp pulling one end and a clamp on the other (so the
 pin and effect code paths run), T frames of S substeps.
+
+`--zeroing both` adds, after the main table (the default path: fused zeroing kernels), a before /
+after table in the same run: the memset path (`sim.solver.FUSED_ZERO = False`) against the fused
+one, wall and host CPU time (`time.process_time`, the measure to trust on a shared CPU) per
+substep, each timed in alternating rounds so that load changes hit both alike:
+
+    python benchmarks/bench_sim.py --device cuda --sizes 2000:32 15000:100 --zeroing both --probe ''
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ wp.config.quiet = True
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from physinteract_usd.sim import Contact, Control, GridSpec, Rollout, SimModel  # noqa: E402
+from physinteract_usd.sim import solver as solver_mod  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_PROBES = [os.path.join(HERE, "..", ".dev", "probes", "mpm_probe.py"),
@@ -75,9 +83,18 @@ def median_wall(fn, device, reps: int) -> float:
 STAT = "min"
 
 
+def _rollout(m, ctrl, fused: bool = True):
+    old = solver_mod.FUSED_ZERO
+    solver_mod.FUSED_ZERO = fused          # read when the solver is built
+    try:
+        return Rollout(m, ctrl)
+    finally:
+        solver_mod.FUSED_ZERO = old
+
+
 def time_rollout(P, n, T, S, device, reps):
     m, ctrl = make_scene(P, n, T, S, device)
-    ro = Rollout(m, ctrl)
+    ro = _rollout(m, ctrl)
     tdev = "cpu" if device == "cpu" else device
     E = torch.full((m.n_particles,), 1e4, device=tdev, requires_grad=True)
     # warm up (compiles)
@@ -100,6 +117,56 @@ def time_rollout(P, n, T, S, device, reps):
     stat = np.median if STAT == "median" else np.min        # min: robust to other load on the machine
     tf, tb = float(stat(tf_list)), float(stat(tb_list))
     return m.n_particles, tf / (T * S), tb / (T * S)
+
+
+def compare_zeroing(P, n, T, S, device, reps):
+    """Memsets vs fused zeroing on one scene: per path, (wall fwd, wall fwd+bwd, cpu fwd, cpu fwd+bwd)
+    per substep, the `STAT` over `reps` rounds; the two paths alternate within each round."""
+    m, ctrl = make_scene(P, n, T, S, device)
+    tdev = "cpu" if device == "cpu" else device
+    E = torch.full((m.n_particles,), 1e4, device=tdev, requires_grad=True)
+    ros = {f: _rollout(m, ctrl, f) for f in (False, True)}
+    for ro in ros.values():                  # warm up: compile, capture
+        x, F = ro(E)
+        (x[-1].sum() + F[-1].sum()).backward()
+    sync(device)
+
+    def fwd(ro):
+        with torch.no_grad():
+            ro(E)
+
+    def fb(ro):
+        x, F = ro(E)
+        (x[-1].sum() + F[-1].sum()).backward()
+
+    t = {(f, k): [] for f in ros for k in range(4)}
+    for _ in range(reps):
+        for j, fn in enumerate((fwd, fb)):
+            for f, ro in ros.items():
+                sync(device)
+                w0, c0 = time.perf_counter(), time.process_time()
+                fn(ro)
+                sync(device)
+                t[(f, j)].append(time.perf_counter() - w0)
+                t[(f, j + 2)].append(time.process_time() - c0)
+    stat = np.median if STAT == "median" else np.min
+    return m.n_particles, {f: [float(stat(t[(f, k)])) / (T * S) for k in range(4)] for f in ros}
+
+
+def zeroing_table(rows) -> str:
+    lines = ["| particles | grid | measure (us/substep) | memsets | fused | change |", "|---:|---:|---|---:|---:|---:|"]
+    for Pm, n, r in rows:
+        old, new = r[False], r[True]
+        for name, i in (("wall forward", 0), ("wall fwd+bwd", 1), ("wall backward", None), ("CPU forward", 2),
+                        ("CPU fwd+bwd", 3), ("CPU backward", -1)):
+            if i is None:
+                a, b = old[1] - old[0], new[1] - new[0]
+            elif i == -1:
+                a, b = old[3] - old[2], new[3] - new[2]
+            else:
+                a, b = old[i], new[i]
+            lines.append(f"| {Pm:,} | {n}^3 | {name} | {a * 1e6:,.1f} | {b * 1e6:,.1f} | {(b / a - 1) * 100:+.1f}% |")
+    return "\n".join(lines)
 
 
 def run_probe(probe, device, P, n, S):
@@ -145,6 +212,8 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--probe", default=None, help="path of mpm_probe.py ('' to skip)")
     ap.add_argument("--stat", choices=("min", "median"), default="min", help="statistic over the runs")
+    ap.add_argument("--zeroing", choices=("fused", "both"), default="fused",
+                    help="both: also a before / after table, memsets vs fused zeroing kernels")
     args = ap.parse_args(argv)
     global STAT
     STAT = args.stat
@@ -175,6 +244,15 @@ def main(argv=None):
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for Pm, n, tf, tb, pf, pb in rows:
         print(f"| {Pm:,} | {n}^3 | {us(tf)} | {us(tb)} | {tb / tf:.1f} | {us(pf)} | {us(pb)} |")
+    if args.zeroing == "both":
+        zrows = []
+        for s in sizes:
+            P, n = (int(v) for v in s.split(":"))
+            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps)
+            zrows.append((Pm, n, r))
+        print(f"\nzeroing: memsets (FUSED_ZERO=False) vs fused kernels, alternating rounds, "
+              f"{'best' if STAT == 'min' else 'median'} of {args.reps}; backward = fwd+bwd - forward\n")
+        print(zeroing_table(zrows))
 
 
 if __name__ == "__main__":

@@ -8,6 +8,11 @@ the whole substep timed eagerly (every launch from Python) and as the captured g
     python benchmarks/profile_substep.py --device cuda --sizes 2000:32 15000:100
     python benchmarks/profile_substep.py --device cpu --sizes 500:16
 
+`--zeroing both` (the default) profiles the memset path (`sim.solver.FUSED_ZERO = False`: each
+grid / adjoint buffer cleared by its own memset) and the fused path (one clearing kernel over the
+grid nodes, one over the particles) in the same process, and ends each size with a before / after
+table; `--zeroing fused` or `memset` profiles one.
+
 On CUDA the per-kernel times are Warp's activity timing (`wp.timing_begin`, CUDA events around each
 launch, eager launches); on the CPU each launch is timed on the host (Warp's CPU launches are
 synchronous). Kernel times are sums of the GPU's own execution times: the gap between them and
@@ -35,7 +40,7 @@ from physinteract_usd.sim import solver as solver_mod  # noqa: E402
 
 
 class _HostLaunchTimer:
-    """CPU: time each wp.launch / array.zero_ made by the solver module on the host."""
+    """CPU: time each wp.launch made by the solver module and each array.zero_ (as 'memset') on the host."""
 
     def __init__(self):
         self.t = collections.defaultdict(float)
@@ -53,15 +58,35 @@ class _HostLaunchTimer:
             timer.n[name] += 1
             return r
 
+        self._zero = wp.array.zero_
+
+        def zero_(arr, *a, **kw):
+            t0 = time.perf_counter()
+            r = timer._zero(arr, *a, **kw)
+            timer.t["memset"] += time.perf_counter() - t0
+            timer.n["memset"] += 1
+            return r
+
         solver_mod.wp.launch = launch
+        wp.array.zero_ = zero_
         return self
 
     def __exit__(self, *exc):
         solver_mod.wp.launch = self._launch
+        wp.array.zero_ = self._zero
         return False
 
 
-def profile(P, n, S, device, reps):
+def profile(P, n, S, device, reps, fused: bool = True):
+    old = solver_mod.FUSED_ZERO
+    solver_mod.FUSED_ZERO = fused          # read by every solver built below
+    try:
+        return _profile(P, n, S, device, reps)
+    finally:
+        solver_mod.FUSED_ZERO = old
+
+
+def _profile(P, n, S, device, reps):
     m, ctrl = make_scene(P, n, 1, S, device)
     tdev = "cpu" if device == "cpu" else device
     E = torch.full((m.n_particles,), 1e4, device=tdev)
@@ -119,33 +144,64 @@ def _short(name: str) -> str:
     return re.sub(r"_[0-9a-f]{6,}$", "", name)
 
 
+def _clears(per) -> tuple[float, float]:
+    """(memsets, clearing kernel launches) per substep of one pass's profile."""
+    mem = sum(c for k, (_, c) in per.items() if k.startswith("memset"))
+    ker = sum(c for k, (_, c) in per.items() if _short(k).split(" ", 1)[-1].startswith("zero_"))
+    return mem, ker
+
+
+def compare_table(Pn, n, old, new) -> str:
+    """Before (memsets) / after (fused zeroing) in one table: graph and eager times per substep,
+    the backward alone (forward+backward minus forward), and the clears per substep."""
+    lines = [f"### before / after: {Pn} particles, {n}^3 grid (us per substep)\n",
+             "| path | memsets | fused | change |", "|---|---:|---:|---:|"]
+    for graphs, label in ((True, "graph"), (False, "eager")):
+        (fo, fbo), (fn_, fbn) = old[0][graphs], new[0][graphs]
+        for name, a, b in (("forward", fo, fn_), ("forward+backward", fbo, fbn), ("backward", fbo - fo, fbn - fn_)):
+            lines.append(f"| {label}, {name} | {a * 1e6:.1f} | {b * 1e6:.1f} | {(b / a - 1) * 100:+.1f}% |")
+    for phase in ("forward", "backward"):
+        (mo, ko), (mn, kn) = _clears(old[1][phase]), _clears(new[1][phase])
+        lines.append(f"| {phase}: memsets + clearing kernels per substep | {mo:.2f} + {ko:.2f} | {mn:.2f} + {kn:.2f} | |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--sizes", nargs="*", default=["500:16"], help="P:n pairs (particles : grid cells per axis)")
     ap.add_argument("--substeps", type=int, default=25)
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--zeroing", choices=("both", "fused", "memset"), default="both",
+                    help="which way the substep clears its buffers (both: before / after in one run)")
     args = ap.parse_args(argv)
     device = "cuda:0" if args.device == "cuda" else args.device
     wp.init()
     print(f"device: {device_name(device)}; Warp {wp.__version__}; medians of {args.reps}; float32\n")
+    modes = {"both": (False, True), "fused": (True,), "memset": (False,)}[args.zeroing]
     for spec in args.sizes:
         P, n = (int(v) for v in spec.split(":"))
-        Pn, rows, per = profile(P, n, args.substeps, device, args.reps)
-        print(f"### {Pn} particles, {n}^3 grid, {args.substeps} substeps\n")
-        print("| path | forward us/substep | forward+backward us/substep |")
-        print("|---|---:|---:|")
-        for graphs, label in ((True, "captured graph (the fit's path)"), (False, "eager launches")):
-            f, fb = rows[graphs]
-            print(f"| {label} | {f * 1e6:.1f} | {fb * 1e6:.1f} |")
-        print()
-        for phase in ("forward", "backward"):
-            tot = sum(v[0] for v in per[phase].values())
-            print(f"| {phase} pass: kernel / memset | calls per substep | us per substep | share |")
-            print("|---|---:|---:|---:|")
-            for k, (ms, c) in sorted(per[phase].items(), key=lambda kv: -kv[1][0]):
-                print(f"| {_short(k)} | {c:.2f} | {ms * 1e3:.2f} | {ms / tot:.0%} |")
-            print(f"| **sum of {phase} kernel times** | | **{tot * 1e3:.1f}** | |\n")
+        res = {}
+        for fused in modes:
+            Pn, rows, per = profile(P, n, args.substeps, device, args.reps, fused=fused)
+            res[fused] = (rows, per)
+            zeroing = "fused zeroing kernels" if fused else "memsets"
+            print(f"### {Pn} particles, {n}^3 grid, {args.substeps} substeps; zeroing: {zeroing}\n")
+            print("| path | forward us/substep | forward+backward us/substep |")
+            print("|---|---:|---:|")
+            for graphs, label in ((True, "captured graph (the fit's path)"), (False, "eager launches")):
+                f, fb = rows[graphs]
+                print(f"| {label} | {f * 1e6:.1f} | {fb * 1e6:.1f} |")
+            print()
+            for phase in ("forward", "backward"):
+                tot = sum(v[0] for v in per[phase].values())
+                print(f"| {phase} pass: kernel / memset | calls per substep | us per substep | share |")
+                print("|---|---:|---:|---:|")
+                for k, (ms, c) in sorted(per[phase].items(), key=lambda kv: -kv[1][0]):
+                    print(f"| {_short(k)} | {c:.2f} | {ms * 1e3:.2f} | {ms / tot:.0%} |")
+                print(f"| **sum of {phase} kernel times** | | **{tot * 1e3:.1f}** | |\n")
+        if len(res) == 2:
+            print(compare_table(Pn, n, res[False], res[True]), flush=True)
 
 
 if __name__ == "__main__":
