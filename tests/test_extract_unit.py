@@ -141,6 +141,14 @@ def test_type_rules():
     assert classify_interaction(back)[0] == "pointAdherent"
     still = {"push_cos": None, "contact_motion_px": 0.2}
     assert classify_interaction(still)[0] == "pointAdherent"
+    # touched for a frame and parted, the object not following: a knock (dev_0012), a palm's press
+    knock = dict(still, contact_frames=1, coupled_share=0.0)
+    assert classify_interaction(knock)[0] == "pointNonAdherent"
+    assert classify_interaction(dict(knock, interface_span=0.7))[0] == "surfaceNonAdherent"
+    # a grasp that holds on for longer, or that the object followed, stays a grasp
+    assert classify_interaction(dict(knock, contact_frames=6))[0] == "pointAdherent"
+    assert classify_interaction(dict(pull, contact_frames=2, coupled_share=0.8))[0] == "pointAdherent"
+    assert classify_interaction(dict(pull, contact_frames=None, coupled_share=0.0))[0] == "pointAdherent"
 
 
 def test_particles_near_and_components():

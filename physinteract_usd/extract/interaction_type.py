@@ -25,6 +25,13 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     moved = evidence.get("contact_motion_px", 0.0)
     surface = evidence.get("interface_span", 0.0)
     approach, ap_speed = evidence.get("approach_cos"), evidence.get("approach_speed_px", 0.0)
+    brief = evidence.get("contact_frames")
+    if brief is not None and brief <= 2 and evidence.get("coupled_share", 1.0) < 0.5:
+        # touched for a frame or two and parted without the object following: a knock or a press,
+        # not a grasp (a hand that takes hold pulls the object along for more than a frame)
+        if surface > 0.45:
+            return "surfaceNonAdherent", 0.5
+        return "pointNonAdherent", 0.5
     if push is None or moved < 1.0:
         return "pointAdherent", 0.3
     if push < -0.6 and approach is not None and ap_speed >= 1.0 and approach < 0.0:
@@ -69,7 +76,8 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     return {"approach_speed_px": app_speed, "approach_cos": approach_cos,
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
-            "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1)}
+            "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1),
+            "contact_frames": None if timing.release is None else int(timing.release - g)}
 
 
 # ------------------------------------------------------------------------------ evidence
