@@ -11,7 +11,8 @@ The scene: a block of P particles (2 per cell per axis) in the middle of an n^3 
 corotated, float32, gravity, damping, a grasp pulling one end and a clamp on the other (so the
 pin and effect code paths run), T frames of S substeps.
 
-`--zeroing both` adds, after the main table (the default path: fused zeroing kernels), a before /
+`--zeroing both` adds, after the main table (the default path: fused zeroing kernels on CUDA,
+memsets on the CPU), a before /
 after table in the same run: the memset path (`sim.solver.FUSED_ZERO = False`) against the fused
 one, wall and host CPU time (`time.process_time`, the measure to trust on a shared CPU) per
 substep, each timed in alternating rounds so that load changes hit both alike:
@@ -83,9 +84,9 @@ def median_wall(fn, device, reps: int) -> float:
 STAT = "min"
 
 
-def _rollout(m, ctrl, fused: bool = True):
+def _rollout(m, ctrl, fused: bool | None = None):
     old = solver_mod.FUSED_ZERO
-    solver_mod.FUSED_ZERO = fused          # read when the solver is built
+    solver_mod.FUSED_ZERO = fused          # read when the solver is built (None: the device's default)
     try:
         return Rollout(m, ctrl)
     finally:

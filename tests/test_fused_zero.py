@@ -155,3 +155,13 @@ def test_fused_backward_substep_has_no_memsets_and_three_clearing_launches():
     assert new["forward"]["clear"] == S and old["forward"]["clear"] == 0
     assert old["backward"]["memset"] - new["backward"]["memset"] == 17 * S + 4 * (S - 1)
     assert new["backward"]["clear"] == 2 * S + (S - 1)
+
+
+def test_default_is_fused_on_cuda_and_memsets_on_the_cpu(monkeypatch):
+    """FUSED_ZERO = None (the default): fused where memset graph nodes are launch-bound (CUDA); the
+    CPU keeps memsets (measured faster there, docs/benchmarks/gpu.md)."""
+    m, ctrl, _, _, _ = _scene(T=1)
+    monkeypatch.setattr(solver_mod, "FUSED_ZERO", None)
+    assert Rollout(m, ctrl).solver.fused_zero is False          # the scene is on the CPU
+    monkeypatch.setattr(solver_mod, "FUSED_ZERO", True)
+    assert Rollout(m, ctrl).solver.fused_zero is True

@@ -8,13 +8,14 @@ hand-written adjoints for the two transfers (p2g_scatter_adj, g2p_gather_adj), w
 of the grid adjoints and much cheaper than the generated ones. Grid arrays are reused: nothing
 is allocated per substep.
 
-Zeroing: with ``fused_zero`` (the default, `FUSED_ZERO`) a forward substep clears its four grid
-arrays in one kernel over the nodes (kernels.zero_grid), and a backward substep clears those four
-and the five grid adjoints in one kernel over the nodes (zero_grid_adj) and its particle-side
-adjoint buffers (plus, when asked, the adjoint of its input state) in one kernel over the particles
-(zero_particle_adj): 3 launches where there were 21 memsets (each one a node of the captured graph).
-``fused_zero=False`` keeps the memsets (``array.zero_()``), for comparisons; results are bitwise
-the same.
+Zeroing: with ``fused_zero`` (the default on CUDA devices, see `FUSED_ZERO`) a forward substep
+clears its four grid arrays in one kernel over the nodes (kernels.zero_grid), and a backward
+substep clears those four and the five grid adjoints in one kernel over the nodes (zero_grid_adj)
+and its particle-side adjoint buffers (plus, when asked, the adjoint of its input state) in one
+kernel over the particles (zero_particle_adj): 3 launches where there were 21 memsets (each one a node of the captured graph).
+``fused_zero=False`` keeps the memsets (``array.zero_()``): the CPU's default, where a memset is
+faster than a Warp loop over the nodes and there is no launch latency to save (fused: +2-5% CPU
+time per substep, docs/benchmarks/gpu.md). Results are bitwise the same either way.
 """
 
 from __future__ import annotations
@@ -28,7 +29,9 @@ from .effects import N_PARAMS
 from .kernels import F_VISCO, get_kernels
 from .state import SimState
 
-FUSED_ZERO = True   # new solvers clear their grid / adjoint buffers with fused kernels (False: memsets)
+# how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
+# fused on CUDA devices and memsets on the CPU
+FUSED_ZERO: bool | None = None
 
 
 class SimParams:
@@ -121,7 +124,8 @@ class MPMSolver:
         self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
         self._adj_grid = None
         self._adj_flat = None
-        self.fused_zero = FUSED_ZERO     # read when launching: set it before a rollout captures its graphs
+        # read when launching: set it before a rollout captures its graphs
+        self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
 
     # ------------------------------------------------------------------ argument lists
     def _stress_args(self, s: SimState, p: SimParams):
