@@ -91,6 +91,7 @@ def _profile(P, n, S, device, reps):
     tdev = "cpu" if device == "cpu" else device
     E = torch.full((m.n_particles,), 1e4, device=tdev)
     rows = {}
+    grads = []
 
     # whole rollouts: graph (the fit's path) and eager launches
     for graphs in (True, False):
@@ -98,6 +99,13 @@ def _profile(P, n, S, device, reps):
         Eg = E.clone().requires_grad_(True)
         x, F = ro(Eg)
         (x[-1].sum() + F[-1].sum()).backward()        # warm up: compile, capture
+        if graphs:                                     # the loss and dL/dE twice, for the paths' comparison
+            for _ in range(2):
+                E1 = E.clone().requires_grad_(True)
+                x, F = ro(E1)
+                loss = x[-1].sum() + F[-1].sum()
+                loss.backward()
+                grads.append((loss.detach().double().cpu(), E1.grad.double().cpu()))
 
         def fwd():
             with torch.no_grad():
@@ -134,7 +142,7 @@ def _profile(P, n, S, device, reps):
                 acc[r.name] += r.elapsed
                 cnt[r.name] += 1
             per[phase] = {k: (acc[k] / reps / S, cnt[k] / reps / S) for k in acc}
-    return m.n_particles, rows, per
+    return m.n_particles, rows, per, grads
 
 
 def _short(name: str) -> str:
@@ -166,6 +174,19 @@ def compare_table(Pn, n, old, new) -> str:
     return "\n".join(lines) + "\n"
 
 
+def grad_check(old, new) -> str:
+    """Loss and dL/dE of the graph path, memsets vs fused, against the run-to-run spread of one path
+    (float atomics on a GPU add in no fixed order; on the CPU both are 0)."""
+    def rel(a, b):
+        (la, ga), (lb, gb) = a, b
+        return (float(abs(la - lb) / max(abs(la), 1e-30)),
+                float((ga - gb).abs().max() / max(float(ga.abs().max()), 1e-30)))
+
+    across, within = rel(old[0], new[0]), max(rel(old[0], old[1]), rel(new[0], new[1]))
+    return (f"gradient check (graph path): memsets vs fused: loss rel. diff {across[0]:.2e}, dL/dE max rel. diff "
+            f"{across[1]:.2e}; run to run within one path: {within[0]:.2e} / {within[1]:.2e}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
@@ -183,8 +204,8 @@ def main(argv=None):
         P, n = (int(v) for v in spec.split(":"))
         res = {}
         for fused in modes:
-            Pn, rows, per = profile(P, n, args.substeps, device, args.reps, fused=fused)
-            res[fused] = (rows, per)
+            Pn, rows, per, grads = profile(P, n, args.substeps, device, args.reps, fused=fused)
+            res[fused] = (rows, per, grads)
             zeroing = "fused zeroing kernels" if fused else "memsets"
             print(f"### {Pn} particles, {n}^3 grid, {args.substeps} substeps; zeroing: {zeroing}\n")
             print("| path | forward us/substep | forward+backward us/substep |")
@@ -201,7 +222,8 @@ def main(argv=None):
                     print(f"| {_short(k)} | {c:.2f} | {ms * 1e3:.2f} | {ms / tot:.0%} |")
                 print(f"| **sum of {phase} kernel times** | | **{tot * 1e3:.1f}** | |\n")
         if len(res) == 2:
-            print(compare_table(Pn, n, res[False], res[True]), flush=True)
+            print(compare_table(Pn, n, res[False], res[True]))
+            print(grad_check(res[False][2], res[True][2]) + "\n", flush=True)
 
 
 if __name__ == "__main__":

@@ -80,7 +80,7 @@ def test_fused_zeroing_gives_bitwise_the_memset_path(store):
         for graphs in (False, True):
             ro = _rollout(m, ctrl, True, graphs)
             got = _loss_and_grads(ro, pts, eff, trajs)
-            assert (ro._states is not None) == store
+            assert (ro._states is not None) == store and ro.graphs == graphs   # no silent fallback to eager
             for a, b in zip(ref, got):
                 for u, v in zip(a, b):
                     assert torch.equal(u, v), (graphs, u, v)
