@@ -170,7 +170,8 @@ def compare_table(Pn, n, old, new) -> str:
             lines.append(f"| {label}, {name} | {a * 1e6:.1f} | {b * 1e6:.1f} | {(b / a - 1) * 100:+.1f}% |")
     for phase in ("forward", "backward"):
         (mo, ko), (mn, kn) = _clears(old[1][phase]), _clears(new[1][phase])
-        lines.append(f"| {phase}: memsets + clearing kernels per substep | {mo:.2f} + {ko:.2f} | {mn:.2f} + {kn:.2f} | |")
+        lines.append(f"| {phase}: memsets + clearing kernels per substep | {mo:.2f} + {ko:.2f} "
+                     f"| {mn:.2f} + {kn:.2f} | |")
     return "\n".join(lines) + "\n"
 
 

@@ -12,7 +12,8 @@ Zeroing: with ``fused_zero`` (the default on CUDA devices, see `FUSED_ZERO`) a f
 clears its four grid arrays in one kernel over the nodes (kernels.zero_grid), and a backward
 substep clears those four and the five grid adjoints in one kernel over the nodes (zero_grid_adj)
 and its particle-side adjoint buffers (plus, when asked, the adjoint of its input state) in one
-kernel over the particles (zero_particle_adj): 3 launches where there were 21 memsets (each one a node of the captured graph).
+kernel over the particles (zero_particle_adj): 3 launches where there were 21 memsets (each one
+a node of the captured graph).
 ``fused_zero=False`` keeps the memsets (``array.zero_()``): the CPU's default, where a memset is
 faster than a Warp loop over the nodes and there is no launch latency to save (fused: +2-5% CPU
 time per substep, docs/benchmarks/gpu.md). Results are bitwise the same either way.
