@@ -330,3 +330,20 @@ def test_drop_still_props_keeps_a_resting_hand_and_drops_a_prop_the_hand_never_m
     prop = np.zeros((H, W), bool)
     prop[20:28, 2:6] = True
     assert (out == (hand & ~prop[None])).all()       # nothing else taken away
+
+
+def test_a_colliders_retreat_is_not_the_motion_supports_are_judged_against():
+    """A palm presses a still sheet by a pixel and then lifts off 20 px: the supports' stillness is
+    judged against the pixel it moved while acting, not the retreat (#23, dev_0009: the whole sheet
+    on a floor was 'held'); a grasp keeps its whole track over the contact period."""
+    from physinteract_usd.extract.lifting import HandTrack
+    from physinteract_usd.extract.pipeline import acting_motion
+
+    uv = np.zeros((12, 2))
+    uv[3:7, 1] = [0.0, 0.5, 1.0, 0.5]      # the press, frames 3..6
+    uv[7:, 1] = [-5.0, -10.0, -15.0, -20.0, -20.0]   # the lift-off after the release at 6
+    hand = HandTrack(uv, 20.0, 8, uv[8] - uv[3])
+    assert acting_motion(hand, 3, 6, "surfaceNonAdherent") == pytest.approx(1.0)
+    assert acting_motion(hand, 3, 6, "pointNonAdherent") == pytest.approx(1.0)
+    assert acting_motion(hand, 3, 6, "pointAdherent") == 20.0
+    assert acting_motion(hand, 3, None, "pointNonAdherent") == 20.0

@@ -92,8 +92,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     if lifted.contact.trajectory is not None:
         tr = np.asarray(lifted.contact.trajectory)
         low = float(tr[:, 1].min() - (lifted.contact.radius if itype == "pointNonAdherent" else 0.0))
-    supports, motion_p = support_contacts(an, hint, held, hand.motion, lifted.push_dir,     # 8: supports
-                                          evidence, notes, lowest_contact_y=low)
+    supports, motion_p = support_contacts(an, hint, held, acting_motion(hand, g, lifted.release, itype),  # 8: supports
+                                          lifted.push_dir, evidence, notes, lowest_contact_y=low)
     contact = lifted.contact
     return ExtractionResult(contacts=[contact] + supports, hand_masks=an.hand, interaction_type=itype,
                             type_source=tsource,
@@ -101,6 +101,19 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                             release_frame=lifted.release, evidence=evidence, notes=notes, frames=frames,
                             object_masks=an.obj, support_motion=motion_p, track_uv=lifted.track_uv,
                             contact_pixels=c3d.pixels, type_confidence=conf)
+
+
+def acting_motion(hand, g: int, r: int | None, itype: str) -> float:
+    """The scale against which the supports' stillness is judged: the hand's largest image
+    displacement from the grasp over the contact period; a collider's (a fingertip's, a palm's)
+    only while it acts, to its release: its retreat moves nothing (dev_0009: a palm lifted off a
+    sheet 26 px after pressing it by 1-2 px made the whole still sheet 'held' at a 2 px
+    threshold). (A grasp's is kept over the period: on the dev split, cutting it at the release
+    lost dev_0006's hanging support and invented one on dev_0004.)"""
+    if itype == "pointAdherent" or r is None or r <= g:
+        return float(hand.motion)
+    d = hand.uv[g:r + 1] - hand.uv[g]
+    return float(np.linalg.norm(d, axis=1).max())
 
 
 def check_inputs(scene, frames, interaction_type: str | None) -> np.ndarray:
