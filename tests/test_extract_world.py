@@ -199,3 +199,38 @@ def test_synth_cli_world_flags(tmp_path, capsys):
                  ["--validation", "-3", str(tmp_path / "a")]):
         assert main(["synth", *args]) == 2, args
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_a_truth_that_keeps_leaving_its_grid_gets_a_box_it_can_hang_in(monkeypatch):
+    """The generator's ground truth: after three runs that leave the grid (dev_0007: a soft sheet
+    clamped at one edge flops down past the box), a fourth runs in a box reaching the object's whole
+    length below it; the three runs before are as they were (no capture that generated changes)."""
+    import torch
+
+    import physinteract_usd.sim as sim
+    from physinteract_usd.errors import SimulationError
+    from physinteract_usd.synth.world import World
+
+    boxes = []
+
+    class Leaves:
+        def __init__(self, model, control):
+            self.model = model
+
+        def __call__(self, E, nu):
+            g = self.model.grid
+            boxes.append((np.asarray(g.lower, float).copy(), g.dx, np.asarray(g.resolution)))
+            if len(boxes) < 4:
+                raise SimulationError("simulation left the grid domain (1 particles)")
+            P = len(self.model.x0)
+            return torch.zeros((2, P, 3)), torch.zeros((2, P, 3, 3))
+
+    monkeypatch.setattr(sim, "Rollout", Leaves)
+    w = draw_world(7, "dev", dict(CASES["clamped_stick"]))
+    world = World(w)
+    world.run()
+    assert len(boxes) == 4
+    lows = [b[0][1] for b in boxes]
+    assert lows[1] < lows[0] and lows[2] < lows[1]            # the pad doubled, as before
+    pts_low = min(world.x0[:, 1].min(), world.trajectory[:, 1].min())
+    assert lows[3] <= pts_low - world.extent                    # room to hang by its whole length
