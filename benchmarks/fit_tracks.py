@@ -113,17 +113,22 @@ def main():
                    "ma": ev["ma"], "psnr_masked": ev["psnr_masked"], "psnr": ev["psnr"],
                    "e_fit_median": s["youngs_modulus_pa"]["median"], "e_true_median": float(np.median(e_gt)),
                    "cpu_s": round(cpu, 1), "wall_s": round(wall, 1), "final_loss": s["final_loss"],
-                   "fit_iterations": s["iterations"]}
+                   "fit_iterations": s["iterations"], "identifiability": s.get("identifiability")}
             with open(rows_path, "a") as f:
                 f.write(json.dumps(row) + "\n")
             print(json.dumps(row), flush=True)
     rows = [json.loads(ln) for ln in rows_path.read_text().splitlines()]
-    print("| capture | grid | iterations | track weight | MA | PSNR masked | E fit / E true (medians) | CPU s | wall s |")
-    print("|---|---:|---:|---:|---:|---:|---|---:|---:|")
+    print("| capture | grid | schedule | iterations | track weight | MA | PSNR masked | E fit / E true (medians) | "
+          "what fit says about E | CPU s | wall s |")
+    print("|---|---:|---|---:|---:|---:|---:|---|---|---:|---:|")
     for r in rows:
-        print(f"| {r['case']} | {r['grid']} | {r['iterations']} | {r['track_weight']:g} | {r['ma']:.3f} | "
-              f"{r['psnr_masked']:.2f} | {r['e_fit_median']:.3g} / {r['e_true_median']:.3g} "
-              f"({r['e_fit_median'] / r['e_true_median']:.2f}x) | {r['cpu_s']:.0f} | {r['wall_s']:.0f} |")
+        idf = r.get("identifiability") or {}
+        iv = idf.get("interval")
+        said = f"{idf.get('level')} {iv[0]:.3g}..{iv[1]:.3g}" if iv else (idf.get("level") or "-")
+        print(f"| {r['case']} | {r['grid']} | {r.get('schedule') or 'bumps'} | {r['iterations']} | "
+              f"{r['track_weight']:g} | {r['ma']:.3f} | {r['psnr_masked']:.2f} | {r['e_fit_median']:.3g} / "
+              f"{r['e_true_median']:.3g} ({r['e_fit_median'] / r['e_true_median']:.2f}x) | {said} | "
+              f"{r['cpu_s']:.0f} | {r['wall_s']:.0f} |")
 
 
 if __name__ == "__main__":
