@@ -59,6 +59,7 @@ def main():
     ap.add_argument("--weights", default="0,1")
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--schedule", default=None)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (synth, fit and evaluate)")
     ap.add_argument("--out", default="out/fit_tracks")
     a = ap.parse_args()
     out = Path(a.out)
@@ -76,7 +77,7 @@ def main():
         if not cap:
             cap = out / "captures" / name
             if not (cap / "gt" / "gt.json").exists():
-                rc, *_ = cli(["synth", name, cap, "--size", "small", "--force"], log)
+                rc, *_ = cli(["synth", name, cap, "--size", "small", "--force", "--device", a.device], log)
                 if rc:
                     sys.exit(f"synth {name} failed (see {log.name})")
         cap = Path(cap)
@@ -99,7 +100,7 @@ def main():
             if rc:
                 sys.exit(f"init {name} failed")
             fit = ["fit", st, "--contact-from", cap / "gt", "--iterations", a.iterations, "--json",
-                   "--track-weight", w]
+                   "--track-weight", w, "--device", a.device]
             if a.schedule:
                 fit += ["--schedule", a.schedule]
             rc, so, cpu, wall = cli(fit, log, capture=True)
@@ -107,9 +108,11 @@ def main():
                 print(f"{name} w={w}: fit failed (see {log.name})")
                 continue
             s = json.loads(so)
-            rc, ev, _, _ = cli(["evaluate", st, "--gt", cap / "gt", "--json"], log, capture=True)
+            rc, ev, _, _ = cli(["evaluate", st, "--gt", cap / "gt", "--json", "--device", a.device], log,
+                                capture=True)
             ev = json.loads(ev)
-            row = {"case": name, "grid": g, "track_weight": w, "iterations": a.iterations, "schedule": a.schedule,
+            row = {"device": a.device, "case": name, "grid": g, "track_weight": w, "iterations": a.iterations,
+                   "schedule": a.schedule,
                    "ma": ev["ma"], "psnr_masked": ev["psnr_masked"], "psnr": ev["psnr"],
                    "e_fit_median": s["youngs_modulus_pa"]["median"], "e_true_median": float(np.median(e_gt)),
                    "cpu_s": round(cpu, 1), "wall_s": round(wall, 1), "final_loss": s["final_loss"],
