@@ -725,6 +725,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     # fused zeroing: one launch clears what separate memsets did (each memset is a node of the
     # substep's graph; at small sizes a substep is bound by the number of nodes, not their bytes)
+    @wp.func
+    def clear_scatter_node(t: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
+                           gpmv: wp.array(dtype=vec3)):
+        # one node of the grid's scatter targets: mass, momentum, pinned mass and momentum
+        gm[t] = T(0.0)
+        gmv[t] = vec3()
+        gpm[t] = T(0.0)
+        gpmv[t] = vec3()
+
     @wp.kernel(module=module, enable_backward=False)
     def zero_grid(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
                   gpmv: wp.array(dtype=vec3)):
@@ -732,10 +741,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         n = gm.shape[0]
         t0 = wp.tid() * chunk
         for t in range(t0, wp.min(t0 + chunk, n)):
-            gm[t] = T(0.0)
-            gmv[t] = vec3()
-            gpm[t] = T(0.0)
-            gpmv[t] = vec3()
+            clear_scatter_node(t, gm, gmv, gpm, gpmv)
 
     @wp.kernel(module=module, enable_backward=False)
     def zero_grid_adj(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
@@ -745,10 +751,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         n = gm.shape[0]
         t0 = wp.tid() * chunk
         for t in range(t0, wp.min(t0 + chunk, n)):
-            gm[t] = T(0.0)
-            gmv[t] = vec3()
-            gpm[t] = T(0.0)
-            gpmv[t] = vec3()
+            clear_scatter_node(t, gm, gmv, gpm, gpmv)
             a_gm[t] = T(0.0)
             a_gmv[t] = vec3()
             a_gpm[t] = T(0.0)
