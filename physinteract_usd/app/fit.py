@@ -79,6 +79,7 @@ class FitOutcome:
         """The JSON-able summary `fit --json` prints."""
         r = self.result
         fm = r.frame_metrics
+        model = model_summary(r.model)
         return {"version": self.version, "layer": self.layer, "snapshot": self.snapshot,
                 "current_version": self.current, "is_current": self.current == self.version,
                 "current_reason": self.reason, "status": "interrupted" if r.interrupted else "complete",
@@ -92,8 +93,8 @@ class FitOutcome:
                 "youngs_modulus_pa": {"min": float(r.youngs.min()), "median": float(np.median(r.youngs)),
                                       "max": float(r.youngs.max())},
                 "confidence_mean": float(r.confidence.mean()),
-                "model": model_summary(r.model),
-                "identifiability": identifiability(model_summary(r.model), float(r.confidence.mean())
+                "model": model,
+                "identifiability": identifiability(model, float(r.confidence.mean())
                                                    if self.confidence_estimated else None, float(np.median(r.youngs)))}
 
 
