@@ -75,6 +75,8 @@ def name_of(split: str, seed: int) -> str:
 
 
 def captures(work: Path, split: str) -> list[str]:
+    if not work.is_dir():
+        raise InputError(work, "no such folder of captures (world_suite.py generate writes one)")
     return sorted(p.name for p in work.iterdir() if p.is_dir() and p.name.startswith(f"{split}_")
                   and "." not in p.name)
 
