@@ -51,12 +51,13 @@ def add_ground(stage: Path, height: float, friction: float = 0.5) -> None:
     st.GetRootLayer().Save()
 
 
-def truth_sweep(stage: Path, gt: Path, device: str, e_true: float) -> dict:
+def truth_sweep(stage: Path, gt: Path, device: str, e_true: float, nu: float | None = None) -> dict:
     """Does this capture determine E at all, for our model? The select schedule's uniform-E sweep
     (fit/select.uniform_stage, one minimum refined) with the TRUE contacts, supports and hand path,
     every frame but the first: its near-best hull (every uniform E within 1% of the best loss) and
     the level `identifiability` gives it. A capture whose hull is wide is one where no fit can be
-    expected to find E within 20% from this video; MA there says nothing about the fit."""
+    expected to find E within 20% from this video; MA there says nothing about the fit. `nu`: the
+    sweep's Poisson ratio (default: the stage's default, as the fit's uniform stage takes it)."""
     import dataclasses
 
     from physinteract_usd.app.fit import make_problem, prepare_fit
@@ -66,11 +67,13 @@ def truth_sweep(stage: Path, gt: Path, device: str, e_true: float) -> dict:
     prob = make_problem(job)
     s = dataclasses.replace(job.settings, select_minima=1, search_evals=4)
     st = job.scene.settings
-    uni = uniform_stage(prob, list(range(1, prob.T)), s, min(st.poisson_default, 0.98 * st.poisson_max))
+    nu = min(st.poisson_default, 0.98 * st.poisson_max) if nu is None else float(nu)
+    uni = uniform_stage(prob, list(range(1, prob.T)), s, nu)
     iv = sweep_interval(uni["sweep"], uni.get("rise", 0.01))
     idf = identifiability({"uniform_sweep_interval": iv}, None, uni["e"])
     return {"truth_sweep_e": uni["e"], "truth_sweep_interval": iv, "truth_level": idf["level"],
-            "truth_sweep_covers": bool(iv and iv[0] <= e_true <= iv[1]), "truth_sweep": uni["sweep"]}
+            "truth_sweep_covers": bool(iv and iv[0] <= e_true <= iv[1]), "truth_sweep": uni["sweep"],
+            "truth_sweep_nu": nu}
 
 
 def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=print, overrides=None,

@@ -1,0 +1,141 @@
+"""Is our model biased stiff against the world generator, and does resolution remove it? (#24)
+
+For each development capture and each particle cap, `init --grid auto --max-particles CAP` (the
+cap decides the grid when a thin part wants more cells than it allows), then the select schedule's
+uniform-E sweep with the TRUE interaction (`world_fit.truth_sweep`: contacts, supports and hand
+path from the ground truth; the floor from the extraction, as a user would add it). One row per
+(capture, cap): the grid, cells across the thinnest part, particles, the sweep's best E over the
+true median E, its near-best interval and whether it holds the truth.
+
+    python benchmarks/world_bias.py --work data/world_dev --seeds 0-14 --caps 15000,60000 --device cuda --json out/bias.json
+    python benchmarks/world_bias.py --work data/world_dev --seeds 3 --caps 4000 --init-only   # grids only (CPU, seconds)
+
+A tuning tool: it refuses the validation split. docs/benchmarks/world_fits.md has the results.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import physinteract_usd  # noqa: F401
+from physinteract_usd import api
+from physinteract_usd.errors import InputError
+from physinteract_usd.synth.splits import refuse_validation
+from physinteract_usd.usd.stage import read_grid_choice
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from world_fit import add_ground, truth_sweep  # noqa: E402
+from world_suite import parse_seeds  # noqa: E402
+
+
+def prepare_stage(cap: Path, gt: Path, out: Path, max_particles: int, grid="auto") -> dict:
+    """A fresh stage of the capture at grid auto within `max_particles`; returns init's grid choice."""
+    g = json.loads((gt / "gt.json").read_text())["suggested_init"]
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    stage = out / "scene.usda"
+    api.init(stage, cap, grid=grid, padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
+             max_poisson=g["max_poisson"], density=g["density"], max_particles=int(max_particles),
+             log=lambda *a: None)
+    return read_grid_choice(stage) or {}
+
+
+def gt_dir(work: Path, n: str) -> Path:
+    """The capture's ground truth: <n>.gt beside it (world_suite.py extract moves it there) or <n>/gt."""
+    for p in (work / f"{n}.gt", work / n / "gt"):
+        if (p / "gt.json").exists():
+            return p
+    raise InputError(work / n, "no ground truth (gt.json) next to this capture")
+
+
+def one(work: Path, n: str, cap_n: int, device: str, init_only: bool, scratch: Path, true_nu: bool = False) -> dict:
+    cap, gt = work / n, gt_dir(work, n)
+    out = scratch / f"{n}_{cap_n}_{'nu' if true_nu else 'default'}"
+    t0 = time.perf_counter()
+    gc = prepare_stage(cap, gt, out, cap_n)
+    row = {"scene": n, "cap": cap_n, "grid": gc.get("grid"), "cells_across": gc.get("cellsAcross"),
+           "particles": gc.get("particles"), "limit": gc.get("limit") or "", "init_s": time.perf_counter() - t0,
+           "nu_mode": "true" if true_nu else "default"}
+    if init_only:
+        return row
+    stage = out / "scene.usda"
+    res = api.extract(stage, log=lambda *a: None, device=device, preview=False)
+    floor = res.evidence.get("floor")
+    if floor:
+        add_ground(stage, floor["height"], floor.get("friction", 0.5))
+    e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
+    t1 = time.perf_counter()
+    try:
+        nu = float(np.median(np.load(gt / "poisson_ratio.npy"))) if true_nu else None
+        sw = truth_sweep(stage, gt, device, e_true, nu=nu)
+        row.update({k: v for k, v in sw.items() if k != "truth_sweep"})
+        row["ratio"] = sw["truth_sweep_e"] / e_true
+    except Exception as exc:  # noqa: BLE001 - one capture's failure is a row, not the end of the run
+        row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+    row.update({"e_true": e_true, "floor": bool(floor), "sweep_s": time.perf_counter() - t1})
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| capture | nu | cap | grid | cells across | particles | limit | E true | best uniform E / true | near-best interval / true | holds truth | sweep s |",
+           "|---|---|---:|---:|---:|---:|---|---:|---:|---|---|---:|"]
+    for r in rows:
+        iv = r.get("truth_sweep_interval")
+        ivs = f"{iv[0] / r['e_true']:.2f} .. {iv[1] / r['e_true']:.2f}" if iv and r.get("e_true") else "-"
+        ratio = f"{r['ratio']:.2f}" if "ratio" in r else r.get("error", "-")
+        nu = f"{r['truth_sweep_nu']:.2f} ({r['nu_mode']})" if r.get("truth_sweep_nu") is not None else r.get("nu_mode", "-")
+        out.append(f"| {r['scene']} | {nu} | {r['cap']} | {r.get('grid')} | {r.get('cells_across') or 0:.1f} | {r.get('particles')} "
+                   f"| {r.get('limit') or '-'} | {r.get('e_true', float('nan')):.3g} | {ratio} | {ivs} "
+                   f"| {r.get('truth_sweep_covers', '-')} | {r.get('sweep_s', 0):.0f} |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", required=True, help="folder of development captures (<name>/ and <name>.gt/)")
+    ap.add_argument("--seeds", required=True, help="capture seeds, e.g. 0-14")
+    ap.add_argument("--caps", default="15000,60000", help="particle caps for grid auto, comma separated")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--json", default=None, help="rows appended here as they finish")
+    ap.add_argument("--init-only", action="store_true", help="only the grids each cap gives (no sweep)")
+    ap.add_argument("--nu", default="default", help="the sweep's Poisson ratio: default (the stage's), true (the truth's "
+                    "median) or both (two rows per cap)")
+    ap.add_argument("--scratch", default="/tmp/world_bias")
+    a = ap.parse_args(argv)
+    work = Path(a.work)
+    if not work.is_dir():
+        print(f"world_bias.py: error: {work}: captures folder not found", file=sys.stderr)
+        return 2
+    caps = [int(c) for c in a.caps.split(",") if c]
+    rows = []
+    for s in parse_seeds(a.seeds):
+        n = f"dev_{s:04d}"
+        if not (work / n).is_dir():
+            continue
+        try:
+            refuse_validation(work / n, "world_bias.py")
+            modes = {"default": [False], "true": [True], "both": [False, True]}[a.nu]
+            for c, tn in [(c, tn) for c in caps for tn in modes]:
+                r = one(work, n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn)
+                rows.append(r)
+                print(json.dumps({k: v for k, v in r.items() if k != "truth_sweep"}), flush=True)
+                if a.json:
+                    with open(a.json, "a") as f:
+                        f.write(json.dumps(r) + "\n")
+        except InputError as exc:
+            print(f"world_bias.py: error: {exc.oneline()}", file=sys.stderr)
+            return 2
+    print(table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
