@@ -65,6 +65,12 @@ class FitSettings:
                                         # coefficients x the uniform's held-back loss, on most held-back frames
     select_uniform_share: float = 0.3   # ... iteration budget: the uniform model, the final polish on all
     select_final_share: float = 0.15    # frames (the field gets the rest)
+    select_parts: bool = True           # ... the "parts" step between uniform and field (per-part E; fit/select.py)
+    select_parts_share: float = 0.2     # ... its gradient polish's share of the iterations
+    select_part_points: int = 7         # ... per part, log-spaced E probes over the range (forward only)
+    select_part_starts: int = 2         # ... sweeps start from this many distinct uniform minima
+    select_part_rounds: int = 2         # ... coordinate rounds over the parts (later rounds: golden, local)
+    select_max_parts: int = 4           # ... at most this many parts in a candidate
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
     sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
     flat_tolerance: float = 0.02        # ... minima within this (relative) of the best are refined too
