@@ -38,7 +38,8 @@ from world_bias import gt_dir, prepare_stage  # noqa: E402
 from world_fit import add_ground  # noqa: E402
 from world_suite import parse_seeds  # noqa: E402
 
-RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND}
+# "gain1": the world generator's own blend (a node moves with the held share of its mass, pin_gain 1)
+RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND, "gain1": (1.0, 0.0)}
 
 
 def compare(x: np.ndarray, x0: np.ndarray, truth: np.ndarray, nn: np.ndarray) -> np.ndarray:
@@ -146,7 +147,7 @@ def main(argv=None) -> int:
     rules = [r for r in a.rules.split(",") if r]
     bad = [r for r in rules if r not in RULES]
     if bad:
-        print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} (default, band)", file=sys.stderr)
+        print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} (default, band, gain1)", file=sys.stderr)
         return 2
     rows = []
     for s in parse_seeds(a.seeds):
