@@ -29,11 +29,19 @@ PAPER = {  # PhysInteract, Table 1 (averages over its 11 scenes)
     "psnr": 22.03, "ssim": 0.84, "ma": 0.843, "runtime": "~30 min (A40)"}
 
 
-def run(cmd: list[str], log) -> tuple[int, float]:
+def run(cmd: list[str], log, cpu: dict | None = None) -> tuple[int, float]:
+    """Run a verb; (exit code, wall s). `cpu`: gets "cpu_s", the subprocess's user + sys CPU time
+    (wall time is inflated by other jobs on a shared machine)."""
+    import resource
+
     t = time.perf_counter()
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     log.write("$ " + " ".join(cmd) + "\n")
     log.flush()
     p = subprocess.run([sys.executable, "-m", "physinteract_usd", *cmd], stdout=log, stderr=subprocess.STDOUT)
+    if cpu is not None:
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu["cpu_s"] = round((r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), 1)
     return p.returncode, time.perf_counter() - t
 
 
@@ -54,7 +62,7 @@ def one(scene: str, a, work: Path) -> dict:
     cap = work / scene
     st = work / f"{scene}.usda"
     row = {"scene": scene, "size": a.size, "device": device_name(a.device), "schedule": a.schedule,
-           "grid_arg": grid_key(a)}
+           "grid_arg": grid_key(a), "tag": a.tag}
     with open(work / f"{scene}.log", "a") as log:
         if not (cap / "gt" / "gt.json").exists():
             cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
@@ -95,8 +103,10 @@ def one(scene: str, a, work: Path) -> dict:
         fit_cmd = ["fit", str(st), "--iterations", str(a.iterations), "--device", a.device, "--schedule", a.schedule]
         if not a.extracted:
             fit_cmd += ["--contact-from", str(gt_dir)]
-        rc, t_fit = run(fit_cmd, log)
+        cpu = {}
+        rc, t_fit = run(fit_cmd, log, cpu)
         row["fit_s"] = round(t_fit, 1)
+        row["fit_cpu_s"] = cpu.get("cpu_s")
         row["schedule"] = a.schedule
         if not rc:
             row["model"] = chosen_model(st)
@@ -210,6 +220,8 @@ def main(argv=None):
     ap.add_argument("--schedule", default="bumps", choices=("bumps", "select", "ladder"),
                     help="the fit's schedule (rows are kept per scene and schedule: two schedules can share --out "
                          "and its captures; the table shows this schedule's)")
+    ap.add_argument("--tag", default="", help="a label kept in each row: rows are kept per scene, schedule, grid and "
+                    "tag (e.g. the same schedule before / after a change, run with PYTHONPATH at the old code)")
     ap.add_argument("--out", default="out/suite")
     ap.add_argument("--write", default=None, help="markdown file to (re)write with the table")
     a = ap.parse_args(argv)
@@ -221,7 +233,8 @@ def main(argv=None):
     work.mkdir(parents=True, exist_ok=True)
     jl = work / "results.jsonl"
     rows = [json.loads(line) for line in jl.read_text().splitlines()] if jl.exists() else []
-    mine = lambda r: (r.get("schedule", "bumps"), r.get("grid_arg", "suggested")) == (a.schedule, grid_key(a))  # noqa: E731
+    mine = lambda r: (r.get("schedule", "bumps"), r.get("grid_arg", "suggested"), r.get("tag", "")) == (  # noqa: E731
+        a.schedule, grid_key(a), a.tag)
     done = {r["scene"] for r in rows if mine(r)}
     for n in names:
         if n in done:
