@@ -347,3 +347,56 @@ def test_a_colliders_retreat_is_not_the_motion_supports_are_judged_against():
     assert acting_motion(hand, 3, 6, "pointNonAdherent") == pytest.approx(1.0)
     assert acting_motion(hand, 3, 6, "pointAdherent") == 20.0
     assert acting_motion(hand, 3, None, "pointNonAdherent") == 20.0
+
+
+def test_grasp_of_a_slow_press_is_its_onset_above_the_toucher_noise_floor():
+    """A palm approaches, rests (noise ~0.1 px), presses slowly (0.3-0.5 px a frame) and retreats
+    fast (6-8 px): the grasp is the last frame at rest before the press, not the stillest frame of
+    everything slower than 30% of the retreat (#23, dev_0009: found 24, truly 13)."""
+    from physinteract_usd.extract.timing import contact_start, rest_onset
+
+    rng = np.random.default_rng(1)
+    speed = np.array([0.3, 0.5, 1.2, 1.7, 1.4, 1.2, 0.34, 0.17, 0.06, 0.15, 0.04,     # approach, rest 7..10
+                      0.46, 0.43, 0.30, 0.34, 0.24, 0.31, 0.02,                         # the press, 11..16; turn
+                      1.5, 5.9, 7.7, 7.2, 3.1, 0.2])                                   # the retreat
+    ang = np.where(np.arange(len(speed)) < 11, rng.uniform(0, 2 * np.pi, len(speed)), 1.2)   # noise has no direction
+    vh = speed[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+    near = np.ones(len(speed) + 1, bool)
+    coupled = np.zeros(len(speed), np.int8)
+    assert rest_onset(speed, vh, 0, len(speed)) == 10
+    assert contact_start(speed, near, 0, len(speed), coupled, vh) == 10
+    # no onset soon after the rest (a hand holding a stiff block barely moves): no answer here,
+    # the caller's rule (the stillest frame) decides
+    flat = np.array([4.2, 3.9, 2.6, 1.3, 0.10, 0.22, 0.07, 0.14, 0.08, 0.04, 0.13, 0.10, 0.2, 0.25, 0.17])
+    vflat = flat[:, None] * np.stack([np.cos(np.arange(15.0) * 2.1), np.sin(np.arange(15.0) * 2.1)], 1)
+    assert rest_onset(flat, vflat, 0, 15) is None
+    # one slow frame at the start of the video is the approach's start, not a rest
+    assert rest_onset(speed, vh, 0, len(speed)) != 0
+
+
+def test_the_type_reads_the_toucher_while_it_acts_not_its_retreat():
+    """A finger presses a bar 2 px away from its body and withdraws 14 px toward it: the first
+    main motion is the press (#23, dev_0010 read as a pull); a toucher that moves under 2 px while
+    it acts and parts without the object following is a press (dev_0009)."""
+    from physinteract_usd.extract.lifting import track_hand
+    from physinteract_usd.extract.timing import Timing
+
+    T1 = 20
+    vh = np.zeros((T1, 2))
+    vh[5:9, 1] = -0.5           # the press, up
+    vh[9:13, 1] = 0.5           # back
+    vh[14:19] = [-2.0, 2.0]     # the retreat, down-left, after the release at 14
+    t = Timing(vh, np.zeros((T1, 2)), np.zeros(T1, np.int8), np.ones(T1 + 1, bool), (0, 19),
+               np.linalg.norm(vh, axis=1), 4, 14)
+    hand = track_hand(t, np.array([50.0, 50.0]))
+    assert hand.first_move[1] < 0 and abs(hand.first_move[0]) < 1e-9     # the press, not the retreat
+    assert hand.acting == pytest.approx(2.0)
+    assert hand.motion > 10
+    press = {"push_cos": 0.75, "contact_motion_px": 26.0, "acting_motion_px": 1.7, "interface_span": 0.7,
+             "coupled_share": 0.25, "contact_frames": 12}
+    assert classify_interaction(press)[0] == "surfaceNonAdherent"
+    assert classify_interaction(dict(press, interface_span=0.2))[0] == "pointNonAdherent"
+    # a grasp that moves the hand, or that the object follows, stays a grasp
+    assert classify_interaction(dict(press, acting_motion_px=9.8, push_cos=1.0))[0] == "pointAdherent"
+    assert classify_interaction(dict(press, coupled_share=0.8))[0] == "pointAdherent"
+

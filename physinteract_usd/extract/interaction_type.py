@@ -26,9 +26,12 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     surface = evidence.get("interface_span", 0.0)
     approach, ap_speed = evidence.get("approach_cos"), evidence.get("approach_speed_px", 0.0)
     brief = evidence.get("contact_frames")
-    if brief is not None and brief <= 2 and evidence.get("coupled_share", 1.0) < 0.5:
-        # touched for a frame or two and parted without the object following: a knock or a press,
-        # not a grasp (a hand that takes hold pulls the object along for more than a frame)
+    acting = evidence.get("acting_motion_px")
+    still = acting is not None and acting < 2.0
+    if brief is not None and (brief <= 2 or still) and evidence.get("coupled_share", 1.0) < 0.5:
+        # touched for a frame or two, or longer with the toucher moving less than 2 px while it
+        # acts (a slow press into a sheet on a floor, dev_0009), and parted without the object
+        # following: a knock or a press, not a grasp (a hand that takes hold pulls the object along)
         if surface > 0.45:
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
@@ -73,8 +76,15 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     v_app = approach_velocity(an, g, c2)
     app_speed = float(np.linalg.norm(v_app)) if v_app is not None else 0.0
     approach_cos = float(np.dot(unit(v_app), unit(d2))) if app_speed > 0 and motion > 0 else None
-    return {"approach_speed_px": app_speed, "approach_cos": approach_cos,
-            "contact_uv": c2.tolist(), "contact_motion_px": motion, "push_cos": push_cos,
+    into_cos = None
+    if motion > 0:
+        # the first main motion against the direction from the contact into the object at rest
+        # (a push goes into the object, a pull out of it, whatever the toucher's body looks like)
+        op = pixel_centres(an.rest.silhouette & disk_mask((an.H, an.W), c2, 3.0 * an.R))
+        into = unit(op.mean(0) - np.asarray(c2, float)) if len(op) else np.zeros(2)
+        into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
+    return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
+            "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
             "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1),
             "contact_frames": None if timing.release is None else int(timing.release - g)}

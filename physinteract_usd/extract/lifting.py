@@ -23,6 +23,7 @@ class HandTrack:
     motion: float           # px: the track's largest extent from the grasp over the contact period
     first_main: int         # the frame the track first reaches half that extent (the first main motion)
     first_move: np.ndarray  # (2,) px: the displacement from the grasp to `first_main`
+    acting: float = 0.0     # px: the largest extent from the grasp while the toucher acts (to the release)
 
 
 @dataclass
@@ -49,9 +50,15 @@ def track_hand(timing: Timing, c2) -> HandTrack:
     far = int(np.argmax(ext))
     motion = float(ext[far])
     # the first main motion (half the largest extent) says push or pull: a poke is withdrawn
-    # afterwards, a pull may end anywhere
-    first_main = int(np.argmax(ext >= 0.5 * motion)) if motion > 0 else g
-    return HandTrack(hand_track, motion, first_main, disp[first_main])
+    # afterwards, a pull may end anywhere. Read while the toucher acts (to the release): a slow
+    # press's few pixels are not its retreat's tens (dev_0010: a finger pressed a bar 2 px and
+    # withdrew 14 px toward its body, which read as a pull)
+    r = timing.release
+    act = ext[: (min(p1, r) if r is not None and r > g + 1 else p1) + 1]
+    m_act = float(act.max()) if len(act) else 0.0
+    first_main = (int(np.argmax(act >= 0.5 * m_act)) if m_act >= 1.0 else
+                  int(np.argmax(ext >= 0.5 * motion)) if motion > 0 else g)
+    return HandTrack(hand_track, motion, first_main, disp[first_main], m_act)
 
 
 def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: GraspContact, hand: HandTrack,

@@ -311,6 +311,9 @@ def contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, coupled
     ks = [k for k in range(p0, min(p1, T1 - 1) + 1) if np.isfinite(speed[k])]
     if not ks:
         return p0
+    on = rest_onset(speed, vh, p0, p1)
+    if on is not None:
+        return on
     sp = np.array([speed[k] for k in ks])
     peak = float(sp.max())
     slow = sp <= max(0.35, 0.3 * peak)
@@ -332,6 +335,46 @@ def contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, coupled
             return skip_approach(ks[pick], coupled, speed, p1)
     win = grasp_window(near, coupled, vh)
     return skip_approach(win[0], coupled, speed, p1) if win is not None else p0
+
+
+def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, eps: float = 0.35, noise: float = 0.1,
+               window: int = 4) -> int | None:
+    """The grasp as the onset of the toucher's motion after it comes to rest on the object,
+    judged against its own noise floor, not against its peak (a slow press at 0.3-0.5 px a frame
+    followed by a fast retreat is all 'slow' next to the retreat). The rest: the first two frames
+    running of the contact period slower than `eps` (one slow frame is the approach's start or
+    end), or one where the toucher is first seen (unseen in the frame before: it is already there);
+    its floor the median of the 3 stillest of its first 6 slow frames running. The onset: the
+    first frame pair, within `window` frames of the first frame at the floor (+`noise` px), from
+    which the toucher moves above that level in two pairs running, the same way (cos >= 0.5:
+    noise has no direction). The grasp is the frame before it (the last one at rest). None where
+    the video shows no such onset soon after the rest (a hand holding a stiff object barely
+    moves; the caller's rule decides)."""
+    T1 = len(speed)
+    hi = min(p1, T1 - 1)
+
+    def slow(k):
+        return 0 <= k < T1 and np.isfinite(speed[k]) and speed[k] < eps
+
+    s = next((k for k in range(p0, hi + 1) if slow(k) and (slow(k + 1) or (k > 0 and not np.isfinite(speed[k - 1])))),
+             None)
+    if s is None:
+        return None
+    w = []
+    for k in range(s, min(hi, s + 5) + 1):
+        if not slow(k):
+            break
+        w.append(speed[k])
+    thr = float(np.median(np.sort(w)[:3])) + noise
+    a = next(k for k in range(s, hi + 1) if np.isfinite(speed[k]) and speed[k] <= thr)
+    for k in range(a + 1, min(hi - 1, a + window) + 1):
+        u, v = vh[k], vh[k + 1]
+        if not (np.isfinite(u).all() and np.isfinite(v).all()):
+            continue
+        nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+        if nu > thr and nv > thr and float(np.dot(u, v)) >= 0.5 * nu * nv:
+            return k - 1
+    return None
 
 
 def skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: float = 0.35) -> int:
