@@ -82,7 +82,8 @@ def case_list(strengths, controls: int) -> list[str]:
     return out
 
 
-def run_case(case: str, work: Path, refit: int, refit_iterations: int, device: str = "cpu") -> dict:
+def run_case(case: str, work: Path, refit: int, refit_iterations: int, device: str = "cpu", starts: int = 3,
+             trajectory_sigma: float | None = None) -> dict:
     import diagnose_scene as ds
     from physinteract_usd import api
 
@@ -106,10 +107,17 @@ def run_case(case: str, work: Path, refit: int, refit_iterations: int, device: s
         info = ds.build(root, noise=NOISE, seed=int(arg))
         truth.update({"truth": None, "strength": 0.0, "true_value": None})
     t0 = time.perf_counter()
+    c0 = time.process_time()
     d = api.diagnose(info["stage"], refit=refit, refit_iterations=refit_iterations, progress=False,
-                     log=lambda *a: None, write_stage=False, device=device)
+                     log=lambda *a: None, write_stage=False, device=device, starts=starts,
+                     trajectory_sigma_px=trajectory_sigma)
     truth["device"] = device
     truth["seconds"] = time.perf_counter() - t0
+    truth["cpu_seconds"] = time.process_time() - c0
+    truth["base_starts"] = d.get("base_starts")
+    tc = d.get("trajectory_check") or {}
+    truth["trajectory_suspect"] = tc.get("suspect")
+    truth["trajectory_free_step_px"] = max([c["free_step"]["max_px"] or 0.0 for c in tc.get("contacts", [])] or [0.0])
     cands = d["candidates"]
     names = [c["effect"] for c in cands]
     truth.update({"verdict": d["verdict"], "reason": d["reason"], "candidates": names, "loss": d["loss"],
@@ -139,8 +147,8 @@ def _f(v, fmt="{:.3g}"):
 
 def table(rows: list[dict]) -> str:
     lines = ["| case | truth | verdict | candidates (ranked) | rank of truth | predicted drop | realised drop | "
-             "loss after / before | excess over the floor removed | estimate | true value | refit kept | s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "loss after / before | excess over the floor removed | estimate | true value | refit kept | s | cpu s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         after = excess = None
         if r.get("realised") is not None and r.get("loss"):
@@ -154,7 +162,7 @@ def table(rows: list[dict]) -> str:
                          pred=_f(r.get("predicted")), real=_f(r.get("realised")), after=_f(after, "{:.2f}"),
                          exc=_f(None if excess is None else 100 * excess, "{:.0f}%"),
                          est=_f(r.get("estimate")), tv=_f(r.get("true_value")),
-                         acc=_f(r.get("accepted"), "{}"), s=r["seconds"]))
+                         acc=_f(r.get("accepted"), "{}"), s=r["seconds"], cpu=_f(r.get("cpu_seconds"), "{:.0f}")))
     return "\n".join(lines)
 
 
@@ -197,6 +205,9 @@ def main(argv=None) -> int:
     ap.add_argument("--refit", type=int, default=3)
     ap.add_argument("--refit-iterations", type=int, default=6)
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the diagnosis' simulator and renderer)")
+    ap.add_argument("--starts", type=int, default=3, help="diagnose --starts (1: the stage's base as it is)")
+    ap.add_argument("--trajectory-sigma", type=float, default=None,
+                    help="diagnose --trajectory-sigma (pixels; default the fit's 2 px; huge: a free path)")
     ap.add_argument("--deadline", type=float, default=0, help="stop starting cases after this many seconds")
     ap.add_argument("--write", help="write the markdown tables here")
     ap.add_argument("--ground-cut", type=float, default=GROUND_CUT,
@@ -224,7 +235,7 @@ def main(argv=None) -> int:
             print("deadline: stopping")
             break
         try:
-            r = run_case(case, out / "work", a.refit, a.refit_iterations, a.device)
+            r = run_case(case, out / "work", a.refit, a.refit_iterations, a.device, a.starts, a.trajectory_sigma)
         except Exception as exc:  # noqa: BLE001  (a failing case is a row, not the end of the suite)
             r = {"case": case, "truth": None, "verdict": f"error: {exc}", "candidates": [], "seconds": 0.0,
                  "kind": case.split("@")[0]}

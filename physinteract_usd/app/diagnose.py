@@ -11,6 +11,7 @@ tested ("tested"), the loss and its floor, and the cost."""
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -35,6 +36,60 @@ def superset_effects(sd, present: dict) -> dict:
     return out
 
 
+def _best_start(prob, base, settings, starts: int, iterations: int, log):
+    """The base refitted briefly from `starts` starts (`diagnose`); returns (the base to score
+    against, a JSON-able account {"starts": [{"factor", "loss", "median_E"}], "base_loss", "chosen"
+    (the factor of the start scored against; None: the stage's fit as it is), "local_minimum",
+    "not_converged", "note", "seconds"})."""
+    import torch
+
+    from ..diagnose import BaseState
+    from ..diagnose.refit import refit_base
+    from ..diagnose.residual import ImageResidual, loss
+
+    out = {"starts": [], "base_loss": None, "chosen": None, "local_minimum": False, "not_converged": False,
+           "note": "", "seconds": 0.0}
+    if starts <= 1:
+        return base, out
+    t0 = time.perf_counter()
+    res = ImageResidual(prob, max_pixels=settings.max_pixels)
+    with torch.no_grad():
+        x, F = prob.simulate(base.E, base.nu, None, effects=base.effects)
+    L0 = loss(res(x, F))
+    out["base_loss"] = L0
+    thr = 1.0 - settings.min_relative_drop
+    best, own = None, None
+    for f in START_FACTORS[:starts]:
+        log(f"base refit from the E field x {f:g} ({iterations} iterations)")
+        r = refit_base(prob, base, f, iterations=iterations, res=res)
+        out["starts"].append({"factor": f, "loss": r["loss"],
+                              "median_E": None if r["E"] is None else float(r["E"].median()),
+                              **({"note": r["note"]} if "note" in r else {})})
+        if f == 1.0:
+            own = r
+        if r["E"] is not None and r["loss"] < L0 * thr and (best is None or r["loss"] < best["loss"]):
+            best = r
+    out["seconds"] = time.perf_counter() - t0
+    if best is None:
+        return base, out
+    local = best["factor"] != 1.0 and (own is None or best["loss"] < own["loss"] * thr)
+    out.update(chosen=best["factor"], local_minimum=bool(local), not_converged=not local)
+    how = (f"{L0:.3g} -> {best['loss']:.3g}, {100 * (1 - best['loss'] / L0):.0f}% lower; median E "
+           f"{float(base.E.median()):.3g} -> {float(best['E'].median()):.3g} Pa")
+    if local:
+        mine = "" if own is None or not math.isfinite(own["loss"]) else \
+            f"; its own field refitted alike: {own['loss']:.3g}"
+        out["note"] = (f"the base fit was at a local minimum: a start at its E field x {best['factor']:g} reaches a "
+                       f"lower loss ({how}{mine}); the candidates are scored against that base; refit with "
+                       "`fit --fresh` before diagnosing")
+    else:
+        out["note"] = (f"the base fit was not converged: {iterations} more iterations from its own E field lower the "
+                       f"loss ({how}); the candidates are scored against that base; fit longer before diagnosing")
+    log(out["note"])
+    labels = region_labels(best["E"].cpu().numpy())
+    return BaseState(best["E"], best["nu"], base.effects, labels, measured=base.measured), out
+
+
 def region_labels(E: np.ndarray, max_regions: int = 8) -> np.ndarray | None:
     """Regions of a piecewise-constant field (its distinct values), None for a smooth field."""
     vals, inv = np.unique(np.round(np.log(np.maximum(E, 1e-30)), 6), return_inverse=True)
@@ -51,10 +106,21 @@ def parse_candidates(spec) -> tuple:
     return names
 
 
+START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these (`--starts N`: the first N;
+                                  # 1: none, the stage's fit as it is)
+
+
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
-             progress: bool = True, log=print) -> dict:
-    """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis."""
+             progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None) -> dict:
+    """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
+
+    `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
+    (`refit_iterations`, the path kept) from its own E field and from it x 0.5 (and x 2), and score
+    against the best base when one reaches a loss lower by more than the verdict's practical
+    threshold (`DiagnoseSettings.min_relative_drop` of the loss), saying so: "a local minimum" when
+    another start beats the fit's own field refitted alike, "not converged" when its own does. `trajectory_sigma_px`: the measured hand path's pixel uncertainty
+    (default the fit's, `fit.interaction_check.TRAJ_SIGMA_PX`) that bounds the path's freedom."""
     import torch
 
     from ..fit.problem import FitProblem
@@ -65,6 +131,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         raise InputError("--refit", f"must be a whole number >= 0, got {refit!r}")
     if refit_iterations is None or int(refit_iterations) < 1:
         raise InputError("--refit-iterations", f"must be a whole number >= 1, got {refit_iterations!r}")
+    if starts is None or isinstance(starts, bool) or not 1 <= int(starts) <= len(START_FACTORS):
+        raise InputError("--starts", f"must be 1, 2 or 3, got {starts!r}")
+    if trajectory_sigma_px is not None and not float(trajectory_sigma_px) > 0:
+        raise InputError("--trajectory-sigma", f"must be a number of pixels > 0, got {trajectory_sigma_px!r}")
     cands = parse_candidates(candidates)
     sd = read_scene(stage_path)
     if not sd.reports or sd.current_report is None:
@@ -72,20 +142,25 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     version = int(sd.current_version or sd.current_report["version"])
     obs = load_observations(sd)
     fitted = {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}
+    measured = stage_contacts(sd)       # their trajectories: the measured paths (T0)
     contacts = [c.replace(trajectory=np.asarray(fitted[c.name])) if c.name in fitted and c.is_interaction else c
-                for c in stage_contacts(sd)]
+                for c in measured]
     present = effects_with_fitted(sd)
     skipped = [e for e in cands if e in present]
     cands = tuple(e for e in cands if e not in present)
     try:
-        prob = FitProblem(sd, obs, contacts, effects=superset_effects(sd, present), device=device, dtype=dtype)
+        prob = FitProblem(sd, obs, contacts, effects=superset_effects(sd, present), device=device, dtype=dtype,
+                          traj_sigma_px=trajectory_sigma_px)
     except ValueError as exc:
         raise InputError(stage_path, str(exc)) from None
+    paths = [measured[ci].trajectory if measured[ci].trajectory is not None else t.detach().cpu().numpy()
+             for ci, t in prob.traj_slots]
     st = sd.settings
     E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=prob.tdtype, device=prob.tdev)
     nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
-    base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus))
+    base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
     settings = DiagnoseSettings(candidates=cands, seed=seed, max_pixels=max_pixels)
+    base, starts_out = _best_start(prob, base, settings, int(starts), int(refit_iterations), log)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -94,6 +169,12 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     diag = diagnose_problem(prob, base, settings, log=log, progress=bar, evidence=describe)
     for e in skipped:
         diag.notes.append(f"{e} is already in the model (fitted): not a candidate")
+    diag.base_starts = starts_out
+    if starts_out.get("note"):
+        diag.notes.insert(0, starts_out["note"])
+    tc = diag.trajectory_check
+    if tc and tc.get("suspect"):
+        diag.notes.extend(tc["notes"])
     top = [c for c in diag.significant][: int(refit)]
     for cr in top:
         if cr.effect in PHYSICAL:
@@ -102,6 +183,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         else:
             judge_probe(diag, cr)
     conclude(diag)
+    if starts_out.get("chosen") is not None:
+        diag.reason = f"{diag.reason} [{starts_out['note']}]"
     for cr in diag.significant:       # the evidence again: the refit's estimate is the better number
         try:
             cr.evidence = describe(cr.effect, cr, diag._ctx)

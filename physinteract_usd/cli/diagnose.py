@@ -20,6 +20,12 @@ def add_parser(sub):
                    help="refit the top N significant candidates briefly (default 3; 0: none)")
     s.add_argument("--refit-iterations", type=int, default=8, metavar="K", help="iterations of each refit (default 8)")
     s.add_argument("--candidates", metavar="A,B,...", help="test only these candidates (default: all)")
+    s.add_argument("--starts", type=int, default=3, metavar="N",
+                   help="base starts before scoring: 1 scores the fit as it is; 3 (default) first refits the base "
+                        "briefly from its own E field, x 0.5 and x 2 and scores against the best (a local minimum "
+                        "or an unconverged fit is not missing physics; says so); 2: own and x 0.5")
+    s.add_argument("--trajectory-sigma", type=float, default=None, metavar="PX",
+                   help="the measured hand path's pixel uncertainty that bounds its freedom (default 2, the fit's)")
     s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
@@ -32,7 +38,8 @@ def run(a) -> int:
     from .. import api
 
     d = api.diagnose(a.stage, refit=a.refit, refit_iterations=a.refit_iterations, candidates=a.candidates,
-                     write_stage=not a.no_stage, device=a.device, progress=not a.json and sys.stderr.isatty(),
+                     write_stage=not a.no_stage, device=a.device, starts=a.starts,
+                     trajectory_sigma_px=a.trajectory_sigma, progress=not a.json and sys.stderr.isatty(),
                      log=(lambda *m: print(*m, file=sys.stderr)) if a.json else print)
     if a.json:
         print(json.dumps(d, indent=1, allow_nan=False))
@@ -46,6 +53,8 @@ def run(a) -> int:
             print(f"{i:2d} {c['effect']:24} {c['score']:6.2f} {c['predicted_loss_drop']:10.3g} {r:>10}  {est}")
             if c["evidence"]:
                 print(f"   {c['evidence']}")
+    for n in d.get("notes") or []:
+        print(f"note: {n}")
     print(f"tested: " + ", ".join(f"{t['effect']} (p {t['marginal_p_value']:.2g})" for t in d["tested"]))
     if d.get("stage_layer"):
         print(f"stored in: {d['stage_layer']}")

@@ -76,6 +76,8 @@ class BaseState:
     nu: torch.Tensor                    # (P,)
     effects: dict                       # the superset's values: {effect: {param: float}} (nulls for the candidates)
     labels: np.ndarray | None = None    # (P,) material regions (None: one)
+    measured: list | None = None        # the measured hand paths (T, 3), one per trajectory slot (None: the
+                                        # problem's T0 is the measured path)
 
 
 @dataclass
@@ -90,6 +92,8 @@ class DiagnoseSettings:
     traj_knots: int = 3
     candidates: tuple = CANDIDATES
     heterogeneity_parts: int = 3
+    trajectory_prior: bool = True       # the trajectory's base columns bounded by the measured path's
+                                        # uncertainty (the fit's prior as ridge rows); False: free
 
 
 @dataclass
@@ -136,6 +140,8 @@ class Diagnosis:
     floor: float
     notes: list = field(default_factory=list)
     cost: dict = field(default_factory=dict)
+    trajectory_check: dict | None = None   # is the hand's path soaking up model error (`trajectory_check`)
+    base_starts: dict | None = None        # the base refitted from other starts (app.diagnose)
 
     @property
     def significant(self) -> list:
@@ -148,7 +154,8 @@ class Diagnosis:
                             "marginal_p_value": c.marginal[0], "marginal_predicted_loss_drop": c.marginal[1],
                             "relative_drop": c.relative_drop, "significant": c.significant,
                             "accepted": c.accepted, "note": c.note} for c in self.results],
-                "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost)}
+                "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
+                "trajectory_check": self.trajectory_check, "base_starts": self.base_starts}
 
 
 # ---------------------------------------------------------------------------------------- runner
@@ -159,6 +166,16 @@ class _Runner:
         self.prob, self.base, self.res, self.log = prob, base, res, log
         self.forwards = 0
         self._sims = {}
+        self.p0 = np.zeros(0)          # the trajectory prior's rows at the base (scaled; diagnose_problem)
+        self.n_img = 0                 # the image residual's length
+
+    def aug(self, r: np.ndarray, p: np.ndarray | None = None) -> np.ndarray:
+        """An image residual with the trajectory prior's rows appended (`p`, default the base's)."""
+        return np.concatenate([r, self.p0 if p is None else p])
+
+    def aloss(self, ra: np.ndarray) -> float:
+        """The diagnosis's loss of an augmented residual: its sum of squares per image element."""
+        return float(np.sum(np.square(ra)) / max(self.n_img or len(ra), 1))
 
     def sim_for(self, contacts=None, gravity_scale: float = 1.0):
         if contacts is None and gravity_scale == 1.0:
@@ -202,8 +219,21 @@ def _active(c, T: int) -> np.ndarray:
     return (k >= int(c.grasp_frame)) & (k < rel)
 
 
-def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def prior_residual(prob, base: BaseState, trajs=None) -> np.ndarray:
+    """The fit's trajectory prior (`FitProblem.trajectory_prior_residual`) at `trajs` (default the
+    base's paths) against the measured paths, as a float64 vector."""
+    trajs = [t for _, t in prob.traj_slots] if trajs is None else trajs
+    with torch.no_grad():
+        r = prob.trajectory_prior_residual(trajs, reference=base.measured)
+    return r.detach().cpu().numpy().astype(np.float64)
+
+
+def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: list | None = None
+                 ) -> tuple[np.ndarray, list[str]]:
+    """The base parameters' residual columns (n, p). `prior_cols`: a list that receives, per column,
+    the change of the trajectory prior's residual (`prior_residual`; zero for E and nu)."""
     prob, b = run.prob, run.base
+    p0 = prior_residual(prob, b)
     cols, names = [], []
     labels = b.labels if b.labels is not None else np.zeros(len(prob.x0), np.int64)
     d = 0.05
@@ -211,12 +241,17 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.
         v = torch.as_tensor((labels == lab).astype(np.float64), dtype=b.E.dtype, device=b.E.device)
         cols.append((run.r(E=b.E * torch.exp(d * v)) - r0) / d)
         names.append(f"logE[{int(lab)}]")
+        if prior_cols is not None:
+            prior_cols.append(np.zeros_like(p0))
     st = prob.scene.settings
     dn = 0.01 if float(b.nu.max()) + 0.01 <= st.poisson_max else -0.01
     cols.append((run.r(nu=b.nu + dn) - r0) / dn)
     names.append("nu")
+    if prior_cols is not None:
+        prior_cols.append(np.zeros_like(p0))
     T = prob.T
     h = max(0.5 * prob.traj_scale, 1e-4)
+    run.traj_cols = []        # (column, slot, hat weights (T,), axis, step h): the trajectory columns
     for slot, (ci, t0) in enumerate(prob.traj_slots):
         c = prob.contacts[ci]
         act = _active(c, T)
@@ -234,7 +269,10 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray) -> tuple[np.
                 trajs = [t.clone() for _, t in prob.traj_slots]
                 trajs[slot][:, ax] += torch.as_tensor(h * w, dtype=trajs[slot].dtype, device=trajs[slot].device)
                 cols.append((run.r(trajs=trajs) - r0) / h)
+                run.traj_cols.append((len(cols) - 1, slot, w.copy(), ax, h))
                 names.append(f"traj[{c.name}]@{kc:.0f}.{'xyz'[ax]}")
+                if prior_cols is not None:       # the prior is linear in the path: exact
+                    prior_cols.append((prior_residual(prob, b, trajs) - p0) / h)
     return np.column_stack(cols), names
 
 
@@ -395,8 +433,9 @@ def _threshold_search(effect: str, cr, run: _Runner, r0: np.ndarray, J: np.ndarr
             except SimulationError:
                 cache[u] = (math.inf, None)
                 return cache[u]
-            a, *_ = np.linalg.lstsq(J, -r, rcond=None)
-            cache[u] = (float(np.sum((r + J @ a) ** 2)), r)
+            ra = run.aug(r)
+            a, *_ = np.linalg.lstsq(J, -ra, rcond=None)
+            cache[u] = (float(np.sum((ra + J @ a) ** 2)), r)
         return cache[u]
 
     g = (math.sqrt(5) - 1) / 2
@@ -523,18 +562,29 @@ def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> 
 
 
 # ---------------------------------------------------------------------------------------- test
+def _pad(col: np.ndarray, n: int) -> np.ndarray:
+    """A probe's image column padded with zeros for the trajectory prior's rows (a candidate does
+    not move the hand's path)."""
+    col = np.asarray(col, np.float64)
+    return col if len(col) >= n else np.concatenate([col, np.zeros(n - len(col))])
+
+
 def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarray, blocks: np.ndarray,
-                   n_blocks: int, s: DiagnoseSettings) -> CandidateResult:
+                   n_blocks: int, s: DiagnoseSettings, n_img: int | None = None) -> CandidateResult:
+    """The projected score test of one candidate. `r0`, `J`, `blocks` may carry the trajectory
+    prior's rows after the `n_img` image elements (the base's trajectory columns then bounded by
+    the measured path's uncertainty: a ridge); drops are per image element."""
     cr = CandidateResult(effect, probes)
     if not probes:
         cr.note = "not probed"
         return cr
-    n = len(r0)
+    n = len(r0) if n_img is None else int(n_img)
     V, signs, drops, steps = [], [], [], []
     for p in probes:
-        jp = S.project_out(J, p.column)
+        col = _pad(p.column, len(r0))
+        jp = S.project_out(J, col)
         nn = float(np.linalg.norm(jp))
-        if nn <= S.ABSORBED * float(np.linalg.norm(p.column)) or nn == 0.0:
+        if nn <= S.ABSORBED * float(np.linalg.norm(col)) or nn == 0.0:
             V.append(np.zeros(n_blocks))
             signs.append(p.sign)
             drops.append(0.0)
@@ -556,7 +606,8 @@ def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarr
     return cr
 
 
-def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float):
+def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float,
+                    n_img: int | None = None):
     """Forward selection: the best significant candidate is taken, its column joins the base, and
     the others are tested again on what it leaves (so a confusable cause that explains the same
     residual is not reported twice). Sorts `results` in place: the selected ones first (in
@@ -576,12 +627,12 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
         best.significant = True
         chosen.append(best)
         pool.remove(best)
-        col = best.probes[best.best].column
+        col = _pad(best.probes[best.best].column, len(r0))
         a, t = S.joint_step(r, Jc, col)
         r = r + (Jc @ a if Jc.size else 0.0) + col * t     # what the model with it leaves (linearised)
         Jc = np.column_stack([Jc, col])
         for c in pool:
-            again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s)
+            again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s, n_img)
             c.p_value, c.statistic, c.drop, c.step, c.best = (again.p_value, again.statistic, again.drop, again.step,
                                                                 again.best)
             c.relative_drop = c.drop / L0 if L0 > 0 else 0.0
@@ -664,8 +715,25 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     L0 = loss(r0)
     blocks, nb = res.blocks(s.frames_per_block, s.tiles)
     log(f"diagnose: residual of {len(r0)} values ({res.shape[0]} frames, stride {res.stride}), loss {L0:.3e}")
-    J, names = base_columns(run, s, r0)
+    pcols = [] if s.trajectory_prior else None
+    J, names = base_columns(run, s, r0, pcols)
     log(f"diagnose: {J.shape[1]} base columns ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})")
+    n_img = run.n_img = len(r0)
+    r0a, Ja, prior = r0, J, {"bounded": False}
+    p0 = prior_residual(prob, base) if pcols is not None else np.zeros(0)
+    if len(p0):
+        # the fit's trajectory prior as ridge rows: it weighs against the image loss as it does in the
+        # fit (L_traj / L_rec there = |p|^2 / |r|^2 here: rows scaled by sqrt(n kappa), kappa = this
+        # loss over the fit's reconstruction loss at the base)
+        with torch.no_grad():
+            Lrec = float(prob.loss(base.E, base.nu, None, effects=base.effects, simulated=(x0, F0))["rec"])
+        sc = math.sqrt(n_img * L0 / Lrec) if Lrec > 0 and L0 > 0 else 0.0
+        run.p0 = p0 * sc
+        r0a = run.aug(r0)
+        Ja = np.vstack([J, np.column_stack(pcols) * sc])
+        blocks = np.concatenate([blocks, np.full(len(p0), nb, np.int64)])
+        nb += 1
+        prior = {"bounded": True, "sigma_px": prob.traj_sigma_px, "row_scale": sc, "fit_rec_loss": Lrec}
     floor = _floor(prob, res)
     results = []
     cands = [c for c in s.candidates if c in CANDIDATES]
@@ -676,24 +744,25 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         except SimulationError as exc:
             log(f"{eff}: probe failed ({exc})")
             probes = []
-        cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+        cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         if eff in ("damping", "viscoelasticity") and cr.best >= 0 and cr.step > 0:
             # the residual is far from linear in c / E_v: one more secant, to the estimate itself
             probes.append(_refined(eff, cr, run, r0))
-            cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+            cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         if (eff in ("plasticity", "ground") and cr.best >= 0 and cr.p_value < s.alpha
                 and cr.drop >= s.min_relative_drop * L0):
             # a threshold's grid is coarse: a 1-D search between its points for a candidate that counts
-            extra = _threshold_search(eff, cr, run, r0, J)
+            extra = _threshold_search(eff, cr, run, r0, Ja)
             if extra is not None:
                 probes.append(extra)
-                cr = test_candidate(eff, probes, r0, J, blocks, nb, s)
+                cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         cr.relative_drop = cr.drop / L0 if L0 > 0 else 0.0
         results.append(cr)
-    _forward_select(results, r0, J, blocks, nb, s, L0)
+    _forward_select(results, r0a, Ja, blocks, nb, s, L0, n_img)
     for cr in results:
         cr.estimate = estimate_of(cr, prob)
-    ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "run": run}
+    ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "r0a": r0a, "run": run,
+           "prior": prior, "names": names}
     if evidence is not None:
         for cr in results:
             if cr.significant:
@@ -705,9 +774,66 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
                                                                "base_columns": int(J.shape[1]),
                                                                "seconds": 0.0})
     diag._ctx = ctx   # for the refit and the verdict (not serialised)
-    diag._J = J
+    diag._J = Ja
+    diag.trajectory_check = trajectory_check(diag)
     diag.cost["seconds"] = time.perf_counter() - t0
     return diag
+
+
+def _path_step(run: _Runner, a: np.ndarray, slot: int, T: int) -> np.ndarray:
+    """(T, 3) the hand path's offset that the base coefficients `a` (metres: the trajectory columns
+    are per metre) give one trajectory slot."""
+    off = np.zeros((T, 3))
+    for j, sl, w, ax, _h in getattr(run, "traj_cols", []):
+        if sl == slot:
+            off[:, ax] += float(a[j]) * w
+    return off
+
+
+def trajectory_check(diag: Diagnosis) -> dict | None:
+    """Is the hand's path soaking up model error? Per interaction contact with a trajectory, the
+    fit's own check (`fit.interaction_check.check_trajectory`: the fitted path against the measured
+    one, in the measured path's pixel uncertainty) and the same for the path the base's own
+    Gauss-Newton step would take, free (no prior: what an unbounded trajectory would absorb) and
+    bounded (the prior's ridge rows, as this diagnosis scores). None without a trajectory."""
+    from ..fit.interaction_check import TRAJ_FRAMES, TRAJ_SIGMAS, check_trajectory
+
+    ctx = diag._ctx
+    prob, base, run = ctx["prob"], ctx["base"], ctx["run"]
+    if not prob.traj_slots:
+        return None
+    n = run.n_img
+    J, r0a = diag._J, ctx["r0a"]
+    free, *_ = np.linalg.lstsq(J[:n], -ctx["r0"], rcond=None)
+    bound, *_ = np.linalg.lstsq(J, -r0a, rcond=None)
+    sig = float(prob.traj_sigma_px)
+    keys = ("max_px", "max_frame", "frames_over", "suspect")
+    out = {"sigma_px": sig, "sigmas": TRAJ_SIGMAS, "min_frames": TRAJ_FRAMES,
+           "bounded": bool(ctx["prior"].get("bounded")), "contacts": [], "suspect": False, "notes": []}
+    for slot, (ci, t0) in enumerate(prob.traj_slots):
+        c = prob.contacts[ci]
+        fitted = t0.detach().cpu().numpy().astype(np.float64)
+        measured = np.asarray(base.measured[slot], np.float64) if base.measured is not None else fitted
+        kind = {"pointNonAdherent": "fingertip", "surfaceNonAdherent": "palm"}.get(c.type, "hand")
+        g, rel = int(c.grasp_frame), c.release_frame
+        chk = {w: check_trajectory(measured, fitted + off, prob.cameras, g, rel, sigma_px=sig, kind=kind)
+               for w, off in (("fitted", 0.0), ("free_step", _path_step(run, free, slot, prob.T)),
+                              ("bounded_step", _path_step(run, bound, slot, prob.T)))}
+        entry = {"contact": c.name, **{w: {k: v[k] for k in keys} for w, v in chk.items()}}
+        out["contacts"].append(entry)
+        if chk["fitted"]["suspect"]:
+            out["suspect"] = True
+            out["notes"].append(chk["fitted"]["note"])
+        fs = chk["free_step"]
+        if fs["suspect"]:
+            out["suspect"] = True
+            out["notes"].append(
+                f"to explain the residual without a new effect, a free {kind} path would move up to "
+                f"{fs['max_px']:.1f} px at frame {fs['max_frame']} ({fs['max_px'] / sig:.0f} sigma of its "
+                f"measurement, {fs['frames_over']} frames beyond {TRAJ_SIGMAS:.0f} sigma): the trajectory would "
+                "soak up model error; " + ("this diagnosis bounds it by its measurement uncertainty"
+                                           if out["bounded"] else "this diagnosis left it free"))
+    return out
 
 
 def _floor(prob, res: ImageResidual) -> float:
@@ -725,11 +851,11 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
     viscoelasticity, heterogeneity): the loss with the base's joint step and the candidate's,
     against the base's own step alone. None for the others."""
     ctx = diag._ctx
-    run, r0, J = ctx["run"], ctx["r0"], diag._J
+    run, r0, J = ctx["run"], ctx["r0a"], diag._J
     if cr.best < 0 or cr.effect not in ("damping", "viscoelasticity", "heterogeneity"):
         return None
     p = cr.probes[cr.best]
-    a, t = S.joint_step(r0, J, p.column)
+    a, t = S.joint_step(r0, J, _pad(p.column, len(r0)))
     if cr.effect == "damping":
         kw = {"effects": {"damping": {"coefficient": max(t, 0.0)}}}
     elif cr.effect == "viscoelasticity":
@@ -739,17 +865,17 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
         v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype, device=run.base.E.device)
         kw = {"E": run.base.E * torch.exp(t * v)}
     try:
-        r1 = run.r(**kw)
+        r1 = run.aug(run.r(**kw))
     except SimulationError:
         return None
     # the base's own step (linear in its columns) with and without the candidate's
     a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
-    return loss(r0 + J @ a0) - loss(r1 + J @ a)
+    return run.aloss(r0 + J @ a0) - run.aloss(r1 + J @ a)
 
 
 __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Probe", "diagnose_problem",
            "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "test_candidate", "base_columns", "estimate_of",
-           "realised_gauss_newton", "conclude"]
+           "realised_gauss_newton", "conclude", "trajectory_check", "prior_residual"]
 
 
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:

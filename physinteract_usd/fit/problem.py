@@ -2,7 +2,12 @@
 
     L_total = L_rec + lambda_reg L_reg
     L_rec   = mean over frames of |I^ - I|_1 + lambda_ssim (1 - SSIM) + lambda_mask |M^ - M|_2
-    L_reg   = lambda_smooth |grad log E|^2 + lambda_traj |T - T0|^2 / scale^2
+    L_reg   = lambda_smooth |grad log E|^2 + lambda_traj L_traj
+
+L_traj is a Gaussian prior of the hand path T about the measured one T0 in the measurement's own
+units (`FitProblem.trajectory_prior`): per frame k, across the camera ray sigma_k = sigma_px x
+depth_k / focal_px (the path's pixel uncertainty at the contact's depth), along it
+sigma_k / sqrt(depth_prior) (the video hardly measures depth).
 
 with the hand's pixels left out of every image term (weight 0); with point tracks in the
 observations and `weights.track` > 0, each frame's term also holds lambda_track L_track (the video's
@@ -12,6 +17,7 @@ tracks against the projected Gaussians, fit/tracks_loss.py). No USD here: the fi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +28,16 @@ from ..render import estimate_background, render
 from ..render.losses import reconstruction_loss
 from ..scene import SceneData
 from ..simulation import build_simulation
+from .interaction_check import TRAJ_SIGMA_PX
+
+# The trajectory prior's weight against the reconstruction loss: a path 1 sigma off the measured one
+# on every frame costs TRAJ_PRIOR_WEIGHT. Chosen on development data only (the tests' tiny bars,
+# tests/diagnose_scene.py, control and hidden damping, noise 0.015): a path 3 sigma off on every frame
+# costs 9 x 0.01 = 0.09, more than the whole reconstruction loss of those scenes (0.03-0.08), so no
+# gain in the images can pay for moving it that far; the pixels' own hold on the path is weak (moving
+# it 1 sigma across the ray raises the tiny bar's reconstruction loss by ~2e-4 of 0.033), so the prior
+# decides beyond ~1 sigma and the images within it (docs/diagnose.md, "the trajectory's freedom").
+TRAJ_PRIOR_WEIGHT = 1.0e-2
 
 
 @dataclass
@@ -44,8 +60,9 @@ class LossWeights:
     smooth: float = 3.0        # edge-aware (see fit.material.pair_weights): strong within a colour part, ~0 across
     smooth_plain: float = 0.02  # with the appearance prior off: edge-blind smoothing blurs material edges, so
                                 # it stays weak (0.02 measured best without the prior on foam_bar; x15: worse)
-    trajectory: float = 1.0
-    depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position
+    trajectory: float = 1.0    # x TRAJ_PRIOR_WEIGHT: the trajectory prior's weight (FitProblem.trajectory_prior)
+    depth_prior: float = 0.1   # weight of T0's depth relative to its image-plane position (sigma along the
+                               # camera ray = sigma across / sqrt(depth_prior): 3.2x)
     track: float = 0.0         # the point tracks' term (fit/tracks_loss.py; FitSettings.track_weight sets it)
 
 
@@ -55,7 +72,7 @@ class FitProblem:
 
     def __init__(self, scene: SceneData, obs: Observations, contacts: list[ContactSet], *,
                  effects: dict | None = None, device: str = "cpu", dtype: str = "float32",
-                 weights: LossWeights | None = None, knn: int = 4):
+                 weights: LossWeights | None = None, knn: int = 4, traj_sigma_px: float | None = None):
         self.scene, self.obs = scene, obs
         self.weights = weights or LossWeights()
         T = obs.n_frames
@@ -92,13 +109,24 @@ class FitProblem:
             self.tracks = track_loss_from(obs.tracks, self.cameras, scene.gaussians.means, outline=outline,
                                           dtype=self.tdtype, device=self.tdev)
         scale = float(np.max(np.ptp(self.x0, axis=0)))
-        self.traj_scale = max(0.05 * scale, 1e-3)
-        self.traj_rays = []
+        self.traj_scale = max(0.05 * scale, 1e-3)   # a length unit (effect parameters in metres, probe steps)
+        # the measured path's uncertainty: sigma_px at the contact's depth, per frame (metres across the ray)
+        self.traj_sigma_px = float(TRAJ_SIGMA_PX if traj_sigma_px is None else traj_sigma_px)
+        if not self.traj_sigma_px > 0:
+            raise ValueError(f"the trajectory's pixel uncertainty must be > 0, got {traj_sigma_px!r}")
+        self.traj_rays, self.traj_sigma = [], []
         for _, t0 in self.traj_slots:
+            p = t0.detach().cpu().numpy().astype(np.float64)
             c = np.stack([self.cameras[k].position for k in range(T)])
-            r = t0.cpu().numpy() - c
-            r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
+            r = p - c
+            dist = np.maximum(np.linalg.norm(r, axis=1), 1e-6)
+            r /= dist[:, None]
             self.traj_rays.append(torch.as_tensor(r, dtype=self.tdtype, device=self.tdev))
+            z = np.array([self.cameras[k].world_to_camera(p[k][None])[0, 2] for k in range(T)])
+            z = np.where(z > 1e-6, z, dist)                 # behind the camera: its distance
+            f = np.array([math.sqrt(self.cameras[k].fx * self.cameras[k].fy) for k in range(T)])
+            self.traj_sigma.append(torch.as_tensor(self.traj_sigma_px * z / f, dtype=self.tdtype,
+                                                   device=self.tdev))
 
     @property
     def model(self):
@@ -178,14 +206,38 @@ class FitProblem:
         rec = total / max(len(ks), 1)
         reg = 0.0
         if trajectories is not None and self.weights.trajectory > 0:
-            for tr, (_, t0), rays in zip(trajectories, self.traj_slots, self.traj_rays):
-                d = (tr - t0) / self.traj_scale
-                along = (d * rays).sum(-1, keepdim=True)
-                across = d - along * rays
-                # T0's depth (along the camera ray) is far less certain than its image position
-                reg = reg + self.weights.trajectory * ((across ** 2).sum(-1) + self.weights.depth_prior
-                                                       * along[..., 0] ** 2).mean()
+            reg = self.trajectory_prior(trajectories)
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
+
+    def trajectory_prior_residual(self, trajectories, reference=None) -> torch.Tensor:
+        """The trajectory prior as a residual vector whose sum of squares is `trajectory_prior`: per
+        slot and frame k, sqrt(w / T) x (the path's offset from T0 across the camera ray / sigma_k
+        (3 components), sqrt(depth_prior) x its offset along the ray / sigma_k), with
+        w = weights.trajectory x TRAJ_PRIOR_WEIGHT and sigma_k = traj_sigma_px x depth_k / focal_px
+        (`traj_sigma`: the measured path's uncertainty at the contact's depth). The same whether
+        T0 was extracted, given by the user or the ground truth: the measurement is the path.
+        `reference`: the measured paths (one per slot) where the problem's T0 is another (the
+        diagnosis builds its problem at the fitted path)."""
+        parts = []
+        w = self.weights.trajectory * TRAJ_PRIOR_WEIGHT
+        refs = [t0 for _, t0 in self.traj_slots] if reference is None else \
+            [torch.as_tensor(np.asarray(r), dtype=self.tdtype, device=self.tdev) for r in reference]
+        for tr, t0, rays, sig in zip(trajectories, refs, self.traj_rays, self.traj_sigma):
+            d = (tr - t0) / sig[:, None]
+            along = (d * rays).sum(-1, keepdim=True)
+            across = d - along * rays
+            # T0's depth (along the camera ray) is far less certain than its image position
+            v = torch.cat([across, math.sqrt(self.weights.depth_prior) * along], -1) * math.sqrt(w / len(tr))
+            parts.append(v.reshape(-1))
+        if not parts:
+            return torch.zeros(0, dtype=self.tdtype, device=self.tdev)
+        return torch.cat(parts)
+
+    def trajectory_prior(self, trajectories):
+        """L_traj = w x mean over frames of (|offset across the ray|^2 + depth_prior x offset
+        along it^2) / sigma_k^2, summed over the trajectory slots (`trajectory_prior_residual`)."""
+        r = self.trajectory_prior_residual(trajectories)
+        return (r * r).sum() if len(r) else 0.0
 
 
     def losses_batch(self, E, nu, trajectories=None, effects=None, frames=None) -> np.ndarray:
