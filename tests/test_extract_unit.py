@@ -400,3 +400,40 @@ def test_the_type_reads_the_toucher_while_it_acts_not_its_retreat():
     assert classify_interaction(dict(press, acting_motion_px=9.8, push_cos=1.0))[0] == "pointAdherent"
     assert classify_interaction(dict(press, coupled_share=0.8))[0] == "pointAdherent"
 
+
+
+def test_supports_that_would_pin_the_object_against_the_interaction_are_shrunk_or_dropped():
+    """(#23) a support next to the grasp, one the grasp's path would tear the object off, and one a
+    fingertip's path sweeps through are shrunk or dropped, and the notes say so; a support clear of
+    a modest pull is kept whole."""
+    from physinteract_usd.contacts import ContactSet
+    from physinteract_usd.extract.supports import unpin
+
+    h = 0.01
+    x0 = np.stack([np.arange(21) * h, np.zeros(21), np.zeros(21)], 1)       # a 20 cm rod along x
+    held = np.arange(16, 21)                                               # the grasp at the right end
+    T = 6
+    pull = np.tile(x0[held].mean(0), (T, 1))
+    pull[:, 1] = np.linspace(0.0, 0.05, T)                                 # lifted 5 cm: a modest stretch
+    grasp = ContactSet("hand", "pointAdherent", held, trajectory=pull)
+    clamp = ContactSet("support", "fixed", np.arange(0, 4))
+    notes, ev = [], {}
+    out = unpin(x0, h, grasp, [clamp], notes, ev)
+    assert len(out) == 1 and len(out[0].indices) == 4 and not notes
+    # a support reaching the grasp: the particles within two spacings of it go
+    wide = ContactSet("support", "fixed", np.arange(0, 16))
+    out = unpin(x0, h, grasp, [wide], notes, ev)
+    assert out[0].indices.max() <= 13 and "next to the grasp" in notes[-1]
+    # pulled 40 cm away from a clamp 14 cm off: torn off, not held; dropped
+    tear = pull.copy()
+    tear[:, 0] += np.linspace(0.0, 0.4, T)
+    notes = []
+    assert unpin(x0, h, ContactSet("hand", "pointAdherent", held, trajectory=tear),
+                 [ContactSet("support", "fixed", np.arange(0, 4))], notes, ev) == []
+    assert "stretch" in notes[0] and "--support-pixel" in notes[0]
+    # a fingertip of 2 cm pushed along the rod from its right end sweeps through the particles there
+    path = np.stack([np.linspace(0.22, 0.10, T), np.zeros(T), np.zeros(T)], 1)
+    poke = ContactSet("finger", "pointNonAdherent", trajectory=path, radius=0.02)
+    notes = []
+    out = unpin(x0, h, poke, [ContactSet("support", "fixed", np.arange(5, 21))], notes, ev)
+    assert out[0].indices.max() < 10 and "inside the fingertip's path" in notes[0]

@@ -45,7 +45,7 @@ from .interaction_type import classify
 from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
-from .supports import support_contacts
+from .supports import support_contacts, unpin
 from .timing import apply_overrides, collider_start, find_timing, timing_confidence
 
 
@@ -95,6 +95,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     supports, motion_p = support_contacts(an, hint, held, acting_motion(hand, g, lifted.release, itype),  # 8: supports
                                           lifted.push_dir, evidence, notes, lowest_contact_y=low)
     contact = lifted.contact
+    if not (hint is not None and hint.has_support):
+        supports = unpin(an.x0, an.spacing, contact, supports, notes, evidence)
     return ExtractionResult(contacts=[contact] + supports, hand_masks=an.hand, interaction_type=itype,
                             type_source=tsource,
                             grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,

@@ -357,3 +357,59 @@ def hinted_supports(an: Analysis, hint, detected: list, exclude) -> list:
         idx = particles_near(p3[None], an.x0, max(SUPPORT_HINT_RADIUS_M, 1.6 * an.spacing), min_count=3)
         sets.append(np.setdiff1d(idx, exclude))
     return [s_ for s_ in sets if len(s_)]
+
+
+# ------------------------------------------------------------------------------ sanity
+def unpin(x0: np.ndarray, h: float, contact: ContactSet, supports: list, notes: list, evidence: dict,
+          max_stretch: float = 1.0) -> list:
+    """Supports that would pin the object against the interaction itself, shrunk or dropped, and
+    said so (a fit on them goes unstable or leaves its grid at every E, #23): of each support,
+    the particles (a) the grasp holds too or that lie within two spacings of them (held by two
+    hands at once), (b) a collider's sphere sweeps through along its T0 (a fixed particle inside a
+    moving sphere), and (c) for a grasp, a whole support that its T0 would stretch the object
+    away from by more than `max_stretch` x the rest distance between them (the video shows no
+    such stretch: the hand would tear the object off it). Returns the supports left."""
+    if not supports:
+        return supports
+    tr = None if contact.trajectory is None else np.asarray(contact.trajectory, np.float64)
+    out, said = [], []
+    for s in supports:
+        idx = np.asarray(s.indices, np.int64)
+        keep = np.ones(len(idx), bool)
+        why = []
+        if contact.type == "pointAdherent" and len(contact.indices):
+            held = x0[np.asarray(contact.indices, np.int64)]
+            d = np.min(np.linalg.norm(x0[idx][:, None, :] - held[None], axis=2), axis=1)
+            near = d <= 2.0 * h
+            if near.any():
+                keep &= ~near
+                why.append(f"{int(near.sum())} next to the grasp")
+            if keep.any() and tr is not None:
+                c = held.mean(0)
+                pts = x0[idx[keep]]
+                d0 = float(np.min(np.linalg.norm(pts - c, axis=1)))
+                moved = tr - tr[0] + c
+                dt = np.min(np.linalg.norm(moved[:, None, :] - pts[None], axis=2), axis=1)
+                stretch = float((dt.max() - d0) / max(d0, h))
+                if stretch > max_stretch:
+                    keep[:] = False
+                    why.append(f"the grasp's path would stretch the object {stretch:.1f}x the "
+                               f"{100 * d0:.1f} cm between them")
+        elif contact.type == "pointNonAdherent" and tr is not None and contact.radius > 0:
+            d = np.min(np.linalg.norm(x0[idx][:, None, :] - tr[None], axis=2), axis=1)
+            inside = d < contact.radius - 0.5 * h
+            if inside.any():
+                keep &= ~inside
+                why.append(f"{int(inside.sum())} inside the fingertip's path")
+        if why:
+            left = int(keep.sum())
+            said.append(f"{s.name}: {len(idx)} -> {left if left >= 3 else 0} particles ({'; '.join(why)})")
+        if keep.sum() >= 3:
+            s.indices = idx[keep]
+            out.append(s)
+    if said:
+        evidence["supports_unpinned"] = said
+        notes.append("supports that would pin the object against the interaction were shrunk or dropped ("
+                     + "; ".join(said) + "): a fit on them goes unstable; if the object is held there, "
+                     "--support-pixel or --support-particles sets it")
+    return out
