@@ -2,8 +2,8 @@
 
 For each development capture and each particle cap, `init --grid auto --max-particles CAP` (the
 cap decides the grid when a thin part wants more cells than it allows), then the select schedule's
-uniform-E sweep with the TRUE interaction (`world_fit.truth_sweep`: contacts, supports and hand
-path from the ground truth; the floor from the extraction, as a user would add it). One row per
+uniform-E sweep with the TRUE interaction (`world_fit.truth_sweep`: contacts, supports, hand
+path and floor from the ground truth). One row per
 (capture, cap): the grid, cells across the thinnest part, particles, the sweep's best E over the
 true median E, its near-best interval and whether it holds the truth.
 
@@ -32,7 +32,7 @@ from physinteract_usd.usd.stage import read_grid_choice
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from world_fit import add_ground, truth_sweep  # noqa: E402
+from world_fit import truth_sweep  # noqa: E402
 from world_suite import parse_seeds  # noqa: E402
 
 
@@ -67,10 +67,7 @@ def one(work: Path, n: str, cap_n: int, device: str, init_only: bool, scratch: P
     if init_only:
         return row
     stage = out / "scene.usda"
-    res = api.extract(stage, log=lambda *a: None, device=device, preview=False)
-    floor = res.evidence.get("floor")
-    if floor:
-        add_ground(stage, floor["height"], floor.get("friction", 0.5))
+    floor = json.loads((gt / "gt.json").read_text()).get("floor")   # truth_sweep adds the truth's
     e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
     t1 = time.perf_counter()
     try:

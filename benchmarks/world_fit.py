@@ -56,13 +56,23 @@ def truth_sweep(stage: Path, gt: Path, device: str, e_true: float, nu: float | N
     (fit/select.uniform_stage, one minimum refined) with the TRUE contacts, supports and hand path,
     every frame but the first: its near-best hull (every uniform E within 1% of the best loss) and
     the level `identifiability` gives it. A capture whose hull is wide is one where no fit can be
-    expected to find E within 20% from this video; MA there says nothing about the fit. `nu`: the
+    expected to find E within 20% from this video; MA there says nothing about the fit. The floor is
+    the truth's too (on a copy of the stage: `<stage folder>.truth-sweep`). `nu`: the
     sweep's Poisson ratio (default: the stage's default, as the fit's uniform stage takes it)."""
     import dataclasses
 
     from physinteract_usd.app.fit import make_problem, prepare_fit
     from physinteract_usd.fit.select import identifiability, sweep_interval, uniform_stage
 
+    g = json.loads((gt / "gt.json").read_text())
+    if g.get("floor"):
+        # the TRUE interaction includes the floor: a copy of the stage with the truth's (the
+        # extraction's floor, or none where it missed it, made dev_0003 fall out of its grid)
+        tmp = stage.parent.parent / f"{stage.parent.name}.truth-sweep"
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(stage.parent, tmp)
+        stage = tmp / stage.name
+        add_ground(stage, g["floor"]["height"], g["floor"].get("friction", 0.5))
     job = prepare_fit(stage, iterations=1, contact_from=gt, device=device, log=lambda *a: None, warm=False)
     prob = make_problem(job)
     s = dataclasses.replace(job.settings, select_minima=1, search_evals=4)
