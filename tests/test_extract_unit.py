@@ -437,3 +437,20 @@ def test_supports_that_would_pin_the_object_against_the_interaction_are_shrunk_o
     notes = []
     out = unpin(x0, h, poke, [ContactSet("support", "fixed", np.arange(5, 21))], notes, ev)
     assert out[0].indices.max() < 10 and "inside the fingertip's path" in notes[0]
+
+
+def test_a_sphere_that_comes_in_and_pulls_back_rests_for_an_instant_at_its_turn():
+    """(#23, dev_0020) a sphere approaches fast (6 px a frame) leftward, the object not following,
+    stops for an instant (0.36 px) and pulls back rightward with the object: the grasp is the turn;
+    a pull that reverses mid-way with the object following both ways (dev_0013) is no rest."""
+    from physinteract_usd.extract.timing import rest_onset
+
+    sp = np.array([0.55, 2.7, 5.0, 6.0, 5.9, 4.7, 3.7, 1.8, 0.8, 0.36, 1.0, 1.7, 2.2, 2.8, 3.2, 3.4])
+    vh = np.zeros((len(sp), 2))
+    vh[:9, 0] = -sp[:9]
+    vh[9] = [0.30, 0.20]
+    vh[10:, 0] = sp[10:]
+    coupled = np.where(np.arange(len(sp)) < 9, -1, 1).astype(np.int8)
+    assert rest_onset(sp, vh, 0, len(sp) - 1, coupled) == 9
+    # the same speeds, the object following before the turn too: a pull reversing, no rest
+    assert rest_onset(sp, vh, 0, len(sp) - 1, np.ones(len(sp), np.int8)) is None

@@ -311,7 +311,7 @@ def contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, coupled
     ks = [k for k in range(p0, min(p1, T1 - 1) + 1) if np.isfinite(speed[k])]
     if not ks:
         return p0
-    on = rest_onset(speed, vh, p0, p1)
+    on = rest_onset(speed, vh, p0, p1, coupled)
     if on is not None:
         return on
     sp = np.array([speed[k] for k in ks])
@@ -337,13 +337,16 @@ def contact_start(speed: np.ndarray, near: np.ndarray, p0: int, p1: int, coupled
     return skip_approach(win[0], coupled, speed, p1) if win is not None else p0
 
 
-def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, eps: float = 0.35, noise: float = 0.1,
-               window: int = 4) -> int | None:
+def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.ndarray | None = None,
+               eps: float = 0.35, noise: float = 0.1, window: int = 4) -> int | None:
     """The grasp as the onset of the toucher's motion after it comes to rest on the object,
     judged against its own noise floor, not against its peak (a slow press at 0.3-0.5 px a frame
     followed by a fast retreat is all 'slow' next to the retreat). The rest: the first two frames
     running of the contact period slower than `eps` (one slow frame is the approach's start or
-    end), or one where the toucher is first seen (unseen in the frame before: it is already there);
+    end), or one where the toucher is first seen (unseen in the frame before: it is already there),
+    or one slower than 2 `eps` and than the pairs either side where it turns (the pairs either
+    side over 60 deg apart, the object not following the pair before: a sphere that comes in and
+    pulls back out stops for an instant; a pull that reverses mid-way is no rest);
     its floor the median of the 3 stillest of its first 6 slow frames running. The onset: the
     first frame pair, within `window` frames of the first frame at the floor (+`noise` px), from
     which the toucher moves above that level in two pairs running, the same way (cos >= 0.5:
@@ -356,12 +359,24 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, eps: float =
     def slow(k):
         return 0 <= k < T1 and np.isfinite(speed[k]) and speed[k] < eps
 
-    s = next((k for k in range(p0, hi + 1) if slow(k) and (slow(k + 1) or (k > 0 and not np.isfinite(speed[k - 1])))),
-             None)
+    def turn(k):
+        # one frame between an approach and a motion the other way (within 60 deg of reversed, or
+        # across): the toucher stops there for an instant
+        if not (0 < k < T1 - 1 and np.isfinite(vh[k - 1]).all() and np.isfinite(vh[k + 1]).all()
+                and np.isfinite(speed[k]) and speed[k] < 2 * eps):
+            return False
+        if coupled is not None and coupled[k - 1] > 0:
+            return False
+        a, b = vh[k - 1], vh[k + 1]
+        na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+        return speed[k] < min(na, nb) and float(np.dot(a, b)) < 0.5 * na * nb
+
+    s = next((k for k in range(p0, hi + 1) if (slow(k) and (slow(k + 1) or (k > 0 and not np.isfinite(speed[k - 1]))))
+              or turn(k)), None)
     if s is None:
         return None
-    w = []
-    for k in range(s, min(hi, s + 5) + 1):
+    w = [speed[s]]
+    for k in range(s + 1, min(hi, s + 5) + 1):
         if not slow(k):
             break
         w.append(speed[k])
