@@ -64,7 +64,14 @@ def one(work: Path, n: str, cap: int, iterations: int, refit_iterations: int, de
     row["before"] = scored(stage, gt, device, e_true)
     log(f"{n}: base fit E x{row['before']['e_ratio']:.2f}, MA {row['before']['ma']:.3f} ({row['fit_s']:.0f} s)", flush=True)
     t1 = time.perf_counter()
-    d = api.diagnose(stage, device=device, progress=False, log=quiet)
+    try:
+        d = api.diagnose(stage, device=device, progress=False, log=quiet)
+    except Exception as exc:  # noqa: BLE001 - the base fit's row stands
+        row["error"] = f"diagnose: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+        log(f"{n}: {row['error']}", flush=True)
+        if not add:
+            return row
+        d = {}
     row["diagnose_s"] = time.perf_counter() - t1
     row["verdict"] = d.get("verdict")
     row["candidates"] = [{k: c.get(k) for k in ("effect", "predicted_loss_drop", "realized_loss_drop", "estimate",
