@@ -148,3 +148,126 @@ def one_hot(labels: np.ndarray) -> np.ndarray:
     B = np.zeros((len(labels), m))
     B[np.arange(len(labels)), labels] = 1.0
     return B
+
+
+# ---------------------------------------------------------------------- parts (schedule "select")
+
+def colour_clusters(features: np.ndarray | None, free: np.ndarray, min_contrast: float = 0.08, k_max: int = 3,
+                    seed: int = 0) -> np.ndarray | None:
+    """Colour clusters of the free particles (k-means on their local mean colours; -1 on held
+    ones), or None when the colours do not differ. The rule for k: k = 2 when its two centres
+    differ by more than `min_contrast` (RGB distance); k = 3 (up to `k_max`) only when every pair
+    of its centres differs by more than `min_contrast`, no centre lies within `min_contrast` of the
+    segment between two others (not the blended colours along the edge between two parts), and the
+    third cluster removes at least half of the within-cluster scatter k = 2 leaves (a third colour,
+    not the texture of two)."""
+    if features is None:
+        return None
+    from scipy.cluster.vq import kmeans2
+
+    free = np.asarray(free, bool)
+    idx = np.where(free)[0]
+    if len(idx) < 4:
+        return None
+    f = np.asarray(features, np.float64)[idx]
+    best, sse_prev = None, None
+    for k in range(2, int(k_max) + 1):
+        if len(f) < 2 * k:
+            break
+        # k-means++ starts, the best of a few seeds (k-means falls into local minima)
+        runs = []
+        for r in range(4):
+            c, lab = kmeans2(f, k, minit="++", seed=seed + r)
+            sse = float(((f - c[lab]) ** 2).sum())
+            runs.append((sse, c, lab))
+        sse, c, lab = min(runs, key=lambda t: t[0])
+        used = np.unique(lab)
+        if len(used) < k:
+            break
+        d = np.linalg.norm(c[:, None] - c[None], axis=-1)[np.triu_indices(k, 1)]
+        if d.min() < min_contrast or (k >= 3 and _blend(c) < min_contrast):
+            break
+        if sse_prev is not None and sse > 0.5 * sse_prev:
+            break
+        best, sse_prev = lab, sse
+    if best is None:
+        return None
+    out = np.full(len(free), -1, np.int64)
+    out[idx] = best
+    return out
+
+
+def _blend(c: np.ndarray) -> float:
+    """How far the centre nearest a blend of two others lies from the segment between them (RGB
+    distance): the local mean colours at the edge between two colours lie on that segment."""
+    out = float("inf")
+    for i in range(len(c)):
+        for j in range(len(c)):
+            for k in range(j + 1, len(c)):
+                if i in (j, k):
+                    continue
+                a, b = c[j], c[k]
+                t = float(np.clip(np.dot(c[i] - a, b - a) / max(np.dot(b - a, b - a), 1e-12), 0.0, 1.0))
+                out = min(out, float(np.linalg.norm(c[i] - (a + t * (b - a)))))
+    return out
+
+
+def connected_parts(cluster: np.ndarray, graph: sp.csr_matrix, min_size: int, max_parts: int) -> np.ndarray | None:
+    """Parts (labels 0..m-1, -1 where `cluster` is -1) from cluster labels: each cluster's connected
+    pieces are parts; a piece smaller than `min_size` joins the neighbouring part it shares most
+    graph edges with (largest pieces first keep their own). With more than `max_parts` connected
+    parts left, each cluster is one part (its pieces share one E: same colour, same material).
+    None when fewer than two parts are left."""
+    cluster = np.asarray(cluster, np.int64)
+    lab = np.full(len(cluster), -1, np.int64)
+    pieces = []
+    for c in np.unique(cluster[cluster >= 0]):
+        pieces += [(c, p) for p in components(cluster == c, graph)]
+    pieces.sort(key=lambda t: -len(t[1]))
+    big = [p for p in pieces if len(p[1]) >= min_size]
+    for j, (_, p) in enumerate(big):
+        lab[p] = j
+    small = [p for _, p in pieces if len(p) < min_size]
+    G = graph.tocsr()
+    for _ in range(len(small) + 1):      # a small piece may touch only another small one: repeat
+        left = []
+        for p in small:
+            nb = G[p].indices
+            nb = nb[lab[nb] >= 0]
+            if len(nb):
+                lab[p] = np.bincount(lab[nb]).argmax()
+            else:
+                left.append(p)
+        if len(left) == len(small):
+            break
+        small = left
+    for p in small:                      # isolated: the nearest part by graph-free distance
+        lab[p] = 0 if len(big) else -1
+    m = int(lab.max()) + 1
+    if m > max_parts:
+        cl = np.unique(cluster[cluster >= 0])
+        lab = np.where(cluster >= 0, np.searchsorted(cl, cluster), -1)
+        m = len(cl)
+    return lab if m >= 2 else None
+
+
+def motion_clusters(score: np.ndarray, free: np.ndarray, graph: sp.csr_matrix, steps: int = 4) -> np.ndarray | None:
+    """Two clusters of the free particles from the motion: the (smoothed) score dL/dlog E split at
+    its median, the side that wants a stiffer material (negative score) against the softer one;
+    -1 on held particles. None without a free particle on either side."""
+    free = np.asarray(free, bool)
+    if free.sum() < 4:
+        return None
+    s = smooth(np.where(free, score, 0.0), graph, steps=steps, within=free.astype(np.int64))
+    cut = float(np.median(s[free]))
+    out = np.where(free, (s >= cut).astype(np.int64), -1)
+    if len(np.unique(out[free])) < 2:
+        return None
+    return out
+
+
+def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two labelings split the particles alike (the same parts under any names)."""
+    a, b = np.asarray(a), np.asarray(b)
+    pairs = np.unique(np.stack([a, b], 1), axis=0)
+    return len(pairs) == len(np.unique(a)) == len(np.unique(b))

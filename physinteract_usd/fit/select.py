@@ -32,12 +32,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
+import types
 
 import numpy as np
 import torch
 
 from ..errors import SimulationError
-from .effect_params import effect_parameters, effect_values
+from .effect_params import effect_parameters, effect_values, fitted_values
 from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
@@ -173,6 +175,366 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
             "skipped": sorted(skipped)}
 
 
+def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None) -> list[dict]:
+    """Candidate partitions of the object into parts (`fit.regions`), each {"kind", "labels" (P,)
+    0..m-1, "parts"}: by appearance (colour clusters of the particles' local colours, k by
+    `regions.colour_clusters`' rule) and by motion (the uniform model's score dL/dlog E split at
+    its median: regions that want to strain differently), each cut into connected parts of at
+    least `region_min_share` of the particles (smaller pieces join their neighbour), at most
+    `select_max_parts`. Held particles (the video cannot see their material) join the nearest free
+    cluster before the cut. The same partition found twice is kept once."""
+    from . import regions as R
+
+    st = prob.scene.settings
+    P = len(prob.x0)
+    held = np.asarray(prob.held_particles(), bool)
+    free = ~held
+    graph = R.particle_graph(prob.x0, 1.6 * st.particle_spacing)
+    min_size = max(8, int(s.region_min_share * P))
+    clusters = []
+    if s.appearance > 0:
+        clusters.append(("appearance", R.colour_clusters(prob.particle_appearance(), free, seed=s.seed)))
+    if score is not None:
+        clusters.append(("motion", R.motion_clusters(score, free, graph)))
+    out = []
+    for kind, cl in clusters:
+        if cl is None:
+            continue
+        # held particles join the nearest free cluster first: a part reaching into a support is
+        # one piece through it
+        cl = R.attach_held(cl, held, prob.x0)
+        lab = R.connected_parts(cl, graph, min_size, int(s.select_max_parts))
+        if lab is None or (lab < 0).any():
+            continue
+        if any(R.same_partition(lab, c["labels"]) for c in out):
+            if log:
+                log(f"parts by {kind}: the same partition as by {', '.join(c['kind'] for c in out)}")
+            continue
+        out.append({"kind": kind, "labels": lab, "parts": int(lab.max()) + 1})
+    return out
+
+
+def part_score(prob, r: FitResult, s: FitSettings, frames) -> np.ndarray | None:
+    """dL/dlog E per particle at a fit result (training frames; one forward and backward pass; zero
+    on held particles): where the material wants to be stiffer (negative) or softer."""
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
+    names = prob.sim.slot_names()
+    trajs = [t(r.trajectories[n]) for n in names] if names else None
+    eff = None
+    if r.effect_parameters:
+        eff = effect_values(effect_parameters(prob, s.fit_effects, r.effect_parameters), prob.traj_scale)
+    log_e = torch.log(t(r.youngs)).requires_grad_(True)
+    try:
+        with torch.enable_grad():
+            out = prob.loss(torch.exp(log_e), t(r.poisson), trajs, eff, frames=frames)
+            g, = torch.autograd.grad(out["rec"], log_e)
+    except SimulationError:
+        return None
+    g = g.detach().cpu().numpy().astype(np.float64)
+    g[np.asarray(prob.held_particles(), bool)] = 0.0
+    return g if np.isfinite(g).all() else None
+
+
+class PartProbe:
+    """The reconstruction loss on `frames` of a piecewise-constant E (one log E per part), the
+    nu, trajectories and effects held; no gradients, cached per log-E vector. A probe that goes
+    unstable or leaves the grid is inf."""
+
+    def __init__(self, prob, frames, labels, nu, trajs, effects, batch: str = "cuda"):
+        self.prob, self.frames, self.labels = prob, list(frames), np.asarray(labels, np.int64)
+        self.nu, self.trajs, self.effects, self.batch = nu, trajs, effects, batch
+        self.cache: dict[tuple, float] = {}
+
+    def _E(self, le) -> torch.Tensor:
+        return torch.as_tensor(np.exp(np.asarray(le, np.float64))[self.labels], dtype=self.prob.tdtype,
+                               device=self.prob.tdev)
+
+    def __call__(self, le) -> float:
+        key = tuple(round(float(v), 10) for v in le)
+        if key not in self.cache:
+            try:
+                with torch.no_grad():
+                    v = float(self.prob.loss(self._E(key), self.nu, self.trajs, self.effects, frames=self.frames)["rec"])
+            except SimulationError:
+                v = float("inf")
+            self.cache[key] = v if math.isfinite(v) else float("inf")
+        return self.cache[key]
+
+    def many(self, les: list) -> list[float] | None:
+        """Several probes as tiled copies in few rollouts on a GPU (`FitProblem.losses_batch`);
+        None where that does not apply (the CPU, a scene that cannot be tiled). Their values are
+        taken at the stiffest copy's substep, so they choose where to look, and the chosen point
+        is probed on its own."""
+        from ..sim.batch import TilingError
+
+        if self.batch == "never" or (self.batch == "cuda" and not str(self.prob.tdev).startswith("cuda")):
+            return None
+        E = torch.stack([self._E(le) for le in les])
+        try:
+            vals = self.prob.losses_batch(E, self.nu, self.trajs, self.effects, frames=self.frames)
+        except TilingError:
+            return None
+        return [float(v) for v in vals]
+
+
+def part_sweep(f: PartProbe, start: np.ndarray, grid: np.ndarray, s: FitSettings) -> dict:
+    """Coordinate search of each part's log E (forward passes only): in the first round, each
+    part in turn (largest first) over the whole `grid` of log E, the others held, then a
+    golden-section refinement in the best probe's bracket (`search_evals` probes); later rounds
+    refine each part by a golden section (3 probes) within one grid step of where it is. Returns {"log_e", "loss", "lines": per
+    part {log E: loss} of its last line}."""
+    cur = np.asarray(start, np.float64).copy()
+    lo, hi = float(grid[0]), float(grid[-1])
+    step = float(grid[1] - grid[0]) if len(grid) > 1 else 1.0
+    sizes = np.bincount(f.labels, minlength=len(cur))
+    order = list(np.argsort(-sizes))
+    lines: dict[int, dict] = {}
+    best = f(cur)
+    for rnd in range(max(int(s.select_part_rounds), 1)):
+        for j in order:
+            line: dict[float, float] = {float(cur[j]): best}
+
+            def g(x, j=j, line=line):
+                le = cur.copy()
+                le[j] = x
+                v = f(le)
+                line[float(x)] = v
+                return v
+
+            if rnd == 0:
+                pts = [cur.copy() for _ in grid]
+                for p, x in zip(pts, grid):
+                    p[j] = x
+                vals = f.many(pts)
+                if vals is None:
+                    vals = [g(float(x)) for x in grid]
+                else:
+                    g(float(grid[int(np.argmin(vals))]))
+                i = int(np.argmin(vals))
+                a, b = max(lo, float(grid[i]) - step), min(hi, float(grid[i]) + step)
+            else:
+                a, b = max(lo, cur[j] - step), min(hi, cur[j] + step)
+            golden_section(g, a, b, s.search_evals if rnd == 0 else min(int(s.search_evals), 3))
+            x = min(line, key=line.get)
+            if line[x] < best:
+                best, cur[j] = line[x], x
+            lines[int(j)] = line
+    return {"log_e": cur, "loss": best, "lines": lines}
+
+
+def _line_interval(line: dict, rise: float) -> list[float]:
+    """The hull of one part's probed E within `rise` (a share) of its line's best: [lo, hi] Pa."""
+    fin = {k: v for k, v in line.items() if math.isfinite(v)}
+    if not fin:
+        return [float("nan"), float("nan")]
+    best = min(fin.values())
+    near = [k for k, v in fin.items() if v <= best * (1.0 + rise)]
+    return [math.exp(min(near)), math.exp(max(near))]
+
+
+def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start: dict, iterations: int, *,
+              progress: bool = False, log=None, on_iteration=None, confidence_probes: int = 0) -> FitResult:
+    """A piecewise-constant E (one per part of `labels`) and one nu, polished by AdamW from
+    `log_e` (per part) and `start` ({"poisson", "trajectories", "effects"}) for `iterations` steps
+    (cosine-annealed; the trajectory too when `s.joint`); the best iterate is kept. The result's
+    `regions` are the labels; `model["part_fit"]` each part's E, particles and, with
+    `confidence_probes`, its 95% interval from the loss's curvature (`optimize.confidence`)."""
+    from .material import MaterialField
+    from .optimize import assemble_result, confidence, frame_metrics
+
+    t0 = time.perf_counter()
+    st = prob.scene.settings
+    labels = np.asarray(labels, np.int64)
+    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
+                        device=prob.tdev, seed=s.seed)
+    nu0 = float(np.median(start["poisson"])) if start.get("poisson") is not None else st.poisson_default
+    mat.set_uniform(math.exp(float(np.mean(log_e))), min(nu0, 0.98 * st.poisson_max))
+    mat.set_regions(labels)
+    mat.set_region_log_e(np.clip(log_e, mat.lo + 1e-3, mat.hi - 1e-3))
+    names = prob.sim.slot_names()
+    trajs = [t.clone() for t in prob.initial_trajectories()]
+    for i, n in enumerate(names):
+        if n in (start.get("trajectories") or {}):
+            trajs[i] = torch.as_tensor(np.asarray(start["trajectories"][n]), dtype=prob.tdtype, device=prob.tdev)
+    eff_raw = effect_parameters(prob, s.fit_effects, start.get("effects") or None)
+
+    def eff_now():
+        return effect_values(eff_raw, prob.traj_scale) if eff_raw else None
+
+    fit_traj = bool(s.joint and trajs)
+    for t in trajs:
+        t.requires_grad_(fit_traj)
+    groups = [{"params": [mat.theta], "lr": s.lr_material}, {"params": [mat.w_nu], "lr": s.lr_poisson}]
+    if fit_traj:
+        groups.append({"params": trajs, "lr": s.lr_trajectory})
+    eff = [v for ps in eff_raw.values() for v in ps.values()]
+    if eff:
+        groups.append({"params": eff, "lr": s.lr_effects})
+    opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+    base = [g["lr"] for g in opt.param_groups]
+
+    def snap():
+        return {"theta": mat.theta.detach().clone(), "w_nu": mat.w_nu.detach().clone(),
+                "trajs": [t.detach().clone() for t in trajs],
+                "effects": {e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in eff_raw.items()}}
+
+    def restore(b):
+        with torch.no_grad():
+            mat.theta.copy_(b["theta"])
+            mat.w_nu.copy_(b["w_nu"])
+            for t, v in zip(trajs, b["trajs"]):
+                t.copy_(v)
+            for e, ps in b["effects"].items():
+                for p, v in ps.items():
+                    eff_raw[e][p].copy_(v)
+
+    best_v, best = float("inf"), snap()
+    history: list[float] = []
+    interrupted = False
+    n = max(int(iterations), 0)
+    bar = None
+    if progress and n:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n, desc="fit parts", unit="it", dynamic_ncols=True, leave=False)
+    try:
+        for j in range(n):
+            cos = 0.5 * (1 + math.cos(math.pi * j / max(n, 1)))
+            for g, b0 in zip(opt.param_groups, base):
+                g["lr"] = b0 * (0.1 + 0.9 * cos)
+            opt.zero_grad(set_to_none=True)
+            try:
+                out = prob.loss(mat.youngs(), mat.poisson(), trajs if trajs else None, effects=eff_now())
+            except SimulationError as exc:
+                if log:
+                    log(f"parts iteration {j}: {exc}; halving the step")
+                for g in opt.param_groups:
+                    g["lr"] *= 0.5
+                restore(best)
+                continue
+            total = out["rec"] + out["reg_traj"]
+            lv = float(total.detach())
+            history.append(lv)
+            if lv < best_v:
+                best_v, best = lv, snap()
+            total.backward()
+            for tr in trajs:          # the rest frame is observed: its position is not a parameter
+                if tr.grad is not None:
+                    tr.grad[0] = 0
+            for g in opt.param_groups:
+                for p in g["params"]:
+                    if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                        p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            opt.step()
+            if on_iteration is not None:
+                on_iteration(j + 1, lv, mat, trajs)
+            if bar is not None:
+                bar.set_postfix(loss=f"{lv:.4f}", parts=mat.K)
+                bar.update(1)
+    except KeyboardInterrupt:
+        interrupted = True
+        if log:
+            log("interrupted: keeping the best iterate so far")
+    finally:
+        if bar is not None:
+            bar.close()
+    if history:
+        restore(best)
+    for t in trajs:
+        t.requires_grad_(False)
+    E, nu = mat.youngs().detach(), mat.poisson().detach()
+    tr = [t.detach() for t in trajs] if trajs else None
+    with torch.no_grad():
+        out = prob.loss(E, nu, tr, effects=eff_now(), frames=range(1, prob.T), keep_renders=True)
+        final_loss = float(out["rec"] + out["reg_traj"])
+        x, F = out["x"], out["F"]
+        renders = {0: {k: v.detach() for k, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
+    metrics = frame_metrics(prob, renders)
+    conf = np.ones(len(prob.x0))
+    le = mat.region_log_e()
+    parts = [{"e": float(math.exp(v)), "particles": int((labels == r).sum())} for r, v in enumerate(le)]
+    if confidence_probes > 0 and not interrupted:
+        conf, sigma = confidence(prob, mat, trajs, confidence_probes, seed=s.seed, return_sigma=True,
+                                 effects=eff_now())
+        for r, p in enumerate(parts):
+            sg = float(np.median(sigma[labels == r]))
+            p["interval_95"] = [float(math.exp(le[r] - 1.96 * sg)), float(math.exp(le[r] + 1.96 * sg))]
+    res = assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, None, history, final_loss, t0, interrupted,
+                          math.exp(float(np.mean(le))), regions=labels.copy(), model={"part_fit": parts},
+                          effect_parameters=fitted_values(eff_raw, prob.traj_scale) if eff_raw else {})
+    return res
+
+
+def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations: int, *, progress=False, log=None,
+                on_iteration=None) -> tuple[FitResult | None, dict]:
+    """The parts step (module doc, 3.): candidate partitions (`part_candidates`), each part's E
+    by a coordinate sweep (`part_sweep`) from the uniform model's E, and the best candidate's also
+    from the uniform stage's other distinct minima (`select_part_starts`; the loss of a part can be
+    needle-like and multimodal in E: a field that starts in the uniform optimum's well stays
+    there), the best sweep polished by AdamW (`fit_parts`) on the training frames. Returns (the parts model or None, its record)."""
+    say = log or (lambda *a: None)
+    st = prob.scene.settings
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
+    score = part_score(prob, ru, s, view._frames)
+    cands = part_candidates(prob, s, score, log=log)
+    rec: dict = {"candidates": []}
+    if not cands:
+        rec["why"] = "no candidate parts (one colour, and the motion does not split the object)"
+        say(f"parts: {rec['why']}")
+        return None, rec
+    names = prob.sim.slot_names()
+    trajs = [t(ru.trajectories[n]) for n in names] if names else None
+    eff = None
+    if ru.effect_parameters:
+        eff = effect_values(effect_parameters(prob, s.fit_effects, ru.effect_parameters), prob.traj_scale)
+    nu_t = t(ru.poisson)
+    lo, hi = math.log(st.youngs_min), math.log(st.youngs_max)
+    grid = np.linspace(lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo), max(int(s.select_part_points), 3))
+    # where to start: the uniform model's E and the uniform stage's other minima (distinct by > 1.5x)
+    starts = [float(np.exp(np.mean(np.log(ru.youngs))))]
+    for m in uni.get("minima", []):
+        if all(abs(math.log(m["e"] / e)) > math.log(1.5) for e in starts):
+            starts.append(float(m["e"]))
+    starts = starts[: max(int(s.select_part_starts), 1)]
+    best = None
+    recs = {}
+
+    def sweep(c, e0):
+        nonlocal best
+        if "probe" not in c:
+            c["probe"] = PartProbe(view, view._frames, c["labels"], nu_t, trajs, eff, s.select_sweep_batch)
+            recs[id(c)] = {"kind": c["kind"], "parts": c["parts"], "particles": np.bincount(c["labels"]).tolist(),
+                           "starts": []}
+            rec["candidates"].append(recs[id(c)])
+        f = c["probe"]
+        r = part_sweep(f, np.full(c["parts"], math.log(e0)), grid, s)
+        recs[id(c)]["starts"].append({"from_e": e0, "loss": r["loss"], "e": [math.exp(v) for v in r["log_e"]],
+                                      "interval": [_line_interval(r["lines"].get(j, {}), s.select_interval_rise)
+                                                   for j in range(c["parts"])]})
+        recs[id(c)]["probes"] = len(f.cache)
+        say(f"parts by {c['kind']} ({c['parts']} parts) from uniform {e0:.4g} Pa: E "
+            + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"]) + f" Pa, training loss {r['loss']:.5f}")
+        if best is None or r["loss"] < best[1]["loss"]:
+            best = (c, r)
+
+    # every candidate from the uniform model's E; the best one also from the other starts
+    for c in cands:
+        sweep(c, starts[0])
+    lead = best[0]
+    for e0 in starts[1:]:
+        sweep(lead, e0)
+    c, r = best
+    if not math.isfinite(r["loss"]):
+        rec["why"] = "every part sweep went unstable or left the grid"
+        return None, rec
+    rec["kind"], rec["particles"] = c["kind"], np.bincount(c["labels"]).tolist()
+    start = {"poisson": ru.poisson, "trajectories": ru.trajectories, "effects": ru.effect_parameters}
+    rp = fit_parts(view, s, c["labels"], r["log_e"], start, iterations, progress=progress, log=log,
+                   on_iteration=on_iteration)
+    rec["sweep_loss"] = r["loss"]
+    return rp, rec
+
+
 def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames) -> list[float]:
     """The reconstruction loss of each of `frames` for a fit result (one forward pass)."""
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
@@ -289,8 +651,30 @@ def model_summary(model: dict | None) -> dict:
     if "models" in m:
         out["losses"] = {k: {"training": v["training"], "held_back": v["held_back"], "median_e": v.get("median_e")}
                          for k, v in m["models"].items()}
-    if "test" in m:
+    if "tests" in m:          # each step's test, simple to complex: "parts" (vs uniform), "field" (vs the kept one)
+        out["test"] = "; ".join(f"{k}: {v.get('why', '')}" for k, v in m["tests"].items())
+        out["tests"] = {k: {"kept": bool(v.get("keep_field")), "why": v.get("why", "")} for k, v in m["tests"].items()}
+    elif "test" in m:
         out["test"] = m["test"].get("why", "")
+    if m.get("field_from"):
+        out["field_from"] = m["field_from"]
+    pr = m.get("parts")
+    if pr:                    # the parts step: the candidate kept, each part's E and intervals
+        parts = {"why": pr["why"]} if "why" in pr else {"kind": pr.get("kind"), "e": pr.get("e")}
+        final = pr.get("final")
+        best = None
+        for c in pr.get("candidates", []):
+            for st in c.get("starts", []):
+                if c.get("kind") == pr.get("kind") and (best is None or st["loss"] < best["loss"]):
+                    best = st
+            parts.setdefault("candidates", []).append(
+                {"kind": c["kind"], "parts": c["parts"], "particles": c.get("particles"),
+                 "sweep": [{"from_e": st["from_e"], "e": st["e"], "loss": st["loss"]} for st in c.get("starts", [])]})
+        if best is not None:
+            parts["sweep_interval"] = best["interval"]      # each part's E within 1% of its line's best
+        if final:
+            parts["final"] = final                          # with the chosen model's 95% intervals
+        out["parts"] = parts
     if "regions" in m:          # the ladder's
         out["regions"] = m["regions"]
     return out
@@ -310,16 +694,12 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     N = max(int(s.iterations), 0)
     n_final = int(round(s.select_final_share * N)) if N else 0
     n_uni = max(int(round(s.select_uniform_share * N)), 1) if N else 0
-    n_field = max(N - n_uni - n_final, 1 if N else 0)
     used = [0]
     histories = []
 
-    def stage_cb(it, loss, mat, trajs):
-        if on_iteration is not None:
-            on_iteration(used[0] + it, loss, mat, trajs)
-
-    def run(p, settings, **kw):
-        r = fit_bumps(p, settings, progress=progress, log=log, on_iteration=stage_cb, **kw)
+    def run(go):
+        base = used[0]
+        r = go(lambda it, *a: on_iteration(base + it, *a) if on_iteration is not None else None)
         used[0] += len(r.loss_history)
         histories.extend(r.loss_history)
         return r
@@ -336,41 +716,88 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     say(f"uniform E: {uni['e']:.4g} Pa (loss curve {uni['shape']}; minima "
         + ", ".join(f"{m['e']:.4g} Pa [{m['interval'][0]:.3g}, {m['interval'][1]:.3g}]" for m in uni["minima"]) + ")")
     model = {"schedule": "select", "held_back_frames": val, "training_frames": train, "uniform_stage": uni}
-    # 2. the uniform model; 3. the field from it
+    # 2. the uniform model; 3. parts; 4. the field from the simpler model kept
     k_field = int(s.levels[-1])
+    with_parts = bool(s.select_parts)
+    n_parts = max(int(round(s.select_parts_share * N)), 1) if (N and with_parts) else 0
+    n_field = max(N - n_uni - n_final - n_parts, 1 if N else 0)
     su = dataclasses.replace(s, levels=(1,), level_share=(1.0,), iterations=n_uni, confidence_probes=0,
                              trajectory_levels=1, fit_poisson_levels=1)
-    ru = run(view, su, uniform_e=uni["e"])
+    ru = run(lambda cb: fit_bumps(view, su, progress=progress, log=log, on_iteration=cb, uniform_e=uni["e"]))
     models = {"uniform": ru}
-    if not ru.interrupted and k_field > 1:
+    coeffs = {"uniform": 1}
+    losses = {}
+
+    def judge(name):
+        r_ = models[name]
+        tl = frame_losses(prob, r_, s, train)
+        vl = frame_losses(prob, r_, s, val)
+        losses[name] = {"training": float(np.mean(tl)), "held_back": float(np.mean(vl)) if vl else None,
+                        "held_back_frames": vl, "coefficients": coeffs[name], "median_e": float(np.median(r_.youngs))}
+
+    judge("uniform")
+    tests = {}
+    base = "uniform"
+    if with_parts and not ru.interrupted:
+        got = {}
+
+        def parts_go(cb):
+            got["r"], got["rec"] = parts_stage(prob, view, s, uni, ru, n_parts, progress=progress, log=log,
+                                               on_iteration=cb)
+            return got["r"] if got["r"] is not None else types.SimpleNamespace(loss_history=[])
+
+        run(parts_go)
+        rp, prec = got["r"], got["rec"]
+        if rp is not None:
+            models["parts"] = rp
+            coeffs["parts"] = len(rp.model["part_fit"])
+            prec["e"] = [p["e"] for p in rp.model["part_fit"]]
+            judge("parts")
+            if not rp.interrupted:
+                tests["parts"] = select_rule(losses["uniform"]["held_back_frames"], losses["parts"]["held_back_frames"],
+                                             coeffs["parts"] - 1, s)
+                if tests["parts"]["keep_field"]:
+                    base = "parts"
+                say(f"parts ({prec['kind']}, E " + ", ".join(f"{e:.4g}" for e in prec["e"]) + " Pa): "
+                    + ("kept" if base == "parts" else "refused") + f" ({tests['parts']['why']})")
+        model["parts"] = prec
+    if not models[base].interrupted and k_field > 1:
         sf = dataclasses.replace(s, levels=(k_field,), level_share=(1.0,), iterations=n_field, confidence_probes=0,
                                  search_effects=())
-        models["field"] = run(view, sf, start=start_of(ru))
-    # 4. the held-back test
-    losses = {}
-    for name, r in models.items():
-        tl = frame_losses(prob, r, s, train)
-        vl = frame_losses(prob, r, s, val)
-        losses[name] = {"training": float(np.mean(tl)), "held_back": float(np.mean(vl)) if vl else None,
-                        "held_back_frames": vl, "coefficients": 1 if name == "uniform" else k_field,
-                        "median_e": float(np.median(r.youngs))}
-    chosen = "uniform"
+        models["field"] = run(lambda cb: fit_bumps(view, sf, progress=progress, log=log, on_iteration=cb,
+                                                   start=start_of(models[base])))
+        coeffs["field"] = k_field
+        judge("field")
+        model["field_from"] = base
+    # 5. the held-back tests: each step kept only if it pays for its added coefficients
+    chosen = base
     if "field" in models and not models["field"].interrupted:
-        test = select_rule(losses["uniform"]["held_back_frames"], losses["field"]["held_back_frames"], k_field - 1, s)
-        model["test"] = test
-        chosen = "field" if test["keep_field"] else "uniform"
+        test = select_rule(losses[base]["held_back_frames"], losses["field"]["held_back_frames"],
+                           max(k_field - coeffs[base], 1), s)
+        tests["field"] = test
+        chosen = "field" if test["keep_field"] else base
         say(f"model: {chosen} ({test['why']})")
+    if tests:
+        model["tests"] = tests
+        model["test"] = tests.get("field", tests.get("parts"))
     model["models"] = losses
     model["chosen"] = chosen
     r = models[chosen]
-    # 5. the chosen model on all frames, with its confidence
+    # 6. the chosen model on all frames, with its confidence
     interrupted = any(m.interrupted for m in models.values())
     if not interrupted:
-        levels = (1,) if chosen == "uniform" else (k_field,)
-        sc = dataclasses.replace(s, levels=levels, level_share=(1.0,), iterations=n_final, search_effects=(),
-                                 trajectory_levels=1,
-                                 fit_poisson_levels=1 if chosen == "uniform" else s.fit_poisson_levels)
-        r = run(prob, sc, start=start_of(r))
+        if chosen == "parts":
+            labels = np.asarray(r.regions, np.int64)
+            log_e = np.log([p["e"] for p in r.model["part_fit"]])
+            r = run(lambda cb: fit_parts(prob, s, labels, log_e, start_of(models["parts"]), n_final, progress=progress,
+                                         log=log, on_iteration=cb, confidence_probes=s.confidence_probes))
+            model["parts"]["final"] = r.model["part_fit"]
+        else:
+            levels = (1,) if chosen == "uniform" else (k_field,)
+            sc = dataclasses.replace(s, levels=levels, level_share=(1.0,), iterations=n_final, search_effects=(),
+                                     trajectory_levels=1,
+                                     fit_poisson_levels=1 if chosen == "uniform" else s.fit_poisson_levels)
+            r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb, start=start_of(r)))
     r.loss_history = histories
     r.uniform_start = uni["e"]
     r.interrupted = r.interrupted or interrupted

@@ -1,0 +1,152 @@
+"""The "parts" step of the select schedule (fit/select.py, fit/regions.py): candidate parts by
+appearance and by motion, each part's E by a coordinate sweep, the polish's gradient.
+
+Known answers on small synthetic inputs (no simulation, or the tiny bar of tests/fit_scene.py in
+float64 for the gradient); the whole schedule's known answers (two-part bar -> parts, uniform bar
+-> uniform) are in tests/test_fit_select.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physinteract_usd.fit import regions as R
+from physinteract_usd.fit.optimize import FitSettings
+from physinteract_usd.fit.select import part_sweep
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _bar(n=(24, 4, 4), step=0.01):
+    """Particles on a lattice along x (a bar) and their graph."""
+    g = np.stack(np.meshgrid(*[np.arange(k) * step for k in n], indexing="ij"), -1).reshape(-1, 3)
+    return g, R.particle_graph(g, 1.6 * step)
+
+
+def test_colour_clusters_two_colours_three_colours_and_one():
+    x, _ = _bar()
+    rng = np.random.default_rng(0)
+    free = np.ones(len(x), bool)
+    two = np.where((x[:, 0] < 0.12)[:, None], [0.2, 0.3, 0.8], [0.9, 0.7, 0.2]) + rng.normal(0, 0.02, (len(x), 3))
+    lab = R.colour_clusters(two, free)
+    assert lab is not None and len(np.unique(lab)) == 2
+    assert R.same_partition(lab, (x[:, 0] < 0.12).astype(int))
+    three = np.select([x[:, 0] < 0.08, x[:, 0] < 0.16], [0, 1], 2)
+    col = np.array([[0.2, 0.3, 0.8], [0.9, 0.7, 0.2], [0.1, 0.8, 0.1]])[three] + rng.normal(0, 0.02, (len(x), 3))
+    lab3 = R.colour_clusters(col, free)
+    assert lab3 is not None and R.same_partition(lab3, three)
+    # one colour with texture noise: no parts
+    assert R.colour_clusters(np.full((len(x), 3), 0.5) + rng.normal(0, 0.02, (len(x), 3)), free) is None
+    # held particles take no cluster
+    held = x[:, 0] < 0.02
+    lab = R.colour_clusters(two, ~held)
+    assert (lab[held] == -1).all() and (lab[~held] >= 0).all()
+
+
+def test_connected_parts_split_pieces_merge_small_ones_and_cap_the_count():
+    x, g = _bar()
+    # cluster 0 at both ends, cluster 1 in the middle: three connected parts
+    cl = np.where((x[:, 0] < 0.06) | (x[:, 0] > 0.17), 0, 1)
+    lab = R.connected_parts(cl, g, min_size=8, max_parts=4)
+    assert len(np.unique(lab)) == 3
+    assert R.same_partition(lab, np.select([x[:, 0] < 0.06, x[:, 0] > 0.17], [0, 2], 1))
+    # a piece smaller than min_size joins its neighbour
+    cl = np.where(x[:, 0] < 0.005, 1, 0)          # one slice of 16 particles
+    assert R.connected_parts(cl, g, min_size=20, max_parts=4) is None     # then one part only
+    cl2 = np.where(x[:, 0] < 0.005, 1, np.where(x[:, 0] > 0.115, 2, 0))
+    lab = R.connected_parts(cl2, g, min_size=20, max_parts=4)
+    assert len(np.unique(lab)) == 2 and lab[x[:, 0] < 0.005][0] == lab[np.argmin(np.abs(x[:, 0] - 0.05))]
+    # more connected parts than allowed: one part per cluster
+    cl = np.where((x[:, 0] < 0.06) | (x[:, 0] > 0.17), 0, 1)
+    lab = R.connected_parts(cl, g, min_size=8, max_parts=2)
+    assert R.same_partition(lab, cl)
+
+
+def test_motion_clusters_split_where_the_score_changes_sign():
+    x, g = _bar()
+    rng = np.random.default_rng(1)
+    score = np.where(x[:, 0] < 0.10, -1.0, 1.0) + rng.normal(0, 0.3, len(x))
+    lab = R.motion_clusters(score, np.ones(len(x), bool), g)
+    truth = (x[:, 0] >= 0.10).astype(int)
+    assert np.mean(lab == truth) > 0.9
+
+
+class _Separable:
+    """A stand-in for PartProbe: a loss that is a sum of one curve per part's log E, part 1's
+    curve with two wells (a shallow one at 3e5 Pa, where a start from the uniform optimum sits,
+    and the deeper one at the truth); counts its probes."""
+
+    def __init__(self, labels, target, second):
+        self.labels, self.target, self.second = np.asarray(labels), np.asarray(target, float), float(second)
+        self.cache = {}
+
+    def __call__(self, le):
+        le = np.asarray(le, float)
+        v = 0.01 + 0.02 * math.tanh((le[0] - self.target[0]) ** 2)
+        v += min(0.01 + 0.02 * math.tanh((le[1] - self.target[1]) ** 2 / 1.0),
+                 0.015 + 0.02 * math.tanh((le[1] - self.second) ** 2 / 0.3))
+        self.cache[tuple(le)] = v
+        return v
+
+    def many(self, les):
+        return None
+
+
+def test_part_sweep_finds_each_part_from_a_start_in_the_wrong_well():
+    labels = np.r_[np.zeros(30, int), np.ones(20, int)]
+    target = np.log([1e5, 1e4])
+    f = _Separable(labels, target, second=math.log(3e5))
+    grid = np.linspace(math.log(1e3), math.log(1e7), 7)
+    s = FitSettings(search_evals=8, select_part_rounds=2)
+    r = part_sweep(f, np.full(2, math.log(3e5)), grid, s)     # part 1 starts in its shallow well
+    assert np.all(np.abs(r["log_e"] - target) < math.log(1.2)), np.exp(r["log_e"])
+    assert r["loss"] < 0.021 and set(r["lines"]) == {0, 1}
+    # a probe budget of (points + golden) per part and round, not a grid over all parts
+    assert len(f.cache) <= 2 * (7 + 8) + 2 * 8 + 1
+
+
+def test_part_log_e_gradient_matches_finite_differences_float64(tmp_path):
+    """d loss / d (each part's log E) through the one-hot basis and the simulator (float64, the
+    tiny bar) against central differences."""
+    import fit_scene as fs
+    from physinteract_usd.app.fit import prepare_fit
+    from physinteract_usd.fit import FitProblem
+    from physinteract_usd.fit.material import MaterialField
+
+    b = fs.build(tmp_path / "bar")
+    job = prepare_fit(b["stage"], iterations=1, contact_from=b["gt"], joint=False, log=lambda *a: None)
+    prob = FitProblem(job.scene, job.observations, job.contacts, dtype="float64")
+    st = prob.scene.settings
+    labels = (prob.x0[:, 0] > np.median(prob.x0[:, 0])).astype(np.int64)
+    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=torch.float64)
+    mat.set_uniform(4e3, 0.3)
+    mat.set_regions(labels)
+    mat.set_region_log_e(np.log([3e3, 8e3]))
+    nu = mat.poisson().detach()
+
+    def loss(theta):
+        mat.theta = theta
+        return prob.loss(mat.youngs(), nu)["rec"]
+
+    th = mat.theta.detach().clone().requires_grad_(True)
+    g, = torch.autograd.grad(loss(th), th)
+    h = 1e-4
+    for j in range(2):
+        d = torch.zeros_like(th)
+        d[j] = h
+        with torch.no_grad():
+            fd = (float(loss(th.detach() + d)) - float(loss(th.detach() - d))) / (2 * h)
+        assert abs(float(g[j]) - fd) <= 1e-4 * max(abs(fd), 1e-6) + 1e-9, (j, float(g[j]), fd)
+
+
+def test_colour_clusters_do_not_take_the_blend_along_an_edge_for_a_third_colour():
+    """Local mean colours blend across the edge between two parts: a band of in-between colours
+    is not a third part."""
+    x, _ = _bar((40, 4, 4))
+    t = np.clip((x[:, 0] - 0.17) / 0.06, 0, 1)[:, None]          # a blend 6 particles wide
+    col = (1 - t) * np.array([0.2, 0.3, 0.8]) + t * np.array([0.9, 0.7, 0.2])
+    lab = R.colour_clusters(col + np.random.default_rng(2).normal(0, 0.01, col.shape), np.ones(len(x), bool))
+    assert lab is not None and len(np.unique(lab)) == 2
