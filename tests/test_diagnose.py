@@ -145,12 +145,16 @@ def test_cli_json_exit_codes_and_errors(damped, tmp_path, capsys):
     from physinteract_usd import api
     from physinteract_usd.cli import main
 
-    code = main(["diagnose", str(damped["stage"]), "--json", "--refit", "0", "--no-stage",
+    code = main(["diagnose", str(damped["stage"]), "--json", "--refit", "0", "--no-stage", "--starts", "1",
                  "--candidates", "damping,camera:time_offset"])
     out = capsys.readouterr().out
     assert code == 0
     d = json.loads(out)
-    assert set(d) >= {"verdict", "reason", "candidates"}
+    assert set(d) >= {"verdict", "reason", "candidates", "trajectory_check", "base_starts"}
+    tc = d["trajectory_check"]
+    assert tc["sigma_px"] == 2.0 and tc["bounded"] and tc["contacts"][0]["contact"] == "hand"
+    assert set(tc["contacts"][0]) == {"contact", "fitted", "free_step", "bounded_step"}
+    assert d["base_starts"]["starts"] == [] and d["base_starts"]["chosen"] is None
     assert d["verdict"] in ("adequate", "missing_effect", "unexplained")
     assert all(set(c) == KEYS for c in d["candidates"])
     assert d["candidates"][0]["effect"] == "damping"
@@ -164,6 +168,10 @@ def test_cli_json_exit_codes_and_errors(damped, tmp_path, capsys):
     assert main(["diagnose", str(damped["stage"]), "--candidates", "gravity"]) == 2
     assert "unknown candidate" in capsys.readouterr().err
     assert main(["diagnose", str(damped["stage"]), "--refit", "-1"]) == 2
+    assert main(["diagnose", str(damped["stage"]), "--starts", "4"]) == 2
+    assert main(["diagnose", str(damped["stage"]), "--trajectory-sigma", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "--starts" in err[-2] and "--trajectory-sigma" in err[-1]
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +184,7 @@ def test_hidden_plasticity_is_ranked_first_with_its_yield_stress(plastic):
     part), its yield stress from the threshold search within 30%, the evidence about the rest shape."""
     from physinteract_usd import api
 
-    d = api.diagnose(plastic["stage"], refit=0, progress=False, log=lambda *a: None, write_stage=False,
+    d = api.diagnose(plastic["stage"], refit=0, progress=False, log=lambda *a: None, write_stage=False, starts=1,
                      candidates="plasticity,damping,heterogeneity,camera:time_offset")
     assert d["verdict"] == "missing_effect"
     top = d["candidates"][0]
