@@ -454,3 +454,20 @@ def test_a_sphere_that_comes_in_and_pulls_back_rests_for_an_instant_at_its_turn(
     assert rest_onset(sp, vh, 0, len(sp) - 1, coupled) == 9
     # the same speeds, the object following before the turn too: a pull reversing, no rest
     assert rest_onset(sp, vh, 0, len(sp) - 1, np.ones(len(sp), np.int8)) is None
+
+
+def test_a_colliders_contact_is_its_pushing_edge():
+    """(#23) a fingertip seen over the object as a 4 x 16 px strip, pushing down the image: its
+    contact is the strip's lower end (the part that pushes), not the strip's middle."""
+    from physinteract_usd.extract.contact import GraspContact, pushing_edge
+
+    an = SimpleNamespace(R=4.0)
+    region = np.zeros((40, 40), bool)
+    region[10:26, 18:22] = True
+    g = GraspContact(np.array([20.0, 18.0]), region)
+    e = pushing_edge(an, g, np.array([0.0, 1.0]))
+    assert e.uv[1] > 23.0 and abs(e.uv[0] - 20.0) < 1e-9
+    assert e.region.sum() < region.sum() and (e.region <= region).all()
+    up = pushing_edge(an, g, np.array([0.0, -2.0]))
+    assert up.uv[1] < 13.0
+    assert pushing_edge(an, g, np.zeros(2)) is g           # no push seen: the region as it is

@@ -244,3 +244,21 @@ def outward_normal(an: Analysis, c3, idx) -> np.ndarray:
     if np.linalg.norm(n) == 0:
         n = unit(an.cam0.position - c3)
     return n
+
+
+def pushing_edge(an: Analysis, grasp: GraspContact, direction) -> GraspContact:
+    """A collider's contact at the grasp frame cut to its pushing edge: of the contact region, the
+    pixels within half a contact radius of its farthest reach along the toucher's push in the
+    image (`direction`). A fingertip or a sphere touches the surface with its front; the rest of
+    the region is the toucher seen over the object behind that point, whose depth is elsewhere
+    (#23: dev_0014, dev_0011, dev_0001 put 6-17 px behind the front, 3-9 cm off along the view)."""
+    d = unit(np.asarray(direction, np.float64))
+    if not grasp.region.any() or not np.any(d):
+        return grasp
+    ys, xs = np.nonzero(grasp.region)
+    pix = pixel_centres(grasp.region)
+    proj = pix @ d
+    keep = proj >= proj.max() - 0.5 * an.R
+    out = np.zeros_like(grasp.region)
+    out[ys[keep], xs[keep]] = True
+    return GraspContact(pix[keep].mean(0), out)

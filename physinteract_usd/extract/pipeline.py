@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import InputError
 from .analysis import Analysis
-from .contact import contact_at_grasp, contact_particles, find_contact
+from .contact import contact_at_grasp, contact_particles, find_contact, pushing_edge
 from .hints import check_hint
 from .interaction_type import classify
 from .lifting import lift_trajectory, track_hand
@@ -85,6 +85,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
             grasp = contact_at_grasp(an, seen, g)
             hand = track_hand(timing, grasp.uv)
     timing_confidence(timing, an.eps, evidence, notes)
+    if itype == "pointNonAdherent" and seen.hint_uv is None and seen.hint_particles is None:
+        grasp = pushing_edge(an, grasp, hand.first_move)
     c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
     lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
