@@ -20,7 +20,7 @@ import numpy as np
 from .jsonsafe import json_safe
 from ..diagnose import CANDIDATES, PHYSICAL, BaseState, DiagnoseSettings, conclude, describe, diagnose_problem
 from ..diagnose.refit import judge_probe, refit_effect
-from ..errors import InputError
+from ..errors import InputError, SimulationError
 from .adapters import effects_with_fitted, load_observations, read_scene, stage_contacts
 
 
@@ -53,25 +53,45 @@ def _best_start(prob, base, settings, starts: int, iterations: int, log):
         return base, out
     t0 = time.perf_counter()
     res = ImageResidual(prob, max_pixels=settings.max_pixels)
-    with torch.no_grad():
-        x, F = prob.simulate(base.E, base.nu, None, effects=base.effects)
-    L0 = loss(res(x, F))
-    out["base_loss"] = L0
+    sim = prob.sim
+
+    def at_rung(E, nu) -> float:
+        """The diagnosis's loss of a field at the substep its own stiffness takes (the simulator's
+        adaptive substep otherwise depends on the fields simulated before: not comparable)."""
+        if getattr(sim, "adaptive", False):
+            b = sim.bound_for(float(E.max()))
+            if b != sim.e_bound:
+                sim._use_bound(b)
+        try:
+            with torch.no_grad():
+                x, F = prob.simulate(E, nu, None, effects=base.effects)
+            return loss(res(x, F))
+        except SimulationError:
+            return math.inf
+
     thr = 1.0 - settings.min_relative_drop
-    best, own = None, None
+    refits = []
     for f in START_FACTORS[:starts]:
         log(f"base refit from the E field x {f:g} ({iterations} iterations)")
-        r = refit_base(prob, base, f, iterations=iterations, res=res)
-        out["starts"].append({"factor": f, "loss": r["loss"],
+        refits.append(refit_base(prob, base, f, iterations=iterations, res=res))
+    best, own = None, None
+    for r in refits:             # judged after all of them, each at its own substep
+        if r["E"] is not None:
+            r["loss"] = at_rung(r["E"], r["nu"])
+        out["starts"].append({"factor": r["factor"], "loss": r["loss"],
                               "median_E": None if r["E"] is None else float(r["E"].median()),
                               **({"note": r["note"]} if "note" in r else {})})
-        if f == 1.0:
+        if r["factor"] == 1.0:
             own = r
+    L0 = at_rung(base.E, base.nu)         # last: the simulator stays at the stage's base's substep
+    out["base_loss"] = L0
+    for r in refits:
         if r["E"] is not None and r["loss"] < L0 * thr and (best is None or r["loss"] < best["loss"]):
             best = r
     out["seconds"] = time.perf_counter() - t0
     if best is None:
         return base, out
+    at_rung(best["E"], best["nu"])        # the simulator at the chosen base's substep
     local = best["factor"] != 1.0 and (own is None or best["loss"] < own["loss"] * thr)
     out.update(chosen=best["factor"], local_minimum=bool(local), not_converged=not local)
     how = (f"{L0:.3g} -> {best['loss']:.3g}, {100 * (1 - best['loss'] / L0):.0f}% lower; median E "
