@@ -150,3 +150,40 @@ def test_colour_clusters_do_not_take_the_blend_along_an_edge_for_a_third_colour(
     col = (1 - t) * np.array([0.2, 0.3, 0.8]) + t * np.array([0.9, 0.7, 0.2])
     lab = R.colour_clusters(col + np.random.default_rng(2).normal(0, 0.01, col.shape), np.ones(len(x), bool))
     assert lab is not None and len(np.unique(lab)) == 2
+
+
+def test_parts_step_recovers_a_two_part_bar_from_the_uniform_optimum(tmp_path, monkeypatch):
+    """The parts step alone (`select.parts_stage`) on the two-part bar of tests/test_fit_select.py
+    (clamped half 100 kPa, lifted half 10 kPa, two colours), started from a uniform model at the
+    uniform loss's optimum (~2e5 Pa, in neither part's well): the appearance candidate is the two
+    halves and each part's E comes out within 20% (the whole schedule: test_fit_select.py)."""
+    import types
+
+    import test_fit_select as tfs
+    from physinteract_usd.app.fit import prepare_fit
+    from physinteract_usd.fit import FitProblem
+    from physinteract_usd.fit.select import FrameView, holdout_frames, parts_stage
+
+    b, stiff = tfs._two_part_bar(tmp_path / "two", 1e4, monkeypatch, e_range=(3e3, 3e5))
+    job = prepare_fit(b["stage"], iterations=1, contact_from=b["gt"], joint=False, log=lambda *a: None)
+    prob = FitProblem(job.scene, job.observations, job.contacts)
+    train, _ = holdout_frames(prob.T, 3, keep=[5])
+    view = FrameView(prob, train)
+    P = len(prob.x0)
+    names = prob.sim.slot_names()
+    ru = types.SimpleNamespace(youngs=np.full(P, 2e5), poisson=np.full(P, fs_nu()), effect_parameters={},
+                               trajectories={n: t.cpu().numpy() for n, t in zip(names, prob.initial_trajectories())})
+    s = FitSettings(select_part_points=7, search_evals=4, select_part_rounds=2, lr_material=0.1, joint=False)
+    rp, rec = parts_stage(prob, view, s, {"minima": []}, ru, 2)
+    assert rp is not None and rec["kind"] == "appearance", rec
+    assert R.same_partition(rp.regions, stiff.astype(int))
+    e = rp.youngs
+    held = np.asarray(prob.held_particles(), bool)
+    e_stiff, e_soft = float(np.median(e[stiff & ~held])), float(np.median(e[~stiff]))
+    assert abs(e_soft / 1e4 - 1) < 0.2 and abs(e_stiff / 1e5 - 1) < 0.2, (e_stiff, e_soft, rec)
+
+
+def fs_nu():
+    import fit_scene as fs
+
+    return fs.NU_TRUE

@@ -9,24 +9,34 @@
    of its value are reported.
 2. The "uniform" model: uniform E (and nu and the trajectory) polished from the best minimum by
    the optimiser on one basis function (`optimize.fit_bumps`, levels (1,)), training frames only.
-3. The "field" model: the bumps field (the finest level of `levels`) warm-started from the uniform
-   model, training frames only.
-4. Selection on the held-back frames (every `select_holdout_every`-th frame from frame 2, but never
-   the first frame after a release, which carries most of the free motion's evidence: neither
-   model ever fits them; interleaved rather than a time split, so both halves see the grasp, the
-   lift and the release alike, and the trajectory at a held-back frame is still pinned by the
-   frames after it). The field is kept only if, over the held-back frames, its loss falls by more
-   than its added freedom predicts: the mean per-frame drop d must exceed `select_penalty` x
-   (added coefficients) x the uniform model's held-back loss (a BIC-like price per parameter), and
-   the field must be better on most held-back frames (a sign test: one frame that the uniform model
-   misses badly, the one after the release, does not carry the choice alone; a paired t-test was
-   tried first and refused a two-part bar's field whose held-back loss fell 2.5x, because that frame
-   dominated the variance). A tie keeps the simpler model.
+3. The "parts" model (`select_parts`): candidate partitions of the object by appearance (colour
+   clusters of the particles' local colours) and by motion (where the uniform model's score
+   dL/dlog E says stiffer against softer), cut into connected parts of a reasonable size
+   (`fit.regions`); each part's E by a coordinate sweep over the whole range (forward passes only,
+   batched on a GPU) from the uniform model's E, the best candidate also from the uniform stage's
+   other minima (a part's loss can be needle-like and multimodal in E: a field started in the
+   uniform optimum's well stays there), then an AdamW polish of the part E, one nu and the
+   trajectory (`fit_parts`), training frames only.
+   The "field" model: the bumps field (the finest level of `levels`) warm-started from the
+   simpler model kept (uniform or parts), training frames only.
+4. Selection on the held-back frames, simple to complex (uniform -> parts -> field): every
+   `select_holdout_every`-th frame from frame 2, but never the first frame after a release, which
+   carries most of the free motion's evidence (no model ever fits them; interleaved rather than a
+   time split, so both halves see the grasp, the lift and the release alike, and the trajectory at
+   a held-back frame is still pinned by the frames after it). A step is kept only if, over the
+   held-back frames, its loss falls by more than its added freedom predicts: the mean per-frame
+   drop d must exceed `select_penalty` x (added coefficients) x the simpler model's held-back loss
+   (a BIC-like price per parameter), and the richer model must be better on most held-back frames
+   (a sign test: one frame that the simpler model misses badly, the one after the release, does not
+   carry the choice alone; a paired t-test was tried first and refused a two-part bar's field whose
+   held-back loss fell 2.5x, because that frame dominated the variance). A tie keeps the simpler
+   model.
 5. The chosen model polished on all frames (`select_final_share` of the iterations) with its
    confidence (`optimize.confidence`).
 
 The result's `model` says which model was chosen and why: the uniform stage's curve, minima and
-intervals, both models' training and held-back losses and the test. No USD here."""
+intervals, the parts candidates (their sweeps, each part's E and interval), each model's training
+and held-back losses and each step's test. No USD here."""
 
 from __future__ import annotations
 
@@ -459,9 +469,15 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
         for r, p in enumerate(parts):
             sg = float(np.median(sigma[labels == r]))
             p["interval_95"] = [float(math.exp(le[r] - 1.96 * sg)), float(math.exp(le[r] + 1.96 * sg))]
-    res = assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, None, history, final_loss, t0, interrupted,
+    # the Gaussians take their values from the particles of their own colour (as the bumps field's do)
+    feats = prob.particle_appearance() if s.appearance > 0 else None
+    res = assemble_result(prob, s, E, nu, conf, trajs, x, F, metrics, feats, history, final_loss, t0, interrupted,
                           math.exp(float(np.mean(le))), regions=labels.copy(), model={"part_fit": parts},
                           effect_parameters=fitted_values(eff_raw, prob.traj_scale) if eff_raw else {})
+    # a part's few coefficients can give a confidence of exactly 1, which the Gaussians' weights
+    # (float32, summing to 1 within rounding) must not push above 1
+    res.confidence = np.clip(res.confidence, 0.0, 1.0)
+    res.confidence_gaussian = np.clip(res.confidence_gaussian, 0.0, 1.0)
     return res
 
 
