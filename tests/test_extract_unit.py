@@ -372,6 +372,12 @@ def test_grasp_of_a_slow_press_is_its_onset_above_the_toucher_noise_floor():
     assert rest_onset(flat, vflat, 0, 15) is None
     # one slow frame at the start of the video is the approach's start, not a rest
     assert rest_onset(speed, vh, 0, len(speed)) != 0
+    # a rest of three slow frames (0.27, 0.03, 0.28 px) before a pull that starts slowly (glove,
+    # the named suite): its floor is its stillest frames', not its last one's
+    sg = np.array([2.25, 0.27, 0.03, 0.28, 0.54, 0.81, 0.91, 0.94, 0.87, 0.56, 5.4])
+    vg = sg[:, None] * np.array([[1.0, 0.1]])
+    vg[2] = [0.03, -0.02]
+    assert rest_onset(sg, vg, 0, len(sg) - 1) == 2
 
 
 def test_the_type_reads_the_toucher_while_it_acts_not_its_retreat():

@@ -347,7 +347,8 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
     or one slower than 2 `eps` and than the pairs either side where it turns (the pairs either
     side over 60 deg apart, the object not following the pair before: a sphere that comes in and
     pulls back out stops for an instant; a pull that reverses mid-way is no rest);
-    its floor the median of the 3 stillest of its first 6 slow frames running. The onset: the
+    its floor the mean of the 2 stillest of its first 6 slow frames running (the median of 3 was
+    the rest's last slow frame where it has only 3: glove 2 frames late). The onset: the
     first frame pair, within `window` frames of the first frame at the floor (+`noise` px), from
     which the toucher moves above that level in two pairs running, the same way (cos >= 0.5:
     noise has no direction). The grasp is the frame before it (the last one at rest). None where
@@ -380,7 +381,7 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
         if not slow(k):
             break
         w.append(speed[k])
-    thr = float(np.median(np.sort(w)[:3])) + noise
+    thr = float(np.mean(np.sort(w)[:2])) + noise
     a = next(k for k in range(s, hi + 1) if np.isfinite(speed[k]) and speed[k] <= thr)
     for k in range(a + 1, min(hi - 1, a + window) + 1):
         u, v = vh[k], vh[k + 1]
