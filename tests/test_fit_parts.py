@@ -152,6 +152,7 @@ def test_colour_clusters_do_not_take_the_blend_along_an_edge_for_a_third_colour(
     assert lab is not None and len(np.unique(lab)) == 2
 
 
+@pytest.mark.slow      # ~90 s of CPU (measured on the shared 2-core VM: 9.7 min wall under load)
 def test_parts_step_recovers_a_two_part_bar_from_the_uniform_optimum(tmp_path, monkeypatch):
     """The parts step alone (`select.parts_stage`) on the two-part bar of tests/test_fit_select.py
     (clamped half 100 kPa, lifted half 10 kPa, two colours), started from a uniform model at the
