@@ -95,6 +95,36 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def per_capture(tool: str, work: Path, seeds: str, rows_of, json_path=None, table_of=None, show=None) -> int:
+    """The dev-capture loop the world experiments share: for each seed's dev_NNNN under `work` (a
+    missing folder is one line, exit 2; a validation capture is refused: these are tuning tools),
+    `rows_of(name)` gives its rows, appended to `json_path` as they come and printed by `show`
+    (default: the row as JSON); `table_of(rows)` is printed at the end. Returns the exit code."""
+    if not work.is_dir():
+        print(f"{tool}: error: {work}: captures folder not found", file=sys.stderr)
+        return 2
+    rows = []
+    for s in parse_seeds(seeds):
+        n = f"dev_{s:04d}"
+        if not (work / n).is_dir():
+            continue
+        try:
+            refuse_validation(work / n, tool)
+            rs = rows_of(n)
+        except InputError as exc:
+            print(f"{tool}: error: {exc.oneline()}", file=sys.stderr)
+            return 2
+        for r in rs:
+            rows.append(r)
+            print(show(r) if show else json.dumps(r, default=str), flush=True)
+            if json_path:
+                with open(json_path, "a") as f:
+                    f.write(json.dumps(r, default=str) + "\n")
+    if table_of:
+        print(table_of(rows))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", required=True, help="folder of development captures (<name>/ and <name>.gt/)")
@@ -107,32 +137,14 @@ def main(argv=None) -> int:
                     "median) or both (two rows per cap)")
     ap.add_argument("--scratch", default="/tmp/world_bias")
     a = ap.parse_args(argv)
-    work = Path(a.work)
-    if not work.is_dir():
-        print(f"world_bias.py: error: {work}: captures folder not found", file=sys.stderr)
-        return 2
     caps = [int(c) for c in a.caps.split(",") if c]
-    rows = []
-    for s in parse_seeds(a.seeds):
-        n = f"dev_{s:04d}"
-        if not (work / n).is_dir():
-            continue
-        try:
-            refuse_validation(work / n, "world_bias.py")
-            modes = {"default": [False], "true": [True], "both": [False, True]}[a.nu]
-            for c, tn in [(c, tn) for c in caps for tn in modes]:
-                r = one(work, n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn)
-                rows.append(r)
-                print(json.dumps({k: v for k, v in r.items() if k != "truth_sweep"}), flush=True)
-                if a.json:
-                    with open(a.json, "a") as f:
-                        f.write(json.dumps(r) + "\n")
-        except InputError as exc:
-            print(f"world_bias.py: error: {exc.oneline()}", file=sys.stderr)
-            return 2
-    print(table(rows))
-    return 0
+    modes = {"default": [False], "true": [True], "both": [False, True]}[a.nu]
 
+    def rows_of(n):
+        return [one(Path(a.work), n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn) for c in caps for tn in modes]
+
+    return per_capture("world_bias.py", Path(a.work), a.seeds, rows_of, a.json, table,
+                       show=lambda r: json.dumps({k: v for k, v in r.items() if k != "truth_sweep"}))
 
 if __name__ == "__main__":
     sys.exit(main())

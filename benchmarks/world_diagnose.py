@@ -25,13 +25,11 @@ import numpy as np
 import physinteract_usd  # noqa: F401
 from physinteract_usd import api
 from physinteract_usd.errors import InputError
-from physinteract_usd.synth.splits import refuse_validation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from world_bias import gt_dir, prepare_stage  # noqa: E402
+from world_bias import gt_dir, per_capture, prepare_stage  # noqa: E402
 from world_fit import add_ground  # noqa: E402
-from world_suite import parse_seeds  # noqa: E402
 
 EFFECTS = ("damping", "plasticity", "viscoelasticity", "ground")
 
@@ -122,31 +120,17 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--scratch", default="/tmp/world_diagnose")
     a = ap.parse_args(argv)
-    work = Path(a.work)
-    if not work.is_dir():
-        print(f"world_diagnose.py: error: {work}: captures folder not found", file=sys.stderr)
-        return 2
-    rows = []
-    for s in parse_seeds(a.seeds):
-        n = f"dev_{s:04d}"
-        if not (work / n).is_dir():
-            continue
-        try:
-            refuse_validation(work / n, "world_diagnose.py")
-            r = one(work, n, a.cap, a.iterations, a.refit_iterations, a.device, a.add, Path(a.scratch))
-        except InputError as exc:
-            print(f"world_diagnose.py: error: {exc.oneline()}", file=sys.stderr)
-            return 2
-        except Exception as exc:  # noqa: BLE001 - one capture's failure is a row
-            r = {"scene": n, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}
-            print(r["error"], flush=True)
-        rows.append(r)
-        if a.json:
-            with open(a.json, "a") as f:
-                f.write(json.dumps(r, default=str) + "\n")
-    print(table(rows))
-    return 0
 
+    def rows_of(n):
+        try:
+            return [one(Path(a.work), n, a.cap, a.iterations, a.refit_iterations, a.device, a.add, Path(a.scratch))]
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - one capture's failure is a row
+            return [{"scene": n, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}]
+
+    return per_capture("world_diagnose.py", Path(a.work), a.seeds, rows_of, a.json, table,
+                       show=lambda r: r.get("error") or f"{r['scene']}: done")
 
 if __name__ == "__main__":
     sys.exit(main())

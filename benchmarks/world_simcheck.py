@@ -29,14 +29,12 @@ import torch
 
 import physinteract_usd  # noqa: F401
 from physinteract_usd import simulation
-from physinteract_usd.errors import InputError, SimulationError
-from physinteract_usd.synth.splits import refuse_validation
+from physinteract_usd.errors import SimulationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from world_bias import gt_dir, prepare_stage  # noqa: E402
+from world_bias import gt_dir, per_capture, prepare_stage  # noqa: E402
 from world_fit import add_ground  # noqa: E402
-from world_suite import parse_seeds  # noqa: E402
 
 # "gain1": the world generator's own blend (a node moves with the held share of its mass, pin_gain 1)
 RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND, "gain1": (1.0, 0.0)}
@@ -139,35 +137,15 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     ap.add_argument("--scratch", default="/tmp/world_simcheck")
     a = ap.parse_args(argv)
-    work = Path(a.work)
-    if not work.is_dir():
-        print(f"world_simcheck.py: error: {work}: captures folder not found", file=sys.stderr)
-        return 2
     factors = [float(f) for f in a.factors.split(",")]
     rules = [r for r in a.rules.split(",") if r]
     bad = [r for r in rules if r not in RULES]
     if bad:
         print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} (default, band, gain1)", file=sys.stderr)
         return 2
-    rows = []
-    for s in parse_seeds(a.seeds):
-        n = f"dev_{s:04d}"
-        if not (work / n).is_dir():
-            continue
-        try:
-            refuse_validation(work / n, "world_simcheck.py")
-            rs = one(work, n, a.cap, factors, rules, a.device, Path(a.scratch))
-        except InputError as exc:
-            print(f"world_simcheck.py: error: {exc.oneline()}", file=sys.stderr)
-            return 2
-        rows += rs
-        if a.json:
-            with open(a.json, "a") as f:
-                for r in rs:
-                    f.write(json.dumps(r) + "\n")
-    print(table(rows))
-    return 0
-
+    return per_capture("world_simcheck.py", Path(a.work), a.seeds,
+                       lambda n: one(Path(a.work), n, a.cap, factors, rules, a.device, Path(a.scratch), log=lambda *x, **k: None),
+                       a.json, table, show=lambda r: json.dumps({k: v for k, v in r.items() if k != "err_per_frame_m"}))
 
 if __name__ == "__main__":
     sys.exit(main())

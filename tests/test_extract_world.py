@@ -181,6 +181,7 @@ def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monke
     assert _bench("world_probe").main([str(work), "dev_0000", "sugg", "1"]) == 2     # the folder is validation's
     assert _bench("world_bias").main(["--work", str(work), "--seeds", "0", "--init-only"]) == 2
     assert _bench("world_simcheck").main(["--work", str(work), "--seeds", "0"]) == 2
+    assert _bench("world_diagnose").main(["--work", str(work), "--seeds", "0"]) == 2
     # reading it at all needs --final (and is logged in the marker)
     assert world_suite.main(["extract", "--split", "validation", "--work", str(work)]) == 2
     assert world_fit.main(["--work", str(work), "--split", "validation", "--json", str(tmp_path / "f.json")]) == 2
