@@ -50,7 +50,7 @@ import torch
 
 from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values
-from .optimize import FitResult, FitSettings, fit_bumps
+from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
 
@@ -183,6 +183,11 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
             "sweep": {f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None)
                       for k, v in sorted({**swept, **cache}.items())},
             "skipped": sorted(skipped)}
+
+
+# parts are kept only if their E differ by more than this ratio (about the MA tolerance's half-width
+# in log, sqrt(1.2 / 0.8) = 1.22: parts whose E agree closer are one material to the product's accuracy)
+PARTS_MIN_RATIO = 1.25
 
 
 def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None) -> list[dict]:
@@ -384,19 +389,10 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
     base = [g["lr"] for g in opt.param_groups]
 
     def snap():
-        return {"theta": mat.theta.detach().clone(), "w_nu": mat.w_nu.detach().clone(),
-                "trajs": [t.detach().clone() for t in trajs],
-                "effects": {e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in eff_raw.items()}}
+        return _level_params(mat, trajs, eff_raw)
 
     def restore(b):
-        with torch.no_grad():
-            mat.theta.copy_(b["theta"])
-            mat.w_nu.copy_(b["w_nu"])
-            for t, v in zip(trajs, b["trajs"]):
-                t.copy_(v)
-            for e, ps in b["effects"].items():
-                for p, v in ps.items():
-                    eff_raw[e][p].copy_(v)
+        _restore_in_place(mat, trajs, b, eff_raw)
 
     best_v, best = float("inf"), snap()
     history: list[float] = []
@@ -772,6 +768,12 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
             if not rp.interrupted:
                 tests["parts"] = select_rule(losses["uniform"]["held_back_frames"], losses["parts"]["held_back_frames"],
                                              coeffs["parts"] - 1, s)
+                ratio = max(prec["e"]) / max(min(prec["e"]), 1e-30)
+                if tests["parts"]["keep_field"] and ratio < PARTS_MIN_RATIO:
+                    # parts of one material (a finer search than the uniform model's can still pay the price)
+                    tests["parts"]["keep_field"] = False
+                    tests["parts"]["why"] += (f"; but the parts' E agree within {ratio:.2f}x (< {PARTS_MIN_RATIO}x): "
+                                              "one material")
                 if tests["parts"]["keep_field"]:
                     base = "parts"
                 say(f"parts ({prec['kind']}, E " + ", ".join(f"{e:.4g}" for e in prec["e"]) + " Pa): "
