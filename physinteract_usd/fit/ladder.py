@@ -31,7 +31,7 @@ from ..errors import SimulationError
 from . import regions as R
 from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
-from .optimize import FitResult, FitSettings, assemble_result, confidence, frame_metrics
+from .optimize import FitResult, FitSettings, assemble_result, clean_gradients, confidence, frame_metrics
 from .problem import FitProblem
 from .search import golden_section, no_finite_uniform_probe
 
@@ -187,13 +187,7 @@ class _Ladder:
             if lv < best_v:
                 best_v, best = lv, self.snapshot()
             total.backward()
-            for tr in self.trajs:     # the rest frame is observed: its position is not a parameter
-                if tr.grad is not None:
-                    tr.grad[0] = 0
-            for g in opt.param_groups:
-                for p in g["params"]:
-                    if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                        p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            clean_gradients(opt, self.trajs)
             opt.step()
             self.used += 1
             if self.on_iteration is not None:

@@ -347,13 +347,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 if lv < best["loss"]:   # with its simulation: the last pass renders it, no rerun
                     snapshot(lv, (out["x"].detach(), out["F"].detach()))
                 total.backward()
-                for tr in trajs:  # the rest frame is observed: its position is not a parameter
-                    if tr.grad is not None:
-                        tr.grad[0] = 0
-                bad = [p for g in opt.param_groups for p in g["params"]
-                       if p.grad is not None and not bool(torch.isfinite(p.grad).all())]
-                for p in bad:  # a rare non-finite gradient (a degenerate F): skip that parameter's step
-                    p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+                clean_gradients(opt, trajs)
                 opt.step()
                 it += 1
                 if bar is not None:
@@ -471,6 +465,19 @@ def _restore(mat, trajs, best, joint, eff_raw=None):
     for t, b in zip(trajs, best["trajs"]):
         with torch.no_grad():
             t.copy_(b)
+
+
+def clean_gradients(opt, trajs) -> None:
+    """Before an optimiser step: the trajectories' rest frame is observed, so its position is not a
+    parameter (gradient zeroed); a rare non-finite gradient (a degenerate F) becomes 0, so that
+    parameter skips the step."""
+    for tr in trajs:
+        if tr.grad is not None:
+            tr.grad[0] = 0
+    for g in opt.param_groups:
+        for p in g["params"]:
+            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
 
 
 def _level_params(mat, trajs, eff_raw) -> dict:

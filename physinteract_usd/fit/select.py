@@ -50,7 +50,7 @@ import torch
 
 from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values
-from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, fit_bumps
+from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
 
@@ -229,15 +229,21 @@ def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None) ->
     return out
 
 
-def part_score(prob, r: FitResult, s: FitSettings, frames) -> np.ndarray | None:
-    """dL/dlog E per particle at a fit result (training frames; one forward and backward pass; zero
-    on held particles): where the material wants to be stiffer (negative) or softer."""
+def _result_inputs(prob, r: FitResult, s: FitSettings):
+    """(to-tensor function, the result's trajectories, its effects' values) for simulating a fit result."""
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
     names = prob.sim.slot_names()
     trajs = [t(r.trajectories[n]) for n in names] if names else None
     eff = None
     if r.effect_parameters:
         eff = effect_values(effect_parameters(prob, s.fit_effects, r.effect_parameters), prob.traj_scale)
+    return t, trajs, eff
+
+
+def part_score(prob, r: FitResult, s: FitSettings, frames) -> np.ndarray | None:
+    """dL/dlog E per particle at a fit result (training frames; one forward and backward pass; zero
+    on held particles): where the material wants to be stiffer (negative) or softer."""
+    t, trajs, eff = _result_inputs(prob, r, s)
     log_e = torch.log(t(r.youngs)).requires_grad_(True)
     try:
         with torch.enable_grad():
@@ -424,13 +430,7 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
             if lv < best_v:
                 best_v, best = lv, snap()
             total.backward()
-            for tr in trajs:          # the rest frame is observed: its position is not a parameter
-                if tr.grad is not None:
-                    tr.grad[0] = 0
-            for g in opt.param_groups:
-                for p in g["params"]:
-                    if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
-                        p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            clean_gradients(opt, trajs)
             opt.step()
             if on_iteration is not None:
                 on_iteration(j + 1, lv, mat, trajs)
@@ -549,12 +549,7 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
 
 def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames) -> list[float]:
     """The reconstruction loss of each of `frames` for a fit result (one forward pass)."""
-    t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
-    names = prob.sim.slot_names()
-    trajs = [t(r.trajectories[n]) for n in names] if names else None
-    eff = None
-    if r.effect_parameters:
-        eff = effect_values(effect_parameters(prob, s.fit_effects, r.effect_parameters), prob.traj_scale)
+    t, trajs, eff = _result_inputs(prob, r, s)
     with torch.no_grad():
         try:
             x, F = prob.simulate(t(r.youngs), t(r.poisson), trajs, eff)
