@@ -31,7 +31,7 @@ from ..errors import SimulationError
 from . import regions as R
 from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
-from .optimize import FitResult, FitSettings, assemble_result, clean_gradients, confidence, frame_metrics
+from .optimize import FitResult, FitSettings, assemble_result, clean_gradients, confidence, cosine_lr, frame_metrics
 from .problem import FitProblem
 from .search import golden_section, no_finite_uniform_probe
 
@@ -169,9 +169,7 @@ class _Ladder:
         base = [g["lr"] for g in opt.param_groups]
         best_v, best = float("inf"), self.snapshot()
         for j in range(n):
-            cos = 0.5 * (1 + math.cos(math.pi * j / max(n, 1)))
-            for g, b0 in zip(opt.param_groups, base):
-                g["lr"] = b0 * (0.1 + 0.9 * cos)
+            cosine_lr(opt, base, j, n)
             opt.zero_grad(set_to_none=True)
             try:
                 total = self.loss(frames, grad=True)

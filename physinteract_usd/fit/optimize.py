@@ -467,6 +467,13 @@ def _restore(mat, trajs, best, joint, eff_raw=None):
             t.copy_(b)
 
 
+def cosine_lr(opt, base: list, j: int, n: int) -> None:
+    """Iteration j of n: each parameter group's rate on a cosine from its base rate down to 10% of it."""
+    cos = 0.5 * (1 + math.cos(math.pi * j / max(n, 1)))
+    for g, b0 in zip(opt.param_groups, base):
+        g["lr"] = b0 * (0.1 + 0.9 * cos)
+
+
 def clean_gradients(opt, trajs) -> None:
     """Before an optimiser step: the trajectories' rest frame is observed, so its position is not a
     parameter (gradient zeroed); a rare non-finite gradient (a degenerate F) becomes 0, so that

@@ -50,7 +50,7 @@ import torch
 
 from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values
-from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, fit_bumps
+from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
 
@@ -411,9 +411,7 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
         bar = tqdm(total=n, desc="fit parts", unit="it", dynamic_ncols=True, leave=False)
     try:
         for j in range(n):
-            cos = 0.5 * (1 + math.cos(math.pi * j / max(n, 1)))
-            for g, b0 in zip(opt.param_groups, base):
-                g["lr"] = b0 * (0.1 + 0.9 * cos)
+            cosine_lr(opt, base, j, n)
             opt.zero_grad(set_to_none=True)
             try:
                 out = prob.loss(mat.youngs(), mat.poisson(), trajs if trajs else None, effects=eff_now())
