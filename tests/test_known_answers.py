@@ -158,3 +158,19 @@ def test_resolution_is_the_lever_for_bending(tmp_path):
     sag, f = cantilever_vs_beam_theory(tmp_path / "auto", grid="auto")
     assert abs(f - 1) < 0.6 * abs(coarse_f - 1), (f, coarse_f)
     assert abs(sag - 1) < 0.6 * abs(coarse_sag - 1), (sag, coarse_sag)
+
+
+def test_the_pin_rule_setting_reads_default_band_or_a_pair_and_refuses_others():
+    """PHYSINTERACT_PIN_RULE (read by `simulation` at import): the default unless set; "band" the
+    clamp band the cantilever passes with; "GAIN,FLOOR" any rule; anything else a one-line error
+    naming the setting."""
+    import os
+
+    from physinteract_usd import simulation as S
+
+    assert S.pin_rule(None) == S.pin_rule("") == S.pin_rule("Default") == S.DEFAULT_PIN_RULE == (4.0, 0.0)
+    assert S.pin_rule("band") == S.CLAMP_BAND and S.pin_rule(" 1, 0 ") == (1.0, 0.0)
+    for bad in ("clamp", "5", "0,0.2", "5,1.0"):
+        with pytest.raises(ValueError, match="PHYSINTERACT_PIN_RULE"):
+            S.pin_rule(bad)
+    assert S.PIN_RULE == S.pin_rule(os.environ.get("PHYSINTERACT_PIN_RULE"))
