@@ -477,3 +477,25 @@ def test_a_colliders_contact_is_its_pushing_edge():
     up = pushing_edge(an, g, np.array([0.0, -2.0]))
     assert up.uv[1] < 13.0
     assert pushing_edge(an, g, np.zeros(2)) is g           # no push seen: the region as it is
+
+
+def test_a_held_end_with_noisy_frames_is_grown_from_its_still_core():
+    """A bar held at one end bends away (displacement ~ distance from the clamp); the held end's
+    particles read a 3 px spike in one small-motion frame (noise), so their largest motion is not
+    still, but against the object's own motion frame by frame they stay put: the support grown
+    from the still core takes them, and not the first particle that moves, nor the grasp (#23)."""
+    from physinteract_usd.extract.supports import grow_supports, particle_motion, relative_motion
+
+    x0 = np.stack([np.arange(12.0), np.zeros(12), np.zeros(12)], 1)     # spacing 1
+    T = 8
+    amp = np.linspace(0.0, 2.0, T)                                       # px per spacing from the clamp
+    D = np.zeros((T, 12, 2))
+    D[:, :, 0] = amp[:, None] * np.clip(np.arange(12.0) - 2.0, 0, None)[None]
+    D[1, 1:3, 1] = 3.0                                                   # a spike while little moves
+    D[5, 7, :] = np.nan                                                  # a lost seed
+    assert particle_motion(x0, x0, D, 1.0)[1:3].min() > 1.5          # "still" by its largest motion: no
+    rel = relative_motion(x0, x0, D, 1.0)
+    assert rel[:3].max() < 0.03 and rel[3] > 0.04
+    grown = grow_supports(x0, [np.array([0])], rel, 1.0, 0.04)
+    assert grown[0].tolist() == [0, 1, 2]
+    assert grow_supports(x0, [np.array([0])], rel, 1.0, 0.04, exclude=np.array([1]))[0].tolist() == [0]
