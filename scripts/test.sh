@@ -11,7 +11,9 @@ if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; 
     echo "note: could not install chromium (apt-get): the report's browser test will be skipped" >&2
   fi
 fi
-python -m pytest -m "not slow" -q "$@" tests --ignore=tests/blender
+# two workers per two cores (pytest-xdist; a file's tests stay on one worker, so its module fixtures
+# are built once); PYTEST_WORKERS=0 runs in one process
+python -m pytest -m "not slow" -q -n "${PYTEST_WORKERS:-auto}" --dist loadfile --durations=15 "$@" tests --ignore=tests/blender
 if [ -x scripts/test-blender.sh ] && [ -z "${SKIP_BLENDER:-}" ]; then
   bash scripts/test-blender.sh
 fi
