@@ -8,6 +8,11 @@ a fit from the TRUE interaction (and the truth's floor), its evaluation, `diagno
 names an effect, or `--add` one) `effects add` and the warm refit, evaluated again.
 
     python benchmarks/world_diagnose.py --work data/world_dev --seeds 19 --device cuda --iterations 20 --json out/wd.json
+    python benchmarks/world_diagnose.py --work data/world_dev --seeds 19 --cap 400 --iterations 4 --starts 1 --reuse-base
+
+`--reuse-base` takes the base fit kept from an earlier run (<scratch>/<name>.base, written after
+every base fit) instead of fitting again: diagnose and the refit on the same base, e.g. before
+and after a change to diagnose.
 
 A tuning tool: it refuses the validation split. Results in docs/benchmarks/world_fits.md.
 """
@@ -16,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -43,48 +49,62 @@ def scored(stage: Path, gt: Path, device: str, e_true: float) -> dict:
 
 
 def one(work: Path, n: str, cap: int, iterations: int, refit_iterations: int, device: str, add: str | None,
-        scratch: Path, log=print) -> dict:
+        scratch: Path, log=print, starts: int = 3, reuse_base: bool = False) -> dict:
     gt = gt_dir(work, n)
     g = json.loads((gt / "gt.json").read_text())
-    out = scratch / n
-    prepare_stage(work / n, gt, out, cap)
+    out, kept = scratch / n, scratch / f"{n}.base"
     stage = out / "scene.usda"
-    if g.get("floor"):
-        add_ground(stage, g["floor"]["height"], g["floor"].get("friction", 0.5))
     e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
     row = {"scene": n, "e_true": e_true, "shape": g["world"].get("shape"), "scenario": g["world"].get("scenario"),
-           "type": g["interaction"]["type"], "device": device, "iterations": iterations}
+           "type": g["interaction"]["type"], "device": device, "iterations": iterations, "cap": cap,
+           "starts": starts}
     quiet = lambda *a, **k: None  # noqa: E731
-    t0 = time.perf_counter()
-    f1 = api.fit(stage, iterations=iterations, contact_from=gt, device=device, progress=False, log=quiet)
-    row["fit_s"] = time.perf_counter() - t0
-    row["loss_before"] = f1.summary().get("final_loss")
-    row["before"] = scored(stage, gt, device, e_true)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if reuse_base and (kept / "base.json").exists():
+        shutil.rmtree(out, ignore_errors=True)
+        shutil.copytree(kept, out)
+        row.update(json.loads((kept / "base.json").read_text()), reused_base=True)
+    else:
+        prepare_stage(work / n, gt, out, cap)
+        if g.get("floor"):
+            add_ground(stage, g["floor"]["height"], g["floor"].get("friction", 0.5))
+        f1 = api.fit(stage, iterations=iterations, contact_from=gt, device=device, progress=False, log=quiet)
+        row["fit_s"], row["fit_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+        row["loss_before"] = f1.summary().get("final_loss")
+        row["before"] = scored(stage, gt, device, e_true)
+        shutil.rmtree(kept, ignore_errors=True)
+        shutil.copytree(out, kept)
+        (kept / "base.json").write_text(json.dumps({k: row[k] for k in ("fit_s", "fit_cpu_s", "loss_before", "before")}))
     log(f"{n}: base fit E x{row['before']['e_ratio']:.2f}, MA {row['before']['ma']:.3f} ({row['fit_s']:.0f} s)", flush=True)
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     try:
-        d = api.diagnose(stage, device=device, progress=False, log=quiet)
+        d = api.diagnose(stage, device=device, progress=False, log=quiet, starts=starts)
     except Exception as exc:  # noqa: BLE001 - the base fit's row stands
         row["error"] = f"diagnose: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
         log(f"{n}: {row['error']}", flush=True)
         if not add:
             return row
         d = {}
-    row["diagnose_s"] = time.perf_counter() - t1
+    row["diagnose_s"], row["diagnose_cpu_s"] = time.perf_counter() - t1, time.process_time() - c1
     row["verdict"] = d.get("verdict")
-    row["candidates"] = [{k: c.get(k) for k in ("effect", "predicted_loss_drop", "realized_loss_drop", "estimate",
-                                                "evidence")} for c in d.get("candidates", [])]
+    row["reason"] = d.get("reason")
+    row["candidates"] = [{k: c.get(k) for k in ("effect", "score", "predicted_loss_drop", "realized_loss_drop",
+                                                "estimate", "evidence")} for c in d.get("candidates", [])]
+    # every candidate tested: why it was (not) significant
+    row["tested"] = d.get("tested", [])
+    row["loss"], row["noise_floor"] = d.get("loss"), d.get("noise_floor")
+    row["noise"] = d.get("noise")
     top = [c["effect"] for c in row["candidates"]]
     log(f"{n}: diagnose {row['verdict']}: {top} ({row['diagnose_s']:.0f} s)", flush=True)
     name = add or next((e for e in top if e in EFFECTS), None)
     if name:
         api.effects_add(stage, name)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         # the refit becomes current whatever its loss (keep_best off) so that it is what is scored;
         # `kept` says whether `fit`'s default would have kept it
         f2 = api.fit(stage, iterations=refit_iterations, contact_from=gt, device=device, progress=False, log=quiet,
                      keep_best=False)
-        row["refit_s"] = time.perf_counter() - t2
+        row["refit_s"], row["refit_cpu_s"] = time.perf_counter() - t2, time.process_time() - c2
         row["added"] = name
         row["loss_after"] = f2.summary().get("final_loss")
         row["kept"] = bool(row["loss_after"] is not None and row["loss_before"] is not None
@@ -95,16 +115,27 @@ def one(work: Path, n: str, cap: int, iterations: int, refit_iterations: int, de
     return row
 
 
+def top_tested(r: dict) -> dict:
+    """The first significant candidate, else the tested one with the smallest p-value."""
+    t = r.get("tested") or []
+    sig = [c for c in t if c.get("significant")]
+    return sig[0] if sig else (min(t, key=lambda c: c.get("marginal_p_value", 1.0)) if t else {})
+
+
 def table(rows: list[dict]) -> str:
-    out = ["| capture | what | base fit: E / true, MA, masked PSNR | diagnose: verdict, candidates (best first) | added | after: E / true, MA, masked PSNR |",
-           "|---|---|---|---|---|---|"]
+    out = ["| capture | what | base fit: E / true, MA, masked PSNR | diagnose: verdict, candidates (best first) | top: p, predicted / realised drop (of loss) | added | after: E / true, MA, masked PSNR |",
+           "|---|---|---|---|---|---|---|"]
     for r in rows:
         b, a = r.get("before") or {}, r.get("after") or {}
         cands = ", ".join(c["effect"] for c in r.get("candidates", [])) or "-"
         fa = (f"{a['e_ratio']:.2f}, {a['ma']:.3f}, {a['psnr_masked']:.1f} dB" if a else "-")
+        t = top_tested(r)
+        real = next((c.get("realized_loss_drop") for c in r.get("candidates", []) if c["effect"] == t.get("effect")), None)
+        ts = (f"{t['effect']}: p {t.get('marginal_p_value', 1):.2g}, {t.get('marginal_predicted_loss_drop', 0):.2e} / "
+              f"{'-' if real is None else f'{real:.2e}'} (loss {r.get('loss') or float('nan'):.2e})" if t else "-")
         out.append(f"| {r['scene']} | {r.get('shape')} {r.get('scenario')}, {r.get('type')} | "
                    f"{b.get('e_ratio', float('nan')):.2f}, {b.get('ma', float('nan')):.3f}, {b.get('psnr_masked', float('nan')):.1f} dB "
-                   f"| {r.get('verdict', r.get('error', '-'))}: {cands} | {r.get('added', '-')} | {fa} |")
+                   f"| {r.get('verdict', r.get('error', '-'))}: {cands} | {ts} | {r.get('added', '-')} | {fa} |")
     return "\n".join(out)
 
 
@@ -119,11 +150,15 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
     ap.add_argument("--scratch", default="/tmp/world_diagnose")
+    ap.add_argument("--starts", type=int, default=3, help="diagnose --starts (1: score the base fit as it is)")
+    ap.add_argument("--reuse-base", action="store_true", help="diagnose the base fit an earlier run kept "
+                    "(<scratch>/<name>.base) instead of fitting again")
     a = ap.parse_args(argv)
 
     def rows_of(n):
         try:
-            return [one(Path(a.work), n, a.cap, a.iterations, a.refit_iterations, a.device, a.add, Path(a.scratch))]
+            return [one(Path(a.work), n, a.cap, a.iterations, a.refit_iterations, a.device, a.add, Path(a.scratch),
+                        starts=a.starts, reuse_base=a.reuse_base)]
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001 - one capture's failure is a row

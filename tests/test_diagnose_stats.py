@@ -134,3 +134,59 @@ def test_verdicts():
     assert d.verdict == "unexplained" and "held-back" in d.reason
     d = conclude(Diagnosis("", "", [cand("interaction:timing", True, 4e-3, True)], 5e-3, 1e-3))
     assert d.verdict == "missing_effect" and "extract --release-frame 8" in d.reason
+
+
+class _FlatProblem:
+    """A stand-in for a FitProblem's renderer: a fixed image per frame, with a bright disc whose
+    centre moves with x_k[0] (no simulation, numpy-fast)."""
+
+    def __init__(self, video, weight=None):
+        import torch
+
+        self.T, self.frames = len(video), torch.as_tensor(video)
+        self.weight = None if weight is None else torch.as_tensor(weight)
+        self.masks = None
+
+    @staticmethod
+    def image(cx, H=24, W=32):
+        yy, xx = np.mgrid[:H, :W]
+        disc = ((yy - 12) ** 2 + (xx - cx) ** 2 < 25).astype(np.float64)
+        base = 0.3 + 0.2 * (xx / W)[..., None] * np.array([1.0, 0.5, 0.2])
+        return base + 0.4 * disc[..., None] * np.array([0.9, 0.6, 0.3])
+
+    def render_frame(self, k, x_k, F_k):
+        import torch
+
+        return {"rgb": torch.as_tensor(self.image(float(x_k[0, 0])))}
+
+
+def test_photometric_gain_and_offset_per_frame_are_projected_out_and_motion_is_not():
+    """A video whose frames differ from the rendering only by a colour gain and offset per frame
+    (flicker) leaves no residual once the photometric nuisance is projected out; a disc that moved
+    one pixel keeps almost all of its residual (it is not a gain or an offset)."""
+    import torch
+
+    from physinteract_usd.diagnose.residual import ImageResidual
+
+    rng = np.random.default_rng(5)
+    T = 5
+    x = torch.full((T, 1, 3), 14.0)
+    F = torch.eye(3).expand(T, 1, 3, 3)
+    clean = np.stack([_FlatProblem.image(14.0) for _ in range(T)])
+    gain = 1.0 + 0.1 * rng.normal(size=(T, 1, 1, 3))
+    off = 0.05 * rng.normal(size=(T, 1, 1, 3))
+    flick = clean * gain + off
+    hand = np.ones((T, 24, 32))
+    hand[:, :4, :6] = 0.0                                      # hand pixels: weighted 0
+    res = ImageResidual(_FlatProblem(flick, hand), max_pixels=10 ** 6)
+    raw = res(x, F)
+    res.set_photometric(x, F)
+    assert np.sum(raw ** 2) > 1.0
+    assert np.sum(res(x, F) ** 2) < 1e-10 * np.sum(raw ** 2)
+    moved = np.stack([_FlatProblem.image(14.0 if k < 2 else 15.0) for k in range(T)])
+    res2 = ImageResidual(_FlatProblem(moved * gain + off, hand), max_pixels=10 ** 6)
+    res2.set_photometric(x, F)
+    r = res2(x, F).reshape(res2.shape)
+    assert np.sum(r[:1] ** 2) < 1e-10                          # frame 1: flicker only
+    raw_motion = np.sum(((clean - moved) * gain * hand[..., None])[1:] ** 2)
+    assert np.sum(r ** 2) > 0.8 * raw_motion

@@ -94,6 +94,8 @@ class DiagnoseSettings:
     heterogeneity_parts: int = 3
     trajectory_prior: bool = True       # the trajectory's base columns bounded by the measured path's
                                         # uncertainty (the fit's prior as ridge rows); False: free
+    photometric: bool = True            # each frame's colour gain and offset projected out of the residual
+                                        # (`ImageResidual.set_photometric`: flicker, exposure)
 
 
 @dataclass
@@ -142,6 +144,7 @@ class Diagnosis:
     cost: dict = field(default_factory=dict)
     trajectory_check: dict | None = None   # is the hand's path soaking up model error (`trajectory_check`)
     base_starts: dict | None = None        # the base refitted from other starts (app.diagnose)
+    noise: dict | None = None              # the data's noise on the rest frames and the silhouette's weight
 
     @property
     def significant(self) -> list:
@@ -155,7 +158,7 @@ class Diagnosis:
                             "relative_drop": c.relative_drop, "significant": c.significant,
                             "accepted": c.accepted, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
-                "trajectory_check": self.trajectory_check, "base_starts": self.base_starts}
+                "trajectory_check": self.trajectory_check, "base_starts": self.base_starts, "noise": self.noise}
 
 
 # ---------------------------------------------------------------------------------------- runner
@@ -711,6 +714,13 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     res = ImageResidual(prob, max_pixels=s.max_pixels)
     run = _Runner(prob, base, res, log)
     x0, F0 = run.xf()
+    noise = None
+    if s.photometric:
+        res.set_photometric(x0, F0)
+        noise = res.set_noise_weights(x0, F0, rest_frames(prob))
+        if noise["sigma_silhouette"] is not None:
+            log(f"diagnose: noise on {len(noise['rest_frames'])} rest frames: colour {noise['sigma_colour']:.3g}, "
+                f"silhouette {noise['sigma_silhouette']:.3g} -> silhouette weight {noise['silhouette_weight']:.3g}")
     r0 = res(x0, F0)
     L0 = loss(r0)
     blocks, nb = res.blocks(s.frames_per_block, s.tiles)
@@ -773,6 +783,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     diag = Diagnosis("adequate", "", results, L0, floor, cost={"forwards": run.forwards,
                                                                "base_columns": int(J.shape[1]),
                                                                "seconds": 0.0})
+    diag.noise = noise
     diag._ctx = ctx   # for the refit and the verdict (not serialised)
     diag._J = Ja
     diag.trajectory_check = trajectory_check(diag)
@@ -834,6 +845,12 @@ def trajectory_check(diag: Diagnosis) -> dict | None:
                 "soak up model error; " + ("this diagnosis bounds it by its measurement uncertainty"
                                            if out["bounded"] else "this diagnosis left it free"))
     return out
+
+
+def rest_frames(prob) -> list[int]:
+    """The frames before the first interaction grasps the object (the object and the model still)."""
+    g = [int(c.grasp_frame) for c in prob.contacts if c.is_interaction]
+    return list(range(min(min(g), prob.T))) if g else []
 
 
 def _floor(prob, res: ImageResidual) -> float:

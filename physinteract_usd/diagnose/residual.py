@@ -6,6 +6,28 @@ subsampled pixel grid (at most `max_pixels` per frame), r holds the rendered col
 video's (3 channels) and the rendered alpha minus the video's silhouette (1 channel, when the
 stage has silhouettes), with the hand's pixels weighted 0. Its layout (frames, rows, cols, 4)
 gives the blocks the significance test sums over (`blocks`).
+
+Photometric nuisance (`set_photometric`): a real video's exposure and lighting change from frame
+to frame (flicker, auto-exposure, compression's DC drift), which no physical candidate explains
+and which the appearance model (fixed colours, a static background) cannot follow. Per frame and
+colour channel the residual's affine part in the base rendering, a gain g_k,c and an offset
+o_k,c (video ~ (1 + g) rendered + o, the standard affine brightness model), is projected out:
+rgb_k,c <- rgb_k,c - Q_k,c Q_k,c^T rgb_k,c, Q the orthonormal basis of [w, w * rendered_base]. The
+projector is fixed (taken at the base) and linear, so every residual the diagnosis forms (the
+base's, the probes', the refits') is the same linear map of the image residual: by
+Frisch-Waugh-Lovell, scoring the projected residual against projected columns is the joint test
+with the 6 nuisance parameters per frame added to the base columns, at no forward's cost. The
+silhouette channel has its own per-frame nuisance: a segmentation that grows or shrinks the whole
+mask by a fraction of a pixel from frame to frame (a threshold on a flickering video), whose column
+is the base rendering's alpha edge |grad alpha| (the first-order change of a dilated silhouette).
+
+Channel weights from the data (`set_noise_weights`): where the video has rest frames (before the
+first grasp: the object and the model still), the residual's change between them is the data's own
+noise. Its variance in the band around the silhouette's edge (where the physics shows), per
+channel kind (colour, silhouette), gives the silhouette channel the weight
+min(1, sigma_colour / sigma_silhouette): a segmentation much noisier than the colours counts less
+(generalised least squares between the two kinds), never more than the colours (a clean mask's
+systematic soft-alpha error is not noise). Without 3 rest frames the weight stays 1.
 """
 
 from __future__ import annotations
@@ -34,13 +56,78 @@ class ImageResidual:
         self.masks = prob.masks[:, self.rows, self.cols] if self.has_sil else None
         self.sw = float(silhouette_weight) if self.has_sil else 0.0
         self.shape = (len(self.frames),) + tuple(self.target.shape[1:3]) + (4,)
+        self.photo = None          # (T, 3, m, q) the photometric nuisance's orthonormal basis per frame / channel
+        self.edge = None           # (T, h, w) the silhouette's unit edge column per frame
+
+    def set_photometric(self, x, F) -> None:
+        """Fix the per-frame nuisance bases (module doc) at the simulated base x, F (all T frames,
+        frame 0 included: the floor uses it): colour gain and offset, and the silhouette's edge.
+        A frame's basis drops columns the weights make degenerate (a frame all hand)."""
+        Q, E = [], []
+        with torch.no_grad():
+            for k in range(self.prob.T):
+                out = self.prob.render_frame(k, x[k], F[k])
+                rend = out["rgb"][self.rows, self.cols]
+                w = self.w[k][..., None].expand_as(rend)
+                A = torch.stack([w, w * rend], -1).reshape(-1, 3, 2).permute(1, 0, 2)     # (3, m, 2)
+                U, S, _ = torch.linalg.svd(A, full_matrices=False)
+                keep = (S > 1e-6 * S[:, :1].clamp_min(1e-30)).to(U.dtype)               # (3, 2)
+                Q.append(U * keep[:, None, :])
+                if self.has_sil and "alpha" in out:
+                    e = self.w[k] * _edge(out["alpha"])[self.rows, self.cols]
+                    nrm = torch.linalg.norm(e)
+                    E.append(e / nrm if nrm > 1e-12 else torch.zeros_like(e))
+        self.photo = torch.stack(Q)
+        self.edge = torch.stack(E) if E else None
+
+    def set_noise_weights(self, x, F, rest_frames) -> dict:
+        """The silhouette channel's weight from the data's own noise on `rest_frames` (module doc);
+        returns {"rest_frames", "sigma_colour", "sigma_silhouette", "silhouette_weight", "band_pixels"}."""
+        out = {"rest_frames": [int(k) for k in rest_frames], "sigma_colour": None, "sigma_silhouette": None,
+               "silhouette_weight": self.sw, "band_pixels": 0}
+        if not self.has_sil or len(rest_frames) < 3:
+            return out
+        sw0 = self.sw
+        self.sw = 1.0
+        with torch.no_grad():
+            R = torch.stack([self.frame(k, x[k], F[k]) for k in rest_frames]).cpu().numpy().astype(np.float64)
+            alpha = torch.stack([self.prob.render_frame(k, x[k], F[k])["alpha"][self.rows, self.cols]
+                                 for k in rest_frames]).cpu().numpy()
+        self.sw = sw0
+        from scipy.ndimage import binary_dilation, binary_erosion
+
+        m = self.masks[list(rest_frames)].cpu().numpy() > 0.5
+        inside = (alpha > 0.5) | m
+        band = np.stack([binary_dilation(a, iterations=2) & ~binary_erosion(a, iterations=2) for a in inside]).any(0)
+        band &= (self.w[list(rest_frames)].cpu().numpy() > 0).all(0)
+        if band.sum() < 4:
+            return out
+        D = (R - R.mean(0, keepdims=True))[:, band]            # (n_rest, band, 4)
+        corr = len(rest_frames) / (len(rest_frames) - 1.0)
+        s_rgb = math.sqrt(corr * float(np.mean(D[..., :3] ** 2)))
+        s_sil = math.sqrt(corr * float(np.mean(D[..., 3] ** 2)))
+        self.sw = float(min(1.0, s_rgb / s_sil)) * sw0 if s_sil > 0 else sw0
+        out.update(sigma_colour=s_rgb, sigma_silhouette=s_sil, silhouette_weight=self.sw, band_pixels=int(band.sum()))
+        return out
+
+    def _photometric(self, k: int, rgb: torch.Tensor) -> torch.Tensor:
+        if self.photo is None:
+            return rgb
+        Q = self.photo[k]                                   # (3, m, 2)
+        flat = rgb.reshape(-1, 3)
+        coef = torch.einsum("cmq,mc->cq", Q, flat)
+        return (flat - torch.einsum("cmq,cq->mc", Q, coef)).reshape(rgb.shape)
 
     def frame(self, k: int, x_k, F_k) -> torch.Tensor:
         out = self.prob.render_frame(k, x_k, F_k)
         w = self.w[k][..., None]
-        rgb = (out["rgb"][self.rows, self.cols] - self.target[k]) * w
+        rgb = self._photometric(k, (out["rgb"][self.rows, self.cols] - self.target[k]) * w)
         if self.has_sil:
-            sil = (out["alpha"][self.rows, self.cols] - self.masks[k]) * self.w[k] * self.sw
+            sil = (out["alpha"][self.rows, self.cols] - self.masks[k]) * self.w[k]
+            if self.photo is not None and self.edge is not None:
+                e = self.edge[k]
+                sil = sil - e * (e * sil).sum()
+            sil = sil * self.sw
         else:
             sil = torch.zeros_like(rgb[..., 0])
         return torch.cat([rgb, sil[..., None]], -1)
@@ -75,6 +162,16 @@ class ImageResidual:
         lab = (fb[:, None, None] * nr + rb[None, :, None]) * nc + cb[None, None, :]
         lab = np.broadcast_to(lab[..., None], self.shape).ravel()
         return lab.astype(np.int64), int(lab.max()) + 1
+
+
+def _edge(alpha: torch.Tensor) -> torch.Tensor:
+    """|grad alpha| (central differences, full resolution): where a dilation changes the silhouette."""
+    a = alpha
+    gy = torch.zeros_like(a)
+    gx = torch.zeros_like(a)
+    gy[1:-1] = 0.5 * (a[2:] - a[:-2])
+    gx[:, 1:-1] = 0.5 * (a[:, 2:] - a[:, :-2])
+    return torch.sqrt(gx * gx + gy * gy)
 
 
 def loss(r: np.ndarray) -> float:
