@@ -90,8 +90,9 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     largest motion is within twice the stillness threshold: a held
     region's largest motion reads 1.5-20 px on the world suite's noisy, compressed videos, where
     a spike in one frame decides a maximum but not a median (#23, the 17 dev captures: support
-    recall 0.43 -> 0.54, precision 0.52 -> 0.50, none invented on the 7 free objects; 0.06 gave
-    recall 0.58 at precision 0.46 in a replay). 0 switches the growth off.
+    recall 0.43 -> 0.54, precision 0.52 -> 0.50, none invented on the 7 free objects; in a replay
+    0.03 / 0.04 / 0.06 gave recall 0.34 / 0.38 / 0.46 at precision 0.50 / 0.51 / 0.47, against 0.26 /
+    0.52 without). 0 switches the growth off.
 
     Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
     x0, h = an.x0, an.spacing
