@@ -190,3 +190,33 @@ def test_photometric_gain_and_offset_per_frame_are_projected_out_and_motion_is_n
     assert np.sum(r[:1] ** 2) < 1e-10                          # frame 1: flicker only
     raw_motion = np.sum(((clean - moved) * gain * hand[..., None])[1:] ** 2)
     assert np.sum(r ** 2) > 0.8 * raw_motion
+
+
+def test_correlation_time_sets_blocks_long_enough_to_keep_false_alarms():
+    """The residual's integrated correlation time is (1 + rho) / (1 - rho) for AR(1) (white: 1);
+    2-frame blocks on a residual correlated over ~9 frames cry wolf, blocks twice that long do not
+    (the rule diagnose_problem uses)."""
+    from physinteract_usd.diagnose.residual import correlation_frames
+
+    rng = np.random.default_rng(6)
+    assert correlation_frames(rng.normal(size=(40, 300))) == pytest.approx(1.0, abs=0.3)
+    T, n, runs, rho = 48, 120, 200, 0.8
+    taus, short, auto = [], 0, 0
+    t = np.arange(T)
+    j = (np.sin(2 * np.pi * t / T)[:, None] * (np.arange(n) < 60)[None]).ravel()   # a slow signature
+    u = j / np.linalg.norm(j)
+    for _ in range(runs):
+        r = _ar1_field(rng, T, n, rho)
+        tau = correlation_frames(r)
+        taus.append(tau)
+        for fpb in (2, int(np.ceil(2 * tau))):
+            blocks = ((t[:, None] // fpb) * 6 + (np.arange(n)[None] // 20)).ravel()
+            _, p = S.block_signflip(S.block_sums(r.ravel() * u, blocks, int(blocks.max()) + 1), [0], n_flips=300,
+                                    seed=int(rng.integers(1 << 30)))
+            if fpb == 2:
+                short += p < 0.05
+            else:
+                auto += p < 0.05
+    assert np.median(taus) == pytest.approx((1 + rho) / (1 - rho), rel=0.3)
+    assert short / runs > 0.25
+    assert auto / runs <= 0.08

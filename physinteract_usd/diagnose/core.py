@@ -36,7 +36,7 @@ import torch
 from ..errors import SimulationError
 from ..simulation import build_simulation
 from . import score as S
-from .residual import ImageResidual, loss
+from .residual import ImageResidual, correlation_frames, loss
 
 PHYSICAL = ("damping", "plasticity", "ground", "viscoelasticity")
 CANDIDATES = PHYSICAL + ("heterogeneity", "interaction:timing", "interaction:contact", "interaction:grasp_size",
@@ -83,7 +83,8 @@ class BaseState:
 @dataclass
 class DiagnoseSettings:
     max_pixels: int = 6000
-    frames_per_block: int = 2
+    frames_per_block: int | None = None   # the sign flips' blocks: frames per block (None: from the residual's
+                                          # own correlation time x 2, `residual.correlation_frames`; >= 2)
     tiles: int = 6
     alpha: float = 0.05
     min_relative_drop: float = 0.03
@@ -723,7 +724,12 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
                 f"silhouette {noise['sigma_silhouette']:.3g} -> silhouette weight {noise['silhouette_weight']:.3g}")
     r0 = res(x0, F0)
     L0 = loss(r0)
-    blocks, nb = res.blocks(s.frames_per_block, s.tiles)
+    tau = correlation_frames(r0.reshape(res.shape))
+    # blocks twice the correlation time (AR(1) at rho 0.8: false alarms 36% at 2 frames, 12% at tau,
+    # 5% at 2 tau; tests/test_diagnose_stats.py), at least 3 of them along the clip
+    fpb = s.frames_per_block or int(min(max(2, math.ceil(2.0 * tau)), max(2, res.shape[0] // 3)))
+    blocks, nb = res.blocks(fpb, s.tiles)
+    noise = dict(noise or {}, correlation_frames=tau, frames_per_block=fpb)
     log(f"diagnose: residual of {len(r0)} values ({res.shape[0]} frames, stride {res.stride}), loss {L0:.3e}")
     pcols = [] if s.trajectory_prior else None
     J, names = base_columns(run, s, r0, pcols)

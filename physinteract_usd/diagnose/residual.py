@@ -174,6 +174,26 @@ def _edge(alpha: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(gx * gx + gy * gy)
 
 
+def correlation_frames(R: np.ndarray, max_lag: int = 20) -> float:
+    """The residual's integrated correlation time in frames, 1 + 2 sum_l rho_l over the lags before
+    the first rho_l <= 0 (Geyer's initial positive sequence); rho_l is the pooled correlation of
+    the residual (frames, ...) with itself l frames later, its static part kept (a persistent
+    appearance error correlates every frame with every other). The sign flips' blocks must be at
+    least this long to be independent: with 2-frame blocks on a residual correlated over 8 frames
+    the test cries wolf."""
+    R = np.asarray(R, np.float64).reshape(len(R), -1)
+    e = float(np.sum(R * R))
+    if len(R) < 3 or e <= 0:
+        return 1.0
+    tau = 1.0
+    for lag in range(1, min(int(max_lag), len(R) - 1) + 1):
+        rho = float(np.sum(R[lag:] * R[:-lag])) / (e * (len(R) - lag) / len(R))
+        if rho <= 0:
+            break
+        tau += 2.0 * rho
+    return tau
+
+
 def loss(r: np.ndarray) -> float:
     """The diagnosis's loss: mean square residual."""
     return float(np.mean(np.square(r))) if len(r) else 0.0
