@@ -499,3 +499,10 @@ def test_a_held_end_with_noisy_frames_is_grown_from_its_still_core():
     grown = grow_supports(x0, [np.array([0])], rel, 1.0, 0.04)
     assert grown[0].tolist() == [0, 1, 2]
     assert grow_supports(x0, [np.array([0])], rel, 1.0, 0.04, exclude=np.array([1]))[0].tolist() == [0]
+    # only through the particles the camera does not see, where asked: the seen one stops it
+    seen = np.zeros(12, bool)
+    seen[1] = True
+    assert grow_supports(x0, [np.array([0])], rel, 1.0, 0.04, visible=seen)[0].tolist() == [0]
+    seen[1] = False
+    seen[2] = True
+    assert grow_supports(x0, [np.array([0])], rel, 1.0, 0.04, visible=seen)[0].tolist() == [0, 1]

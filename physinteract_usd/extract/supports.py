@@ -84,15 +84,15 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     (toy_rope passes, glove 0.315 -> 0.367, tow_rope 0.563 -> 0.502, the rest within 0.03; H100,
     2026-11-24).
 
-    Each core is then grown (`grow_supports`) through its connected neighbours whose displacement
-    stays at most `grow_rel` of the object's own (`relative_motion`: frame by frame against the
-    95th percentile of the particles', the median over the frames of large motion) and whose
-    largest motion is within twice the stillness threshold: a held
-    region's largest motion reads 1.5-20 px on the world suite's noisy, compressed videos, where
-    a spike in one frame decides a maximum but not a median (#23, the 17 dev captures: support
-    recall 0.43 -> 0.54, precision 0.52 -> 0.50, none invented on the 7 free objects; in a replay
-    0.03 / 0.04 / 0.06 gave recall 0.34 / 0.38 / 0.46 at precision 0.50 / 0.51 / 0.47, against 0.26 /
-    0.52 without). 0 switches the growth off.
+    Each core is then grown (`grow_supports`) through its connected neighbours the camera does not
+    see (with `shell_hidden_only`, as the shell) whose displacement stays at most `grow_rel` of the
+    object's own (`relative_motion`: frame by frame against the 95th percentile of the particles',
+    the median over the frames of large motion) and whose largest motion is within twice the
+    stillness threshold: a held region's largest motion reads 1.5-20 px on the world suite's noisy,
+    compressed videos, where a spike in one frame decides a maximum but not a median (#23, the 17
+    dev captures: support recall 0.43 -> 0.49, precision 0.52 -> 0.51, none invented on the 7 free
+    objects; growing through seen particles too gave 0.54 / 0.50 there but cost the named suite's
+    precision 0.79 -> 0.70, hidden only 0.73). 0 switches the growth off.
 
     Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
     x0, h = an.x0, an.spacing
@@ -165,7 +165,8 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
         rel = relative_motion(x0, S3, D, h)
         rel[motion > 2.0 * thr] = np.inf      # and never a particle whose largest motion is far from still
         n_before = sum(len(s_) for s_ in sets)
-        sets = grow_supports(x0, sets, rel, h, grow_rel, exclude)
+        sets = grow_supports(x0, sets, rel, h, grow_rel, exclude,
+                             visible=rest.particle_visible if shell_hidden_only else None)
         ev["grown_particles"] = int(sum(len(s_) for s_ in sets) - n_before)
         ev["grow_rel"] = grow_rel
     # a floor is not a support: still regions at the object's bottom, on which it can stand, are
@@ -375,13 +376,18 @@ def relative_motion(x0: np.ndarray, seeds3: np.ndarray, D: np.ndarray, h: float,
 
 
 def grow_supports(x0: np.ndarray, sets: list, rel: np.ndarray, h: float, limit: float,
-                  exclude=np.zeros(0, np.int64), radius: float = 1.05) -> list:
+                  exclude=np.zeros(0, np.int64), radius: float = 1.05, visible: np.ndarray | None = None) -> list:
     """Each support set grown through the particles within `radius` spacings, step by step, whose
-    `rel` (`relative_motion`) is at most `limit`, never into `exclude` (the grasp) or another set."""
+    `rel` (`relative_motion`) is at most `limit`, never into `exclude` (the grasp) or another set;
+    with `visible` ((P,) bool), only through the particles the camera does not see (as the shell
+    in `support_core`: a seen particle is measured where it is, a hidden one takes its nearest
+    seeds' motion)."""
     from scipy.spatial import cKDTree
 
     P = len(x0)
     ok = np.asarray(rel) <= limit
+    if visible is not None:
+        ok &= ~np.asarray(visible, bool)
     ok[np.asarray(exclude, np.int64)] = False
     taken = np.zeros(P, bool)
     for s_ in sets:
