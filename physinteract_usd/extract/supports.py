@@ -63,7 +63,7 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
                   push_dir=None, rel_threshold: float = 0.08, abs_threshold: float = 0.6,
                   core_rel: float = 0.0, core_abs: float = 0.0, margin: float = 1.05,
                   shell_hidden_only: bool = True, lowest_contact_y: float | None = None,
-                  grow_rel: float = 0.04):
+                  grow_rel: float = 0.04, grow_noisy_px: float = 0.35):
     """Particles that stay put while the object moves: connected still regions -> fixed sets.
 
     Still: motion at most max(abs_threshold, rel_threshold x the contact's motion). Near a support
@@ -92,7 +92,10 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     compressed videos, where a spike in one frame decides a maximum but not a median (#23, the 17
     dev captures: support recall 0.43 -> 0.49, precision 0.52 -> 0.51, none invented on the 7 free
     objects; growing through seen particles too gave 0.54 / 0.50 there but cost the named suite's
-    precision 0.79 -> 0.70, hidden only 0.73). 0 switches the growth off.
+    precision 0.79 -> 0.70, hidden only 0.73). Only where the tracking is noisy: the core's split
+    (`log_split`) at `grow_noisy_px` or more (the world suite's dev captures 0.25-3.1 px; the named
+    synthetic suite's and the bundled sample's 0.04-0.33 px, where growing held 27 particles more of
+    the sample, none of them truly held: precision 0.81 -> 0.71). 0 switches the growth off.
 
     Motion per particle (px): `particle_motion` from object pixels tracked from frame 0."""
     x0, h = an.x0, an.spacing
@@ -158,7 +161,7 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     sets = cores
     ev["core_particles"] = n_core   # the rest of each set is the shell around its core (uncertain)
     ev["core_threshold_px"] = max(low, split)
-    if grow_rel > 0 and sets:
+    if grow_rel > 0 and sets and ev["core_threshold_px"] >= grow_noisy_px:
         # a held region's largest motion reads 1.5-20 px on noisy, compressed videos (a spike in a
         # frame or two, the toucher passing by): grown from each core through the neighbours that
         # stay still against the object's own motion frame by frame (`relative_motion`)
