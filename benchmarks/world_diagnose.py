@@ -49,7 +49,8 @@ def scored(stage: Path, gt: Path, device: str, e_true: float) -> dict:
 
 
 def one(work: Path, n: str, cap: int, iterations: int, refit_iterations: int, device: str, add: str | None,
-        scratch: Path, log=print, starts: int = 3, reuse_base: bool = False, diagnose_refit: int = 3) -> dict:
+        scratch: Path, log=print, starts: int = 3, reuse_base: bool = False, diagnose_refit: int = 3,
+        skip_diagnose: bool = False) -> dict:
     gt = gt_dir(work, n)
     g = json.loads((gt / "gt.json").read_text())
     out, kept = scratch / n, scratch / f"{n}.base"
@@ -78,6 +79,8 @@ def one(work: Path, n: str, cap: int, iterations: int, refit_iterations: int, de
     log(f"{n}: base fit E x{row['before']['e_ratio']:.2f}, MA {row['before']['ma']:.3f} ({row['fit_s']:.0f} s)", flush=True)
     t1, c1 = time.perf_counter(), time.process_time()
     try:
+        if skip_diagnose and add:
+            raise RuntimeError("skipped (--skip-diagnose)")
         d = api.diagnose(stage, device=device, progress=False, log=quiet, starts=starts, refit=diagnose_refit,
                          refit_iterations=refit_iterations)
     except Exception as exc:  # noqa: BLE001 - the base fit's row stands
@@ -154,6 +157,8 @@ def main(argv=None) -> int:
     ap.add_argument("--starts", type=int, default=3, help="diagnose --starts (1: score the base fit as it is)")
     ap.add_argument("--diagnose-refit", type=int, default=3, help="diagnose --refit: how many top candidates it "
                     "refits (--refit-iterations each) to judge them on held-back frames")
+    ap.add_argument("--skip-diagnose", action="store_true", help="with --add: add the effect and refit without "
+                    "diagnosing first")
     ap.add_argument("--reuse-base", action="store_true", help="diagnose the base fit an earlier run kept "
                     "(<scratch>/<name>.base) instead of fitting again")
     a = ap.parse_args(argv)
@@ -161,7 +166,7 @@ def main(argv=None) -> int:
     def rows_of(n):
         try:
             return [one(Path(a.work), n, a.cap, a.iterations, a.refit_iterations, a.device, a.add, Path(a.scratch),
-                        starts=a.starts, reuse_base=a.reuse_base, diagnose_refit=a.diagnose_refit)]
+                        starts=a.starts, reuse_base=a.reuse_base, diagnose_refit=a.diagnose_refit, skip_diagnose=a.skip_diagnose)]
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001 - one capture's failure is a row
