@@ -65,6 +65,8 @@ CONFUSABLE = {
                                       "damping one that grows after it"),
     "camera:time_offset": ("interaction:timing", "a time offset shifts every frame; a timing error only the grasp "
                                                  "or release"),
+    "interaction:support": ("damping", "a support that holds more or less than the model's changes the motion near "
+                                       "it (a soft pin also dissipates there); damping slows every motion, everywhere"),
 }
 
 
