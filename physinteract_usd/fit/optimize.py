@@ -70,6 +70,7 @@ class FitSettings:
     select_part_points: int = 7         # ... per part, log-spaced E probes over the range (forward only)
     select_part_starts: int = 2         # ... sweeps start from this many distinct uniform minima
     select_part_rounds: int = 2         # ... coordinate rounds over the parts (later rounds: golden, local)
+    select_part_refine: int = 12        # ... then a simplex over all parts' log E together, this many probes per part
     select_max_parts: int = 4           # ... at most this many parts in a candidate
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
     sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
