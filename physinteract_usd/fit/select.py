@@ -15,7 +15,9 @@
    (`fit.regions`); each part's E by a coordinate sweep over the whole range (forward passes only,
    batched on a GPU) from the uniform model's E, the best candidate also from the uniform stage's
    other minima (a part's loss can be needle-like and multimodal in E: a field started in the
-   uniform optimum's well stays there), then an AdamW polish of the part E, one nu and the
+   uniform optimum's well stays there), then a Nelder-Mead simplex over all the best candidate's
+   part E together (`part_refine`: the parts' loss is a narrow valley across the axes, where the
+   one-part-at-a-time search stalls), then an AdamW polish of the part E, one nu and the
    trajectory (`fit_parts`), training frames only.
    The "field" model: the bumps field (the finest level of `levels`) warm-started from the
    simpler model kept (uniform or parts), training frames only.
@@ -343,6 +345,35 @@ def part_sweep(f: PartProbe, start: np.ndarray, grid: np.ndarray, s: FitSettings
     return {"log_e": cur, "loss": best, "lines": lines}
 
 
+def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: int, step: float = math.log(1.25),
+                xtol: float = math.log(1.02)) -> dict:
+    """All parts' log E together by a Nelder-Mead simplex (scipy; forward passes only) from the
+    coordinate sweep's best `log_e`, a first simplex `step` wide along each part, within [lo, hi],
+    at most `evals` probes. The parts' loss is a narrow valley that runs across the axes (a softer
+    part at the hand and a stiffer one at the clamp move the tip alike), where a search along one
+    part at a time stalls on the valley's floor short of its minimum; a simplex turns along it.
+    Returns {"log_e", "loss", "probes"} (the start if nothing better was found)."""
+    from scipy.optimize import minimize
+
+    x0 = np.clip(np.asarray(log_e, np.float64), lo, hi)
+    n = len(x0)
+    start = f(x0)
+    out = {"log_e": x0, "loss": start, "probes": 0}
+    if evals < n + 1 or not math.isfinite(start):
+        return out
+    simplex = np.vstack([x0] + [np.clip(x0 + step * np.eye(n)[j] * (1 if x0[j] + step <= hi else -1), lo, hi)
+                                for j in range(n)])
+    before = len(f.cache)
+    r = minimize(lambda v: f(np.clip(v, lo, hi)), x0, method="Nelder-Mead", bounds=[(lo, hi)] * n,
+                 options={"initial_simplex": simplex, "xatol": xtol, "fatol": 1e-4 * abs(start), "maxfev": int(evals)})
+    x = np.clip(np.asarray(r.x, np.float64), lo, hi)
+    v = f(x)
+    out["probes"] = len(f.cache) - before
+    if v < start:
+        out.update(log_e=x, loss=v)
+    return out
+
+
 def _line_interval(line: dict, rise: float) -> list[float]:
     """The hull of one part's probed E within `rise` (a share) of its line's best: [lo, hi] Pa."""
     fin = {k: v for k, v in line.items() if math.isfinite(v)}
@@ -481,7 +512,9 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
     by a coordinate sweep (`part_sweep`) from the uniform model's E, and the best candidate's also
     from the uniform stage's other distinct minima (`select_part_starts`; the loss of a part can be
     needle-like and multimodal in E: a field that starts in the uniform optimum's well stays
-    there), the best sweep polished by AdamW (`fit_parts`) on the training frames. Returns (the parts model or None, its record)."""
+    there), the best sweep refined by a simplex over all its parts' E (`part_refine`,
+    `select_part_refine` probes per part; only when the sweep's parts differ by `PARTS_MIN_RATIO`
+    or more) and polished by AdamW (`fit_parts`) on the training frames. Returns (the parts model or None, its record)."""
     say = log or (lambda *a: None)
     st = prob.scene.settings
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
@@ -538,6 +571,18 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
         rec["why"] = "every part sweep went unstable or left the grid"
         return None, rec
     rec["kind"], rec["particles"] = c["kind"], np.bincount(c["labels"]).tolist()
+    n_ref = int(s.select_part_refine) * c["parts"]
+    spread = float(np.exp(np.max(r["log_e"]) - np.min(r["log_e"])))
+    # only parts the sweep found distinct materials: where it found one material, a simplex along
+    # the flat direction between the parts fits noise (a uniform bar's two stripe colours came
+    # apart and paid the held-back price)
+    if n_ref > 0 and spread >= PARTS_MIN_RATIO:
+        ref = part_refine(c["probe"], r["log_e"], float(grid[0]), float(grid[-1]), n_ref)
+        rec["refine"] = {"from_e": [math.exp(v) for v in r["log_e"]], "e": [math.exp(v) for v in ref["log_e"]],
+                         "from_loss": r["loss"], "loss": ref["loss"], "probes": ref["probes"]}
+        say(f"parts by {c['kind']}: simplex over the parts' E together ({ref['probes']} probes): E "
+            + ", ".join(f"{math.exp(v):.4g}" for v in ref["log_e"]) + f" Pa, training loss {ref['loss']:.5f}")
+        r = {**r, "log_e": ref["log_e"], "loss": ref["loss"]}
     start = {"poisson": ru.poisson, "trajectories": ru.trajectories, "effects": ru.effect_parameters}
     rp = fit_parts(view, s, c["labels"], r["log_e"], start, iterations, progress=progress, log=log,
                    on_iteration=on_iteration)
