@@ -93,9 +93,14 @@ def describe(effect: str, cr, ctx) -> str:
                      f"(E_v ~ {est.get('modulus', 0):.3g} Pa, tau ~ {est.get('relaxationTime', 0):.2g} s)")
     elif effect == "plasticity":
         iv, im = _iou(video[-1], video[0]), _iou(model[-1], model[0])
-        parts.append(f"the object's last shape in the video overlaps its rest shape by IoU {iv:.2f} while the "
-                     f"model's returns to IoU {im:.2f}: permanent deformation (yield stress ~ "
-                     f"{est.get('yieldStress', 0):.3g} Pa)")
+        if im - iv >= 0.03:
+            parts.append(f"the object's last shape in the video overlaps its rest shape by IoU {iv:.2f} while the "
+                         f"model's returns to IoU {im:.2f}: permanent deformation (yield stress ~ "
+                         f"{est.get('yieldStress', 0):.3g} Pa)")
+        else:   # the silhouettes do not show a permanent set: say so rather than claim one
+            parts.append(f"a yield stress ~ {est.get('yieldStress', 0):.3g} Pa lowers the loss, but the last shapes "
+                         f"overlap the rest shape alike in the video and the model (IoU {iv:.2f} / {im:.2f}): no "
+                         "permanent set is visible, so this is weak evidence for plasticity")
     elif effect == "ground":
         def lowest(sil):
             rows = [np.nonzero(m.any(1))[0] for m in sil]
@@ -123,11 +128,11 @@ def describe(effect: str, cr, ctx) -> str:
                      f"{off[2]:.0f}) mm on the object: give it with `{est.get('fix', FIXES[effect])}` (then fit "
                      "again)")
     elif effect == "interaction:grasp_size":
-        parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} grasp on {est.get('contact')} "
+        parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} grasp on '{est.get('contact')}' "
                      f"({est.get('particles')} particles) fits better: set it with "
                      f"`{est.get('fix', FIXES[effect])}` (then fit again)")
     elif effect == "interaction:support":
-        parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} support {est.get('contact')} "
+        parts.append(f"a {'larger' if est.get('direction') == 'more' else 'smaller'} support '{est.get('contact')}' "
                      f"({est.get('particles')} particles) fits better: mark it with `{FIXES[effect]}`")
     elif effect == "camera:time_offset":
         parts.append(f"the video runs {est.get('frames', 0):+.2f} frames from the model throughout: "
