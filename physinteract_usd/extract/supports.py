@@ -6,6 +6,8 @@ connected regions (`components`), each cut to its core and shell (`support_core`
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from ..contacts import ContactSet
@@ -308,29 +310,22 @@ def particle_motion(x0: np.ndarray, seeds3: np.ndarray, D: np.ndarray, h: float,
     push rules in `find_supports`)."""
     from scipy.spatial import cKDTree
 
-    T, S, _ = D.shape
     valid = np.isfinite(D).all(-1)                # (T, S)
-    Dz = np.where(valid[..., None], D, 0.0)
-    tree = cKDTree(seeds3)
-    k = min(k_local, S)
-    dist, nn = tree.query(x0, k=k)
-    dist = dist.reshape(len(x0), k)
-    nn = nn.reshape(len(x0), k)
+    dist, nn = cKDTree(seeds3).query(x0, k=min(k_local, D.shape[1]))
+    dist, nn = dist.reshape(len(x0), -1), nn.reshape(len(x0), -1)
     motion = np.zeros(len(x0))
     near = dist[:, 0] <= 1.5 * h
-    # visible: inverse-distance weights over the seeds within 1.5 spacings, frame by frame
-    w = np.where(dist <= 1.5 * h, 1.0 / (dist + 0.5 * h), 0.0)           # (P, k)
-    wv = w[near][:, None, :] * valid[:, nn[near]].transpose(1, 0, 2)      # (Pn, T, k)
-    num = np.einsum("ptk,tpkc->ptc", wv, Dz[:, nn[near]])                 # (Pn, T, 2)
-    den = wv.sum(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        disp = num / den[..., None]
-    motion[near] = np.nanmax(np.where(den[..., None] > 0, np.linalg.norm(disp, axis=-1)[..., None], np.nan)[..., 0], axis=1)
+    # visible: the seeds within 1.5 spacings, frame by frame (`frame_displacements`), their largest
+    if near.any():
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # a particle whose seeds are all lost: nan
+            motion[near] = np.nanmax(frame_displacements(x0[near], seeds3, D, h, k_local), axis=1)
     far = ~near
     if far.any():
         # hidden: the nearest seeds' largest motions, inverse-distance weighted
         with np.errstate(invalid="ignore"):
-            smax = np.nan_to_num(np.nanmax(np.where(valid, np.linalg.norm(Dz, axis=-1), np.nan), axis=0))
+            smax = np.nan_to_num(np.nanmax(np.where(valid, np.linalg.norm(np.where(valid[..., None], D, 0.0), axis=-1),
+                                                    np.nan), axis=0))
         w = 1.0 / (dist[far] + 0.5 * h)
         motion[far] = np.sum(w * smax[nn[far]], 1) / np.sum(w, 1)
     return np.nan_to_num(motion, nan=0.0)
@@ -370,8 +365,6 @@ def relative_motion(x0: np.ndarray, seeds3: np.ndarray, D: np.ndarray, h: float,
     if not frames.any() or ref.max() <= 0:
         return np.ones(len(x0))
     with np.errstate(invalid="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             rel = np.nanmedian(disp[:, frames] / ref[frames], axis=1)
