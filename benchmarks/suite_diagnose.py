@@ -170,6 +170,15 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.grid not in (None, "auto"):
         a.grid = int(a.grid)
+    from physinteract_usd.synth.scenes import SCENES
+
+    unknown = [sc for sc in a.scenes.split(",") if sc not in SCENES]
+    bad_eff = [e for e in (a.effects.split(",") if a.effects else []) if e != "none" and e not in TRUTH_PARAM]
+    if unknown or bad_eff:
+        what = (f"unknown scene(s) {', '.join(unknown)} (`physinteract-usd synth --list`)" if unknown
+                else f"unknown effect(s) {', '.join(bad_eff)} (one of {', '.join(TRUTH_PARAM)}, none)")
+        print(f"suite_diagnose.py: error: {what}", file=sys.stderr)
+        return 2
     work = Path(a.out)
     work.mkdir(parents=True, exist_ok=True)
     jl = work / "results.jsonl"

@@ -103,10 +103,22 @@ def per_capture(tool: str, work: Path, seeds: str, rows_of, json_path=None, tabl
     if not work.is_dir():
         print(f"{tool}: error: {work}: captures folder not found", file=sys.stderr)
         return 2
+    try:
+        refuse_validation(work, tool)     # the folder itself, whatever captures it holds
+    except InputError as exc:
+        print(f"{tool}: error: {exc.oneline()}", file=sys.stderr)
+        return 2
+    names = [f"dev_{s:04d}" for s in parse_seeds(seeds)]
+    missing = [n for n in names if not (work / n).is_dir()]
+    if len(missing) == len(names):
+        print(f"{tool}: error: {work}: none of the seeds' captures is there ({', '.join(missing[:4])}"
+              f"{', ...' if len(missing) > 4 else ''})", file=sys.stderr)
+        return 2
+    for n in missing:
+        print(f"{tool}: note: {work / n}: not there, skipped", file=sys.stderr)
     rows = []
-    for s in parse_seeds(seeds):
-        n = f"dev_{s:04d}"
-        if not (work / n).is_dir():
+    for n in names:
+        if n in missing:
             continue
         try:
             refuse_validation(work / n, tool)

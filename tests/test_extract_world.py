@@ -192,6 +192,11 @@ def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monke
     (dev / "dev_0001" / "gt" / "gt.json").write_text(json.dumps({"split": "validation"}))
     assert world_suite.main(["extract", "--split", "dev", "--work", str(dev)]) == 2
     assert not (tmp_path / "f.json").exists()
+    # seeds whose captures are not there: one line and exit 2, not an empty table
+    empty = tmp_path / "empty_dev"
+    empty.mkdir()
+    assert _bench("world_diagnose").main(["--work", str(empty), "--seeds", "3"]) == 2
+    assert "none of the seeds' captures" in capsys.readouterr().err
 
 
 def test_synth_cli_world_flags(tmp_path, capsys):
