@@ -218,7 +218,8 @@ class Simulation:
         """B rollouts in few: copies of the scene side by side on one grid (`sim.batch`), each with
         its own E, nu (B, P) (nu may be (P,)), sharing the trajectories and effects. Returns x (B,
         T, P, 3), F (B, T, P, 3, 3) and `escaped` (B,) bool: copies that went unstable or left their
-        own box (their x is not to be trusted). The substep is the one for the largest E of all
+        own box (their x is not to be trusted). `trajectories`: one tensor per slot, (T, 3) shared by
+        the copies or (B, T, 3) one per copy. The substep is the one for the largest E of all
         copies. `copies_per_rollout` caps the copies per rollout (default: as many as fit, <= 16)."""
         from .errors import SimulationError
         from .sim.batch import max_copies, tile
@@ -231,13 +232,14 @@ class Simulation:
         nu = nu.expand(B, len(self.x0)) if nu.dim() == 1 else nu
         if self.adaptive:
             self.ensure_stable(float(E.detach().max()))
-        trajs = None
-        if trajectories is not None:
-            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
         cap = min(max_copies(self.control), copies_per_rollout or 16)
         xs, Fs, bad = [], [], []
         for start in range(0, B, cap):
             n = min(cap, B - start)
+            # per-copy trajectories ((B, T, 3) per slot) are cut to this rollout's copies
+            part = None if trajectories is None else \
+                [tr[start:start + n] if torch.as_tensor(tr).dim() == 3 else tr for tr in trajectories]
+            trajs = None if part is None else {slot: tr for (slot, _), tr in zip(self.traj_slots, part)}
             key = (self.e_bound, n)
             if key not in self._batch_rollouts:
                 tl = tile(self.model, self.control, n)
@@ -257,7 +259,7 @@ class Simulation:
                     bad.append(np.ones(1, bool))
                     continue
                 # one copy failed the whole rollout: find which, one at a time
-                out = self.simulate_batch(E[start:start + n], nu[start:start + n], trajectories, effects,
+                out = self.simulate_batch(E[start:start + n], nu[start:start + n], part, effects,
                                           copies_per_rollout=1)
                 xs.append(out[0])
                 Fs.append(out[1])

@@ -61,6 +61,7 @@ class FitJob:
     resumed_from: str = ""               # "" | "v<N>" | "checkpoint" | "warm:v<N>" (effects changed)
     history: list = field(default_factory=list)   # a resumed checkpoint's loss history
     problem: FitProblem | None = None    # built by run_fit (kept for the last pass after a late stop)
+    starts: int = 1                      # fits from this many starts, the best kept (fit/batched.py)
 
 
 @dataclass
@@ -95,7 +96,9 @@ class FitOutcome:
                 "confidence_mean": float(r.confidence.mean()),
                 "model": model,
                 "identifiability": identifiability(model, float(r.confidence.mean())
-                                                   if self.confidence_estimated else None, float(np.median(r.youngs)))}
+                                                   if self.confidence_estimated else None, float(np.median(r.youngs))),
+                **({"starts": r.model["starts"], "starts_chosen": r.model.get("starts_chosen"),
+                    "starts_mode": r.model.get("starts_mode")} if (r.model or {}).get("starts") else {})}
 
 
 def check_iterations(iterations) -> None:
@@ -156,9 +159,16 @@ def warm_start(stage_path, sd: SceneData) -> tuple[dict, str, tuple, tuple] | No
     return start, f"v{rep['version']}", added, removed
 
 
+def check_starts(starts) -> None:
+    from ..fit.batched import START_FACTORS
+
+    if isinstance(starts, bool) or not isinstance(starts, (int, np.integer)) or not 1 <= starts <= len(START_FACTORS):
+        raise InputError("--starts", f"must be a whole number from 1 to {len(START_FACTORS)}, got {starts!r}")
+
+
 def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None,
                 hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
-                yes=True, warm=True, progress=True) -> FitJob:
+                yes=True, warm=True, progress=True, starts=1) -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
@@ -168,8 +178,11 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     version (`warm_start`; `iterations` None: WARM_ITERATIONS) and search the start of the effects
     just added; the effects with `fit = true` are fitted by either schedule. With
     `settings_overrides={"track_weight": W}` (W > 0) the video's point tracks are measured (cached
-    next to the stage, as the report's) and count in the loss (`fit_tracks`)."""
+    next to the stage, as the report's) and count in the loss (`fit_tracks`). `starts` > 1: the
+    bumps schedule from that many starts, the best kept (`fit.batched.fit_starts`; batched on a GPU,
+    one by one on the CPU)."""
     check_iterations(iterations)
+    check_starts(starts)
     if settings_overrides and "track_weight" in settings_overrides:
         tw = settings_overrides["track_weight"]
         if isinstance(tw, bool) or not isinstance(tw, (int, float)) or not tw >= 0:
@@ -188,7 +201,13 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
                            search_effects=() if resume else search)
     if settings_overrides:
         settings = dataclasses.replace(settings, **settings_overrides)
-    check_cost(sd, settings, device, yes=yes, stage_path=stage_path, resumed=resume or warm_from is not None)
+    if starts > 1 and settings.schedule != "bumps":
+        raise InputError("--starts", f"runs the bumps schedule's fit from several starts; the {settings.schedule} "
+                         "schedule searches its own starts")
+    # on the CPU the starts run one by one (on a GPU, batched, they cost about one: not counted)
+    cost = settings if starts <= 1 or str(device).startswith("cuda") else \
+        dataclasses.replace(settings, iterations=settings.iterations * int(starts))
+    check_cost(sd, cost, device, yes=yes, stage_path=stage_path, resumed=resume or warm_from is not None)
     obs = load_observations(sd, with_hand_masks=False)
     source = "extracted"
     if contacts is not None:
@@ -229,8 +248,11 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         settings.iterations = int(iterations)
     if settings.track_weight > 0:
         obs.tracks = fit_tracks(sd, obs, device=device, log=log, progress=progress)
+    if starts > 1 and start is not None:
+        log(f"--starts {starts}: a {'resumed' if resume else 'warm-started'} fit goes on from one field; one start")
+        starts = 1
     return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
-                  resumed_from, history)
+                  resumed_from, history, starts=int(starts))
 
 
 def fit_tracks(sd: SceneData, obs: Observations, *, device="cpu", log=print, progress=True):
@@ -293,6 +315,11 @@ def run_fit(job: FitJob, *, progress=True, log=print, on_iteration=None) -> FitR
     else:
         prob = make_problem(job)
     job.problem = prob
+    if job.starts > 1 and job.start is None:
+        from ..fit.batched import fit_starts
+
+        return fit_starts(prob, s, job.starts, progress=progress, log=log, on_iteration=on_iteration,
+                          uniform_e=uniform_e)
     return optimise(prob, s, progress=progress, log=log, start=job.start, uniform_e=uniform_e,
                     on_iteration=on_iteration)
 
@@ -328,13 +355,15 @@ def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
 
 def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None, hand_masks=None,
         device="cpu", seed=0, resume=False, progress=True, log=print, settings_overrides=None, keep_best=True,
-        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True) -> FitOutcome:
+        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True, starts=1) -> FitOutcome:
     """Fit the stage's material field and trajectory to its video; write it as a new version
     (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `keep_best`: the new version becomes current
     only if its loss is below the current one's; `checkpoint_every`: iterations between
     checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours; `warm`: a
     refit after the stage's effects changed starts from the current version (`prepare_fit`);
-    `iterations` None: DEFAULT_ITERATIONS, or WARM_ITERATIONS for such a warm start.
+    `iterations` None: DEFAULT_ITERATIONS, or WARM_ITERATIONS for such a warm start. `starts` > 1:
+    that many fits from different starts, the lowest final loss kept, every start's loss in the
+    version's material model ("starts"; `fit.batched.fit_starts`).
     SIGINT / SIGTERM stop it cleanly (the best iterate is written, `outcome.stopped_by` says so);
     a second signal quits without writing (the checkpoint stays)."""
     check_iterations(iterations)
@@ -343,7 +372,7 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
-                      settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress)
+                      settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress, starts=starts)
     lp = LayerPaths.of(job.stage_path)
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built

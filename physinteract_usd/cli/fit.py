@@ -47,6 +47,12 @@ def add_parser(sub):
                    help="weight of the point-track term: the video's 2D point tracks (OpenCV DIS flow, the report's, "
                         "cached) against the projected Gaussians, beside pixels and silhouette (default 0: off; "
                         "1: a 1-px error on every track costs about a 1-px shift of the outline)")
+    s.add_argument("--starts", type=int, default=1, metavar="N",
+                   help="fit from N starts (the searched uniform E x 1, 0.5, 2, 0.25, ..., each with its own seed) and "
+                        "keep the lowest loss; every start's loss goes into the version's JSON. With --device cuda the "
+                        "starts run batched (one tiled rollout per iteration; predicted: 4 starts of a small scene in about "
+                        "1.5x one fit's time, docs/benchmarks/gpu.md); on the CPU one after another (tiling does not pay there: N times one fit). Bumps "
+                        "schedule only; default 1")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -75,7 +81,8 @@ def run(a) -> int:
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,
-                      keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes, warm=not a.fresh)
+                      keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes, warm=not a.fresh,
+                      starts=a.starts)
     summary = outcome.summary()
     if a.json:
         print(json.dumps(summary, indent=2))

@@ -1,0 +1,202 @@
+"""Fits from several starts in lockstep (fit/batched.py): one tiled rollout per iteration gives every
+copy its own loss and gradient (against its own rollout, and finite differences), each start's fit
+equals the same start fitted alone, a copy that leaves its box is dropped and reported while the
+others go on, and `fit --starts` keeps the best start and records them all.
+
+Tiny: the cantilever of tests/fit_scene.py (~200 particles, grid 10, 5 frames), float64 where
+values are compared, 2-3 iterations."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import fit_scene as fs
+from physinteract_usd import api
+from physinteract_usd.fit import FitProblem, FitSettings, fit_bumps
+from physinteract_usd.fit.batched import Start, batch_losses, fit_bumps_batched, fit_starts
+from physinteract_usd.usd.stage import read_stage
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+QUIET = dict(progress=False, log=None)
+SETTINGS = dict(levels=(1, 6), level_share=(0.5, 0.5), search_evals=2, lr_material=0.2, lr_poisson=0.03,
+                lr_trajectory=2e-4, basis_width=0.6, trajectory_levels=1, weight_decay=0.0, confidence_probes=0,
+                fit_poisson_levels=1, plateau_patience=0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return fs.build(tmp_path_factory.mktemp("batched") / "base")
+
+
+def _problem(scene, dtype="float64"):
+    sd = read_stage(scene["stage"])
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, scene["gt"]), dtype=dtype)
+    # one substep for every field (the range top's): a copy's rollout in the batch and alone take the
+    # same time step
+    prob.sim.ensure_stable(float(sd.settings.youngs_max))
+    prob.sim.adaptive = False
+    return prob
+
+
+def _fields(prob, B=2):
+    P = len(prob.x0)
+    rng = np.random.default_rng(1)
+    E = torch.as_tensor(np.stack([fs.E_TRUE * f * np.exp(0.3 * rng.standard_normal(P)) for f in (1.0, 2.5)][:B]),
+                        dtype=torch.float64)
+    nu = torch.full((B, P), fs.NU_TRUE, dtype=torch.float64)
+    t0 = prob.initial_trajectories()
+    trajs = [torch.stack([t + 1e-3 * b * torch.ones_like(t) for b in range(B)]) for t in t0]
+    return E, nu, trajs
+
+
+def test_batched_step_gives_each_copy_its_own_loss_and_gradient(scene):
+    prob = _problem(scene)
+    E, nu, trajs = _fields(prob)
+    Eb = E.clone().requires_grad_(True)
+    tb = [t.clone().requires_grad_(True) for t in trajs]
+    outs, bad = batch_losses(prob, Eb, nu, tb)
+    assert not bad.any()
+    total = sum(o["rec"] + o["reg_traj"] for o in outs)
+    total.backward()
+    for b in range(2):
+        Es = E[b].clone().requires_grad_(True)
+        ts = [t[b].clone().requires_grad_(True) for t in trajs]
+        ref = prob.loss(Es, nu[b], ts)
+        (ref["rec"] + ref["reg_traj"]).backward()
+        assert float(outs[b]["rec"].detach()) == pytest.approx(float(ref["rec"].detach()), rel=1e-10)
+        assert torch.allclose(Eb.grad[b], Es.grad, rtol=1e-7, atol=1e-10 * float(Es.grad.abs().max()))
+        for g, r in zip(tb, ts):
+            assert torch.allclose(g.grad[b], r.grad, rtol=1e-7, atol=1e-10 * float(r.grad.abs().max()))
+    # the copies differ (so the test can tell them apart)
+    assert abs(float(outs[0]["rec"].detach() - outs[1]["rec"].detach())) > 1e-3 * float(outs[0]["rec"].detach())
+
+
+def test_batched_loss_gradient_matches_finite_differences(scene):
+    """d(sum of the copies' losses) / d(each copy's log E scale), against central differences."""
+    prob = _problem(scene)
+    E, nu, trajs = _fields(prob)
+
+    def f(a):
+        outs, bad = batch_losses(prob, E * torch.exp(a)[:, None], nu, trajs)
+        assert not bad.any()
+        return sum(o["rec"] for o in outs)
+
+    a = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    f(a).backward()
+    h = 1e-6
+    for b in range(2):
+        d = torch.zeros(2, dtype=torch.float64)
+        d[b] = h
+        with torch.no_grad():
+            fd = (float(f(d)) - float(f(-d))) / (2 * h)
+        assert float(a.grad[b]) == pytest.approx(fd, rel=1e-3, abs=1e-9), (b, float(a.grad[b]), fd)
+    assert abs(float(a.grad[0])) > 1e-6 and abs(float(a.grad[1])) > 1e-6
+
+
+def test_a_copy_that_leaves_its_box_is_reported_the_other_kept(scene):
+    prob = _problem(scene)
+    E, nu, trajs = _fields(prob)
+    far = [t.clone() for t in trajs]
+    for t in far:       # the second copy's hand drags the bar a metre away by the last frame
+        t[1] += torch.linspace(0, 1.0, t.shape[1], dtype=t.dtype)[:, None] * torch.tensor([1.0, 0.0, 0.0],
+                                                                                        dtype=t.dtype)
+    Eb = E.clone().requires_grad_(True)
+    outs, bad = batch_losses(prob, Eb, nu, far)
+    assert bad.tolist() == [False, True] and outs[1] is None
+    outs[0]["rec"].backward()
+    Es = E[0].clone().requires_grad_(True)
+    ref = prob.loss(Es, nu[0], [t[0] for t in far])
+    ref["rec"].backward()
+    assert float(outs[0]["rec"].detach()) == pytest.approx(float(ref["rec"].detach()), rel=1e-10)
+    assert torch.isfinite(Eb.grad).all()
+    assert torch.allclose(Eb.grad[0], Es.grad, rtol=1e-7, atol=1e-10 * float(Es.grad.abs().max()))
+    assert float(Eb.grad[1].abs().max()) == 0.0
+
+
+def test_each_start_converges_to_its_own_fit(scene):
+    """Two starts in lockstep end where each start's own fit_bumps ends (histories and fields)."""
+    prob = _problem(scene)
+    s = FitSettings(iterations=3, joint=True, **SETTINGS)
+    starts = [Start(1.0, 0), Start(2.0, 1)]
+    e_u = 4.0e3
+    res = fit_bumps_batched(prob, s, starts, uniform_e=e_u, **QUIET)
+    for sp, r in zip(starts, res):
+        import dataclasses
+
+        ref = fit_bumps(_problem(scene), dataclasses.replace(s, seed=sp.seed), uniform_e=e_u * sp.factor, **QUIET)
+        assert len(r.loss_history) == len(ref.loss_history) == 3
+        np.testing.assert_allclose(r.loss_history, ref.loss_history, rtol=1e-8)
+        np.testing.assert_allclose(r.youngs, ref.youngs, rtol=1e-7)
+        for n in ref.trajectories:
+            np.testing.assert_allclose(r.trajectories[n], ref.trajectories[n], rtol=0, atol=1e-9)
+        assert r.final_loss == pytest.approx(ref.final_loss, rel=1e-8)
+        assert r.model["start"]["status"] == "converged"
+    # the starts really are different fits
+    assert abs(res[0].loss_history[0] - res[1].loss_history[0]) > 1e-6
+
+
+def test_a_copy_that_goes_bad_mid_fit_is_dropped_and_keeps_its_best(scene, monkeypatch):
+    prob = _problem(scene, dtype="float32")
+    real = prob.sim.simulate_batch
+    calls = []
+
+    def flaky(E, nu, trajectories=None, effects=None, copies_per_rollout=None):
+        calls.append(len(E))
+        if len(calls) == 2 and trajectories:   # the second iteration: copy 1's hand drags the bar away
+            trajectories = [t.clone() for t in trajectories]
+            for t in trajectories:
+                t[1] = t[1] + torch.linspace(0, 1.0, t.shape[1], dtype=t.dtype)[:, None] * \
+                    torch.tensor([1.0, 0.0, 0.0], dtype=t.dtype)
+        return real(E, nu, trajectories, effects, copies_per_rollout)
+
+    monkeypatch.setattr(prob.sim, "simulate_batch", flaky)
+    s = FitSettings(iterations=3, joint=True, **{**SETTINGS, "levels": (1,), "level_share": (1.0,)})
+    notes = []
+    res = fit_bumps_batched(prob, s, [Start(1.0, 0), Start(2.0, 1)], uniform_e=4e3, progress=False,
+                            log=notes.append)
+    # the failed tiled rollout is retried copy by copy (a second call of 2), then the batch shrinks
+    assert calls == [2, 2, 2, 1]
+    ok, gone = res
+    assert len(ok.loss_history) == 3 and np.isfinite(ok.final_loss)
+    assert gone.model["start"]["status"] == "unstable" and "dropped at iteration 1" in gone.model["start"]["note"]
+    assert len(gone.loss_history) == 1 and np.isfinite(gone.final_loss)    # its best iterate: the first
+    assert gone.final_loss == pytest.approx(gone.loss_history[0], rel=1e-5)
+    assert any("dropped" in n for n in notes)
+
+
+def test_fit_starts_keeps_the_lowest_loss_and_records_every_start(scene):
+    prob = _problem(scene, dtype="float32")
+    s = FitSettings(iterations=2, joint=False, **{**SETTINGS, "levels": (1,), "level_share": (1.0,)})
+    r = fit_starts(prob, s, 3, batched=False, uniform_e=4e3, **QUIET)
+    table = r.model["starts"]
+    assert [d["factor"] for d in table] == [1.0, 0.5, 2.0] and r.model["starts_mode"] == "sequential"
+    losses = [d["final_loss"] for d in table]
+    assert r.model["starts_chosen"] == int(np.argmin(losses))
+    assert r.final_loss == pytest.approx(min(losses))
+    assert r.settings["starts"] == 3
+    rb = fit_starts(_problem(scene, dtype="float32"), s, 3, batched=True, uniform_e=4e3, **QUIET)
+    assert rb.model["starts_mode"] == "batched"
+    np.testing.assert_allclose([d["final_loss"] for d in rb.model["starts"]], losses, rtol=2e-3)
+
+
+def test_cli_fit_starts_writes_every_start_into_the_version(scene, tmp_path, capsys):
+    from physinteract_usd.cli import main
+
+    stage = fs.copy_scene(scene["root"], tmp_path / "starts")
+    out = api.fit(stage, iterations=2, contact_from=stage.parent / "gt", starts=2, progress=False,
+                  log=lambda *a: None, settings_overrides={**SETTINGS, "levels": (1,), "level_share": (1.0,),
+                                                           "confidence_probes": 1})
+    summ = out.summary()
+    assert len(summ["starts"]) == 2 and summ["starts_mode"] == "sequential"
+    assert out.confidence_estimated and not np.allclose(out.result.confidence, 1.0)
+    sd = read_stage(stage)
+    mm = sd.current_report["material_model"]
+    mm = json.loads(mm) if isinstance(mm, str) else mm
+    assert [d["factor"] for d in mm["starts"]] == [1.0, 0.5]
+    assert main(["fit", str(stage), "--starts", "99"]) == 2
+    assert "--starts" in capsys.readouterr().err
