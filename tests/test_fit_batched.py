@@ -200,3 +200,29 @@ def test_cli_fit_starts_writes_every_start_into_the_version(scene, tmp_path, cap
     assert [d["factor"] for d in mm["starts"]] == [1.0, 0.5]
     assert main(["fit", str(stage), "--starts", "99"]) == 2
     assert "--starts" in capsys.readouterr().err
+
+
+def test_region_refits_in_lockstep_equal_the_ladders_one_by_one(scene):
+    """The diagnosis's short base refits (diagnose.refit.refit_base: the ladder's optimise on the
+    regions' log E) from several starts, batched, end where each one alone ends."""
+    import math
+    from types import SimpleNamespace
+
+    from physinteract_usd.diagnose.refit import refit_base
+    from physinteract_usd.fit.batched import refit_regions_batched
+
+    prob = _problem(scene)
+    P = len(prob.x0)
+    labels = (prob.x0[:, 0] > np.median(prob.x0[:, 0])).astype(np.int64)     # two regions
+    E = torch.as_tensor(np.where(labels == 1, 8e3, 3e3), dtype=torch.float64)
+    nu = torch.full((P,), fs.NU_TRUE, dtype=torch.float64)
+    base = SimpleNamespace(E=E, nu=nu, labels=labels, effects=None)
+    factors = (1.0, 0.5)
+    starts = [np.log([f * 3e3, f * 8e3]) for f in factors]
+    got = refit_regions_batched(prob, labels, starts, fs.NU_TRUE, 2)
+    for f, g in zip(factors, got):
+        ref = refit_base(_problem(scene), base, f, iterations=2)
+        assert g["iterations"] == 2 and math.isfinite(g["fit_loss"])
+        assert g["fit_loss"] == pytest.approx(ref["fit_loss"], rel=1e-8)
+        np.testing.assert_allclose(g["E"].numpy(), ref["E"].numpy(), rtol=1e-7)
+    assert abs(got[0]["fit_loss"] - got[1]["fit_loss"]) > 1e-6

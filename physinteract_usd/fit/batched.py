@@ -343,6 +343,86 @@ def _finish_copy(prob, c: _Copy, feats, t0, interrupted, e_uniform, probes, skip
     return r
 
 
+# ------------------------------------------------------------------- short region refits
+def refit_regions_batched(prob: FitProblem, labels: np.ndarray, log_e_starts, nu0: float, iterations: int, *,
+                          lr: float | None = None, log=None) -> list[dict]:
+    """B short refits of a region-constant E field (one log E per region of `labels`), the paths
+    kept at T0, nu fixed at `nu0`: the ladder's `optimise` step (AdamW on the regions' log E, a
+    cosine learning rate, the best iterate kept; what `diagnose.refit.refit_base` runs for one
+    start) for the starts `log_e_starts` (B arrays of per-region log E) in lockstep, one tiled
+    rollout forward+backward per iteration. A start whose simulation goes unstable or leaves its
+    box is dropped (its best iterate so far kept; "note" says so). Returns per start {"E", "nu"
+    (tensors; None when no iterate simulated), "fit_loss", "iterations"[, "note"]}."""
+    from .optimize import cosine_lr
+
+    st = prob.scene.settings
+    s = FitSettings()
+    labels = np.asarray(labels, np.int64)
+    mats, opts, bases, best = [], [], [], []
+    for le in log_e_starts:
+        mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
+                            device=prob.tdev, seed=s.seed)
+        mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
+        mat.set_regions(labels)
+        mat.set_region_log_e(np.asarray(le, np.float64))
+        with torch.no_grad():
+            mat.w_nu.copy_(torch.full_like(mat.w_nu, float(math.log(nu0 / (mat.nu_max - nu0)))))
+        opt = torch.optim.AdamW([{"params": [mat.theta], "lr": lr or s.lr_material}], weight_decay=s.weight_decay)
+        mats.append(mat)
+        opts.append(opt)
+        bases.append([g["lr"] for g in opt.param_groups])
+        best.append({"loss": math.inf, "theta": mat.theta.detach().clone(), "n": 0})
+    alive = [True] * len(mats)
+    notes = [""] * len(mats)
+    n = int(iterations)
+    for j in range(n):
+        run = [i for i in range(len(mats)) if alive[i]]
+        if not run:
+            break
+        for i in run:
+            cosine_lr(opts[i], bases[i], j, n)
+            opts[i].zero_grad(set_to_none=True)
+        E = torch.stack([mats[i].youngs() for i in run])
+        nu = torch.stack([mats[i].poisson().detach() for i in run])
+        try:
+            outs, bad = batch_losses(prob, E, nu, None)
+        except SimulationError as exc:
+            outs, bad = [None] * len(run), np.ones(len(run), bool)
+            why = str(exc)
+        else:
+            why = "its simulation went unstable or left its own box"
+        total = 0.0
+        for i, out, b in zip(run, outs, bad):
+            lv = math.inf if b else float(out["rec"].detach())
+            if not math.isfinite(lv):
+                alive[i] = False
+                notes[i] = f"dropped at iteration {j}: {why if b else 'its loss is not finite'}"
+                if log:
+                    log(f"refit start {i}: {notes[i]}")
+                continue
+            best[i]["n"] = j + 1
+            if lv < best[i]["loss"]:
+                best[i].update(loss=lv, theta=mats[i].theta.detach().clone())
+            total = total + out["rec"]
+        if torch.is_tensor(total):
+            total.backward()
+        for i in run:
+            if alive[i]:
+                opts[i].step()
+    out = []
+    for i, mat in enumerate(mats):
+        ok = math.isfinite(best[i]["loss"])
+        with torch.no_grad():
+            mat.theta = best[i]["theta"].clone().requires_grad_(True)
+            E1, nu1 = mat.youngs().detach(), mat.poisson().detach()
+        d = {"E": E1 if ok else None, "nu": nu1 if ok else None, "fit_loss": best[i]["loss"],
+             "iterations": best[i]["n"]}
+        if notes[i]:
+            d["note"] = notes[i]
+        out.append(d)
+    return out
+
+
 # ------------------------------------------------------------------------- the app's entry
 def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: int = 2, *, batched: bool | None = None,
                progress: bool = True, log=None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
@@ -426,4 +506,4 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
 
 
 __all__ = ["Start", "START_FACTORS", "default_starts", "batch_losses", "fit_bumps_batched", "fit_starts",
-           "batching_pays"]
+           "batching_pays", "refit_regions_batched"]
