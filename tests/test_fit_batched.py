@@ -226,3 +226,25 @@ def test_region_refits_in_lockstep_equal_the_ladders_one_by_one(scene):
         assert g["fit_loss"] == pytest.approx(ref["fit_loss"], rel=1e-8)
         np.testing.assert_allclose(g["E"].numpy(), ref["E"].numpy(), rtol=1e-7)
     assert abs(got[0]["fit_loss"] - got[1]["fit_loss"]) > 1e-6
+
+
+def test_diagnose_base_starts_batched_choose_as_one_by_one(scene, monkeypatch):
+    """app.diagnose's base refits from several starts (x 1, 0.5, 2), batched (as on a GPU) and one
+    by one, report the same losses."""
+    from physinteract_usd.app import diagnose as app_diag
+    from physinteract_usd.diagnose import BaseState, DiagnoseSettings
+
+    prob = _problem(scene)
+    P = len(prob.x0)
+    E = torch.full((P,), 2.5 * fs.E_TRUE, dtype=torch.float64)          # a base far from the truth
+    nu = torch.full((P,), fs.NU_TRUE, dtype=torch.float64)
+    base = BaseState(E, nu, {}, None)
+    outs = {}
+    for mode in ("never", "always"):
+        monkeypatch.setattr(app_diag, "BATCHED_REFITS", mode)
+        _, outs[mode] = app_diag._best_start(_problem(scene), base, DiagnoseSettings(max_pixels=2000), 3, 2,
+                                             lambda *a: None)
+    one, bat = outs["never"], outs["always"]
+    assert [d["factor"] for d in bat["starts"]] == [1.0, 0.5, 2.0]
+    np.testing.assert_allclose([d["loss"] for d in bat["starts"]], [d["loss"] for d in one["starts"]], rtol=1e-7)
+    assert bat["chosen"] == one["chosen"] and bat["base_loss"] == pytest.approx(one["base_loss"], rel=1e-10)

@@ -71,7 +71,22 @@ def _best_start(prob, base, settings, starts: int, iterations: int, log):
 
     thr = 1.0 - settings.min_relative_drop
     refits = []
-    for f in START_FACTORS[:starts]:
+    if BATCHED_REFITS == "always" or (BATCHED_REFITS == "cuda" and str(prob.tdev).startswith("cuda")):
+        # on a GPU the starts run in lockstep, one tiled rollout per iteration (fit/batched.py; the
+        # same steps as refit_base's, tests/test_fit_batched.py)
+        from ..fit.batched import refit_regions_batched
+
+        labels = base.labels if base.labels is not None else np.zeros(len(prob.x0), np.int64)
+        E0, st = base.E.detach().cpu().numpy(), prob.scene.settings
+        les = [[math.log(float(np.clip(f * np.median(E0[labels == r]), 1.001 * st.youngs_min, 0.999 * st.youngs_max)))
+                for r in range(int(labels.max()) + 1)] for f in START_FACTORS[:starts]]
+        log(f"base refits from the E field x {', '.join(f'{f:g}' for f in START_FACTORS[:starts])} "
+            f"({iterations} iterations, batched)")
+        for f, g in zip(START_FACTORS[:starts], refit_regions_batched(prob, labels, les, float(base.nu.median()),
+                                                                       iterations, log=log)):
+            refits.append({"factor": float(f), "E": g["E"], "nu": g["nu"], "loss": math.inf,
+                           "fit_loss": g["fit_loss"], **({"note": f"refit {g['note']}"} if "note" in g else {})})
+    for f in START_FACTORS[:starts] if not refits else ():
         log(f"base refit from the E field x {f:g} ({iterations} iterations)")
         refits.append(refit_base(prob, base, f, iterations=iterations, res=res))
     best, own = None, None
@@ -126,6 +141,7 @@ def parse_candidates(spec) -> tuple:
     return names
 
 
+BATCHED_REFITS = "cuda"           # the base refits' starts in lockstep (fit/batched.py): "cuda", "always", "never"
 START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these (`--starts N`: the first N;
                                   # 1: none, the stage's fit as it is)
 
