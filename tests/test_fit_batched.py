@@ -248,3 +248,32 @@ def test_diagnose_base_starts_batched_choose_as_one_by_one(scene, monkeypatch):
     assert [d["factor"] for d in bat["starts"]] == [1.0, 0.5, 2.0]
     np.testing.assert_allclose([d["loss"] for d in bat["starts"]], [d["loss"] for d in one["starts"]], rtol=1e-7)
     assert bat["chosen"] == one["chosen"] and bat["base_loss"] == pytest.approx(one["base_loss"], rel=1e-10)
+
+
+def test_a_stop_during_a_batched_fit_writes_the_best_start(scene, tmp_path, monkeypatch):
+    """SIGTERM in the lockstep loop (batched as on a GPU): every start keeps its best iterate, the
+    best is written as an interrupted version with every start's loss, no confidence estimate."""
+    from physinteract_usd import stopping
+    from physinteract_usd.fit import batched
+
+    stage = fs.copy_scene(scene["root"], tmp_path / "stop")
+    real = batched.batch_losses
+    calls = []
+
+    def stopping_losses(*a, **kw):
+        calls.append(1)
+        if len(calls) == 2:
+            stopping.request("SIGTERM")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(batched, "batching_pays", lambda prob, s: True)
+    monkeypatch.setattr(batched, "batch_losses", stopping_losses)
+    out = api.fit(stage, iterations=4, contact_from=stage.parent / "gt", starts=2, progress=False,
+                  log=lambda *a: None, settings_overrides={**SETTINGS, "confidence_probes": 2})
+    assert out.stopped_by == "SIGTERM" and out.result.interrupted and not out.confidence_estimated
+    assert len(calls) == 2 and len(out.result.loss_history) == 1
+    (v1,) = read_stage(stage).reports
+    assert v1["status"] == "interrupted"
+    mm = v1["material_model"]
+    assert mm["starts_mode"] == "batched" and [d["status"] for d in mm["starts"]] == ["interrupted"] * 2
+    assert all(d["final_loss"] is not None for d in mm["starts"])
