@@ -7,6 +7,14 @@ Coarse-to-fine: K = 1 (uniform), then more centres; each refinement starts from 
 the current field. nu is one value per basis function too, nu = nu_max * sigmoid(w), fitted at
 the coarsest levels only (it is weakly observable).
 
+Nested field (`set_base`): log E = lo + (hi - lo) * sigmoid(u_base + B theta), with u_base a fixed
+per-particle value (the logit of a simpler model's E: uniform or parts) and theta the bumps'
+offsets, zero at the start, so the field starts exactly at the simpler model, keeps its sharp part
+boundaries, and its bumps only add a smooth correction. The offsets live in the same logit space
+as the field (E stays inside [E_min, E_max], as the CFL substep needs); near the middle of the
+range an offset w moves log E by about (hi - lo) / 4 * w. The smoothness term then measures the
+offsets only (the base's part boundaries are not the field's to smooth away).
+
 Appearance prior (optional): objects are made of parts, and a material change usually shows as a
 change of colour. With per-particle appearance features (the local mean colour of the nearby
 Gaussians), centres and bumps live in a joint space, position plus `appearance` x extent x colour,
@@ -95,6 +103,7 @@ class MaterialField:
         self.nu_max = float(nu_max)
         self.dtype, self.device, self.seed = dtype, device, seed
         self.set_basis(1)
+        self.base = None        # (P,) fixed per-particle logit of a simpler model's E (nested field)
         self.theta = torch.zeros(1, dtype=dtype, device=device, requires_grad=True)
         self.w_nu = torch.zeros(1, dtype=dtype, device=device, requires_grad=True)
         self.nu_basis = self.B
@@ -105,8 +114,35 @@ class MaterialField:
         self.B = torch.as_tensor(B, dtype=self.dtype, device=self.device)
         self.K = self.B.shape[1]
 
+    def _logit_of(self, E) -> np.ndarray:
+        """Per-particle E (Pa) -> the field's logit value u (log E = lo + (hi - lo) sigmoid(u))."""
+        E = np.clip(np.asarray(E, np.float64), np.exp(self.lo) * 1.0001, np.exp(self.hi) * 0.9999)
+        return _logit((np.log(E) - self.lo) / (self.hi - self.lo))
+
+    def set_base(self, E: np.ndarray | None) -> None:
+        """Nest the field on a fixed per-particle E (a simpler model's: uniform or parts): log E =
+        lo + (hi - lo) sigmoid(u_base + B theta), the offsets theta reset to zero, so the field's
+        first value is `E` itself (within the range's clip). None: a plain field again (the
+        current values are kept, projected onto the basis)."""
+        if E is None:
+            if self.base is not None:
+                with torch.no_grad():
+                    u = self.u().cpu().numpy()
+                self.base = None
+                theta, *_ = np.linalg.lstsq(self.B.cpu().numpy(), u, rcond=None)
+                self.theta = torch.as_tensor(theta, dtype=self.dtype, device=self.device).requires_grad_(True)
+            return
+        self.base = torch.as_tensor(self._logit_of(E), dtype=self.dtype, device=self.device)
+        self.theta = torch.zeros(self.K, dtype=self.dtype, device=self.device, requires_grad=True)
+
+    def u(self) -> torch.Tensor:
+        """The per-particle logit value: the basis' part, plus the base when the field is nested."""
+        u = self.B @ self.theta
+        return u if self.base is None else u + self.base
+
     def refine(self, k: int, refine_nu: bool = False) -> None:
-        """Switch to a basis of k functions, starting from the projection of the current field."""
+        """Switch to a basis of k functions, starting from the projection of the current field
+        (of its offsets, when nested: the base stays as it is)."""
         with torch.no_grad():
             u = (self.B @ self.theta).cpu().numpy()
             nu_u = (self.nu_basis @ self.w_nu).cpu().numpy()
@@ -121,12 +157,14 @@ class MaterialField:
 
     def set_regions(self, labels: np.ndarray) -> None:
         """A piecewise-constant basis: one indicator per region of `labels` (0..m-1), each region
-        starting from the mean of the current field over it (`fit.regions`)."""
+        starting from the mean of the current field over it (`fit.regions`; a nested field's base
+        is folded in and dropped)."""
         from .regions import one_hot
 
         labels = np.asarray(labels, np.int64)
         with torch.no_grad():
-            u = (self.B @ self.theta).cpu().numpy()
+            u = self.u().cpu().numpy()
+        self.base = None
         B = one_hot(labels)
         theta = np.array([u[labels == r].mean() if np.any(labels == r) else 0.0 for r in range(B.shape[1])])
         self.B = torch.as_tensor(B, dtype=self.dtype, device=self.device)
@@ -134,8 +172,9 @@ class MaterialField:
         self.theta = torch.as_tensor(theta, dtype=self.dtype, device=self.device).requires_grad_(True)
 
     def set_region_log_e(self, log_e: np.ndarray) -> None:
-        """Set each region's (basis function's) log E (one-hot bases: exact)."""
+        """Set each region's (basis function's) log E (one-hot bases, no base: exact)."""
         s = (np.asarray(log_e, np.float64) - self.lo) / (self.hi - self.lo)
+        self.base = None
         with torch.no_grad():
             self.theta = torch.as_tensor(_logit(s), dtype=self.dtype, device=self.device).requires_grad_(True)
 
@@ -146,7 +185,7 @@ class MaterialField:
 
     # ------------------------------------------------------------------ values
     def log_e(self) -> torch.Tensor:
-        return self.lo + (self.hi - self.lo) * torch.sigmoid(self.B @ self.theta)
+        return self.lo + (self.hi - self.lo) * torch.sigmoid(self.u())
 
     def youngs(self) -> torch.Tensor:
         return torch.exp(self.log_e())
@@ -156,15 +195,19 @@ class MaterialField:
 
     def set_uniform(self, E: float, nu: float | None = None) -> None:
         s = (np.log(E) - self.lo) / (self.hi - self.lo)
+        self.base = None
         with torch.no_grad():
             self.theta.copy_(torch.full_like(self.theta, float(_logit(s))))
             if nu is not None:
                 self.w_nu.copy_(torch.full_like(self.w_nu, float(_logit(nu / self.nu_max))))
 
     def set_values(self, E: np.ndarray, nu: np.ndarray | None = None) -> None:
-        """Least-squares fit of the current basis to per-particle values (resume, warm starts)."""
-        s = (np.log(np.clip(E, np.exp(self.lo) * 1.0001, np.exp(self.hi) * 0.9999)) - self.lo) / (self.hi - self.lo)
-        theta, *_ = np.linalg.lstsq(self.B.cpu().numpy(), _logit(s), rcond=None)
+        """Least-squares fit of the current basis to per-particle values (resume, warm starts; a
+        nested field's offsets to what `E` adds to its base: zero where `E` is the base)."""
+        u = self._logit_of(E)
+        if self.base is not None:
+            u = u - self.base.cpu().numpy()
+        theta, *_ = np.linalg.lstsq(self.B.cpu().numpy(), u, rcond=None)
         with torch.no_grad():
             self.theta = torch.as_tensor(theta, dtype=self.dtype, device=self.device).requires_grad_(True)
             if nu is not None:
@@ -173,14 +216,17 @@ class MaterialField:
 
     def smoothness(self, neighbours: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
         """Mean squared log-E difference over neighbour pairs (P_pairs, 2): the |grad Theta| term
-        (weighted per pair when `weights` is given: edge-aware)."""
+        (weighted per pair when `weights` is given: edge-aware). A nested field's: of what the
+        offsets add to the base's log E (the base's own part boundaries cost nothing)."""
         le = self.log_e()
+        if self.base is not None:
+            le = le - (self.lo + (self.hi - self.lo) * torch.sigmoid(self.base))
         d2 = (le[neighbours[:, 0]] - le[neighbours[:, 1]]) ** 2
         return d2.mean() if weights is None else (weights * d2).mean()
 
     def state(self) -> dict:
         return {"theta": self.theta.detach().cpu().numpy(), "w_nu": self.w_nu.detach().cpu().numpy(),
-                "K": self.K, "nu_K": self.nu_basis.shape[1]}
+                "K": self.K, "nu_K": self.nu_basis.shape[1], "nested": self.base is not None}
 
 
 def neighbour_pairs(points: np.ndarray, radius: float) -> np.ndarray:

@@ -72,6 +72,8 @@ class FitSettings:
     select_part_rounds: int = 2         # ... coordinate rounds over the parts (later rounds: golden, local)
     select_part_refine: int = 12        # ... then a simplex over all parts' log E together, this many probes per part
     select_max_parts: int = 4           # ... at most this many parts in a candidate
+    select_field_nested: bool = True    # ... the field is the kept model's E (fixed) plus a bumps offset from
+                                        # zero (MaterialField.set_base); False: the kept model projected onto bumps
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
     sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
     flat_tolerance: float = 0.02        # ... minima within this (relative) of the best are refined too
@@ -223,7 +225,10 @@ def select_supports(make_problem, contacts: list, x0: np.ndarray, spacing: float
 
 def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
               start: dict | None = None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
-    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from.
+    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from; with
+    "base_youngs" too, the field is nested on that per-particle E (`MaterialField.set_base`: the
+    simpler model's E held fixed, the bumps fit an offset that starts at what "youngs" adds to it,
+    zero when they are the same), as the select schedule's field step does.
     `uniform_e`: the uniform E to start from when a search already found it (`select_supports`)."""
     s = settings or FitSettings()
     _seed(s.seed)
@@ -243,6 +248,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
         # field it left), all iterations there
         levels, shares = levels[-1:], (1.0,)
         mat.set_basis(levels[0])
+        if start.get("base_youngs") is not None:    # nested on a simpler model's E
+            mat.set_base(np.asarray(start["base_youngs"]))
         mat.set_values(np.asarray(start["youngs"]), np.asarray(start["poisson"]))
         for i, (slot, _) in enumerate(prob.traj_slots):
             name = prob.contacts[slot].name
@@ -405,6 +412,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now())
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
+    if mat.base is not None:
+        model["nested"] = True                    # the field was an offset on a fixed base's E
     if probes:
         model["uniform_probes"] = probes          # the start search's uniform E -> loss
     if start_skipped:
@@ -607,7 +616,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     noise_var = max(rss / max(count, 1), 1e-8) * residual_correlation(residuals)
     sigma_theta = torch.sqrt(noise_var / diag.clamp_min(1e-30))
     with torch.no_grad():
-        s = torch.sigmoid(mat.B @ theta)
+        s = torch.sigmoid(mat.u())                     # (a nested field's base included)
         dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
         sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
         conf = torch.erf(tol / (sigma_p * math.sqrt(2.0)).clamp_min(1e-12))

@@ -19,8 +19,13 @@
    part E together (`part_refine`: the parts' loss is a narrow valley across the axes, where the
    one-part-at-a-time search stalls), then an AdamW polish of the part E, one nu and the
    trajectory (`fit_parts`), training frames only.
-   The "field" model: the bumps field (the finest level of `levels`) warm-started from the
-   simpler model kept (uniform or parts), training frames only.
+   The "field" model: the bumps field (the finest level of `levels`) nested on the simpler model
+   kept (uniform or parts; `select_field_nested`): log E = that model's per-particle log E, held
+   fixed, plus a bumps offset that starts at zero (`MaterialField.set_base`), so the field starts
+   at the kept model's loss, keeps its part boundaries, and its best iterate is never worse on the
+   training frames; training frames only. (Before: the kept model projected onto the bumps, which
+   cannot represent parts' sharp boundaries: on hemp_rope that field started, and ended, above the
+   parts' held-back loss.)
 4. Selection on the held-back frames, simple to complex (uniform -> parts -> field): every
    `select_holdout_every`-th frame from frame 2, but never the first frame after a release, which
    carries most of the free motion's evidence (no model ever fits them; interleaved rather than a
@@ -817,19 +822,26 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
                 say(f"parts ({prec['kind']}, E " + ", ".join(f"{e:.4g}" for e in prec["e"]) + " Pa): "
                     + ("kept" if base == "parts" else "refused") + f" ({tests['parts']['why']})")
         model["parts"] = prec
+    nested = bool(s.select_field_nested)
+
+    def field_start(r_):        # nested: on the kept model's own per-particle E, the offsets from zero
+        return {**start_of(r_), "base_youngs": models[base].youngs} if nested else start_of(r_)
+
     if not models[base].interrupted and k_field > 1:
         sf = dataclasses.replace(s, levels=(k_field,), level_share=(1.0,), iterations=n_field, confidence_probes=0,
                                  search_effects=())
         models["field"] = run(lambda cb: fit_bumps(view, sf, progress=progress, log=log, on_iteration=cb,
-                                                   start=start_of(models[base])))
-        coeffs["field"] = k_field
+                                                   start=field_start(models[base])))
+        # nested: all k_field offsets are added to the kept model's coefficients
+        coeffs["field"] = coeffs[base] + k_field if nested else k_field
         judge("field")
         model["field_from"] = base
+        model["field_nested"] = nested
     # 5. the held-back tests: each step kept only if it pays for its added coefficients
     chosen = base
     if "field" in models and not models["field"].interrupted:
         test = select_rule(losses[base]["held_back_frames"], losses["field"]["held_back_frames"],
-                           max(k_field - coeffs[base], 1), s)
+                           max(coeffs["field"] - coeffs[base], 1), s)
         tests["field"] = test
         chosen = "field" if test["keep_field"] else base
         say(f"model: {chosen} ({test['why']})")
@@ -853,7 +865,9 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
             sc = dataclasses.replace(s, levels=levels, level_share=(1.0,), iterations=n_final, search_effects=(),
                                      trajectory_levels=1,
                                      fit_poisson_levels=1 if chosen == "uniform" else s.fit_poisson_levels)
-            r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb, start=start_of(r)))
+            r0 = r
+            r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb,
+                                         start=field_start(r0) if chosen == "field" else start_of(r0)))
     r.loss_history = histories
     r.uniform_start = uni["e"]
     r.interrupted = r.interrupted or interrupted
