@@ -277,3 +277,21 @@ def test_a_stop_during_a_batched_fit_writes_the_best_start(scene, tmp_path, monk
     mm = v1["material_model"]
     assert mm["starts_mode"] == "batched" and [d["status"] for d in mm["starts"]] == ["interrupted"] * 2
     assert all(d["final_loss"] is not None for d in mm["starts"])
+
+
+def test_copies_stop_on_their_own_and_the_batch_shrinks(scene):
+    """With the convergence stop on, the starts stop at different iterations; the batch goes on
+    with the copy left (a smaller tiled rollout) and each history is its own fit's."""
+    import dataclasses
+
+    s = FitSettings(iterations=8, joint=False, **{**SETTINGS, "levels": (1,), "level_share": (1.0,),
+                                                  "plateau_patience": 1, "plateau_tail": 1, "plateau_tol": 0.02})
+    starts = [Start(1.0, 0), Start(0.25, 1)]
+    res = fit_bumps_batched(_problem(scene), s, starts, uniform_e=4e3, **QUIET)
+    lens = []
+    for sp, r in zip(starts, res):
+        ref = fit_bumps(_problem(scene), dataclasses.replace(s, seed=sp.seed), uniform_e=4e3 * sp.factor, **QUIET)
+        assert len(r.loss_history) == len(ref.loss_history)
+        np.testing.assert_allclose(r.loss_history, ref.loss_history, rtol=1e-8)
+        lens.append(len(r.loss_history))
+    assert lens[0] < lens[1] <= 8, lens
