@@ -216,7 +216,8 @@ def fit_bumps_batched(prob: FitProblem, settings: FitSettings | None = None, sta
     order, each without its confidence (ones; `fit_starts` estimates the chosen one's) and with
     `model["start"]` = {"factor", "seed", "uniform_e", "status", "iterations", "note"}. `uniform_e`:
     the searched uniform E (searched here when None). `on_iteration(it, loss, mat, trajs)` is called
-    for the first start still running (a checkpoint's resume point)."""
+    for the first start while it runs (the app's checkpoint follows it: a resumed batched fit goes on
+    from that start's iterate, as one fit)."""
     s = settings or FitSettings()
     if s.fit_effects:
         raise ValueError("fit_bumps_batched: the copies of a tiled rollout share the effects' parameters; "
