@@ -506,3 +506,116 @@ def test_a_held_end_with_noisy_frames_is_grown_from_its_still_core():
     seen[1] = False
     seen[2] = True
     assert grow_supports(x0, [np.array([0])], rel, 1.0, 0.04, visible=seen)[0].tolist() == [0, 1]
+
+
+def _release_of(vh, vo, near, g):
+    """find_timing's release steps on given velocities (frame pairs), as the pipeline runs them."""
+    from physinteract_usd.extract.timing import contact_run, contact_share, coupling, part_by_ratio, release
+
+    eps = 0.35
+    coupled = coupling(vh, vo, eps)
+    run = contact_run(coupled, near, vh, vo, eps)
+    share = 0.0
+    if run is not None:
+        coupled = part_by_ratio(coupled, vh, vo, run, eps)
+        share = contact_share(coupled, vh, vo, run, eps)
+    speed = np.linalg.norm(vh, axis=1)
+    return release(coupled, near, g, speed, vh=vh, vo=vo, share=share, eps=eps), coupled
+
+
+def test_a_release_is_where_toucher_and_object_stay_apart_not_one_odd_frame_pair():
+    """(#23, fifth pass) a hand pulls (the object next to it following at 0.9 of its speed) and
+    lets go at frame 10: the object springs back while the hand moves off; in the pair after,
+    the object's flow next to the fast-moving hand reads as following it (the hand's flow smeared
+    onto it), then apart again. One odd pair mid-pull (pair 6: the object's flow lags, noise) is no
+    release; the release is frame 10, where their relative motion grows and stays."""
+    T1 = 14
+    vh = np.zeros((T1, 2))
+    vh[2:10, 0] = [0.8, 1.6, 2.2, 2.4, 2.4, 2.2, 1.4, 0.6]      # the pull, slowing at its end
+    vh[10:, 0] = [4.0, 12.0, 16.0, 10.0]                         # the hand moves off after letting go
+    vo = 0.9 * vh.copy()
+    vo[6] = [0.4, 0.5]                                             # one odd pair: lags, turned
+    vo[10] = [-3.0, 0.5]                                           # springs back
+    vo[11] = [6.0, 0.0]                                            # the hand's flow smeared onto it
+    vo[12] = [-1.0, 0.2]
+    vo[13] = [0.5, 0.0]
+    near = np.ones(T1 + 1, bool)
+    r, coupled = _release_of(vh, vo, near, 2)
+    assert coupled[6] < 0 and coupled[11] > 0     # the per-pair coupling sees both odd pairs
+    assert r == 10
+    # no odd pairs: the same release
+    vo2 = 0.9 * vh.copy()
+    vo2[10:] = [[-3.0, 0.5], [-1.0, 0.0], [0.0, 0.3], [0.2, 0.0]]
+    assert _release_of(vh, vo2, near, 2)[0] == 10
+    # held on to the end (the object follows throughout): none
+    assert _release_of(vh, 0.9 * vh, near, 2)[0] is None
+
+
+def test_a_toucher_never_seen_in_contact_releases_where_it_leaves_and_says_so():
+    """(#23, dev_0002) a white finger on a pale sheet: the grasp is put on its approach (pair 2:
+    it slows, then moves fast into the sheet, the sheet not following), then the finger and the sheet next
+    to it are hidden until it moves off (pairs 22, 23) and leaves (frame 24). The approach is not
+    the release: nothing in the video shows the contact, so only the leaving ends it, and the
+    confidence says so."""
+    from physinteract_usd.extract.timing import Timing, timing_confidence
+
+    T1 = 26
+    vh = np.full((T1, 2), np.nan)
+    vo = np.full((T1, 2), np.nan)
+    vh[2], vo[2] = [-0.37, 0.12], [-0.04, -0.07]
+    vh[3], vo[3] = [-2.8, 6.7], [0.02, 0.05]
+    vh[22], vo[22] = [2.1, -4.5], [0.07, -0.05]
+    vh[23], vo[23] = [0.6, -1.2], [-0.03, 0.01]
+    near = np.zeros(T1 + 1, bool)
+    near[1:24] = True
+    r, coupled = _release_of(vh, vo, near, 2)
+    assert r == 24
+    speed = np.linalg.norm(vh, axis=1)
+    t = Timing(vh, vo, coupled, near, (1, 23), speed, 2, r)
+    ev, notes = {}, []
+    assert timing_confidence(t, 0.35, ev, notes) == "low"
+    assert any(n.startswith("release uncertain: the video never shows the object moving with the hand") for n in notes)
+    # once the finger is seen resting on the sheet (pair 5: both still), a parting after it counts
+    vh[5], vo[5] = [0.05, 0.02], [0.01, 0.0]
+    vh[8], vo[8] = [3.0, -5.0], [0.0, 0.02]
+    vh[9], vo[9] = [4.0, -6.0], [0.01, 0.0]
+    assert _release_of(vh, vo, near, 2)[0] == 8
+
+
+def test_the_object_next_to_the_contact_is_measured_clear_of_the_toucher_in_both_frames():
+    """(#23, fifth pass) the object stands still while a toucher (a disc) moves 6 px across it: the
+    object pixels the disc moves onto in the second frame are hidden there, and their flow is the
+    disc's. The object's velocity next to the contact leaves them out: still."""
+    from physinteract_usd.extract.timing import velocities
+
+    H = W = 48
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    disc = [(xx - cx) ** 2 + (yy - 24) ** 2 <= 7 ** 2 for cx in (16, 22)]
+    hand = np.stack(disc)
+    obj = np.stack([~d for d in disc])                  # the object fills the frame behind the disc
+    fl = np.zeros((1, H, W, 2), np.float32)
+    fl[0][disc[0] | disc[1]] = [6.0, 0.0]               # the disc's flow, and the pixels it moves onto
+    an = SimpleNamespace(T=2, H=H, W=W, R=4.0, clear=2, hand=hand, obj=obj, flows=SimpleNamespace(forward=fl))
+    vh, vo = velocities(an, [np.array([22.0, 24.0]), None])
+    assert np.allclose(vh[0], [6.0, 0.0])
+    assert np.linalg.norm(vo[0]) < 0.05
+
+
+def test_a_grasp_read_after_the_objects_motion_moves_to_where_the_object_starts_to_follow():
+    """(#23, fifth pass; dev_9224) tongs pull an anchored bar straight from the approach (no rest
+    before), hold it still for four frames and let go: the rest-onset rule reads the hold as the
+    rest and the withdrawal as the onset (grasp 18). The object followed the toucher over pairs
+    5..14 before that: the grasp is frame 5. A grasp before the motion is kept."""
+    from physinteract_usd.extract.timing import not_after_the_motion
+
+    T1 = 22
+    coupled = np.zeros(T1, np.int8)
+    coupled[5:15] = 1
+    coupled[19:] = -1
+    vo = np.zeros((T1, 2))
+    vo[5:15, 1] = -np.array([0.8, 1.7, 2.4, 3.1, 3.7, 3.6, 3.3, 2.8, 1.9, 0.6])
+    run = (4, 18)
+    assert not_after_the_motion(18, coupled, vo, run) == 5
+    assert not_after_the_motion(4, coupled, vo, run) == 4
+    assert not_after_the_motion(7, coupled, vo, run) == 7     # a grasp a little into the motion stays
+    assert not_after_the_motion(18, coupled, vo, None) == 18

@@ -43,9 +43,12 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     speed = np.linalg.norm(vh, axis=1)
     g = contact_start(speed, near, p0, p1, coupled, vh)
     run = contact_run(coupled, near, vh, vo, an.eps)
+    g = not_after_the_motion(g, coupled, vo, run)
+    share = 0.0
     if run is not None:
         coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
-    r = release(coupled, near, g, speed)
+        share = contact_share(coupled, vh, vo, run, an.eps)
+    r = release(coupled, near, g, speed, vh=vh, vo=vo, share=share, eps=an.eps)
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
@@ -168,9 +171,25 @@ def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -
     if src.get("release") != "user":
         if r is None and T1 > 0 and timing.near[-1]:
             reasons.append("no release seen: the hand holds on to the end of the video; --release-frame sets it")
+        elif r is not None and contact_seen(timing.coupled, timing.hand_velocity, timing.object_velocity, g) is None:
+            reasons.append(f"release uncertain: the video never shows the object moving with the hand or resting "
+                           f"under it (frames {g}..{r}); the release is where the hand leaves it, frame {r}; "
+                           "--release-frame sets it")
         elif r is not None and r < len(timing.near) and not timing.near[r] and (r == 0 or timing.coupled[r - 1] >= 0):
             reasons.append(f"release from the hand leaving the object at frame {r}, not from the object's motion; "
                            "--release-frame sets it")
+        if r is not None and 0 < r < T1:
+            # what the object next to the contact shows around the release
+            before = [k for k in range(max(g, r - 3), r) if timing.near[k]]
+            hidden = [k for k in before if not np.isfinite(so[k])]
+            around = [k for k in range(max(g, r - 2), min(T1, r + 2)) if timing.near[k] and np.isfinite(so[k])]
+            if before and len(hidden) >= max(2, len(before) - 1):
+                reasons.append(f"release uncertain: the object next to the contact is hidden in frames "
+                               f"{hidden[0]}..{hidden[-1] + 1} before the release at frame {r}; --release-frame sets it")
+            elif around and float(np.max(so[around])) < eps and not any("moves little (at most" in x for x in reasons):
+                reasons.append(f"release uncertain: the object next to the contact barely moves around frame {r} (at "
+                               f"most {float(np.max(so[around])):.2f} px a frame): the release is read from the hand "
+                               "moving away alone; --release-frame sets it")
     hidden = [k for k in range(g, end) if not np.isfinite(sh[k])]
     if len(hidden) >= max(2, 0.3 * max(end - g, 1)):
         reasons.append(f"the hand is hidden near the contact in {len(hidden)} of frames {g}..{end}: its motion "
@@ -201,10 +220,7 @@ def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps:
     3 of them) set to -1 (apart)."""
     sh = np.linalg.norm(vh, axis=1)
     so = np.linalg.norm(vo, axis=1)
-    a, b = run
-    fast = [k for k in range(a, b + 1) if coupled[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k])
-            and sh[k] >= 2 * eps]
-    share = float(np.percentile([so[k] / sh[k] for k in fast], 70)) if len(fast) >= 3 else 0.0
+    share = contact_share(coupled, vh, vo, run, eps)
     out = coupled.copy()
     for k in range(len(coupled)):
         if out[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k]) and sh[k] >= 2 * eps and so[k] < 0.5 * share * sh[k]:
@@ -214,6 +230,18 @@ def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps:
         if out[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k]) and so[k] >= 2 * eps and so[k] > 2.5 * max(sh[k], eps):
             out[k] = -1
     return out
+
+
+def contact_share(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> float:
+    """The share of the toucher's speed the object next to the contact keeps while they touch: the
+    70th percentile of the object's speed over the toucher's over the run's pairs in which it
+    follows and the toucher moves at >= 2 `eps` (at least 3 of them; else 0: not measured)."""
+    sh = np.linalg.norm(vh, axis=1)
+    so = np.linalg.norm(vo, axis=1)
+    a, b = run
+    fast = [k for k in range(a, b + 1) if coupled[k] > 0 and np.isfinite(sh[k]) and np.isfinite(so[k])
+            and sh[k] >= 2 * eps]
+    return float(np.percentile([so[k] / sh[k] for k in fast], 70)) if len(fast) >= 3 else 0.0
 
 
 def release_after(timing: Timing, g: int):
@@ -246,8 +274,11 @@ def velocities(an: Analysis, centres: list):
         v = median_flow(fl, h_in & disk, h_in & big)
         if v is not None:
             vh[k] = v
-        # object pixels clear of the hand: the flow smears a few pixels across motion boundaries
-        o_in = erode(an.obj[k], 1) & ~dilate(an.hand[k], an.clear)
+        # object pixels clear of the hand in both frames of the pair: the flow smears a few pixels
+        # across motion boundaries, and an object pixel the hand moves onto in frame k+1 is hidden
+        # there, so its flow is the hand's (a toucher withdrawing over the object it let go of
+        # read as the object following it)
+        o_in = erode(an.obj[k], 1) & ~dilate(an.hand[k] | an.hand[k + 1], an.clear)
         v = median_flow(fl, o_in & big, o_in & disk_mask((an.H, an.W), c, 3.0 * an.R))
         if v is not None:
             vo[k] = v
@@ -393,6 +424,22 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
     return None
 
 
+def not_after_the_motion(g: int, coupled: np.ndarray, vo: np.ndarray, run) -> int:
+    """A grasp comes before the object moves with the toucher: where the object next to the contact
+    has already made most of its following motion over the contact run (`contact_run`) before the
+    grasp frame g, g is the end of that motion (a hold, then the release: dev_9224, a pull straight
+    from the approach with no rest before it, its hold's onset read as the grasp), and the grasp is
+    the first frame pair of the run in which the object follows."""
+    if run is None:
+        return g
+    a, b = run
+    m = np.array([float(np.linalg.norm(vo[k])) if coupled[k] > 0 and np.isfinite(vo[k]).all() else 0.0
+                  for k in range(a, b + 1)])
+    if m.sum() <= 0 or g <= a or m[: g - a].sum() <= 0.5 * m.sum():
+        return g
+    return a + int(np.argmax(m > 0))
+
+
 def skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: float = 0.35) -> int:
     """A start frame in which the hand still moves and the object does not follow, followed by
     one in which it does, is the end of the approach: start one later (at most twice)."""
@@ -402,23 +449,47 @@ def skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: 
     return g
 
 
-def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | None = None):
-    """The release: the object stops following the hand (two decoupled frame pairs in a row, or
-    one in which the hand moves fast, or the hand no longer touching) at some frame r_c; None: held
-    to the end. A slow pull may leave the object behind for a frame or two after the grasp:
-    decoupling counts only once the object has followed (bow_tie). A hand slows down before it
-    lets go and moves off after: with `speed`, when the hand was still moving in the pair before
-    r_c (the decoupling seen a pair late), the release is the frame after the slowest of the
-    pairs just before r_c in which it still moved (ties to the earlier); pairs in which both were
-    still (a hold before letting go) are not searched (the release would land at the hold's
-    start)."""
+def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | None = None,
+            vh: np.ndarray | None = None, vo: np.ndarray | None = None, share: float = 0.0, eps: float = 0.35,
+            window: int = 3):
+    """The release: the object stops following the hand at some frame r_c (the hand no longer
+    touching it, or a decoupled frame pair after which they stay apart); None: held to the end. A
+    slow pull may leave the object behind for a frame or two after the grasp: decoupling counts
+    only once the object has followed (bow_tie). A hand slows down before it lets go and moves off
+    after: with `speed`, when the hand was still moving in the pair before r_c (the decoupling
+    seen a pair late), the release is the frame after the slowest of the pairs just before r_c in
+    which it still moved (ties to the earlier); pairs in which both were still (a hold before
+    letting go) are not searched (the release would land at the hold's start).
+
+    Whether they stay apart: with the velocities (`vh`, `vo`; `parted`), over the decoupled pair
+    and the next ones (`window` pairs in all) the object's motion next to the contact, summed, is
+    no longer the share of the toucher's summed motion it kept while they touched (`share`,
+    `contact_share`): after a release it springs back, stays, or moves on by itself while the
+    toucher goes its own way, and their relative motion grows; a pair's flow that disagrees for
+    one pair (noise, the toucher's flow smeared onto the object next to it) is summed away. Without
+    them, two decoupled pairs in a row, or one in which the hand moves fast."""
     T1 = len(coupled)
     r_c = None
     first = next((k for k in range(g + 1, T1) if coupled[k] > 0), g)
-    for k in range(first + 1 if first > g else g + 1, T1):
+    motion = vh is not None and vo is not None
+    start = first + 1 if first > g else g + 1
+    if motion and first == g:
+        # nothing followed: the contact is seen from the first pair in which both rest on each
+        # other (seen, still); a toucher seen only moving apart before that is still coming in
+        # (dev_0002: its approach read as the release). Never seen: only its leaving ends it.
+        seen = contact_seen(coupled, vh, vo, g)
+        if seen is None:
+            return next((k for k in range(g + 1, T1) if not near[k]), None)
+        start = max(start, seen + 1)
+    for k in range(start, T1):
         if not near[k]:
             r_c = k
             break
+        if motion:
+            if coupled[k] < 0 and parted(k, near, vh, vo, share, eps, window, coupled):
+                r_c = k
+                break
+            continue
         fast = speed is not None and np.isfinite(speed[k]) and speed[k] >= 3 * 0.35
         if coupled[k] < 0 and (fast or k + 1 >= T1 or coupled[k + 1] < 0 or not near[k + 1]):
             # the object catching up again (a lagging pull round a bend) was not a release
@@ -441,6 +512,46 @@ def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | N
         return r_c
     k_min = min(k for k in ks if speed[k] <= best + 0.1)
     return k_min + 1
+
+
+def contact_seen(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, g: int) -> int | None:
+    """The first frame pair from g in which the video shows the toucher in contact with the object:
+    the object next to the contact follows it, or both are seen resting (still); None: never."""
+    for k in range(g, len(coupled)):
+        if coupled[k] > 0 or (coupled[k] == 0 and np.isfinite(vh[k]).all() and np.isfinite(vo[k]).all()):
+            return k
+    return None
+
+
+def parted(k: int, near: np.ndarray, vh: np.ndarray, vo: np.ndarray, share: float, eps: float = 0.35,
+           window: int = 3, coupled: np.ndarray | None = None) -> bool:
+    """Whether the toucher and the object next to the contact move apart from frame pair k on:
+    over pairs k .. k + window - 1 (those in which the object there is seen; a hidden toucher
+    counts as still) the object's summed motion differs from `share` x the toucher's by more than
+    half of that (it falls behind, springs back, runs ahead or turns away); or, with no share
+    measured, the summed motions are decoupled as a single pair would be (`coupling`). The
+    toucher leaving the object within the window parts them; both about still (under `eps` summed)
+    does not."""
+    T1 = len(vh)
+    js = range(k, min(T1, k + window))
+    if any(not near[j] for j in js):
+        return True
+    seen = [j for j in js if np.isfinite(vo[j]).all()]
+    if not seen:
+        return False
+    if coupled is not None:
+        # they stay apart: more of the window's pairs decoupled than coupled or still
+        apart = sum(int(coupled[j] < 0) for j in seen)
+        if apart <= len(seen) - apart:
+            return False
+    Vh = np.sum([np.nan_to_num(vh[j]) for j in seen], axis=0)
+    Vo = np.sum([vo[j] for j in seen], axis=0)
+    nh, no = float(np.linalg.norm(Vh)), float(np.linalg.norm(Vo))
+    if max(nh, no) < eps:
+        return False
+    if share > 0:
+        return float(np.linalg.norm(Vo - share * Vh)) > 0.5 * share * nh
+    return bool(coupling(Vh[None], Vo[None], eps)[0] < 0)
 
 
 def coupled_share(coupled: np.ndarray, speed: np.ndarray, g: int, p1: int) -> float:
