@@ -157,7 +157,7 @@ def profiled(argv):
     return code
 
 
-def run_steps(out: Path, cold: bool, fit_args: list[str]):
+def run_steps(out: Path, cold: bool, fit_args: list[str], init_args: list[str] = ()):
     out.mkdir(parents=True, exist_ok=True)
     for p in ("scene.usda", "scene.init.usdc", "scene.fit.usdc"):
         (out / p).unlink(missing_ok=True)
@@ -173,7 +173,8 @@ def run_steps(out: Path, cold: bool, fit_args: list[str]):
     exe = [sys.executable, "-m", "physinteract_usd"]
     steps = [
         ("init", exe + ["init", stage, "--capture", str(SAMPLE), "--grid", "24", "--padding", "0.3",
-                        "--youngs-range", "1e3,6e4", "--max-poisson", "0.4", "--density", "150"]),
+                        "--youngs-range", "1e3,6e4", "--max-poisson", "0.4", "--density", "150",
+                        *init_args]),
         ("fit", [sys.executable, __file__, "profiled", stage, *fit_args]),
         ("evaluate", exe + ["evaluate", stage, "--gt", str(SAMPLE / "gt"), "--json"]),
         ("info", exe + ["info", stage]),
@@ -213,7 +214,7 @@ def main():
     argv = sys.argv[1:]
     if argv and argv[0] == "profiled":
         return profiled(argv[1:])
-    out, cold, fit_args = ROOT / "out" / "cpu_demo", False, []
+    out, cold, fit_args, init_args = ROOT / "out" / "cpu_demo", False, [], []
     if "--" in argv:
         i = argv.index("--")
         argv, fit_args = argv[:i], argv[i + 1:]
@@ -223,9 +224,11 @@ def main():
             out = Path(argv.pop(0))
         elif a == "--cold":
             cold = True
+        elif a == "--init-args":   # extra `init` arguments, one string: --init-args "--spacing 0.00965"
+            init_args = argv.pop(0).split()
         else:
             raise SystemExit(f"unknown argument {a}")
-    run_steps(out, cold, fit_args)
+    run_steps(out, cold, fit_args, init_args)
     return 0
 
 
