@@ -220,3 +220,59 @@ def test_correlation_time_sets_blocks_long_enough_to_keep_false_alarms():
     assert np.median(taus) == pytest.approx((1 + rho) / (1 - rho), rel=0.3)
     assert short / runs > 0.25
     assert auto / runs <= 0.08
+
+
+def test_a_discrete_probe_predicts_the_drop_of_the_whole_change():
+    """A probe that can only be taken whole (the grasp one frame later): its predicted drop is that of
+    amplitude 1 with the base re-adjusted, |P r|^2 - |P (r + j)|^2 = |j_perp|^2 (2 t - 1); none when the
+    residual asks for less than half of the change (the Gauss-Newton drop of a fraction would
+    over-promise: nothing realises a fraction of a frame)."""
+    rng = np.random.default_rng(7)
+    n = 400
+    J = rng.normal(size=(n, 3))
+    j = rng.normal(size=n)
+    jp = S.project_out(J, j)
+    for t_true in (1.0, 0.8, 0.3):
+        r = -t_true * j + J @ rng.normal(size=3) + 0.05 * rng.normal(size=n)
+        drop, step = S.discrete_drop(r, jp, +1)
+        gn, _ = S.gauss_newton_drop(r, jp, +1)
+        a0, *_ = np.linalg.lstsq(J, -r, rcond=None)
+        a1, *_ = np.linalg.lstsq(J, -(r + j), rcond=None)
+        real = float(np.sum((r + J @ a0) ** 2) - np.sum((r + j + J @ a1) ** 2))
+        assert step == pytest.approx(t_true, abs=0.05)
+        if t_true > 0.5:
+            assert drop == pytest.approx(real, rel=1e-6)
+            assert drop <= gn * (1 + 1e-9)
+        else:
+            assert real < 0 and drop == 0.0 and gn > 0
+
+
+def test_two_collinear_candidates_are_named_a_confusable_pair():
+    """Two candidates whose columns nearly coincide once the base's part is removed: each is
+    significant alone, forward selection keeps the stronger, and the other is recorded as explained
+    away by it (rival_of, the |cos| of their projected columns); an unrelated candidate is not."""
+    from physinteract_usd.diagnose.core import DiagnoseSettings, Probe, _forward_select, test_candidate
+
+    rng = np.random.default_rng(8)
+    T, n = 12, 600
+    J = rng.normal(size=(T * n, 2))
+    a = np.repeat(np.linspace(0, 1, T), n) * rng.normal(size=T * n)
+    b = a + 0.2 * rng.normal(size=T * n) * np.repeat(np.linspace(0, 1, T), n)
+    c = rng.normal(size=T * n)
+    r = -0.05 * a + 0.02 * rng.normal(size=T * n)
+    blocks = (np.arange(T * n) // (n // 2)).astype(np.int64)
+    nb = int(blocks.max()) + 1
+    s = DiagnoseSettings(n_flips=2000)
+    res = [test_candidate(e, [Probe(e, col, +1)], r, J, blocks, nb, s) for e, col in
+           (("damping", a), ("viscoelasticity", b), ("ground", c))]
+    L0 = float(np.mean(r ** 2))
+    assert all(x.p_value < 0.01 for x in res[:2])
+    _forward_select(res, r, J, blocks, nb, s, L0)
+    by = {x.effect: x for x in res}
+    assert by["damping"].significant and not by["viscoelasticity"].significant
+    assert by["viscoelasticity"].rival_of == "damping"
+    jp_a, jp_b = S.project_out(J, a), S.project_out(J, b)
+    cos = abs(jp_a @ jp_b) / np.linalg.norm(jp_a) / np.linalg.norm(jp_b)
+    assert by["viscoelasticity"].collinearity == pytest.approx(cos, rel=1e-6) and cos > 0.9
+    assert [x.effect for x in by["damping"].rivals] == ["viscoelasticity"]
+    assert by["ground"].rival_of is None and not by["ground"].significant

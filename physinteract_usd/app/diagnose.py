@@ -125,6 +125,63 @@ def _best_start(prob, base, settings, starts: int, iterations: int, log):
     return BaseState(best["E"], best["nu"], base.effects, labels, measured=base.measured), out
 
 
+def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
+    """Step 7 of the method (docs/diagnose.md): the top `refit` significant candidates, each with the
+    candidates it explains away (its confusable rivals, `CandidateResult.rivals`), refitted briefly
+    on shared held-back frames, against the base refitted alike (`refit.refit_null`). Within a group
+    the held-back frames decide: the candidate with the largest accepted held-back drop takes the
+    group's place (a rival that wins is named, with its own marginal test), the others follow."""
+    from ..diagnose.core import estimate_of
+    from ..diagnose.refit import group_frames, refit_null
+
+    ctx = diag._ctx
+    prob = ctx["prob"]
+    for cr in [c for c in diag.significant][: int(refit)]:
+        group = [cr]
+        for b in cr.rivals:                      # a rival is refitted from its own (marginal) estimate
+            b.best, b.step = b.marginal_probe
+            b.estimate = estimate_of(b, prob)
+            group.append(b)
+        val = group_frames(diag, group) if len(group) > 1 else None
+        null = None
+        if any(c.effect in PHYSICAL for c in group):
+            from ..diagnose.refit import held_back_frames
+
+            if val is None:
+                col = cr.probes[cr.best].column if cr.best >= 0 else None
+                val = held_back_frames(prob.T, 4, ctx["res"], col)
+            log(f"refitting the base alone ({iterations} iterations, held-back frames {val}): the control")
+            null = refit_null(diag, val, iterations=iterations)
+        for c in group:
+            if c.effect in PHYSICAL:
+                log(f"refitting with {c.effect} ({iterations} iterations, warm-started)")
+                refit_effect(diag, c, iterations=iterations, log=None, frames=val, null=null)
+            else:
+                judge_probe(diag, c, frames=val)
+        if len(group) < 2:
+            continue
+        ok = [c for c in group if c.accepted and c.held_back_drop is not None]
+        if not ok:
+            continue
+        win = max(ok, key=lambda c: c.held_back_drop)
+        if win is cr:
+            continue
+        # the rival explains the held-back frames better: it is named in the selected one's place
+        win.significant = True
+        win.p_value, win.drop = win.marginal
+        win.relative_drop = win.drop / diag.loss if diag.loss > 0 else 0.0
+        win.rivals = [cr] + [b for b in cr.rivals if b is not win]
+        for b in win.rivals:
+            b.rival_of = win.effect
+        win.rival_of, cr.rivals = None, []
+        win.note = (f"named in place of {cr.effect} (a confusable pair, |cos| {win.collinearity:.2f}): held-back "
+                    f"drop {win.held_back_drop:.3g} against {cr.held_back_drop if cr.held_back_drop is not None else float('nan'):.3g}; "
+                    + win.note)
+        res = diag.results
+        res.remove(win)
+        res.insert(res.index(cr), win)
+
+
 def region_labels(E: np.ndarray, max_regions: int = 8) -> np.ndarray | None:
     """Regions of a piecewise-constant field (its distinct values), None for a smooth field."""
     vals, inv = np.unique(np.round(np.log(np.maximum(E, 1e-30)), 6), return_inverse=True)
@@ -211,13 +268,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     tc = diag.trajectory_check
     if tc and tc.get("suspect"):
         diag.notes.extend(tc["notes"])
-    top = [c for c in diag.significant][: int(refit)]
-    for cr in top:
-        if cr.effect in PHYSICAL:
-            log(f"refitting with {cr.effect} ({refit_iterations} iterations, warm-started)")
-            refit_effect(diag, cr, iterations=int(refit_iterations), log=None)
-        else:
-            judge_probe(diag, cr)
+    refit_confusable(diag, int(refit), int(refit_iterations), log)
     conclude(diag)
     if starts_out.get("chosen") is not None:
         diag.reason = f"{diag.reason} [{starts_out['note']}]"

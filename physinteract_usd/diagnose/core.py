@@ -69,6 +69,35 @@ CONFUSABLE = {
                                        "it (a soft pin also dissipates there); damping slows every motion, everywhere"),
 }
 
+# what separates two candidates the residual cannot tell apart (a confusable pair found by the
+# test: significant alone, explained away by the other; `CandidateResult.rival_of`)
+SEPARATES = {
+    frozenset(("damping", "viscoelasticity")):
+        "damping slows every motion: the swing's amplitude decays exponentially at a constant frequency "
+        "(a moving body slows too); a viscoelastic branch shifts the frequency (stiffer in fast motion) and "
+        "relaxes the shape slowly toward rest: creep while the load is held, a slow return after release",
+    frozenset(("plasticity", "viscoelasticity")):
+        "plasticity leaves a permanent set: after release the shape stops short of its rest shape and stays "
+        "there; viscoelasticity returns to it slowly (the shape still moving toward rest in the last frames)",
+    frozenset(("damping", "plasticity")):
+        "damping slows the motion but the body returns to its rest shape; plasticity keeps part of the "
+        "deformation after release",
+    frozenset(("damping", "ground")): CONFUSABLE["damping"][1],
+    frozenset(("damping", "interaction:support")): CONFUSABLE["interaction:support"][1],
+    frozenset(("damping", "interaction:timing")): CONFUSABLE["interaction:timing"][1],
+    frozenset(("viscoelasticity", "interaction:timing")):
+        "a wrong grasp or release frame shifts the motion at that frame; viscoelasticity changes the shape "
+        "gradually while it is held and after",
+    frozenset(("plasticity", "heterogeneity")): CONFUSABLE["plasticity"][1],
+    frozenset(("camera:time_offset", "interaction:timing")): CONFUSABLE["camera:time_offset"][1],
+}
+
+
+def separation(a: str, b: str) -> str:
+    """What separates candidates a and b (a sentence; a generic one for pairs not listed)."""
+    return SEPARATES.get(frozenset((a, b)), f"{a} and {b} change the frames alike here; the refit on held-back "
+                                             "frames decides")
+
 
 @dataclass
 class BaseState:
@@ -107,6 +136,8 @@ class Probe:
     column: np.ndarray              # dr / d(parameter), or r(probe) - r0 (unit amplitude)
     sign: int = 0                   # +1: the amplitude must be positive
     meta: dict = field(default_factory=dict)
+    discrete: bool = False          # only taken whole (a frame, a particle layer): its drop is amplitude 1's
+                                    # (`score.discrete_drop`), not the Gauss-Newton step's
 
 
 @dataclass
@@ -126,6 +157,15 @@ class CandidateResult:
     accepted: bool | None = None
     note: str = ""
     marginal: tuple = (1.0, 0.0)    # (p-value, predicted drop) before forward selection
+    marginal_probe: tuple = (-1, 0.0)   # (best probe, its step) before forward selection
+    held_back_drop: float | None = None  # the refit's drop of the held-back frames' loss beyond the base
+                                         # refitted alike (`refit.refit_null`), or beyond the base's own
+    rival_of: str | None = None     # a selected candidate that explains this one away (a confusable pair:
+                                    # significant alone, not given it); both are refitted, the held-back
+                                    # frames decide (`app.diagnose`)
+    collinearity: float | None = None   # |cos| of the two's projected columns (the part of each the base
+                                        # cannot absorb): near 1, the residual cannot tell them apart
+    rivals: list = field(default_factory=list)   # the candidates this one explains away
 
     def score(self) -> float:
         return float(-math.log10(max(self.p_value, 1e-12)))
@@ -159,7 +199,9 @@ class Diagnosis:
                 "tested": [{"effect": c.effect, "p_value": c.p_value, "predicted_loss_drop": c.drop,
                             "marginal_p_value": c.marginal[0], "marginal_predicted_loss_drop": c.marginal[1],
                             "relative_drop": c.relative_drop, "significant": c.significant,
-                            "accepted": c.accepted, "note": c.note} for c in self.results],
+                            "accepted": c.accepted, "held_back_drop": c.held_back_drop,
+                            "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
+                            "collinearity": c.collinearity, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
                 "trajectory_check": self.trajectory_check, "base_starts": self.base_starts, "noise": self.noise}
 
@@ -355,7 +397,8 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                     col = _sim_r(run, cs, log)
                     if col is not None:
                         out.append(Probe(f"{c.name}.{what}{dk:+d}", col - r0, +1,
-                                         {"contact": c.name, "what": what, "frame": nv, "was": int(v)}))
+                                         {"contact": c.name, "what": what, "frame": nv, "was": int(v)},
+                                         discrete=True))
     elif effect == "interaction:contact":
         sp = prob.scene.settings.particle_spacing
         for i, c in enumerate(prob.contacts):
@@ -386,7 +429,7 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                     meta = {"contact": c.name, "direction": way, "particles": int(len(nc.indices))}
                     if grasp:
                         meta["radius"] = float(nc.radius)
-                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, meta))
+                    out.append(Probe(f"{c.name}.{way}", col - r0, +1, meta, discrete=True))
     elif effect == "camera:time_offset":
         dt = 0.25
         xs, Fs = _time_shift(x0, dt), _time_shift(F0, dt)
@@ -599,7 +642,7 @@ def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarr
         u = jp / nn
         V.append(S.block_sums(r0 * u, blocks, n_blocks))
         signs.append(p.sign)
-        dr, st = S.gauss_newton_drop(r0, jp, p.sign)
+        dr, st = (S.discrete_drop if p.discrete else S.gauss_newton_drop)(r0, jp, p.sign)
         drops.append(dr / n)
         steps.append(st)
     stat, pv = S.block_signflip(np.stack(V, 1), signs, n_flips=s.n_flips, seed=s.seed)
@@ -622,6 +665,8 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
     thr = s.alpha / m
     for cr in results:
         cr.marginal = (cr.p_value, cr.drop)
+        cr.marginal_probe = (cr.best, cr.step)
+    named = [c for c in results if c.probes and c.p_value < thr and c.drop >= s.min_relative_drop * L0]
     chosen: list = []
     r, Jc = r0.copy(), J
     pool = [c for c in results if c.probes]
@@ -633,9 +678,14 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
         best.significant = True
         chosen.append(best)
         pool.remove(best)
-        col = _pad(best.probes[best.best].column, len(r0))
-        a, t = S.joint_step(r, Jc, col)
-        r = r + (Jc @ a if Jc.size else 0.0) + col * t     # what the model with it leaves (linearised)
+        bp = best.probes[best.best]
+        col = _pad(bp.column, len(r0))
+        if bp.discrete:                                      # taken whole: amplitude 1, the base re-adjusted
+            a, *_ = np.linalg.lstsq(Jc, -(r + col), rcond=None)
+            r = r + col + Jc @ a
+        else:
+            a, t = S.joint_step(r, Jc, col)
+            r = r + (Jc @ a if Jc.size else 0.0) + col * t     # what the model with it leaves (linearised)
         Jc = np.column_stack([Jc, col])
         for c in pool:
             again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s, n_img)
@@ -643,6 +693,24 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
                                                                 again.best)
             c.relative_drop = c.drop / L0 if L0 > 0 else 0.0
             c.note = f"given {', '.join(x.effect for x in chosen)}: " + (again.note or "tested on what is left")
+    # confusable pairs: a candidate the data names alone (significant before forward selection) but
+    # not once the selected ones are in is explained away by them; it is paired with the selected
+    # one whose column it shares most (after projecting out the base: what the base cannot absorb of
+    # either). The linear test cannot tell the two apart; the refit on held-back frames does.
+    for c in named:
+        if c in chosen:
+            continue
+        u = S.project_out(J, _pad(c.probes[c.marginal_probe[0]].column, len(r0)))
+        best, bc = None, -1.0
+        for a in chosen:
+            v = S.project_out(J, _pad(a.probes[a.marginal_probe[0]].column, len(r0)))
+            cs = abs(float(u @ v)) / max(float(np.linalg.norm(u) * np.linalg.norm(v)), 1e-300)
+            if cs > bc:
+                best, bc = a, cs
+        if best is not None:
+            c.rival_of, c.collinearity = best.effect, bc
+            best.rivals.append(c)
+            best.collinearity = max(best.collinearity or 0.0, bc)
     rest = sorted([c for c in results if c not in chosen], key=lambda c: -c.marginal[1])
     results[:] = chosen + rest
 
@@ -899,7 +967,7 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
 
 
 __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Probe", "diagnose_problem",
-           "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "test_candidate", "base_columns", "estimate_of",
+           "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "SEPARATES", "separation", "test_candidate", "base_columns", "estimate_of",
            "realised_gauss_newton", "conclude", "trajectory_check", "prior_residual"]
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .core import CONFUSABLE, FIXES
+from .core import CONFUSABLE, FIXES, separation
 
 
 def _silhouettes(ctx) -> tuple[np.ndarray, np.ndarray]:
@@ -90,17 +90,19 @@ def describe(effect: str, cr, ctx) -> str:
                          + f" ({np.nanmean(after_v[-3:]):.1f} px/frame); damping c ~ {est.get('coefficient', 0):.2g}/s")
     elif effect == "viscoelasticity":
         parts.append(f"the motion decays and the shape creeps in a way a single elastic material does not "
-                     f"(E_v ~ {est.get('modulus', 0):.3g} Pa, tau ~ {est.get('relaxationTime', 0):.2g} s)")
+                     f"(E_v ~ {est.get('modulus', 0):.3g} Pa, tau ~ {est.get('relaxationTime', 0):.2g} s)"
+                     + _return_to_rest(video, model, R))
     elif effect == "plasticity":
         iv, im = _iou(video[-1], video[0]), _iou(model[-1], model[0])
         if im - iv >= 0.03:
             parts.append(f"the object's last shape in the video overlaps its rest shape by IoU {iv:.2f} while the "
                          f"model's returns to IoU {im:.2f}: permanent deformation (yield stress ~ "
-                         f"{est.get('yieldStress', 0):.3g} Pa)")
+                         f"{est.get('yieldStress', 0):.3g} Pa)" + _return_to_rest(video, model, R))
         else:   # the silhouettes do not show a permanent set: say so rather than claim one
             parts.append(f"a yield stress ~ {est.get('yieldStress', 0):.3g} Pa lowers the loss, but the last shapes "
                          f"overlap the rest shape alike in the video and the model (IoU {iv:.2f} / {im:.2f}): no "
-                         "permanent set is visible, so this is weak evidence for plasticity")
+                         "permanent set is visible, so this is weak evidence for plasticity"
+                         + _return_to_rest(video, model, R))
     elif effect == "ground":
         def lowest(sil):
             rows = [np.nonzero(m.any(1))[0] for m in sil]
@@ -140,10 +142,47 @@ def describe(effect: str, cr, ctx) -> str:
     elif effect == "camera:depth_scale":
         parts.append(f"the motion looks as if the scene were x{est.get('scale', 1):.2f} its assumed size "
                      f"(gravity's pull in metres is off): {FIXES[effect]}")
+    pair = _pair_sentence(cr)
     conf = CONFUSABLE.get(effect)
-    if conf:
+    if pair:
+        parts.append(pair)
+    elif conf:
         parts.append(f"(confusable with {conf[0]}: {conf[1]})")
     return " ".join(parts)
+
+
+def _pair_sentence(cr) -> str:
+    """The confusable pair the test found (`CandidateResult.rivals` / `rival_of`): who, how alike
+    their columns are, what separates them, and what the refit on held-back frames said."""
+    others = [r for r in getattr(cr, "rivals", [])]
+    if not others:
+        return ""
+    bits = []
+    for o in others:
+        hb = ""
+        if cr.held_back_drop is not None and o.held_back_drop is not None:
+            hb = (f"; refitted on the same held-back frames, {cr.effect} lowers their loss by {cr.held_back_drop:.3g}, "
+                  f"{o.effect} by {o.held_back_drop:.3g} (beyond the base refitted alike)")
+        cos = f", |cos| {o.collinearity:.2f} of what the base cannot absorb" if o.collinearity is not None else ""
+        bits.append(f"(confusable with {o.effect}: it explains the same residual alone{cos}; "
+                    f"{separation(cr.effect, o.effect)}{hb})")
+    return " ".join(bits)
+
+
+def _return_to_rest(video: np.ndarray, model: np.ndarray, R: int | None) -> str:
+    """After release: the video's silhouette overlap with its rest shape, from the release to the last
+    frame, against the model's. A permanent set stays short of the rest shape; a slow (viscoelastic)
+    return keeps closing the gap."""
+    if R is None or R >= len(video) - 2:
+        return ""
+    iv = [_iou(video[k], video[0]) for k in range(R, len(video))]
+    im = [_iou(model[k], model[0]) for k in range(R, len(model))]
+    h = max(2, len(iv) // 3)
+    dv = float(np.mean(iv[-h:]) - np.mean(iv[-2 * h:-h])) if len(iv) >= 2 * h else float(iv[-1] - iv[0])
+    return (f"; after release the video's overlap with the rest shape goes {iv[0]:.2f} -> {iv[-1]:.2f} "
+            f"({'still rising' if dv > 0 else 'level or falling'} over the last {h} frames, {dv:+.3f}; the "
+            f"model's {im[0]:.2f} -> {im[-1]:.2f}): a slow return points to viscoelasticity, a level gap to "
+            "a permanent set")
 
 
 __all__ = ["describe", "release_frame"]

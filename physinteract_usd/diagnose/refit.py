@@ -41,21 +41,18 @@ def _frame_mask(res: ImageResidual, frames) -> np.ndarray:
     return np.isin(res.frame_of(), list(frames))
 
 
-def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, holdout_every: int = 4, log=None):
-    """Refit `cr`'s physical effect (module doc). Fills cr.realized_loss_drop, cr.accepted and
-    cr.estimate (the refitted parameters). Returns the refitted state {"E", "nu", "trajectories",
-    "effects"} or None."""
+def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iterations: int, holdout_every: int, log):
+    """A short warm-started refit of the base (regions' log E, the trajectory) with `effect`'s
+    parameters too (None: the base alone, the control every candidate's refit is judged against),
+    on the frames not in `val`. Returns (image residual, augmented residual, state) or raises
+    SimulationError."""
     from ..fit.ladder import _Ladder
     from ..fit.optimize import FitSettings
 
     ctx = diag._ctx
-    prob, base, res, r0 = ctx["prob"], ctx["base"], ctx["res"], ctx["r0"]
-    if cr.effect not in PHYSICAL or cr.effect not in prob.effects:
-        return None
-    col = cr.probes[cr.best].column if cr.best >= 0 else None
-    val = held_back_frames(prob.T, holdout_every, res, col)
-    s = FitSettings(iterations=int(iterations), joint=True, fit_effects=(cr.effect,), holdout_every=holdout_every,
-                    confidence_probes=0)
+    prob, base, res = ctx["prob"], ctx["base"], ctx["res"]
+    s = FitSettings(iterations=int(iterations), joint=True, fit_effects=(effect,) if effect else (),
+                    holdout_every=holdout_every, confidence_probes=0)
     lad = _Ladder(prob, s, log, progress=False)
     labels = base.labels if base.labels is not None else np.zeros(len(prob.x0), np.int64)
     E = base.E.detach().cpu().numpy()
@@ -65,8 +62,7 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
     nu0 = float(base.nu.median())
     with torch.no_grad():
         lad.mat.w_nu.copy_(torch.full_like(lad.mat.w_nu, float(math.log(nu0 / (lad.mat.nu_max - nu0)))))
-    start = dict(cr.estimate)
-    for p, raw in lad.effect_raw[cr.effect].items():
+    for p, raw in (lad.effect_raw.get(effect, {}) if effect else {}).items():
         v = start.get(p)
         if v is None or not math.isfinite(float(v)):
             continue
@@ -80,41 +76,94 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
         with torch.no_grad():
             raw.copy_(torch.tensor(v, dtype=raw.dtype, device=raw.device))
     train = [k for k in range(1, prob.T) if k not in val]
+    lad.optimise(int(iterations), train, fit_nu=False, fit_traj=True)
+    eff = {e: {p: float(v.detach()) for p, v in ps.items()} for e, ps in (lad.effects() or {}).items()}
+    full = {e: dict(p) for e, p in base.effects.items()}
+    for e, ps in eff.items():
+        full.setdefault(e, {}).update(ps)
+    trajs = [t.detach() for t in lad.trajs]
+    with torch.no_grad():
+        x, F = prob.simulate(lad.mat.youngs().detach(), lad.mat.poisson().detach(), trajs, effects=full)
+    run = ctx["run"]
+    p1 = prior_residual(prob, base, trajs) if len(run.p0) else np.zeros(0)
+    sc = float(ctx["prior"].get("row_scale", 0.0))
+    r1 = res(x, F)
+    state = {"E": lad.mat.youngs().detach(), "nu": lad.mat.poisson().detach(), "trajectories": trajs, "effects": eff}
+    return r1, run.aug(r1, p1 * sc), state
+
+
+def refit_null(diag: Diagnosis, val: list, *, iterations: int = 8, holdout_every: int = 4, log=None) -> dict | None:
+    """The control of the candidates' refits: the base refitted alike (the same iterations, the same
+    held-back frames `val`), with no new effect. A few iterations from the fit move E and the path
+    too, and lower the held-back loss by themselves where the base was not quite converged: a
+    candidate counts only for what it adds beyond that. Returns {"frames", "held_back_loss",
+    "loss", "aloss"} or None when the simulation fails."""
+    ctx = diag._ctx
+    res, run = ctx["res"], ctx["run"]
     try:
-        lad.optimise(int(iterations), train, fit_nu=False, fit_traj=True)
-        eff = {e: {p: float(v.detach()) for p, v in ps.items()} for e, ps in (lad.effects() or {}).items()}
-        full = {e: dict(p) for e, p in base.effects.items()}
-        for e, ps in eff.items():
-            full.setdefault(e, {}).update(ps)
-        with torch.no_grad():
-            x, F = prob.simulate(lad.mat.youngs().detach(), lad.mat.poisson().detach(),
-                                 [t.detach() for t in lad.trajs], effects=full)
-        run = ctx["run"]
-        p1 = prior_residual(prob, base, [t.detach() for t in lad.trajs]) if len(run.p0) else np.zeros(0)
-        sc = float(ctx["prior"].get("row_scale", 0.0))
-        r1 = res(x, F)
-        r1a = run.aug(r1, p1 * sc)
+        r1, r1a, _ = _refit(diag, None, {}, val, iterations, holdout_every, log)
+    except SimulationError:
+        return None
+    m = _frame_mask(res, val) if val else np.ones(len(r1), bool)
+    return {"frames": list(val), "held_back_loss": loss(r1[m]), "loss": loss(r1), "aloss": run.aloss(r1a)}
+
+
+def group_frames(diag: Diagnosis, crs: list, holdout_every: int = 4) -> list[int]:
+    """Held-back frames shared by candidates compared with each other (a confusable pair): every other
+    frame among those where the candidates together (each column normalised) change the model most."""
+    ctx = diag._ctx
+    res, prob = ctx["res"], ctx["prob"]
+    cols = [np.asarray(c.probes[c.best].column) for c in crs if c.best >= 0 and c.probes]
+    if not cols:
+        return held_back_frames(prob.T, holdout_every)
+    e = 0.0
+    for col in cols:
+        col = col[: res.n]
+        nrm = float(np.sum(np.square(col)))
+        if nrm > 0:
+            e = e + np.square(col) / nrm
+    return held_back_frames(prob.T, holdout_every, res, np.sqrt(e) if np.ndim(e) else None)
+
+
+def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, holdout_every: int = 4, log=None,
+                 frames: list | None = None, null: dict | None = None):
+    """Refit `cr`'s physical effect (module doc). Fills cr.realized_loss_drop, cr.accepted,
+    cr.held_back_drop and cr.estimate (the refitted parameters). `frames`: the held-back frames
+    (default: from the candidate's own column); `null`: the base refitted alike on those frames
+    (`refit_null`): the held-back loss to beat (default: the base's own). Returns the refitted
+    state {"E", "nu", "trajectories", "effects"} or None."""
+    ctx = diag._ctx
+    prob, res, r0 = ctx["prob"], ctx["res"], ctx["r0"]
+    if cr.effect not in PHYSICAL or cr.effect not in prob.effects:
+        return None
+    col = cr.probes[cr.best].column if cr.best >= 0 else None
+    val = list(frames) if frames is not None else held_back_frames(prob.T, holdout_every, res, col)
+    try:
+        r1, r1a, state = _refit(diag, cr.effect, dict(cr.estimate), val, iterations, holdout_every, log)
     except SimulationError as exc:
         cr.note = f"refit failed: {exc}"
         cr.accepted = False
         return None
+    run = ctx["run"]
     m = _frame_mask(res, val) if val else np.ones(len(r0), bool)
     # the drop beyond what the base parameters alone would give (their linear step), as predicted
     J, r0a = diag._J, ctx["r0a"]
     a0, *_ = np.linalg.lstsq(J, -r0a, rcond=None)
     b0 = r0a + J @ a0
     cr.realized_loss_drop = run.aloss(b0) - run.aloss(r1a)
-    v0, v1 = loss(r0[m]), loss(r1[m])
+    v0 = loss(r0[m]) if null is None else float(null["held_back_loss"])
+    v1 = loss(r1[m])
+    cr.held_back_drop = v0 - v1
     cr.accepted = bool(v1 < v0)
-    cr.estimate = {**eff.get(cr.effect, {})}
-    cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {v0:.3e} -> {v1:.3e}; "
-               f"loss {loss(r0):.3e} -> {loss(r1):.3e} ({run.aloss(b0):.3e} with the base's own step alone)"
-               + ("" if cr.accepted else ": not accepted"))
-    return {"E": lad.mat.youngs().detach(), "nu": lad.mat.poisson().detach(),
-            "trajectories": [t.detach() for t in lad.trajs], "effects": eff}
+    cr.estimate = {**state["effects"].get(cr.effect, {})}
+    ref = "the base's" if null is None else f"the base refitted alike: {v0:.3e}"
+    cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {loss(r0[m]):.3e} -> "
+               f"{v1:.3e} ({ref}); loss {loss(r0):.3e} -> {loss(r1):.3e} ({run.aloss(b0):.3e} with the base's "
+               "own step alone)" + ("" if cr.accepted else ": not accepted"))
+    return state
 
 
-def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4) -> None:
+def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, frames: list | None = None) -> None:
     """A non-physical cause (or `heterogeneity`): its best probe taken for real, the base
     parameters re-adjusted by their linear step; realised drop on all frames, accepted when the
     held-back frames' loss falls too."""
@@ -135,17 +184,18 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4) ->
         r1 = r0 + col * cr.step                 # render-only / gravity: the linear step itself
     else:
         r1 = r0 + col                           # the probe itself (amplitude 1)
-    val = held_back_frames(prob.T, holdout_every, res, p.column)
+    val = list(frames) if frames is not None else held_back_frames(prob.T, holdout_every, res, p.column)
     a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
     a1, *_ = np.linalg.lstsq(J, -r1, rcond=None)
     b0, b1 = r0 + J @ a0, r1 + J @ a1
     cr.realized_loss_drop = run.aloss(b0) - run.aloss(b1)
     n = run.n_img or len(r0)
     m = _frame_mask(res, val) if val else np.ones(n, bool)
-    cr.accepted = bool(loss(b1[:n][m]) < loss(b0[:n][m]))
+    cr.held_back_drop = loss(b0[:n][m]) - loss(b1[:n][m])
+    cr.accepted = bool(cr.held_back_drop > 0)
 
 
-__all__ = ["refit_effect", "judge_probe", "held_back_frames"]
+__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "group_frames"]
 
 
 def refit_base(prob, base, factor: float, *, iterations: int = 8, res: ImageResidual | None = None, log=None):

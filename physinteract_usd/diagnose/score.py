@@ -60,6 +60,25 @@ def gauss_newton_drop(r: np.ndarray, j_perp: np.ndarray, sign: int = 0) -> tuple
     return d * d / nn, step
 
 
+def discrete_drop(r: np.ndarray, j_perp: np.ndarray, sign: int = 0) -> tuple[float, float]:
+    """(drop of sum r^2, Gauss-Newton step) for a probe that can only be taken whole: a discrete change
+    (the grasp one frame later, the grasp one particle layer larger), whose smallest realisable
+    amplitude is the probe itself. The drop is that of amplitude 1 (or -1 where `sign` is 0 and it is
+    better), the base re-adjusted jointly: |P r|^2 - |P r + j_perp|^2 = |j_perp|^2 (2 t - 1), t the
+    Gauss-Newton step; 0 when the probe itself does not lower the loss (t < 1/2: the residual asks for
+    a fraction of the change, which no setting of the cause gives). The step is reported as is."""
+    r = np.asarray(r, np.float64)
+    nn = float(j_perp @ j_perp)
+    if nn <= 1e-300:
+        return 0.0, 0.0
+    step = -float(r @ j_perp) / nn
+    a = 1.0 if sign > 0 or (sign == 0 and step >= 0) else -1.0
+    if sign < 0:
+        a = -1.0
+    drop = nn * (2.0 * step * a - 1.0)
+    return (drop, step) if drop > 0 else (0.0, step)
+
+
 ABSORBED = 1e-6   # |j_perp| / |j| below this: the base parameters absorb the candidate (round-off is left)
 
 
@@ -125,5 +144,5 @@ def block_signflip(V: np.ndarray, signs=None, n_flips: int = 4000, seed: int = 0
     return obs, p
 
 
-__all__ = ["ABSORBED", "project_out", "gauss_newton_drop", "predicted_drop", "joint_step", "block_sums", "block_signflip",
+__all__ = ["ABSORBED", "project_out", "gauss_newton_drop", "discrete_drop", "predicted_drop", "joint_step", "block_sums", "block_signflip",
            "one_sided_square"]
