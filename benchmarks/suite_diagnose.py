@@ -9,13 +9,17 @@ effect added (`effects add`, the truth's effect: the table's "after adding it") 
 evaluated again. Controls (`none`) add nothing: a `missing_effect` verdict on them is a false alarm.
 
 Row per case (JSON lines, resumable: done cases are skipped): the rank of the hidden effect among
-the significant candidates, the verdict, predicted vs realised loss drop of the top candidate, the
-masked PSNR before and after adding the hidden effect, the fitted parameter against the truth's.
-Everything goes through the package's Python API in one process (one Warp start).
+the significant candidates, the verdict, predicted vs realised loss drop of the top candidate and of
+the hidden effect's own test, the confusable pair named, the masked PSNR before and after adding the
+hidden effect, the fitted parameter against the truth's, wall and CPU seconds. The table: per
+effect x strength, the controls' false alarms (`--controls N`: N noise seeds of the scene, nothing
+hidden) and a confusion matrix (hidden effect x what the verdict named first).
+Everything goes through the package's Python API; `--jobs N` runs N cases at once in N worker
+processes (one Warp start each; on a GPU the cases are launch-bound, so several share it well).
 
     python benchmarks/suite_diagnose.py --scenes foam_bar --device cuda --out /tmp/sd \
-        [--effects damping,none] [--strengths 1] [--iterations 30] [--frames 14] [--grid auto] \
-        [--deadline 540] [--write docs/benchmarks/diagnose_suite_named.md]
+        [--effects damping,viscoelasticity] [--strengths 0.5,1,2,4] [--controls 20] [--iterations 30] \
+        [--frames 14] [--fit-grid 24] [--jobs 8] [--deadline 540] [--write docs/benchmarks/diagnose_named_table.md]
 
 Development data only (the synthetic suite's scenes).
 """
@@ -36,24 +40,32 @@ TRUTH_PARAM = {"damping": "coefficient", "plasticity": "yieldStress", "ground": 
 NOISE = 0.015
 
 
-def cases(scenes: list[str], effects: list[str] | None, strengths: list[float]) -> list[tuple[str, str, float]]:
-    """Every (scene, effect, strength) to run: a scene's own hidden effects (the generator's list
-    for it) unless `effects` names them, and a control (`none`) per scene."""
+def cases(scenes: list[str], effects: list[str] | None, strengths: list[float], controls: int = 1
+          ) -> list[tuple[str, str, float, int]]:
+    """Every (scene, effect, strength, seed) to run: a scene's own hidden effects (the generator's list
+    for it) unless `effects` names them (seed 0), and `controls` controls (`none`, seeds 0..N-1) per
+    scene. The effects first, strength by strength, then the controls interleaved, so that a run cut
+    by its deadline has a bit of everything."""
     from physinteract_usd.synth.scenes import get_scene
 
-    out = []
+    eff_cases, ctrl = [], []
     for sc in scenes:
         own = list(get_scene(sc).hidden_effects)
-        for eff in (effects or [*own, "none"]):
-            if eff == "none":
-                out.append((sc, "none", 0.0))
-                continue
-            out += [(sc, eff, s) for s in strengths]
+        effs = [e for e in (effects or own) if e != "none"]
+        for s in strengths:
+            eff_cases += [(sc, e, s, 0) for e in effs]
+        ctrl += [(sc, "none", 0.0, k) for k in range(int(controls))]
+    out, step = [], max(1, len(eff_cases) // max(len(ctrl), 1))
+    while eff_cases or ctrl:
+        out += eff_cases[:step]
+        eff_cases = eff_cases[step:]
+        if ctrl:
+            out.append(ctrl.pop(0))
     return out
 
 
-def key(sc: str, eff: str, s: float) -> str:
-    return f"{sc}_{eff}" + ("" if eff == "none" else f"@{s:g}")
+def key(sc: str, eff: str, s: float, seed: int = 0) -> str:
+    return f"{sc}_{eff}" + ("" if eff == "none" else f"@{s:g}") + (f"#{seed}" if seed else "")
 
 
 def scored(stage: Path, gt: Path, device: str) -> dict:
@@ -61,15 +73,16 @@ def scored(stage: Path, gt: Path, device: str) -> dict:
     return {k: ev.get(k) for k in ("ma", "ma_best_uniform", "psnr_masked", "psnr", "position_error_m")}
 
 
-def one(sc: str, eff: str, s: float, a, work: Path, log) -> dict:
-    k = key(sc, eff, s)
+def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
+    k = key(sc, eff, s, seed)
     cap, stage = work / k, work / f"{k}.usda"
-    row = {"case": k, "scene": sc, "hidden": eff, "strength": s, "device": a.device, "iterations": a.iterations}
+    row = {"case": k, "scene": sc, "hidden": eff, "strength": s, "seed": seed, "device": a.device,
+           "iterations": a.iterations, "frames": a.frames, "fit_grid": a.fit_grid}
     quiet = lambda *_a, **_k: None  # noqa: E731
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if not (cap / "gt" / "gt.json").exists():
         api.synth(sc, cap, size=a.size, frames=a.frames, hidden=None if eff == "none" else eff, strength=s or 1.0,
-                  noise=NOISE, device=a.device, force=True, log=quiet)
+                  noise=NOISE, seed=seed, device=a.device, force=True, log=quiet, fit_grid=a.fit_grid)
     row["synth_s"] = round(time.perf_counter() - t0, 1)
     gtj = json.loads((cap / "gt" / "gt.json").read_text())
     sug = gtj["suggested_init"]
@@ -90,7 +103,8 @@ def one(sc: str, eff: str, s: float, a, work: Path, log) -> dict:
     log(f"{k}: base fit MA {row['before']['ma']:.3f}, masked PSNR {row['before']['psnr_masked']:.2f} dB "
         f"({row['fit_s']:.0f} s)")
     t2 = time.perf_counter()
-    d = api.diagnose(stage, device=a.device, refit=a.refit, progress=False, log=quiet)
+    d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
+                     starts=a.starts, progress=False, log=quiet, write_stage=False)
     row["diagnose_s"] = round(time.perf_counter() - t2, 1)
     row["verdict"] = d.get("verdict")
     row["reason"] = d.get("reason")
@@ -100,8 +114,21 @@ def one(sc: str, eff: str, s: float, a, work: Path, log) -> dict:
     top = (d.get("candidates") or [None])[0]
     if top:
         row["top"] = {kk: top.get(kk) for kk in ("effect", "predicted_loss_drop", "realized_loss_drop", "estimate")}
-    row["tested"] = [{kk: c.get(kk) for kk in ("effect", "p_value", "predicted_loss_drop", "relative_drop")}
+    row["tested"] = [{kk: c.get(kk) for kk in ("effect", "p_value", "predicted_loss_drop", "relative_drop",
+                                               "marginal_p_value", "marginal_predicted_loss_drop", "significant",
+                                               "accepted", "held_back_drop", "confusable_with", "collinearity",
+                                               "note")}
                      for c in d.get("tested", [])]
+    row["loss"], row["noise_floor"] = d.get("loss"), d.get("noise_floor")
+    own = next((c for c in d.get("candidates", []) if c["effect"] == eff), None)
+    if own:       # the hidden effect's own candidate: its predicted and realised drop, its estimate
+        row["hidden_candidate"] = {kk: own.get(kk) for kk in ("predicted_loss_drop", "realized_loss_drop",
+                                                               "estimate")}
+        e = (own.get("estimate") or {}).get(TRUTH_PARAM.get(eff, ""))
+        if e is not None and row.get("truth"):
+            row["diagnose_estimate_ratio"] = float(e) / float(row["truth"])
+    top_t = next((c for c in d.get("tested", []) if top and c["effect"] == top["effect"]), None)
+    row["pair"] = None if top_t is None else top_t.get("confusable_with")
     row["false_alarm"] = bool(eff == "none" and row["verdict"] == "missing_effect")
     log(f"{k}: diagnose {row['verdict']} {sig} ({row['diagnose_s']:.0f} s)")
     if eff != "none":
@@ -119,6 +146,8 @@ def one(sc: str, eff: str, s: float, a, work: Path, log) -> dict:
             row["estimate_ratio"] = float(est) / float(row["truth"])
         log(f"{k}: + {eff}: masked PSNR {row['after']['psnr_masked']:.2f} dB, estimate {row.get('estimate')} "
             f"(truth {row.get('truth')})")
+    row["wall_s"] = round(time.perf_counter() - t0, 1)
+    row["cpu_s"] = round(time.process_time() - c0, 1)
     return row
 
 
@@ -126,44 +155,128 @@ def fmt(v, f="{:.3g}"):
     return "-" if v is None else f.format(v)
 
 
+def named_first(r: dict) -> str:
+    """What the verdict names first: the top candidate of a `missing_effect`, else the verdict."""
+    if r.get("verdict") == "missing_effect" and r.get("significant"):
+        return r["significant"][0]
+    return r.get("verdict") or "?"
+
+
+def _gain(r: dict) -> str:
+    b, af = r.get("before") or {}, r.get("after") or {}
+    if not af or b.get("psnr_masked") is None or af.get("psnr_masked") is None:
+        return "-"
+    ratio = (r.get("loss_after") or 0) / r["loss_before"] if r.get("loss_before") else None
+    return f"{af['psnr_masked'] - b['psnr_masked']:+.2f} dB, {fmt(ratio, '{:.2f}')}"
+
+
 def table(rows: list[dict]) -> str:
-    out = ["| case | base: MA, masked PSNR | verdict: significant (best first) | hidden effect's rank | "
-           "top: predicted / realised drop | + hidden effect: masked PSNR gain, loss after / before | "
-           "estimate / truth | s (fit, diagnose, refit) |", "|---" * 8 + "|"]
-    for r in rows:
-        if "error" in r:
-            out.append(f"| {r['case']} | {r['error']} | | | | | | |")
-            continue
-        b, af, t = r.get("before") or {}, r.get("after") or {}, r.get("top") or {}
-        gain = (f"{af['psnr_masked'] - b['psnr_masked']:+.2f} dB, "
-                f"{fmt((r.get('loss_after') or 0) / r['loss_before'], '{:.2f}')}" if af and r.get("loss_before") else "-")
-        out.append(f"| {r['case']} | {fmt(b.get('ma'), '{:.3f}')}, {fmt(b.get('psnr_masked'), '{:.2f}')} dB | "
-                   f"{r.get('verdict')}: {', '.join(r.get('significant') or []) or '-'} | "
-                   f"{r.get('rank') or ('-' if r['hidden'] == 'none' else 'not named')} | "
-                   f"{fmt(t.get('predicted_loss_drop'))} / {fmt(t.get('realized_loss_drop'))} | {gain} | "
-                   f"{fmt(r.get('estimate_ratio'), '{:.2f}x')} | {r.get('fit_s', '-')}, {r.get('diagnose_s', '-')}, "
-                   f"{r.get('refit_s', '-')} |")
-    named = [r for r in rows if r.get("hidden") not in (None, "none") and "error" not in r]
-    ctrl = [r for r in rows if r.get("hidden") == "none" and "error" not in r]
+    """The issue's table (effect x strength), the controls, the confusion matrix, then every row."""
+    ok = [r for r in rows if "error" not in r]
+    named = sorted([r for r in ok if r.get("hidden") not in (None, "none")],
+                   key=lambda r: (r["scene"], r["hidden"], r["strength"]))
+    ctrl = [r for r in ok if r.get("hidden") == "none"]
+    out = ["| scene | hidden effect | strength | verdict: significant (best first) | rank of the hidden effect | "
+           "named first: predicted / realised drop | hidden effect's test: p, predicted drop / loss (marginal) | "
+           "confusable pair | + hidden effect: masked PSNR gain, loss after / before | fitted / truth (refit; "
+           "diagnose) | s wall (CPU) |", "|---" * 11 + "|"]
+    for r in named:
+        t = r.get("top") or {}
+        h = next((c for c in r.get("tested") or [] if c["effect"] == r["hidden"]), {})
+        mp, md = h.get("marginal_p_value"), h.get("marginal_predicted_loss_drop")
+        hp = (f"{fmt(mp, '{:.2g}')}, {fmt(md / r['loss'] if md is not None and r.get('loss') else None, '{:.1%}')}"
+              if h else "-")
+        out.append(f"| {r['scene']} | {r['hidden']} | {r['strength']:g} | {r.get('verdict')}: "
+                   f"{', '.join(r.get('significant') or []) or '-'} | {r.get('rank') or 'not named'} | "
+                   f"{t.get('effect', '-')}: {fmt(t.get('predicted_loss_drop'))} / {fmt(t.get('realized_loss_drop'))} | "
+                   f"{hp} | {', '.join(r['pair']) if isinstance(r.get('pair'), list) else (r.get('pair') or '-')} | {_gain(r)} | {fmt(r.get('estimate_ratio'), '{:.2f}x')}; "
+                   f"{fmt(r.get('diagnose_estimate_ratio'), '{:.2f}x')} | {fmt(r.get('wall_s'), '{:.0f}')} "
+                   f"({fmt(r.get('cpu_s'), '{:.0f}')}) |")
     if named:
         first = sum(1 for r in named if r.get("rank") == 1)
-        out.append(f"\nHidden effect ranked first: {first}/{len(named)}; false alarms on controls: "
-                   f"{sum(r['false_alarm'] for r in ctrl)}/{len(ctrl)}.")
+        out.append(f"\nHidden effect ranked first: {first}/{len(named)}.")
+        for s_ in sorted({r["strength"] for r in named}):
+            rs = [r for r in named if r["strength"] == s_]
+            out.append(f"- strength {s_:g}: first {sum(1 for r in rs if r.get('rank') == 1)}/{len(rs)}")
+    if ctrl:
+        fa = sum(bool(r.get("false_alarm")) for r in ctrl)
+        verdicts = {}
+        for r in ctrl:
+            verdicts[named_first(r)] = verdicts.get(named_first(r), 0) + 1
+        out.append(f"\nControls (nothing hidden, noise seeds {', '.join(str(r.get('seed', 0)) for r in ctrl)}): "
+                   f"false alarms {fa}/{len(ctrl)} ({100.0 * fa / len(ctrl):.0f}%); verdicts "
+                   + ", ".join(f"{k} {v}" for k, v in sorted(verdicts.items())))
+    # the confusion matrix: hidden effect (rows) x what the verdict named first (columns)
+    truth = sorted({r["hidden"] for r in ok})
+    said = sorted({named_first(r) for r in ok})
+    if ok:
+        out.append("\nConfusion matrix (rows: hidden effect; columns: named first, or the verdict when nothing is):\n")
+        out.append("| hidden \\ named | " + " | ".join(said) + " |")
+        out.append("|---" * (len(said) + 1) + "|")
+        for h in truth:
+            rs = [r for r in ok if r["hidden"] == h]
+            out.append(f"| {h} | " + " | ".join(str(sum(1 for r in rs if named_first(r) == c) or "") for c in said)
+                       + " |")
+    err = [r for r in rows if "error" in r]
+    if err:
+        out.append("\nFailed cases: " + "; ".join(f"{r['case']}: {r['error']}" for r in err))
     return "\n".join(out) + "\n"
+
+
+def _worker(job):
+    """One case in a worker process (`--jobs`): its row, or the error as a row."""
+    sc, eff, s, seed, a, t_start = job
+    if a.deadline and time.time() - t_start > a.deadline:
+        return None
+    log = lambda m: print(m, flush=True)  # noqa: E731
+    try:
+        return one(sc, eff, s, a, Path(a.out), log, seed)
+    except Exception as exc:  # noqa: BLE001 - one case's failure is a row
+        row = {"case": key(sc, eff, s, seed), "scene": sc, "hidden": eff, "strength": s, "seed": seed,
+               "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"}
+        log(f"{row['case']}: {row['error']}")
+        return row
+
+
+def _append(jl: Path, row: dict) -> None:
+    import fcntl
+
+    with open(jl, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        f.write(json.dumps(row, default=float) + "\n")
+        fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def _rows(jl: Path) -> list[dict]:
+    """The rows of the results file, the last one per case (a failed case run again replaces its row)."""
+    if not jl.exists():
+        return []
+    last = {}
+    for line in jl.read_text().splitlines():
+        if line.strip():
+            r = json.loads(line)
+            last[r["case"]] = r
+    return list(last.values())
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="foam_bar")
-    ap.add_argument("--effects", default=None, help="comma-separated (default: each scene's own, and none)")
+    ap.add_argument("--effects", default=None, help="comma-separated (default: each scene's own hidden effects)")
     ap.add_argument("--strengths", default="1")
+    ap.add_argument("--controls", type=int, default=1, help="control runs per scene (noise seeds 0..N-1)")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
+    ap.add_argument("--fit-grid", type=int, default=None,
+                    help="synth --fit-grid: the init grid the capture suggests (the truth's grid follows it)")
     ap.add_argument("--grid", default=None, help="init grid (default: the capture's suggestion), a number or auto")
     ap.add_argument("--iterations", type=int, default=30)
-    ap.add_argument("--refit-iterations", type=int, default=20)
+    ap.add_argument("--refit-iterations", type=int, default=20, help="the fit after `effects add`")
     ap.add_argument("--refit", type=int, default=3, help="diagnose --refit")
+    ap.add_argument("--diagnose-refit-iterations", type=int, default=8, help="diagnose --refit-iterations")
+    ap.add_argument("--starts", type=int, default=3, help="diagnose --starts")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run at once, each in its own process")
     ap.add_argument("--out", default="/tmp/suite_diagnose")
     ap.add_argument("--deadline", type=float, default=0, help="stop starting cases after this many seconds")
     ap.add_argument("--write", default=None)
@@ -181,28 +294,29 @@ def main(argv=None) -> int:
         return 2
     work = Path(a.out)
     work.mkdir(parents=True, exist_ok=True)
+    a.out = str(work)
     jl = work / "results.jsonl"
-    done = {json.loads(l)["case"] for l in jl.read_text().splitlines() if l.strip()} if jl.exists() else set()
-    t0 = time.perf_counter()
-    todo = cases(a.scenes.split(","), a.effects.split(",") if a.effects else None,
-                 [float(v) for v in a.strengths.split(",")])
-    log = lambda m: print(m, flush=True)  # noqa: E731
-    for sc, eff, s in todo:
-        if key(sc, eff, s) in done:
-            continue
-        if a.deadline and time.perf_counter() - t0 > a.deadline:
-            log("deadline: stopping")
-            break
-        try:
-            row = one(sc, eff, s, a, work, log)
-        except Exception as exc:  # noqa: BLE001 - one case's failure is a row
-            row = {"case": key(sc, eff, s), "scene": sc, "hidden": eff, "strength": s,
-                   "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"}
-            log(f"{row['case']}: {row['error']}")
-        with open(jl, "a") as f:
-            f.write(json.dumps(row, default=float) + "\n")
-    rows = [json.loads(l) for l in jl.read_text().splitlines() if l.strip()] if jl.exists() else []
-    text = table(rows)
+    done = {r["case"] for r in _rows(jl) if "error" not in r}      # failed cases are tried again
+    t0 = time.time()
+    todo = [c for c in cases(a.scenes.split(","), a.effects.split(",") if a.effects else None,
+                             [float(v) for v in a.strengths.split(",")], a.controls) if key(*c) not in done]
+    print(f"{len(todo)} cases to run ({len(done)} done before)", flush=True)
+    jobs = [(sc, eff, s, seed, a, t0) for sc, eff, s, seed in todo]
+    if a.jobs > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs))) as pool:
+            for row in pool.imap_unordered(_worker, jobs):
+                if row is not None:
+                    _append(jl, row)
+    else:
+        for job in jobs:
+            row = _worker(job)
+            if row is None:
+                print("deadline: stopping", flush=True)
+                break
+            _append(jl, row)
+    text = table(_rows(jl))
     print(text)
     if a.write:
         Path(a.write).write_text("# diagnose on the suite's named scenes\n\n" + __doc__.split("\n\n")[1] + "\n\n" + text)
