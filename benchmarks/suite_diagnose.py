@@ -305,8 +305,13 @@ def main(argv=None) -> int:
     if a.jobs > 1 and len(jobs) > 1:
         import multiprocessing as mp
 
-        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs))) as pool:
-            for row in pool.imap_unordered(_worker, jobs):
+        # the first case here, alone: it compiles Warp's kernels into the on-disk cache that the
+        # workers then load (a fresh machine's cold cache, compiled once rather than by every worker)
+        row = _worker(jobs[0])
+        if row is not None:
+            _append(jl, row)
+        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs) - 1)) as pool:
+            for row in pool.imap_unordered(_worker, jobs[1:]):
                 if row is not None:
                     _append(jl, row)
     else:
