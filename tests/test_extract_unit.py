@@ -619,3 +619,43 @@ def test_a_grasp_read_after_the_objects_motion_moves_to_where_the_object_starts_
     assert not_after_the_motion(4, coupled, vo, run) == 4
     assert not_after_the_motion(7, coupled, vo, run) == 7     # a grasp a little into the motion stays
     assert not_after_the_motion(18, coupled, vo, None) == 18
+
+
+def test_a_fingertips_front_hidden_over_the_object_is_found_from_the_notch_in_its_silhouette():
+    """(#23, fifth pass; dev_0014) a fingertip pushes down into a sheet; its pixels over the sheet
+    are not segmented (a similar colour), but the frame's silhouette has a notch where it hides the
+    sheet: the contact's pushing edge is the notch's far end. A band along the silhouette's edge
+    (the object moved), speckles of a ragged mask, or no visible masks give nothing."""
+    from physinteract_usd.extract.contact import GraspContact, hidden_front, pushing_edge
+
+    H, W = 60, 60
+    rest = np.zeros((H, W), bool)
+    rest[20:50, 5:55] = True                                   # the sheet at rest
+    obj = rest.copy()
+    obj[20:30, 26:34] = False                                  # the notch: the fingertip down to row 29
+    hand = np.zeros((H, W), bool)
+    hand[5:20, 26:34] = True                                   # the fingertip seen above the sheet
+    region = hand & (np.arange(H)[:, None] >= 17)              # the contact region next to the silhouette
+    an = SimpleNamespace(R=6.0, H=H, W=W, hand=hand[None], obj=obj[None], visible_masks=True,
+                         rest=SimpleNamespace(silhouette=rest))
+    d = np.array([0.0, 1.0])
+    front = hidden_front(an, 0, region, d)
+    assert front.any() and np.nonzero(front)[0].max() == 29
+    assert np.nonzero(front)[1].min() == 26 and np.nonzero(front)[1].max() == 33
+    edge = pushing_edge(an, GraspContact(np.array([30.0, 18.5]), region), d, 0)
+    assert 27.0 <= edge.uv[1] <= 30.0 and 29.0 <= edge.uv[0] <= 31.0
+    # without the frame index (or without visible masks) the region as before
+    assert pushing_edge(an, GraspContact(np.array([30.0, 18.5]), region), d).uv[1] < 20.0
+    an.visible_masks = False
+    assert not hidden_front(an, 0, region, d).any()
+    an.visible_masks = True
+    # a band along the silhouette's edge (the sheet moved down by 3 px) is not a notch
+    moved = np.zeros((H, W), bool)
+    moved[23:53, 5:55] = True
+    an.obj = moved[None]
+    assert not hidden_front(an, 0, region, d).any()
+    # speckles of a ragged mask ahead of the region are no front either
+    ragged = rest.copy()
+    ragged[21, 28] = ragged[23, 30] = ragged[22, 31] = False
+    an.obj = ragged[None]
+    assert not hidden_front(an, 0, region, d).any()

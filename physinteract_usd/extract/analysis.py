@@ -60,6 +60,9 @@ class Analysis:
         self.z_obj = float(np.median(z))
         self.px_per_m = float(self.cam0.fx / self.z_obj)
         self.spacing_px = self.spacing * self.px_per_m
+        # visible silhouettes (not amodal, not none): where the toucher hides the object, the frame's
+        # silhouette has a notch (`contact.hidden_front`)
+        self.visible_masks = masks is not None and not masks_amodal
         self.seg = models.segmenter(self.frames, masks, masks_amodal=masks_amodal, rest_alpha=self.rest.alpha,
                                     object_colors=scene.gaussians.colors)
         self.hand = self.seg.hand

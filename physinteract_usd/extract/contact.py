@@ -13,6 +13,7 @@ from ..errors import InputError
 from .analysis import Analysis, disk_mask, unit
 from .geometry import back_project, particles_near, pixel_centres
 from .hints import hint_location
+from .segmentation import dilate
 
 RADIUS_SHARE = 0.35  # grasp radius as a share of the contact region's extent
 GRASP_RADIUS_M = 0.03   # a hand's grasp (thumb and fingertips, ~6 cm across; the median of the suite's hands): the least it holds
@@ -246,19 +247,80 @@ def outward_normal(an: Analysis, c3, idx) -> np.ndarray:
     return n
 
 
-def pushing_edge(an: Analysis, grasp: GraspContact, direction) -> GraspContact:
+def pushing_edge(an: Analysis, grasp: GraspContact, direction, g: int | None = None) -> GraspContact:
     """A collider's contact at the grasp frame cut to its pushing edge: of the contact region, the
     pixels within half a contact radius of its farthest reach along the toucher's push in the
     image (`direction`). A fingertip or a sphere touches the surface with its front; the rest of
     the region is the toucher seen over the object behind that point, whose depth is elsewhere
     (#23: dev_0014, dev_0011, dev_0001 put 6-17 px behind the front, 3-9 cm off along the view)."""
     d = unit(np.asarray(direction, np.float64))
-    if not grasp.region.any() or not np.any(d):
+    if not np.any(d):
         return grasp
-    ys, xs = np.nonzero(grasp.region)
-    pix = pixel_centres(grasp.region)
+    region = grasp.region
+    if g is not None:
+        # the toucher next to the contact (where the frame's contact region is empty, a noisy
+        # silhouette covering it: its pixels near the contact's location)
+        seed = region if region.any() else an.hand[g] & disk_mask((an.H, an.W), grasp.uv, 1.5 * an.R)
+        front = hidden_front(an, g, seed, d) if seed.any() else seed
+        region = region | (front if region.any() or not front.any() else front | seed)
+    if not region.any():
+        return grasp
+    ys, xs = np.nonzero(region)
+    pix = pixel_centres(region)
     proj = pix @ d
     keep = proj >= proj.max() - 0.5 * an.R
-    out = np.zeros_like(grasp.region)
+    out = np.zeros_like(region)
     out[ys[keep], xs[keep]] = True
     return GraspContact(pix[keep].mean(0), out)
+
+
+def hidden_front(an: Analysis, g: int, region: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The toucher's front where the video shows it only as a notch in the object's silhouette:
+    with visible silhouettes, the pixels of the object at rest that frame g's silhouette does not
+    show, ahead of the contact region along the push `d` (within 2 R), as wide as the region's
+    front, with the object seen on both sides of them (a notch cut into the silhouette; a band
+    along its edge is the object that moved), joined to the region. A fingertip over a sheet of a
+    similar colour (dev_0014) is segmented only down to where it enters the silhouette (the
+    background there is estimated from the frames the finger covers it); the notch it cuts into
+    the silhouette reaches its tip. Nothing without visible masks."""
+    import cv2
+
+    out = np.zeros_like(region)
+    if not getattr(an, "visible_masks", False) or not region.any():
+        return out
+    notch = an.rest.silhouette & ~an.obj[g] & ~region
+    if not notch.any():
+        return out
+    e = np.array([-d[1], d[0]])
+    pix_r = pixel_centres(region)
+    proj_r = pix_r @ d
+    reach = float(proj_r.max())
+    front = pix_r[proj_r >= reach - 0.5 * an.R]
+    lo, hi = float((front @ e).min()) - 1.0, float((front @ e).max()) + 1.0
+    ys, xs = np.nonzero(notch)
+    pix = pixel_centres(notch)
+    a, lat = pix @ d, pix @ e
+    ok = (a > reach) & (a <= reach + 2.0 * an.R) & (lat >= lo) & (lat <= hi)
+    obj = an.obj[g]
+    H, W = obj.shape
+    steps = np.arange(1.0, max(2.0, an.R, hi - lo) + 1.0)     # the object within the front's width either side
+    for i in np.nonzero(ok)[0]:
+        sides = []
+        for sgn in (1.0, -1.0):
+            q = pix[i][None] + sgn * steps[:, None] * e[None]
+            u, v = np.floor(q[:, 0]).astype(int), np.floor(q[:, 1]).astype(int)
+            inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            sides.append(bool(obj[v[inside], u[inside]].any()))
+        ok[i] = sides[0] and sides[1]
+    cand = np.zeros_like(region)
+    cand[ys[ok], xs[ok]] = True
+    # a toucher's front is a solid piece: the silhouette's speckles (a segmenter's ragged masks,
+    # dev_0010 at 128 px) are opened away
+    cand = cv2.morphologyEx(cand.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)).astype(bool)
+    if not cand.any():
+        return out
+    # joined to the region across a pixel or two (the toucher's anti-aliased rim is in neither)
+    near = dilate(region, 2)
+    n, lab = cv2.connectedComponents((cand | near).astype(np.uint8), connectivity=8)
+    labs = np.unique(lab[region])
+    return np.isin(lab, labs[labs > 0]) & cand

@@ -86,7 +86,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
             hand = track_hand(timing, grasp.uv)
     timing_confidence(timing, an.eps, evidence, notes)
     if itype == "pointNonAdherent" and seen.hint_uv is None and seen.hint_particles is None:
-        grasp = pushing_edge(an, grasp, hand.first_move)
+        grasp = pushing_edge(an, grasp, hand.first_move, g)
     c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
     lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
