@@ -659,3 +659,28 @@ def test_a_fingertips_front_hidden_over_the_object_is_found_from_the_notch_in_it
     ragged[21, 28] = ragged[23, 30] = ragged[22, 31] = False
     an.obj = ragged[None]
     assert not hidden_front(an, 0, region, d).any()
+
+
+def test_an_object_lagging_behind_a_toucher_that_keeps_pulling_is_not_released():
+    """(#23, fifth pass; dev_9217) a glove pulls a stiff anchored bar at about 2 px a frame; the
+    bar next to it reads 0.8-1.1 px a frame, then 0.0-0.4 px for eight frames (a plain bar's flow
+    next to the hand) while the glove keeps pulling the same way, slowing at the pull's end; it
+    lets go at frame 25 and moves off across. The lag is no release (the toucher neither turns
+    nor speeds up, the bar does not spring back); the release is frame 25."""
+    T1 = 30
+    vh = np.zeros((T1, 2))
+    vh[9:25, 0] = [0.6, 0.9, 1.1, 1.6, 1.8, 2.0, 2.2, 2.2, 2.3, 2.4, 2.0, 2.0, 1.6, 1.3, 1.0, 0.4]
+    vh[25:] = [[3.5, 2.1], [8.5, 6.0], [12.1, 7.6], [10.4, 5.7], [4.0, 2.0]]
+    vo = np.zeros((T1, 2))
+    vo[9:15, 0] = [0.2, 0.8, 0.9, 0.9, 1.1, 0.9]
+    vo[15:25, 0] = [0.4, 0.36, 0.16, 0.0, 0.1, 0.16, 0.07, 0.16, 0.47, 0.17]
+    vo[25:] = [[-0.7, 1.2], [-2.7, 0.0], [-0.1, 0.1], [0.1, 0.0], [0.0, 0.0]]
+    near = np.ones(T1 + 1, bool)
+    r, coupled = _release_of(vh, vo, near, 8)
+    assert (coupled[15:23] < 0).all()            # every pair of the lag reads as parting
+    assert r == 25
+    # the same lag with the toucher turning off at frame 15: released there (moved back to the
+    # frame after its slowest pair before, as a hand slows before it lets go)
+    vh2 = vh.copy()
+    vh2[15:18] = [[0.5, 2.5], [0.2, 4.0], [0.0, 5.0]]
+    assert _release_of(vh2, vo, near, 8)[0] in (14, 15)

@@ -549,9 +549,37 @@ def parted(k: int, near: np.ndarray, vh: np.ndarray, vo: np.ndarray, share: floa
     nh, no = float(np.linalg.norm(Vh)), float(np.linalg.norm(Vo))
     if max(nh, no) < eps:
         return False
-    if share > 0:
-        return float(np.linalg.norm(Vo - share * Vh)) > 0.5 * share * nh
-    return bool(coupling(Vh[None], Vo[None], eps)[0] < 0)
+    apart = (float(np.linalg.norm(Vo - share * Vh)) > 0.5 * share * nh if share > 0
+             else bool(coupling(Vh[None], Vo[None], eps)[0] < 0))
+    return apart and not lags_behind(k, vh, [vh[j] for j in seen], Vo / len(seen), eps)
+
+
+def lags_behind(k: int, vh: np.ndarray, after: list, o_after: np.ndarray, eps: float = 0.35) -> bool:
+    """The object next to the contact only lags behind a toucher that keeps moving as it did: in
+    no pair of the window (`after`, the toucher's velocities; a hidden toucher: no evidence) does
+    the toucher speed up, turn or reverse by more than half its speed (at least `eps`) against its
+    mean over the (seen) pairs k-3 .. k-1, in which it moved at >= 2 `eps` (slowing down along it,
+    as a pull ends before the hand lets go, is not moving off), and the object's mean motion over the window
+    (`o_after`) has not turned back against that motion by more than `eps` in all nor outrun it.
+    That is no release: a toucher that lets go moves off (turns, speeds up, stops) and a released
+    elastic end springs back; what lags is the measurement (a plain object's flow next to the
+    hand, dev_9217: a stiff anchored bar still held by a glove that kept pulling at 2 px a frame
+    read 0.0-0.4 px next to it for 8 frames, released 11 frames early) or the material stretching."""
+    prev = [vh[j] for j in range(max(0, k - 3), k) if np.isfinite(vh[j]).all()]
+    if not prev or not after or not all(np.isfinite(v).all() for v in after):
+        return False
+    v_prev = np.mean(prev, axis=0)
+    s_prev = float(np.linalg.norm(v_prev))
+    if s_prev < 2 * eps:
+        return False
+    u = v_prev / s_prev
+    tol = max(eps, 0.5 * s_prev)
+    for v in after:
+        along = float(v @ u)
+        if along > s_prev + tol or abs(float(v[0] * u[1] - v[1] * u[0])) > tol or along < -eps:
+            return False     # it speeds up, turns or reverses: it moves off (slowing down is not)
+    v_after = np.mean(after, axis=0)
+    return float(o_after @ u) * len(after) >= -eps and float(np.linalg.norm(o_after)) <= float(np.linalg.norm(v_after))
 
 
 def coupled_share(coupled: np.ndarray, speed: np.ndarray, g: int, p1: int) -> float:
