@@ -182,6 +182,7 @@ def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monke
     assert _bench("world_bias").main(["--work", str(work), "--seeds", "0", "--init-only"]) == 2
     assert _bench("world_simcheck").main(["--work", str(work), "--seeds", "0"]) == 2
     assert _bench("world_diagnose").main(["--work", str(work), "--seeds", "0"]) == 2
+    assert _bench("world_timing").main(["--work", str(work), "dev_0000"]) == 2
     # reading it at all needs --final (and is logged in the marker)
     assert world_suite.main(["extract", "--split", "validation", "--work", str(work)]) == 2
     assert world_fit.main(["--work", str(work), "--split", "validation", "--json", str(tmp_path / "f.json")]) == 2
@@ -191,6 +192,7 @@ def test_tuning_entry_points_refuse_the_validation_split(tmp_path, capsys, monke
     (dev / "dev_0001" / "gt").mkdir(parents=True)
     (dev / "dev_0001" / "gt" / "gt.json").write_text(json.dumps({"split": "validation"}))
     assert world_suite.main(["extract", "--split", "dev", "--work", str(dev)]) == 2
+    assert _bench("world_timing").main(["--work", str(dev), "dev_0001"]) == 2
     assert not (tmp_path / "f.json").exists()
     # seeds whose captures are not there: one line and exit 2, not an empty table
     empty = tmp_path / "empty_dev"
