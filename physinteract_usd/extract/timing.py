@@ -559,9 +559,10 @@ def lags_behind(k: int, vh: np.ndarray, after: list, o_after: np.ndarray, eps: f
     no pair of the window (`after`, the toucher's velocities; a hidden toucher: no evidence) does
     the toucher speed up, turn or reverse by more than half its speed (at least `eps`) against its
     mean over the (seen) pairs k-3 .. k-1, in which it moved at >= 2 `eps` (slowing down along it,
-    as a pull ends before the hand lets go, is not moving off), and the object's mean motion over the window
-    (`o_after`) has not turned back against that motion by more than `eps` in all nor outrun it.
-    That is no release: a toucher that lets go moves off (turns, speeds up, stops) and a released
+    as a pull ends before the hand lets go, is not moving off), and the object's mean motion over
+    the window (`o_after`) has not turned back against that motion by more than `eps` in all nor
+    outrun it.
+    That is no release: a toucher that lets go moves off (turns or speeds up) and a released
     elastic end springs back; what lags is the measurement (a plain object's flow next to the
     hand, dev_9217: a stiff anchored bar still held by a glove that kept pulling at 2 px a frame
     read 0.0-0.4 px next to it for 8 frames, released 11 frames early) or the material stretching."""
