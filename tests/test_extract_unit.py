@@ -684,3 +684,21 @@ def test_an_object_lagging_behind_a_toucher_that_keeps_pulling_is_not_released()
     vh2 = vh.copy()
     vh2[15:18] = [[0.5, 2.5], [0.2, 4.0], [0.0, 5.0]]
     assert _release_of(vh2, vo, near, 8)[0] in (14, 15)
+
+
+def test_a_grasp_read_on_the_approach_moves_to_where_the_object_starts_to_follow():
+    """(#23, fifth pass; dev_9229) a glove comes in over a bar (its image touching the bar from the
+    first frame) at 9-11 px a frame and pulls with no rest before: every pair from the grasp read
+    at frame 0 to the first the bar follows (5) has the toucher moving and the bar not following,
+    some fast: its approach. A slow press before the object gives (no fast pair) is kept."""
+    from physinteract_usd.extract.timing import past_the_approach
+
+    coupled = np.array([-1, -1, -1, -1, -1, 1, 1, 1, 1, 1, 1, 1, -1], np.int8)
+    speed = np.array([9.1, 10.9, 3.3, 11.4, 0.8, 1.0, 1.7, 2.2, 2.5, 2.8, 3.3, 3.3, 8.0])
+    assert past_the_approach(0, coupled, speed, (5, 11)) == 5
+    assert past_the_approach(0, coupled, speed, None) == 0
+    slow = np.array([0.5, 0.6, 0.6, 0.7, 0.8, 1.0, 1.7, 2.2, 2.5, 2.8, 3.3, 3.3, 8.0])
+    assert past_the_approach(0, coupled, slow, (5, 11)) == 0
+    still = coupled.copy()
+    still[2] = 0                                              # a rest on the way: not an approach
+    assert past_the_approach(0, still, speed, (5, 11)) == 0

@@ -44,6 +44,7 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     g = contact_start(speed, near, p0, p1, coupled, vh)
     run = contact_run(coupled, near, vh, vo, an.eps)
     g = not_after_the_motion(g, coupled, vo, run)
+    g = past_the_approach(g, coupled, speed, run, an.eps)
     share = 0.0
     if run is not None:
         coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
@@ -438,6 +439,26 @@ def not_after_the_motion(g: int, coupled: np.ndarray, vo: np.ndarray, run) -> in
     if m.sum() <= 0 or g <= a or m[: g - a].sum() <= 0.5 * m.sum():
         return g
     return a + int(np.argmax(m > 0))
+
+
+def past_the_approach(g: int, coupled: np.ndarray, speed: np.ndarray, run, eps: float = 0.35) -> int:
+    """A grasp read on the toucher's approach: where every pair from g to the contact run's first
+    pair in which the object follows has the toucher moving (faster than `eps`) with the object not
+    following, and at least one of them fast (3 `eps`: coming in, not a slow press), those pairs
+    are its approach, and the grasp is that first following pair (dev_9229: a glove that comes in
+    over the bar, touching it in the image from the first frame, and pulls with no rest: grasp
+    0 -> 5, truly 4)."""
+    if run is None:
+        return g
+    a, b = run
+    first = next((k for k in range(max(a, g), b + 1) if coupled[k] > 0), None)
+    if first is None or first <= g:
+        return g
+    pairs = range(g, first)
+    if all(coupled[k] < 0 and np.isfinite(speed[k]) and speed[k] > eps for k in pairs) and \
+            max(speed[k] for k in pairs) >= 3 * eps:
+        return first
+    return g
 
 
 def skip_approach(g: int, coupled: np.ndarray, speed: np.ndarray, p1: int, eps: float = 0.35) -> int:
