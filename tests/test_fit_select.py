@@ -180,7 +180,8 @@ def test_two_part_bar_chooses_parts_and_recovers_each_part(tmp_path, monkeypatch
     a one-part-at-a-time search stalls in the loss's valley across the axes; the simplex over both
     (`select.part_refine`) 10.0 / 99.7 kPa (training loss 0.01052 -> 0.00984, the truth's 0.00984);
     parts kept (held-back loss 0.0205 -> 0.0096, lower on 4 of 4 frames); the field from them
-    refused; each part within 0.3% (docs/benchmarks/fit.md, 2026-11-26 later; #24)."""
+    refused; each part within 0.3% (docs/benchmarks/fit.md, 2026-11-26 later; #24). With the field
+    nested on the parts (d57ee81): passes, 759 CPU s."""
     e_soft = 1e4
     b, stiff = _two_part_bar(tmp_path / "two", e_soft, monkeypatch)
     out = _fit(b, 40, select_sweep_points=13, search_evals=5)
