@@ -74,6 +74,8 @@ class FitSettings:
     select_max_parts: int = 4           # ... at most this many parts in a candidate
     select_field_nested: bool = True    # ... the field is the kept model's E (fixed) plus a bumps offset from
                                         # zero (MaterialField.set_base); False: the kept model projected onto bumps
+    select_field_from_uniform: bool = True  # ... where parts were kept, also the field from the uniform model (what
+                                        # bumps fits), kept over the parts' model only if it pays on held-back frames
     holdout_every: int = 4              # ladder: every this-many-th frame is held back to judge a split
     sweep_points: int = 7               # ladder: log-spaced uniform E probes before the golden refinement
     flat_tolerance: float = 0.02        # ... minima within this (relative) of the best are refined too

@@ -26,6 +26,11 @@
    training frames; training frames only. (Before: the kept model projected onto the bumps, which
    cannot represent parts' sharp boundaries: on hemp_rope that field started, and ended, above the
    parts' held-back loss.)
+   Where parts were kept, also the field from the uniform model (`select_field_from_uniform`: the
+   plain bumps field, what the default schedule fits), n more iterations: the parts may be the
+   wrong partition, and a field nested on them keeps their wrong boundaries (hemp_rope on an H200:
+   the field on its motion parts MA 0.405 against bumps' 0.801). It is kept over the model chosen
+   by the steps below only if it pays for its coefficients beyond that model's by the same test.
 4. Selection on the held-back frames, simple to complex (uniform -> parts -> field): every
    `select_holdout_every`-th frame from frame 2, but never the first frame after a release, which
    carries most of the free motion's evidence (no model ever fits them; interleaved rather than a
@@ -837,6 +842,16 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
         judge("field")
         model["field_from"] = base
         model["field_nested"] = nested
+    # 4b. where parts were kept, the field from the uniform model too: the parts may be the wrong
+    # partition, and a field nested on them keeps their boundaries (docs/benchmarks/fit.md, session 8)
+    if (base == "parts" and bool(s.select_field_from_uniform) and k_field > 1
+            and not any(m.interrupted for m in models.values())):
+        sf = dataclasses.replace(s, levels=(k_field,), level_share=(1.0,), iterations=n_field, confidence_probes=0,
+                                 search_effects=())
+        models["field_uniform"] = run(lambda cb: fit_bumps(view, sf, progress=progress, log=log, on_iteration=cb,
+                                                           start=start_of(models["uniform"])))
+        coeffs["field_uniform"] = k_field
+        judge("field_uniform")
     # 5. the held-back tests: each step kept only if it pays for its added coefficients
     chosen = base
     if "field" in models and not models["field"].interrupted:
@@ -845,6 +860,15 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
         tests["field"] = test
         chosen = "field" if test["keep_field"] else base
         say(f"model: {chosen} ({test['why']})")
+    if "field_uniform" in models and not models["field_uniform"].interrupted:
+        # against the model chosen so far (not nested in it): it must pay for the coefficients it has
+        # beyond that model's, on the same held-back frames, and beat its held-back loss
+        test = select_rule(losses[chosen]["held_back_frames"], losses["field_uniform"]["held_back_frames"],
+                           max(coeffs["field_uniform"] - coeffs[chosen], 1), s)
+        tests["field_uniform"] = test
+        if test["keep_field"]:
+            chosen = "field_uniform"
+        say(f"the field from uniform: {'kept' if test['keep_field'] else 'refused'} ({test['why']})")
     if tests:
         model["tests"] = tests
         model["test"] = tests.get("field", tests.get("parts"))
