@@ -209,6 +209,16 @@ def batch_losses(prob: FitProblem, E, nu, trajectories=None):
 
 
 # ---------------------------------------------------------------------------- the batch
+def _losses_or_dropped(prob, E, nu, trajs):
+    """`batch_losses`, and why a copy marked bad was: a SimulationError left after simulate_batch's
+    copy-by-copy retry marks every copy of the rollout."""
+    try:
+        outs, bad = batch_losses(prob, E, nu, trajs)
+    except SimulationError as exc:
+        return [None] * len(E), np.ones(len(E), bool), str(exc)
+    return outs, bad, "its simulation went unstable or left its own box"
+
+
 def fit_bumps_batched(prob: FitProblem, settings: FitSettings | None = None, starts: list[Start] | None = None, *,
                       uniform_e: float | None = None, progress: bool = True, log=None,
                       on_iteration=None) -> list[FitResult]:
@@ -256,13 +266,7 @@ def fit_bumps_batched(prob: FitProblem, settings: FitSettings | None = None, sta
             E = torch.stack([i[0] for i in ins])
             nu = torch.stack([i[1] for i in ins])
             trajs = [torch.stack([i[2][k] for i in ins]) for k in range(len(ins[0][2]))] or None
-            try:
-                outs, bad = batch_losses(prob, E, nu, trajs)
-            except SimulationError as exc:      # (simulate_batch retries copy by copy; what is left is all)
-                outs, bad = [None] * len(run), np.ones(len(run), bool)
-                why = str(exc)
-            else:
-                why = "its simulation went unstable or left its own box"
+            outs, bad, why = _losses_or_dropped(prob, E, nu, trajs)
             total = 0.0
             for c, out, b in zip(run, outs, bad):
                 if b:
@@ -385,13 +389,7 @@ def refit_regions_batched(prob: FitProblem, labels: np.ndarray, log_e_starts, nu
             opts[i].zero_grad(set_to_none=True)
         E = torch.stack([mats[i].youngs() for i in run])
         nu = torch.stack([mats[i].poisson().detach() for i in run])
-        try:
-            outs, bad = batch_losses(prob, E, nu, None)
-        except SimulationError as exc:
-            outs, bad = [None] * len(run), np.ones(len(run), bool)
-            why = str(exc)
-        else:
-            why = "its simulation went unstable or left its own box"
+        outs, bad, why = _losses_or_dropped(prob, E, nu, None)
         total = 0.0
         for i, out, b in zip(run, outs, bad):
             lv = math.inf if b else float(out["rec"].detach())
