@@ -590,29 +590,34 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     residuals = []
     tr = [t.detach() for t in trajs] if trajs else None
     nu = mat.poisson().detach()
+    # one simulation and one set of renders for every probe: the probes differ only in their random
+    # signs, so each is a backward of the same graph (kept between them). Before, every probe
+    # simulated again (the same rollout: same values, 3 forwards more at 4 probes)
+    E = mat.youngs()
+    x, F = prob.simulate(E, nu, tr, {e: {p: v.detach() for p, v in ps.items()} for e, ps in effects.items()}
+                         if effects else None)
+    res = []            # per frame: the weighted RGB residual, the weighted silhouette residual (or None)
+    for k in range(1, prob.T):
+        out = prob.render_frame(k, x[k], F[k])
+        w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
+        r = (out["rgb"] - prob.frames[k]) * w[..., None]
+        rm = (out["alpha"] - prob.masks[k]) * w if prob.masks is not None else None
+        res.append((r, rm))
+        if rm is not None:
+            rss += float((rm.detach() ** 2).sum())
+            count += rm.numel()
+        rss += float((r.detach() ** 2).sum())
+        count += r.numel()
+        residuals.append(r.detach().float().mean(-1).cpu().numpy())
     for p in range(probes):
-        E = mat.youngs()
-        x, F = prob.simulate(E, nu, tr, {e: {p: v.detach() for p, v in ps.items()} for e, ps in effects.items()}
-                             if effects else None)
         acc = 0.0
-        for k in range(1, prob.T):
-            out = prob.render_frame(k, x[k], F[k])
-            w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
-            r = (out["rgb"] - prob.frames[k]) * w[..., None]
+        for r, rm in res:       # the signs drawn in the same order as one simulation per probe drew them
             sgn = (torch.randint(0, 2, r.shape, generator=gen) * 2 - 1).to(r)
             acc = acc + (sgn * r).sum()
-            if prob.masks is not None:
-                rm = (out["alpha"] - prob.masks[k]) * w
+            if rm is not None:
                 sm = (torch.randint(0, 2, rm.shape, generator=gen) * 2 - 1).to(rm)
                 acc = acc + (sm * rm).sum()
-                if p == 0:
-                    rss += float((rm.detach() ** 2).sum())
-                    count += rm.numel()
-            if p == 0:
-                rss += float((r.detach() ** 2).sum())
-                count += r.numel()
-                residuals.append(r.detach().float().mean(-1).cpu().numpy())
-        g, = torch.autograd.grad(acc, theta)
+        g, = torch.autograd.grad(acc, theta, retain_graph=p < probes - 1)
         diag += g.detach() ** 2
     diag /= probes
     noise_var = max(rss / max(count, 1), 1e-8) * residual_correlation(residuals)

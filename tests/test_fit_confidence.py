@@ -1,0 +1,97 @@
+"""The confidence estimate (fit/optimize.py `confidence`) simulates once for all its probes: the
+probes differ only in their random signs, so each is a backward of the same graph. Checked against
+the estimate with one simulation per probe (what it did before, docs/benchmarks/cpu.md "Levers,
+session 9") on the tiny cantilever of tests/fit_scene.py: the same numbers (to float32 rounding), one
+simulation."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import fit_scene as fs
+from physinteract_usd import api
+from physinteract_usd.fit import FitProblem
+from physinteract_usd.fit.material import MaterialField
+from physinteract_usd.fit.optimize import confidence, residual_correlation
+from physinteract_usd.usd.stage import read_stage
+
+
+def _reference(prob, mat, probes, seed=0, tol=math.log(1.2)):
+    """One simulation per probe (the estimator as it was before)."""
+    gen = torch.Generator(device="cpu").manual_seed(seed + 11)
+    theta = mat.theta.detach().clone().requires_grad_(True)
+    mat.theta = theta
+    diag = torch.zeros_like(theta)
+    rss, count, residuals = 0.0, 0, []
+    nu = mat.poisson().detach()
+    for p in range(probes):
+        x, F = prob.simulate(mat.youngs(), nu, None, None)
+        acc = 0.0
+        for k in range(1, prob.T):
+            out = prob.render_frame(k, x[k], F[k])
+            w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
+            r = (out["rgb"] - prob.frames[k]) * w[..., None]
+            acc = acc + ((torch.randint(0, 2, r.shape, generator=gen) * 2 - 1).to(r) * r).sum()
+            if prob.masks is not None:
+                rm = (out["alpha"] - prob.masks[k]) * w
+                acc = acc + ((torch.randint(0, 2, rm.shape, generator=gen) * 2 - 1).to(rm) * rm).sum()
+                if p == 0:
+                    rss += float((rm.detach() ** 2).sum())
+                    count += rm.numel()
+            if p == 0:
+                rss += float((r.detach() ** 2).sum())
+                count += r.numel()
+                residuals.append(r.detach().float().mean(-1).cpu().numpy())
+        g, = torch.autograd.grad(acc, theta)
+        diag += g ** 2
+    diag /= probes
+    noise_var = max(rss / max(count, 1), 1e-8) * residual_correlation(residuals)
+    sigma_theta = torch.sqrt(noise_var / diag.clamp_min(1e-30))
+    with torch.no_grad():
+        s = torch.sigmoid(mat.u())
+        sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * (mat.hi - mat.lo) * s * (1 - s)
+        return torch.erf(tol / (sigma_p * math.sqrt(2.0)).clamp_min(1e-12)).cpu().numpy()
+
+
+@pytest.fixture(scope="module")
+def problem(tmp_path_factory):
+    sc = fs.build(tmp_path_factory.mktemp("conf") / "base")
+    sd = read_stage(sc["stage"])
+    return FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, sc["gt"])), sd
+
+
+def _field(prob, sd):
+    st = sd.settings
+    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype, device=prob.tdev)
+    mat.set_uniform(1.5 * fs.E_TRUE, fs.NU_TRUE)   # off the truth: residuals everywhere
+    mat.refine(4)
+    with torch.no_grad():                           # a varying field
+        mat.theta += torch.linspace(-0.3, 0.3, mat.K, dtype=mat.theta.dtype)
+    return mat
+
+
+def test_one_simulation_for_all_probes_same_estimate(problem):
+    prob, sd = problem
+    calls = []
+    sim = prob.simulate
+
+    def counted(*a, **kw):
+        calls.append(1)
+        return sim(*a, **kw)
+
+    prob.simulate = counted
+    try:
+        got = confidence(prob, _field(prob, sd), [], probes=3, seed=0)
+        assert len(calls) == 1
+        want = _reference(prob, _field(prob, sd), probes=3, seed=0)
+        assert len(calls) == 4
+    finally:
+        prob.simulate = sim
+    assert got.shape == want.shape and np.ptp(want) > 0          # not a constant: the test can tell
+    # float32 simulation: the same up to its rounding (measured: 3.3e-7 relative at most)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
+    # the probes are not all alike: another seed gives another (equally valid) estimate
+    other = confidence(prob, _field(prob, sd), [], probes=3, seed=5)
+    assert not np.allclose(other, got, rtol=1e-3, atol=1e-9)
