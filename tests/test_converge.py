@@ -80,3 +80,18 @@ def test_improved_says_whether_a_level_got_below_its_first_loss():
     assert not improved([0.0143, 0.0148, 0.0143, 0.01429], 0.005)   # the demo's uniform level
     assert improved([0.0143, 0.0132, 0.0122], 0.005)
     assert not improved([math.nan, 0.5], 0.005) and improved([1.0, math.inf, 0.9], 0.005)
+
+
+def test_a_uniform_level_at_the_searched_minimum_has_patience_one():
+    """The uniform level that starts at the start search's minimum ends at its first step that is
+    no new best (the demo's: 0.0149, 0.0156 -> two iterations, not four); every other level keeps
+    the patience it was given, and a stop that is off stays off."""
+    from physinteract_usd.fit.converge import level_patience
+
+    assert level_patience(3, True, 1) == 1
+    assert level_patience(3, False, 1) == 3
+    assert level_patience(0, True, 1) == 0            # the stop is off
+    assert level_patience(2, True, 5) == 2            # never longer than the others'
+    demo = [0.0149, 0.0156]
+    assert plateaued(demo, level_patience(3, True, 1), 0.005)
+    assert not plateaued(demo, level_patience(3, False, 1), 0.005)

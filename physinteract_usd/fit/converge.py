@@ -30,6 +30,18 @@ def plateaued(losses, patience: int, tol: float) -> bool:
     return not any(math.isfinite(v) and v < before - tol * abs(before) for v in losses[-patience:])
 
 
+def level_patience(patience: int, searched_uniform: bool, patience_searched: int) -> int:
+    """The patience of one level: `patience_searched` (when smaller and the stop is on) for a
+    uniform level that starts at the start search's minimum, `patience` for every other level. The
+    search has already minimised the same loss over the same one E (at the default nu): its first
+    gradient step says whether nu and the last digits of E pay, and on the demo it never did (the
+    level's 4 iterations kept their first: docs/benchmarks/cpu.md, "Levers, session 9")."""
+    patience = int(patience)
+    if searched_uniform and patience > 0:
+        return max(1, min(patience, int(patience_searched)))
+    return patience
+
+
 def improved(losses, tol: float) -> bool:
     """Whether a level's best loss is more than `tol` (relative) below its first one (a level
     that plateaus without that ends without a tail)."""

@@ -26,7 +26,7 @@ from .. import metrics as M
 from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
-from .converge import improved, lr_scale, plateaued
+from .converge import improved, level_patience, lr_scale, plateaued
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -95,6 +95,7 @@ class FitSettings:
     plateau_patience: int = 3           # convergence stop (fit/converge.py): a level ends when its last this-many
     plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
     plateau_tail: int = 4               # ... after this many iterations from the best iterate at a falling LR (0: off)
+    plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -328,6 +329,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]
             level_losses, tail, stop_at = [], None, n_it
+            patience = level_patience(s.plateau_patience, start is None and li == 0 and mat.K == 1,
+                                      s.plateau_patience_searched)
             for j in range(n_it):
                 if j >= stop_at:   # the level plateaued and its tail is done (fit/converge.py)
                     break
@@ -367,7 +370,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                     bar.update(1)
                 if on_iteration is not None:
                     on_iteration(it, lv, mat, trajs)
-                if tail is None and plateaued(level_losses, s.plateau_patience, s.plateau_tol):
+                if tail is None and plateaued(level_losses, patience, s.plateau_tol):
                     # converged: the level's best iterate, no momentum, a short annealed tail
                     # (a level that never beat its first loss has nothing to anneal: it ends here)
                     n_tail = s.plateau_tail if improved(level_losses, s.plateau_tol) else 0
