@@ -20,6 +20,7 @@ from .devices import torch_device
 from .render import GaussianBinding, covariance_from_scales_quats
 from .scene import SceneData, SimSettings
 from .sim import Contact, Control, GridSpec, Rollout, SimModel
+from .sim.cfl import rung
 
 
 def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories) -> GridSpec:
@@ -138,11 +139,8 @@ class Simulation:
     def bound_for(self, e_max: float) -> float:
         """The stiffness the substep is taken at for a field whose largest E is `e_max`: the
         smallest rung of a ladder of ratio sqrt(2) below the stage's E range's top that is >= e_max
-        (so a field may stiffen ~40% before the model is rebuilt, and rollouts are reused per rung)."""
-        st = self.scene.settings
-        top = float(st.youngs_max)
-        k = max(0, int(np.floor(np.log(top / max(e_max, 1e-30)) / np.log(np.sqrt(2.0)) + 1e-9)))
-        return top / np.sqrt(2.0) ** k
+        (`sim.cfl.rung`; so a field may stiffen ~40% before the model is rebuilt, and rollouts are reused per rung)."""
+        return rung(e_max, float(self.scene.settings.youngs_max))
 
     def _use_bound(self, bound: float) -> None:
         st = self.scene.settings

@@ -17,7 +17,9 @@ import torch
 import fit_scene as fs
 from physinteract_usd import api
 from physinteract_usd.fit import FitProblem, FitSettings, fit_bumps
-from physinteract_usd.fit.batched import Start, batch_losses, fit_bumps_batched, fit_starts
+from physinteract_usd.fit.batched import (START_FACTORS, Start, batch_losses, default_starts, fit_bumps_batched,
+                                         fit_starts, start_e)
+from physinteract_usd.sim.cfl import rung, substeps_per_frame
 from physinteract_usd.usd.stage import read_stage
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -174,7 +176,7 @@ def test_fit_starts_keeps_the_lowest_loss_and_records_every_start(scene):
     s = FitSettings(iterations=2, joint=False, **{**SETTINGS, "levels": (1,), "level_share": (1.0,)})
     r = fit_starts(prob, s, 3, batched=False, uniform_e=4e3, **QUIET)
     table = r.model["starts"]
-    assert [d["factor"] for d in table] == [1.0, 0.5, 2.0] and r.model["starts_mode"] == "sequential"
+    assert [d["factor"] for d in table] == list(START_FACTORS[:3]) and r.model["starts_mode"] == "sequential"
     losses = [d["final_loss"] for d in table]
     assert r.model["starts_chosen"] == int(np.argmin(losses))
     assert r.final_loss == pytest.approx(min(losses))
@@ -197,7 +199,7 @@ def test_cli_fit_starts_writes_every_start_into_the_version(scene, tmp_path, cap
     sd = read_stage(stage)
     mm = sd.current_report["material_model"]
     mm = json.loads(mm) if isinstance(mm, str) else mm
-    assert [d["factor"] for d in mm["starts"]] == [1.0, 0.5]
+    assert [d["factor"] for d in mm["starts"]] == list(START_FACTORS[:2])
     assert main(["fit", str(stage), "--starts", "99"]) == 2
     assert "--starts" in capsys.readouterr().err
 
@@ -295,3 +297,87 @@ def test_copies_stop_on_their_own_and_the_batch_shrinks(scene):
         np.testing.assert_allclose(r.loss_history, ref.loss_history, rtol=1e-8)
         lens.append(len(r.loss_history))
     assert lens[0] < lens[1] <= 8, lens
+
+
+# ------------------------------------------------------------------ the starts' substep rung
+@pytest.mark.parametrize("e_range", [(1e3, 6e4), (1e4, 1e6), (5e2, 2e5)])
+def test_every_default_start_takes_the_x1_starts_substep_count(e_range):
+    """The default starts (x 1, 1/sqrt(2), 1/2, ...) never need more substeps than the x1 start: at
+    any searched uniform E in the range, every start's rung (the adaptive substep's E) maps to at
+    most the x1 start's substep count, and a start at x2 (the old factors) would need more."""
+    lo, hi = e_range
+    fps, dx, nu_max, density = 24.0, 0.01, 0.4, 150.0
+    assert START_FACTORS[0] == 1.0 and all(a > b for a, b in zip(START_FACTORS, START_FACTORS[1:]))
+
+    def steps(e, speed=0.0):
+        return substeps_per_frame(fps, dx, rung(e, hi), nu_max, density, cfl=0.6, max_speed=speed)
+
+    raised = 0
+    for e_u in np.geomspace(lo * 1.01, hi * 0.99, 23):
+        for speed in (0.0, 0.5):
+            n1 = steps(start_e(e_u, 1.0, e_range), speed)
+            for sp in default_starts(len(START_FACTORS)):
+                assert steps(start_e(e_u, sp.factor, e_range), speed) <= n1, (e_range, e_u, sp.factor)
+            assert steps(start_e(e_u, START_FACTORS[1], e_range), speed) >= steps(start_e(e_u, START_FACTORS[2], e_range), speed)
+            raised += steps(start_e(e_u, 2.0, e_range), speed) > n1
+    assert raised > 10       # the check can fail: a x2 start raises the count almost everywhere
+
+
+def _adaptive_problem(scene):
+    sd = read_stage(scene["stage"])
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, scene["gt"]), dtype="float32")
+    assert prob.sim.adaptive
+    return prob
+
+
+def test_a_batch_of_default_starts_runs_at_the_one_fits_substep(scene):
+    """Four default starts in lockstep take the substep count the one fit from x1 takes (the
+    adaptive rung of the x1 start's E), at the first iteration."""
+    e_u = 0.3 * float(read_stage(scene["stage"]).settings.youngs_max)    # x2 would go two rungs up
+    seen = {}
+    for name, B in (("one", 1), ("batch", 4)):
+        prob = _adaptive_problem(scene)
+        sim = prob.sim
+        for attr in ("simulate", "simulate_batch"):
+            real = getattr(sim, attr)
+
+            def rec(*a, _real=real, **kw):
+                out = _real(*a, **kw)
+                seen.setdefault(name, []).append(sim.substeps)
+                return out
+            setattr(sim, attr, rec)
+        s = FitSettings(iterations=1, joint=False, **{**SETTINGS, "levels": (1,), "level_share": (1.0,)})
+        if B == 1:
+            fit_bumps(prob, s, uniform_e=e_u, **QUIET)
+        else:
+            fit_bumps_batched(prob, s, default_starts(B), uniform_e=e_u, **QUIET)
+    assert seen["batch"][0] == seen["one"][0], seen
+    prob = _adaptive_problem(scene)
+    prob.sim.ensure_stable(2.0 * e_u)
+    assert prob.sim.substeps > seen["one"][0]          # what the old x2 start took
+
+
+def test_the_shared_substep_follows_the_stiffest_copys_field(scene):
+    """When one copy's field stiffens past the rung, the tiled rollout takes the rung of the largest
+    E of all copies (so its substep stays stable), and steps back when that copy softens."""
+    prob = _adaptive_problem(scene)
+    sim, P = prob.sim, len(prob.x0)
+    hi = float(read_stage(scene["stage"]).settings.youngs_max)
+    e1 = hi / 4.5       # inside its rung (hi / 4) by more than the step-down hysteresis (10%)
+    nu = torch.full((P,), fs.NU_TRUE)
+
+    def run(*scales):
+        E = torch.stack([torch.full((P,), e1 * f) for f in scales])
+        x, F, bad = sim.simulate_batch(E, nu)
+        assert not bad.any()
+        return sim.substeps, sim.e_bound
+
+    n1, b1 = run(1.0, 0.5)
+    n2, b2 = run(1.0, 2.5)                      # copy 1 drifted up two rungs and more
+    assert b2 == sim.bound_for(2.5 * e1) > b1 and n2 > n1
+    E = torch.full((1, P), e1)
+    E[0, 7] = 2.5 * e1                          # one particle of one copy is enough
+    sim.simulate_batch(torch.cat([torch.full((1, P), 0.5 * e1), E]), nu)
+    assert sim.e_bound == b2
+    n3, b3 = run(1.0, 0.5)                      # softened again: back to the x1 rung
+    assert (n3, b3) == (n1, b1)

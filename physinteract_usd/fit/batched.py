@@ -9,7 +9,7 @@ converged keeps its best iterate and leaves the batch (the rollout shrinks); a c
 simulation went unstable or left its own box is reported and dropped (it keeps the best iterate it
 had), not turned into inf for all. The renderer runs per copy (cheap beside the simulator).
 
-    results = fit_bumps_batched(prob, settings, default_starts(4, seed=0, e_range), uniform_e=e)
+    results = fit_bumps_batched(prob, settings, default_starts(4, seed=0), uniform_e=e)
     r = fit_starts(prob, settings, 4)          # the best start, every start's loss in r.model["starts"]
 
 Why: on a GPU a small scene's substep is bound by launch latency, so B copies cost about one
@@ -17,8 +17,16 @@ Why: on a GPU a small scene's substep is bound by launch latency, so B copies co
 CPU the copies' arithmetic runs one after another and tiling does not pay: `fit_starts` runs the
 starts one by one there (`fit_bumps` each).
 
+The starts (`START_FACTORS`): x1, then one adaptive-substep rung lower each (x 1/sqrt(2), 1/2,
+1/(2 sqrt(2)), ...; `sim.cfl.RUNG_RATIO`): no start is stiffer than x1, so a tiled batch begins at
+the x1 start's substep, the one fit's (a start at x2 sat two rungs up and held every copy at 1.41x
+the substeps: docs/benchmarks/gpu.md). As the fields move, the shared substep follows the stiffest
+copy's field (`Simulation.simulate_batch` takes the rung of the largest E of all copies, every call).
+
 Limits: all copies take the substep of the largest E among them (a soft copy's rollout is a little
-finer in time than its own fit's would be); the effects' parameters are shared by the copies of a
+finer in time than its own fit's would be); the starts spread below the searched E only (a field
+stiffer than the best uniform E somewhere is still reached from x1, as one fit reaches it); the
+effects' parameters are shared by the copies of a
 tiled rollout, so a fit that fits effects runs its starts one by one; a resumed or warm-started
 fit has one start (the field it goes on from).
 """
@@ -35,16 +43,26 @@ import torch
 
 from .. import stopping
 from ..errors import SimulationError
+from ..sim.cfl import RUNG_RATIO
 from .converge import improved, lr_scale, plateaued
 from .material import MaterialField, neighbour_pairs, pair_weights
 from .optimize import (FitResult, FitSettings, _level_params, _restore_in_place, _seed, _split, assemble_result,
                        clean_gradients, fit_bumps, frame_metrics, golden_uniform_search)
 from .problem import FitProblem
 
+
+def rung_factors(n: int) -> tuple:
+    """x1 and then one substep rung (`RUNG_RATIO`) lower each: 1, 1/sqrt(2), 1/2, ... (n of them).
+    Every factor is <= 1, so every start's rung (`sim.cfl.rung`), hence its substep count, is at most
+    the x1 start's."""
+    return tuple(RUNG_RATIO ** -k for k in range(int(n)))
+
+
 # The starts' factors on the uniform start E (the golden-section search's), in order: `--starts N`
 # takes the first N; each start also takes its own seed (settings.seed + its index) for the bumps'
-# centres.
-START_FACTORS = (1.0, 0.5, 2.0, 0.25, 4.0, 0.7071, 1.4142, 0.125)
+# centres. Inside the x1 start's substep rung: `rung_factors` (was x 1, 0.5, 2, 0.25, ...: the x2
+# start raised every copy's substep count by 1.41x).
+START_FACTORS = rung_factors(8)
 
 
 @dataclass(frozen=True)
@@ -425,7 +443,8 @@ def refit_regions_batched(prob: FitProblem, labels: np.ndarray, log_e_starts, nu
 # ------------------------------------------------------------------------- the app's entry
 def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: int = 2, *, batched: bool | None = None,
                progress: bool = True, log=None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
-    """The bumps schedule from `n_starts` starts (`default_starts`), the best kept by its training
+    """The bumps schedule from `n_starts` starts (`default_starts`: x 1, 0.71, 0.5, ... of the searched
+    uniform E), the best kept by its training
     loss (its final loss; the bumps schedule holds no frames back). `batched` None: as tiled copies
     in lockstep where that pays (`batching_pays`: on a GPU, effects not fitted), else one by one
     (`fit_bumps` each, from the same searched uniform E). The chosen start's confidence is
@@ -504,5 +523,5 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
     return win
 
 
-__all__ = ["Start", "START_FACTORS", "default_starts", "batch_losses", "fit_bumps_batched", "fit_starts",
+__all__ = ["Start", "START_FACTORS", "rung_factors", "default_starts", "batch_losses", "fit_bumps_batched", "fit_starts",
            "batching_pays", "refit_regions_batched"]
