@@ -741,8 +741,10 @@ def model_summary(model: dict | None) -> dict:
 
 
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
-               on_iteration=None, uniform_e: float | None = None) -> FitResult:
-    """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field."""
+               on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None) -> FitResult:
+    """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field.
+    `candidates` (a dict, optional): receives every candidate model's FitResult by name, trained on
+    the training frames (benchmarks: what each candidate would have scored)."""
     if start is not None:
         return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
     say = log or (lambda *a: None)
@@ -874,6 +876,8 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
         model["test"] = tests.get("field", tests.get("parts"))
     model["models"] = losses
     model["chosen"] = chosen
+    if candidates is not None:
+        candidates.update(models)
     r = models[chosen]
     # 6. the chosen model on all frames, with its confidence
     interrupted = any(m.interrupted for m in models.values())

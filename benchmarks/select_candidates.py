@@ -1,0 +1,127 @@
+"""select's candidates beside bumps' own field, on the same held-back frames (#24).
+
+One stage (initialised, e.g. by benchmarks/suite.py) and its capture's gt/: runs the select
+schedule once, keeping every candidate model it fitted on the training frames (uniform, parts,
+the field nested on the kept model, the field from uniform), then the bumps schedule's own fit
+(its full ladder and budget) on the same training frames only, and, for reference, bumps on all
+frames. For each: training and held-back loss (mean and per frame), MA against the truth (per
+Gaussian, the design's metric) and the fit's CPU seconds. With --parts, the parts' particles and
+their true E (the truth per particle: the nearest Gaussian's).
+
+    python benchmarks/select_candidates.py STAGE GT_DIR [--iterations 20] [--device cpu] [--out rows.jsonl]
+        [--set key=value ...]  (FitSettings overrides for select, e.g. select_field_from_uniform_ladder=true)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+
+def _val(v: str):
+    try:
+        return json.loads(v)
+    except json.JSONDecodeError:
+        return v
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("stage")
+    ap.add_argument("gt")
+    ap.add_argument("--iterations", type=int, default=20)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--tag", default="")
+    ap.add_argument("--set", action="append", default=[], help="key=value FitSettings override (select only)")
+    ap.add_argument("--skip-bumps-all", action="store_true", help="no reference bumps fit on all frames")
+    ap.add_argument("--skip-bumps", action="store_true", help="select only")
+    a = ap.parse_args()
+
+    import torch
+
+    torch.set_num_threads(1)
+    from scipy.spatial import cKDTree
+
+    from physinteract_usd import metrics as M
+    from physinteract_usd.app.fit import make_problem, prepare_fit
+    from physinteract_usd.fit.optimize import fit_bumps
+    from physinteract_usd.fit.select import FrameView, fit_select, frame_losses
+    from physinteract_usd.synth.gt import read_gt_array
+
+    over = {k: _val(v) for k, v in (x.split("=", 1) for x in a.set)}
+    log = lambda m: print(m, flush=True)  # noqa: E731
+    job = prepare_fit(a.stage, iterations=a.iterations, contact_from=a.gt, device=a.device, warm=False,
+                      progress=False, log=log, settings_overrides={"schedule": "select", **over})
+    prob = make_problem(job)
+    s = job.settings
+    e_gt = read_gt_array(a.gt, "youngs_modulus.npy")
+    rows = []
+
+    def row(name, r, train, val, cpu, **extra):
+        tl, vl = frame_losses(prob, r, s, train), frame_losses(prob, r, s, val)
+        out = {"tag": a.tag, "stage": str(a.stage), "candidate": name, "ma": M.material_accuracy(r.youngs_gaussian, e_gt),
+               "training": float(np.mean(tl)), "held_back": float(np.mean(vl)), "held_back_frames": vl,
+               "median_e": float(np.median(r.youngs)), "cpu_s": cpu, **extra}
+        rows.append(out)
+        print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()
+                          if k != "stage"}), flush=True)
+        return out
+
+    cands: dict = {}
+    c0 = time.process_time()
+    rs = fit_select(prob, s, progress=False, log=log, candidates=cands)
+    c_sel = round(time.process_time() - c0, 1)
+    m = rs.model
+    train, val = m["training_frames"], m["held_back_frames"]
+    print(f"training frames {train}, held back {val}; chosen {m['chosen']}", flush=True)
+    for name, r in cands.items():
+        row(name, r, train, val, None)
+    row("select (final, all frames)", rs, train, val, c_sel, chosen=m["chosen"],
+        tests={k: v.get("why") for k, v in (m.get("tests") or {}).items()})
+    # the truth per particle: the nearest Gaussian's at rest
+    gm0 = np.asarray(rs.gaussian_means[0])
+    _, nn = cKDTree(gm0).query(np.asarray(rs.positions[0]))
+    e_p = e_gt[nn]
+    if "parts" in cands:
+        lab = np.asarray(cands["parts"].regions, np.int64)
+        ys = np.asarray(prob.x0)[:, 1]
+        parts = []
+        for k in range(int(lab.max()) + 1):
+            sel = lab == k
+            parts.append({"part": k, "particles": int(sel.sum()), "fitted_e": float(np.median(cands["parts"].youngs[sel])),
+                          "true_e_median": float(np.median(e_p[sel])), "true_e_p10_p90": [float(np.percentile(e_p[sel], 10)),
+                                                                                         float(np.percentile(e_p[sel], 90))],
+                          "y_range": [float(ys[sel].min()), float(ys[sel].max())]})
+        print("parts vs truth: " + json.dumps(parts), flush=True)
+        rows.append({"tag": a.tag, "candidate": "parts_vs_truth", "parts": parts,
+                     "kind": (m.get("parts") or {}).get("kind")})
+    if not a.skip_bumps:
+        sb = dataclasses.replace(s, schedule="bumps")
+        for k in over:       # the bumps schedule as the default runs it
+            setattr(sb, k, getattr(type(s)(), k))
+        c0 = time.process_time()
+        rb = fit_bumps(FrameView(prob, train), sb, progress=False, log=None)
+        row("bumps on the training frames", rb, train, val, round(time.process_time() - c0, 1))
+        if not a.skip_bumps_all:
+            c0 = time.process_time()
+            ra = fit_bumps(prob, sb, progress=False, log=None)
+            row("bumps on all frames (reference)", ra, train, val, round(time.process_time() - c0, 1))
+    if a.out:
+        with open(a.out, "a") as f:
+            for r in rows:
+                f.write(json.dumps(r) + "\n")
+
+
+if __name__ == "__main__":
+    main()
