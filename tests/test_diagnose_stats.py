@@ -313,3 +313,75 @@ def test_a_collinear_candidate_just_under_the_size_threshold_is_still_a_rival():
     weak = far[1]
     assert weak.marginal[1] < 0.5 * far[0].marginal[1]                  # the construction: a weak candidate
     assert weak.rival_of is None                                         # ... is no rival
+
+
+def _held_back_case(rng, drop, keep=0.8, T=24, n=200, rho=0.9):
+    """Held-back residuals of two models on the same data (frames 12..23, every other one): the
+    data's own error (correlated in time and space) plus each model's error: the reference's m_a, and
+    the new model's keep m_a + b m_c (m_c an independent draw: a refit also moves the misfit about),
+    of expected size (1 - drop) |m_a|^2 (`drop` None: an independent draw, no better)."""
+    data = _ar1_field(rng, T, n, rho)
+    ma = _ar1_field(rng, T, n, rho)
+    mc = _ar1_field(rng, T, n, rho)
+    mb = mc if drop is None else keep * ma + np.sqrt(max(1 - drop - keep ** 2, 0.0)) * mc
+    held = np.zeros(T, bool)
+    held[12::2] = True
+    t = np.arange(T)
+    return (data + ma)[held].ravel(), (data + mb)[held].ravel(), t[held]
+
+
+def _held_blocks(frames, n, frames_per_block):
+    return ((frames[:, None] // frames_per_block) * 10 + (np.arange(n)[None] // 20)).ravel()
+
+
+def test_held_back_acceptance_keeps_false_alarms_under_alpha_and_finds_a_clear_drop():
+    """The refit's acceptance (`score.paired_drop`, as refit.held_back_test uses it): on held-back
+    frames where the candidate's model is no better (its error an independent draw of the same
+    size), the old rule (held-back loss lower: accepted) takes half the runs, the paired block test
+    (blocks of correlated frames x image tiles) <= ~5%; one-frame blocks on residuals correlated
+    over ~19 frames cry wolf. A misfit halved is accepted in most runs, its drop's standard error a
+    fair measure of the drops' spread; a misfit 1.3% smaller (the H200's foam_bar damping@1
+    viscoelasticity: 1.3%) is within the frames' spread and not accepted (about as often as alpha)."""
+    rng = np.random.default_rng(11)
+    runs, n = 160, 200
+    old = paired = short = 0
+    for _ in range(runs):
+        r0, r1, fr = _held_back_case(rng, None)
+        old += np.mean(r1 ** 2) < np.mean(r0 ** 2)
+        t = S.paired_drop(r0, r1, _held_blocks(fr, n, 12), 20, n_flips=400, seed=int(rng.integers(1 << 30)))
+        paired += t["p"] < 0.05
+        t1 = S.paired_drop(r0, r1, _held_blocks(fr, n, 1), 240, n_flips=400, seed=int(rng.integers(1 << 30)))
+        short += t1["p"] < 0.05
+    assert old / runs > 0.3
+    assert paired / runs <= 0.07
+    assert short / runs > 0.1
+    clear, tiny, drops, ses = 0, 0, [], []
+    for _ in range(50):
+        r0, r1, fr = _held_back_case(rng, 0.5, keep=0.6)
+        t = S.paired_drop(r0, r1, _held_blocks(fr, n, 12), 20, n_flips=400, seed=int(rng.integers(1 << 30)))
+        clear += t["p"] < 0.05
+        drops.append(t["drop"])
+        ses.append(t["se"])
+        r0, r1, fr = _held_back_case(rng, 0.013)
+        t = S.paired_drop(r0, r1, _held_blocks(fr, n, 12), 20, n_flips=400, seed=int(rng.integers(1 << 30)))
+        tiny += t["p"] < 0.05
+    print(f"false alarms: old rule {old / runs:.2f}, paired blocks {paired / runs:.3f}, one-frame blocks "
+          f"{short / runs:.2f}; misfit halved accepted {clear}/50, 1.3% smaller accepted {tiny}/50")
+    # the power is that of ~10 independent blocks (the held-back frames are one correlated stretch
+    # x 10 tiles) against a data error as large as the misfit: most, not all, halved misfits pass
+    assert clear >= 30
+    assert tiny <= 6
+    # the standard error is the spread of the drop across runs within a factor of two
+    assert 0.5 < np.median(ses) / np.std(drops) < 2.0
+
+
+def test_paired_drop_exact_for_few_blocks():
+    """With <= 12 blocks the sign flips are enumerated: two blocks both better give p = 1/4; the
+    drop is the held-back loss's, its standard error sqrt(sum d_b^2)."""
+    r0 = np.array([1.0, 1.0, 2.0, 2.0])
+    r1 = np.array([0.0, 0.0, 1.0, 1.0])
+    t = S.paired_drop(r0, r1, np.array([0, 0, 1, 1]), 2)
+    assert t["drop"] == pytest.approx(np.mean(r0 ** 2) - np.mean(r1 ** 2))
+    assert t["se"] == pytest.approx(np.hypot(0.5, 1.5))
+    assert t["p"] == pytest.approx(0.25) and t["blocks"] == 2
+    assert S.paired_drop(r1, r0, np.array([0, 0, 1, 1]), 2)["p"] == pytest.approx(1.0)

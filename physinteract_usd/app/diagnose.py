@@ -132,7 +132,7 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
     the held-back frames decide: the candidate with the largest accepted held-back drop takes the
     group's place (a rival that wins is named, with its own marginal test), the others follow."""
     from ..diagnose.core import estimate_of
-    from ..diagnose.refit import group_frames, refit_null
+    from ..diagnose.refit import compare_rivals, group_frames, refit_null
 
     ctx = diag._ctx
     prob = ctx["prob"]
@@ -160,10 +160,7 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
                 judge_probe(diag, c, frames=val)
         if len(group) < 2:
             continue
-        ok = [c for c in group if c.accepted and c.held_back_drop is not None]
-        if not ok:
-            continue
-        win = max(ok, key=lambda c: c.held_back_drop)
+        win = compare_rivals(diag, cr, group)
         if win is cr:
             continue
         # the rival explains the held-back frames better: it is named in the selected one's place
@@ -175,8 +172,9 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
             b.rival_of = win.effect
         win.rival_of, cr.rivals = None, []
         win.note = (f"named in place of {cr.effect} (a confusable pair, |cos| {win.collinearity:.2f}): held-back "
-                    f"drop {win.held_back_drop:.3g} against {cr.held_back_drop if cr.held_back_drop is not None else float('nan'):.3g}; "
-                    + win.note)
+                    f"drop {win.held_back_drop:.3g} +- {win.held_back_se:.2g} against "
+                    f"{cr.held_back_drop if cr.held_back_drop is not None else float('nan'):.3g}"
+                    + ("" if cr.accepted else f" ({cr.effect} not accepted)") + "; " + win.note)
         res = diag.results
         res.remove(win)
         res.insert(res.index(cr), win)

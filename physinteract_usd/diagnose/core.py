@@ -160,12 +160,17 @@ class CandidateResult:
     marginal_probe: tuple = (-1, 0.0)   # (best probe, its step) before forward selection
     held_back_drop: float | None = None  # the refit's drop of the held-back frames' loss beyond the base
                                          # refitted alike (`refit.refit_null`), or beyond the base's own
+    held_back_se: float | None = None    # its standard error from the held-back blocks' own spread
+    held_back_p: float | None = None     # the one-sided paired test's p-value (`score.paired_drop`; against
+                                         # the base and the control both: the larger): accepted when < alpha
     rival_of: str | None = None     # a selected candidate that explains this one away (a confusable pair:
                                     # significant alone, not given it); both are refitted, the held-back
                                     # frames decide (`app.diagnose`)
     collinearity: float | None = None   # |cos| of the two's projected columns (the part of each the base
                                         # cannot absorb): near 1, the residual cannot tell them apart
     rivals: list = field(default_factory=list)   # the candidates this one explains away
+    rival_test: dict | None = None  # a rival's paired held-back test against the selected one it rivals
+                                    # ({"against", "drop", "se", "p"}; `refit.compare_rivals`)
 
     def score(self) -> float:
         return float(-math.log10(max(self.p_value, 1e-12)))
@@ -200,6 +205,8 @@ class Diagnosis:
                             "marginal_p_value": c.marginal[0], "marginal_predicted_loss_drop": c.marginal[1],
                             "relative_drop": c.relative_drop, "significant": c.significant,
                             "accepted": c.accepted, "held_back_drop": c.held_back_drop,
+                            "held_back_se": c.held_back_se, "held_back_p": c.held_back_p,
+                            "rival_test": c.rival_test,
                             "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
                             "collinearity": c.collinearity, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
@@ -804,6 +811,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     # 5% at 2 tau; tests/test_diagnose_stats.py), at least 3 of them along the clip
     fpb = s.frames_per_block or int(min(max(2, math.ceil(2.0 * tau)), max(2, res.shape[0] // 3)))
     blocks, nb = res.blocks(fpb, s.tiles)
+    img_blocks, img_nb = blocks, nb              # the image's blocks: the refits' paired tests (refit.py)
     noise = dict(noise or {}, correlation_frames=tau, frames_per_block=fpb)
     log(f"diagnose: residual of {len(r0)} values ({res.shape[0]} frames, stride {res.stride}), loss {L0:.3e}")
     pcols = [] if s.trajectory_prior else None
@@ -853,7 +861,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     for cr in results:
         cr.estimate = estimate_of(cr, prob)
     ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "r0a": r0a, "run": run,
-           "prior": prior, "names": names}
+           "prior": prior, "names": names, "blocks": img_blocks, "n_blocks": img_nb, "settings": s}
     if evidence is not None:
         for cr in results:
             if cr.significant:

@@ -41,6 +41,42 @@ def _frame_mask(res: ImageResidual, frames) -> np.ndarray:
     return np.isin(res.frame_of(), list(frames))
 
 
+def held_back_test(diag: Diagnosis, r_ref: np.ndarray, r_new: np.ndarray, m: np.ndarray) -> dict:
+    """`score.paired_drop` of the held-back elements `m` of two image residuals, over the diagnosis's
+    blocks (a few frames x an image tile, as its score tests): the drop of the held-back loss from
+    `r_ref` to `r_new`, its standard error and the one-sided p-value."""
+    from . import score as S
+
+    ctx = diag._ctx
+    s = ctx.get("settings")
+    blocks = ctx.get("blocks")
+    if blocks is None:                                   # a diagnosis made without them: one block a frame
+        blocks = ctx["res"].frame_of().astype(np.int64)
+        nb = int(blocks.max()) + 1
+    else:
+        nb = int(ctx["n_blocks"])
+    return S.paired_drop(r_ref[m], r_new[m], blocks[m], nb, n_flips=getattr(s, "n_flips", 4000),
+                         seed=getattr(s, "seed", 0))
+
+
+def _alpha(diag: Diagnosis) -> float:
+    return float(getattr(diag._ctx.get("settings"), "alpha", 0.05))
+
+
+def _accept(diag: Diagnosis, cr: CandidateResult, refs: list, r1: np.ndarray, m: np.ndarray) -> None:
+    """Acceptance on the held-back frames: a one-sided paired test (`held_back_test`) against each
+    model without the candidate in `refs` [(name, image residual)]; accepted when every p-value is
+    below alpha (an intersection-union test: below the base's and the control's at level alpha). The
+    drop and its standard error are reported against the reference with the lower held-back loss."""
+    tests = [(name, held_back_test(diag, r, r1, m)) for name, r in refs]
+    # the lower reference: the smallest drop (the held-back loss to beat is the lower one)
+    low = min(tests, key=lambda t: t[1]["drop"])
+    p = max(t[1]["p"] for t in tests)
+    cr.held_back_drop, cr.held_back_se, cr.held_back_p = low[1]["drop"], low[1]["se"], p
+    cr.accepted = bool(p < _alpha(diag) and low[1]["drop"] > 0)
+    cr._held = (m, r1)
+
+
 def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iterations: int, holdout_every: int, log):
     """A short warm-started refit of the base (regions' log E, the trajectory) with `effect`'s
     parameters too (None: the base alone, the control every candidate's refit is judged against),
@@ -105,7 +141,8 @@ def refit_null(diag: Diagnosis, val: list, *, iterations: int = 8, holdout_every
     except SimulationError:
         return None
     m = _frame_mask(res, val) if val else np.ones(len(r1), bool)
-    return {"frames": list(val), "held_back_loss": loss(r1[m]), "loss": loss(r1), "aloss": run.aloss(r1a)}
+    return {"frames": list(val), "held_back_loss": loss(r1[m]), "loss": loss(r1), "aloss": run.aloss(r1a),
+            "residual": r1}
 
 
 def group_frames(diag: Diagnosis, crs: list, holdout_every: int = 4) -> list[int]:
@@ -153,17 +190,45 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
     cr.realized_loss_drop = run.aloss(b0) - run.aloss(r1a)
     # the loss to beat: the best model without the candidate, the base as it is or refitted alike (a
     # refit on the training frames can also raise the held-back loss: then the base itself is the bar)
-    vb = loss(r0[m])
-    v0 = vb if null is None else min(vb, float(null["held_back_loss"]))
     v1 = loss(r1[m])
-    cr.held_back_drop = v0 - v1
-    cr.accepted = bool(v1 < v0)
+    refs = [("base", r0)] + ([] if null is None or null.get("residual") is None else [("control", null["residual"])])
+    _accept(diag, cr, refs, r1, m)
     cr.estimate = {**state["effects"].get(cr.effect, {})}
     ref = "the base's" if null is None else f"the base refitted alike: {float(null['held_back_loss']):.3e}"
     cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {loss(r0[m]):.3e} -> "
-               f"{v1:.3e} ({ref}); loss {loss(r0):.3e} -> {loss(r1):.3e} ({run.aloss(b0):.3e} with the base's "
-               "own step alone)" + ("" if cr.accepted else ": not accepted"))
+               f"{v1:.3e} ({ref}); drop {cr.held_back_drop:.3g} +- {cr.held_back_se:.2g} (paired test over "
+               f"blocks, p = {cr.held_back_p:.3g}); loss {loss(r0):.3e} -> {loss(r1):.3e} ({run.aloss(b0):.3e} "
+               "with the base's own step alone)"
+               + ("" if cr.accepted else ": not accepted (the held-back drop is within the frames' own spread)"
+                  if cr.held_back_drop > 0 else ": not accepted"))
     return state
+
+
+def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
+    """Which of a confusable group (`cr`, the selected one, and its rivals, refitted on the same
+    held-back frames) explains the held-back frames: an accepted rival replaces an accepted `cr`
+    only when its held-back residual is below `cr`'s by a paired test at alpha (`held_back_test`:
+    not by a difference within the frames' own spread); when `cr` was not accepted, the accepted
+    rival with the largest held-back drop. Each rival's test against `cr` goes in its `rival_test`
+    ({"against", "drop", "se", "p"}). Returns the winner (`cr` when none)."""
+    ok = [c for c in group if c.accepted and getattr(c, "_held", None) is not None]
+    held = getattr(cr, "_held", None)
+    a = _alpha(diag)
+    best, bt = None, None
+    for c in group:
+        if c is cr or getattr(c, "_held", None) is None or held is None or not np.array_equal(c._held[0], held[0]):
+            continue
+        t = held_back_test(diag, held[1], c._held[1], held[0])    # from cr's held-back residual to c's
+        c.rival_test = {"against": cr.effect, "drop": t["drop"], "se": t["se"], "p": t["p"]}
+        told = t["p"] < a and t["drop"] > 0
+        c.note = (f"against {cr.effect} on the same held-back frames: {t['drop']:.3g} +- {t['se']:.2g} lower "
+                  f"(p = {t['p']:.3g}): " + ("better" if told else "not told apart" if abs(t["drop"]) < 2 * t["se"]
+                                             else "worse") + "; " + c.note)
+        if c.accepted and told and (bt is None or t["drop"] > bt["drop"]):
+            best, bt = c, t
+    if cr.accepted:
+        return best or cr
+    return max(ok, key=lambda c: c.held_back_drop) if ok else cr
 
 
 def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, frames: list | None = None) -> None:
@@ -194,11 +259,11 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
     cr.realized_loss_drop = run.aloss(b0) - run.aloss(b1)
     n = run.n_img or len(r0)
     m = _frame_mask(res, val) if val else np.ones(n, bool)
-    cr.held_back_drop = loss(b0[:n][m]) - loss(b1[:n][m])
-    cr.accepted = bool(cr.held_back_drop > 0)
+    _accept(diag, cr, [("base", b0[:n])], b1[:n], m)
 
 
-__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "group_frames"]
+__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "group_frames", "held_back_test",
+           "compare_rivals"]
 
 
 def refit_base(prob, base, factor: float, *, iterations: int = 8, res: ImageResidual | None = None, log=None):
