@@ -211,3 +211,19 @@ def test_effect_parameters_outside_their_domain_are_refused():
         ro(effects={"viscoelasticity": {"tau": torch.tensor(-0.1, dtype=torch.float64)}})
     with pytest.raises(SimulationError, match="damping.coefficient"):
         ro(effects={"damping": {"c": -1.0}})
+
+
+def test_a_forward_without_gradients_captures_its_graphs_at_its_second_use():
+    """rollout.EAGER_FORWARDS: a one-off forward (a start-search probe at a new rung) runs eagerly and
+    captures nothing; the second captures the frames' graphs, later ones replay them; every call
+    bitwise equal to eager launches."""
+    m, ctrl, pts, traj = _scene(effects={"damping": {"coefficient": 1.0}}, T=3)
+    ro, ref = Rollout(m, ctrl), Rollout(m, ctrl, graphs=False)
+    for i, scale in enumerate((1.0, 0.7, 1.3)):
+        E = torch.full((len(pts),), 3e3 * scale, dtype=torch.float64)
+        with torch.no_grad():
+            x, F = ro(E)
+            xr, Fr = ref(E)
+        assert len(ro._fwd_graphs) == (0 if i == 0 else 3), i
+        assert torch.equal(x, xr) and torch.equal(F, Fr)
+    assert not ro._fwd_store_graphs and ro.graphs

@@ -43,6 +43,12 @@ from .state import SimState
 
 _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
 STORE_STATES_BYTES = 1 << 30   # a rollout keeps every substep's state for its backward up to this size
+# A forward without gradients runs its launches eagerly this many times before its graphs are
+# captured: a rollout at a new rung is often used once (a start-search probe), and capturing T
+# graphs for one replay costs more than launching them (CPU, the sample at grid 12: 3.5 s to
+# capture and replay a probe's forward against 1.0 s eager; on CUDA the capture's launches cost what
+# eager ones do, plus the instantiation and the replay after them).
+EAGER_FORWARDS = 1
 
 
 def _torch_device(model) -> torch.device:
@@ -115,6 +121,7 @@ class Rollout:
         self._states: list[list[SimState]] | None = None
         self.states_generation = 0
         self._fwd_store_graphs: dict[int, object] = {}
+        self._eager_forwards_left = EAGER_FORWARDS     # forwards without gradients before capturing
         self._replay_graphs: dict[int, object] = {}
         self._adj_graphs: dict[int, object] = {}
 
@@ -236,10 +243,19 @@ class Rollout:
             graphs, fn = self._fwd_store_graphs, self._forward_frame_stored
         else:
             graphs, fn = self._fwd_graphs, self._forward_frame
-        self._ensure_graphs(graphs, fn)
+        eager = graphs is self._fwd_graphs and not graphs and self._eager_forwards_left > 0
+        if eager:       # EAGER_FORWARDS: a one-off forward does not pay a capture
+            self._eager_forwards_left -= 1
+        else:
+            self._ensure_graphs(graphs, fn)
         for k in range(self.T):
             stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
-            self._frame(graphs, fn, k)
+            if eager:
+                fn(k)
+            else:
+                self._frame(graphs, fn, k)
+        if eager:
+            self._warm.add(id(graphs))         # its modules are loaded: the capture needs no warm-up frame
         self.solver.raise_on_status(self.status)
         return gen
 
