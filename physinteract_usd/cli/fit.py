@@ -48,10 +48,11 @@ def add_parser(sub):
                         "cached) against the projected Gaussians, beside pixels and silhouette (default 0: off; "
                         "1: a 1-px error on every track costs about a 1-px shift of the outline)")
     s.add_argument("--starts", type=int, default=1, metavar="N",
-                   help="fit from N starts (the searched uniform E x 1, 0.5, 2, 0.25, ..., each with its own seed) and "
+                   help="fit from N starts (the searched uniform E x 1, 0.71, 0.5, 0.35, ...: none stiffer than x1, so "
+                        "batched they keep its substep; each with its own seed) and "
                         "keep the lowest loss; every start's loss goes into the version's JSON. With --device cuda the "
-                        "starts run batched (one tiled rollout per iteration; predicted: 4 starts of a small scene in "
-                        "1.5-2x one fit's time, docs/benchmarks/gpu.md); on the CPU one after another, N times one fit "
+                        "starts run batched (one tiled rollout per iteration; 4 starts of a small scene: predicted ~2x one "
+                        "fit's time, docs/benchmarks/gpu.md); on the CPU one after another, N times one fit "
                         "(tiling saves ~20%% there at best, and loses when the stiffest start needs more substeps). "
                         "Bumps schedule only; default 1")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
