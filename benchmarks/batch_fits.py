@@ -15,7 +15,8 @@ its rollouts' CUDA graphs are captured inside its time.
 Cases: "1" = `fit_bumps` (the one fit the app runs); "B=2", "B=4" = `fit_bumps_batched` from the
 first B of `batched.START_FACTORS` (x 1, 0.71, 0.5, 0.35 of the searched uniform E: inside the x1
 start's substep rung; seeds 0..B-1; the first copy is the one fit's start). `--factors` gives other
-factors (e.g. `--factors 1 0.5 2 0.25`, the old starts). Each copy stops on its own; the batch ends
+factors (e.g. `--factors 1 0.5 2 0.25`, the old starts); `--also-factors 1 0.5 2 0.25` runs one more
+batched case from those, last (a before/after on the same card in one run). Each copy stops on its own; the batch ends
 with the last. Printed: wall and process CPU time in all and per lockstep iteration, the time
 against one fit (the issue's target: four small fits batched <= 2x one fit's time), the substep
 counts the rollouts ran at (count: rollouts), and each copy's iterations, final loss, MA (per
@@ -267,6 +268,9 @@ def main(argv=None):
     ap.add_argument("--copies", type=int, nargs="+", default=[2, 4])
     ap.add_argument("--factors", type=float, nargs="+", default=None,
                     help="the starts' factors on the searched E (default: batched.START_FACTORS)")
+    ap.add_argument("--also-factors", type=float, nargs="+", default=None,
+                    help="one more batched case from these starts after the others (e.g. 1 0.5 2 0.25: the old "
+                         "starts, for a before/after on the same card in the same run)")
     ap.add_argument("--patience", type=int, default=None, help="the convergence stop's patience (default: the fit's)")
     ap.add_argument("--profile", action="store_true", help="the per-phase breakdown (module doc)")
     ap.add_argument("--work", default=None, help="folder for the stage (default: a temporary one)")
@@ -288,8 +292,9 @@ def main(argv=None):
     if max(a.copies) > len(factors):
         ap.error(f"--copies up to {max(a.copies)} needs as many --factors (got {len(factors)})")
 
-    def starts(B, seed):
-        return [Start(float(factors[i]), int(seed) + i) for i in range(B)]
+    def starts(B, seed, fs=None):
+        fs = factors if fs is None else fs
+        return [Start(float(fs[i]), int(seed) + i) for i in range(B)]
 
     cpu_threads(a.device)
     cap = Path(a.capture)
@@ -352,7 +357,7 @@ def main(argv=None):
                 "factor": (r.model.get("start") or {}).get("factor", 1.0),
                 "status": (r.model.get("start") or {}).get("status", "interrupted" if r.interrupted else "done")}
 
-    def run_case(B, label):
+    def run_case(B, label, fs=None):
         p = make_problem(job)
         _sync(a.device)
         with prof.phase(label):
@@ -360,19 +365,31 @@ def main(argv=None):
             if B == 1:
                 res = [fit_bumps(p, s, progress=False, uniform_e=e_u)]
             else:
-                res = fit_bumps_batched(p, s, starts(B, s.seed), uniform_e=e_u, progress=False)
+                res = fit_bumps_batched(p, s, starts(B, s.seed, fs), uniform_e=e_u, progress=False)
             _sync(a.device)
             w1, c1 = _clock()
         copies = [copy_row(r) for r in res]
         lock = max(c["iterations"] for c in copies)
-        return {"case": "1" if B == 1 else f"B={B}", "copies": B, "device": dev, "grid": a.grid,
+        return {"case": ("1" if B == 1 else f"B={B}") + (" (also-factors)" if fs else ""), "copies": B,
+                "device": dev, "grid": a.grid,
                 "particles": len(p.x0), "frames": p.T, "wall_s": w1 - w0, "cpu_s": c1 - c0, "lockstep_iterations": lock,
                 "wall_per_iteration_s": (w1 - w0) / max(lock, 1), "cpu_per_iteration_s": (c1 - c0) / max(lock, 1),
                 "factors": [c["factor"] for c in copies], "uniform_e": e_u, "x1_rung_e": e_rung,
                 "substeps": {str(k): v for k, v in sorted(prof.substeps[label].items())}, "copy": copies,
                 "profiled": label.endswith("(profiled)")}
 
+    jsonl = None
+    if a.out:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        jsonl = Path(a.out) / "batch_fits.jsonl"
+
+    def keep(row):      # written as each case ends (a time limit keeps what finished)
+        if jsonl is not None:
+            with open(jsonl, "a") as fh:
+                fh.write(json.dumps(row) + "\n")
+
     def say(row):
+        keep(row)
         print(f"{row['case']}{' (profiled)' if row['profiled'] else ''}: {row['wall_s']:.1f} s wall "
               f"({row['cpu_s']:.1f} s CPU), {row['lockstep_iterations']} iterations, substeps per frame "
               f"(rollouts) {row['substeps']}; "
@@ -422,14 +439,16 @@ def main(argv=None):
             if r["profiled"]:
                 prof.print_table(f"case {r['copies']} (profiled)", per=r["lockstep_iterations"])
 
-    if a.out:
-        out = Path(a.out)
-        out.mkdir(parents=True, exist_ok=True)
-        with open(out / "batch_fits.jsonl", "a") as fh:
-            for r in rows:
-                fh.write(json.dumps(r) + "\n")
-            if a.profile:
-                fh.write(json.dumps({"profile": prof.dump(), "device": dev}) + "\n")
+    if a.profile:
+        keep({"profile": prof.dump(), "device": dev})
+    if a.also_factors:      # last: a before/after on the same card (the other starts), after the profile
+        prof.install(timing=False)
+        r = run_case(len(a.also_factors), "case also-factors", tuple(a.also_factors))
+        prof.uninstall()
+        say(r)
+        print(f"\nstarts x {', '.join(f'{f:g}' for f in a.also_factors)}: {r['wall_s']:.1f} s = "
+              f"{r['wall_s'] / one['wall_s']:.2f}x one fit ({r['wall_per_iteration_s']:.3f} s per lockstep iteration, "
+              f"substeps/frame: rollouts {r['substeps']})")
     return 0
 
 
