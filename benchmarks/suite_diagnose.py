@@ -116,8 +116,8 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
         row["top"] = {kk: top.get(kk) for kk in ("effect", "predicted_loss_drop", "realized_loss_drop", "estimate")}
     row["tested"] = [{kk: c.get(kk) for kk in ("effect", "p_value", "predicted_loss_drop", "relative_drop",
                                                "marginal_p_value", "marginal_predicted_loss_drop", "significant",
-                                               "accepted", "held_back_drop", "confusable_with", "collinearity",
-                                               "note")}
+                                               "accepted", "held_back_drop", "held_back_se", "held_back_p",
+                                               "rival_test", "confusable_with", "collinearity", "note")}
                      for c in d.get("tested", [])]
     row["loss"], row["noise_floor"] = d.get("loss"), d.get("noise_floor")
     own = next((c for c in d.get("candidates", []) if c["effect"] == eff), None)
@@ -177,19 +177,30 @@ def table(rows: list[dict]) -> str:
                    key=lambda r: (r["scene"], r["hidden"], r["strength"]))
     ctrl = [r for r in ok if r.get("hidden") == "none"]
     out = ["| scene | hidden effect | strength | verdict: significant (best first) | rank of the hidden effect | "
-           "named first: predicted / realised drop | hidden effect's test: p, predicted drop / loss (marginal) | "
+           "named first: predicted / realised drop; held-back drop +- se (paired p) | hidden effect's test: p, predicted drop / loss (marginal) | "
            "confusable pair | + hidden effect: masked PSNR gain, loss after / before | fitted / truth (refit; "
            "diagnose) | s wall (CPU) |", "|---" * 11 + "|"]
+    def held(e):
+        """A refitted candidate's held-back drop +- its standard error (p of the paired test)."""
+        c = next((c for c in r.get("tested") or [] if c["effect"] == e), {})
+        if c.get("held_back_drop") is None:
+            return ""
+        se, p = c.get("held_back_se"), c.get("held_back_p")
+        return (f"; held-back {fmt(c['held_back_drop'])}" + (f" +- {fmt(se, '{:.2g}')}" if se is not None else "")
+                + (f" (p {fmt(p, '{:.2g}')}{'' if c.get('accepted') else ', not accepted'})" if p is not None else ""))
+
     for r in named:
         t = r.get("top") or {}
         h = next((c for c in r.get("tested") or [] if c["effect"] == r["hidden"]), {})
+        hh = held(r["hidden"]) if h and t.get("effect") != r["hidden"] else ""
         mp, md = h.get("marginal_p_value"), h.get("marginal_predicted_loss_drop")
         hp = (f"{fmt(mp, '{:.2g}')}, {fmt(md / r['loss'] if md is not None and r.get('loss') else None, '{:.1%}')}"
               if h else "-")
         out.append(f"| {r['scene']} | {r['hidden']} | {r['strength']:g} | {r.get('verdict')}: "
                    f"{', '.join(r.get('significant') or []) or '-'} | {r.get('rank') or 'not named'} | "
-                   f"{t.get('effect', '-')}: {fmt(t.get('predicted_loss_drop'))} / {fmt(t.get('realized_loss_drop'))} | "
-                   f"{hp} | {', '.join(r['pair']) if isinstance(r.get('pair'), list) else (r.get('pair') or '-')} | {_gain(r)} | {fmt(r.get('estimate_ratio'), '{:.2f}x')}; "
+                   f"{t.get('effect', '-')}: {fmt(t.get('predicted_loss_drop'))} / {fmt(t.get('realized_loss_drop'))}"
+                   f"{held(t['effect']) if t.get('effect') else ''} | "
+                   f"{hp}{hh} | {', '.join(r['pair']) if isinstance(r.get('pair'), list) else (r.get('pair') or '-')} | {_gain(r)} | {fmt(r.get('estimate_ratio'), '{:.2f}x')}; "
                    f"{fmt(r.get('diagnose_estimate_ratio'), '{:.2f}x')} | {fmt(r.get('wall_s'), '{:.0f}')} "
                    f"({fmt(r.get('cpu_s'), '{:.0f}')}) |")
     if named:

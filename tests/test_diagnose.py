@@ -112,6 +112,9 @@ def test_diagnose_verb_names_damping_and_stores_it(damped):
     assert top["realized_loss_drop"] is not None and top["realized_loss_drop"] > 0
     assert top["estimate"]["coefficient"] == pytest.approx(C_TRUE, rel=0.3)
     assert "after release at frame" in top["evidence"]
+    # accepted by the paired test over the held-back blocks: its drop, standard error and p-value
+    t = next(t for t in d["tested"] if t["effect"] == "damping")
+    assert t["accepted"] and t["held_back_drop"] > 0 and t["held_back_se"] > 0 and t["held_back_p"] < 0.05
     json.dumps(d, allow_nan=False)
     stored = read_diagnosis(damped["stage"], d["version"])
     assert stored["verdict"] == "missing_effect" and stored["candidates"][0]["effect"] == "damping"
@@ -128,6 +131,26 @@ def test_control_scene_with_noise_is_adequate(control):
     assert d["candidates"] == []
     assert {t["effect"] for t in d["tested"]} == {"damping", "plasticity", "ground", "viscoelasticity",
                                                    "camera:time_offset"}
+
+
+def test_a_refit_on_a_scene_without_the_effect_is_not_accepted(control):
+    """Damping refitted on the control scene (no hidden effect) from c = 2/s, against the base and
+    the base refitted alike on the same held-back frames: not accepted, with its drop's standard
+    error and p-value reported (the old rule accepted any lower held-back loss)."""
+    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
+    from physinteract_usd.diagnose.refit import held_back_frames, refit_effect, refit_null
+
+    prob, base = _problem(control)
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("damping",)))
+    cr = d.results[0]
+    assert not cr.significant
+    val = held_back_frames(prob.T, 4, d._ctx["res"], cr.probes[cr.best].column if cr.best >= 0 else None)
+    null = refit_null(d, val, iterations=2)
+    cr.estimate = {"coefficient": 2.0}
+    refit_effect(d, cr, iterations=2, frames=val, null=null)
+    assert cr.held_back_se is not None and cr.held_back_se > 0 and 0 < cr.held_back_p <= 1
+    assert cr.accepted is False, cr.note
+    assert "not accepted" in cr.note
 
 
 @pytest.mark.slow

@@ -128,9 +128,11 @@ def _best_start(prob, base, settings, starts: int, iterations: int, log):
 def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
     """Step 7 of the method (docs/diagnose.md): the top `refit` significant candidates, each with the
     candidates it explains away (its confusable rivals, `CandidateResult.rivals`), refitted briefly
-    on shared held-back frames, against the base refitted alike (`refit.refit_null`). Within a group
-    the held-back frames decide: the candidate with the largest accepted held-back drop takes the
-    group's place (a rival that wins is named, with its own marginal test), the others follow."""
+    on shared held-back frames, against the base refitted alike (`refit.refit_null`); each accepted by
+    a paired test over the held-back blocks (`refit.held_back_test`). Within a group the held-back
+    frames decide (`refit.compare_rivals`): a rival takes the group's place only when its held-back
+    residual is significantly below the selected one's (or the selected one was not accepted); a
+    rival that wins is named, with its own marginal test, the others follow."""
     from ..diagnose.core import estimate_of
     from ..diagnose.refit import compare_rivals, group_frames, refit_null
 
