@@ -68,15 +68,22 @@ def main():
     e_gt = read_gt_array(a.gt, "youngs_modulus.npy")
     rows = []
 
+    results = []
+
     def row(name, r, train, val, cpu, **extra):
-        tl, vl = frame_losses(prob, r, s, train), frame_losses(prob, r, s, val)
-        out = {"tag": a.tag, "stage": str(a.stage), "candidate": name, "ma": M.material_accuracy(r.youngs_gaussian, e_gt),
-               "training": float(np.mean(tl)), "held_back": float(np.mean(vl)), "held_back_frames": vl,
-               "median_e": float(np.median(r.youngs)), "cpu_s": cpu, **extra}
-        rows.append(out)
-        print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()
-                          if k != "stage"}), flush=True)
-        return out
+        results.append((name, r, train, val, cpu, extra))
+
+    def emit(e_top):
+        """Every model's losses at one substep (the stiffest model's: `select.pinned_substep`)."""
+        for name, r, train, val, cpu, extra in results:
+            tl, vl = frame_losses(prob, r, s, train, e_top), frame_losses(prob, r, s, val, e_top)
+            out = {"tag": a.tag, "stage": str(a.stage), "candidate": name,
+                   "ma": M.material_accuracy(r.youngs_gaussian, e_gt), "training": float(np.mean(tl)),
+                   "held_back": float(np.mean(vl)), "held_back_frames": vl, "median_e": float(np.median(r.youngs)),
+                   "cpu_s": cpu, "judged_at_e": e_top, **extra}
+            rows.append(out)
+            print(json.dumps({k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()
+                              if k != "stage"}), flush=True)
 
     cands: dict = {}
     c0 = time.process_time()
@@ -88,7 +95,8 @@ def main():
     for name, r in cands.items():
         row(name, r, train, val, None)
     row("select (final, all frames)", rs, train, val, c_sel, chosen=m["chosen"],
-        tests={k: v.get("why") for k, v in (m.get("tests") or {}).items()})
+        tests={k: v.get("why") for k, v in (m.get("tests") or {}).items()},
+        select_losses={k: v.get("held_back") for k, v in (m.get("models") or {}).items()})
     # the truth per particle: the nearest Gaussian's at rest
     gm0 = np.asarray(rs.gaussian_means[0])
     _, nn = cKDTree(gm0).query(np.asarray(rs.positions[0]))
@@ -117,6 +125,7 @@ def main():
             c0 = time.process_time()
             ra = fit_bumps(prob, sb, progress=False, log=None)
             row("bumps on all frames (reference)", ra, train, val, round(time.process_time() - c0, 1))
+    emit(max(float(np.max(r.youngs)) for _, r, *_ in results))
     if a.out:
         with open(a.out, "a") as f:
             for r in rows:

@@ -417,7 +417,9 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
     trajs = [t.clone() for t in prob.initial_trajectories()]
     for i, n in enumerate(names):
         if n in (start.get("trajectories") or {}):
-            trajs[i] = torch.as_tensor(np.asarray(start["trajectories"][n]), dtype=prob.tdtype, device=prob.tdev)
+            # a copy: on the CPU `as_tensor` would share the start's array, and the optimiser's
+            # in-place steps would rewrite the trajectory of the model the fit started from
+            trajs[i] = torch.tensor(np.array(start["trajectories"][n]), dtype=prob.tdtype, device=prob.tdev)
     eff_raw = effect_parameters(prob, s.fit_effects, start.get("effects") or None)
 
     def eff_now():
@@ -593,22 +595,54 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
         say(f"parts by {c['kind']}: simplex over the parts' E together ({ref['probes']} probes): E "
             + ", ".join(f"{math.exp(v):.4g}" for v in ref["log_e"]) + f" Pa, training loss {ref['loss']:.5f}")
         r = {**r, "log_e": ref["log_e"], "loss": ref["loss"]}
-    start = {"poisson": ru.poisson, "trajectories": ru.trajectories, "effects": ru.effect_parameters}
+    start = {"poisson": np.array(ru.poisson), "trajectories": {n: np.array(v) for n, v in (ru.trajectories or {}).items()},
+             "effects": ru.effect_parameters}
     rp = fit_parts(view, s, c["labels"], r["log_e"], start, iterations, progress=progress, log=log,
                    on_iteration=on_iteration)
     rec["sweep_loss"] = r["loss"]
     return rp, rec
 
 
-def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames) -> list[float]:
-    """The reconstruction loss of each of `frames` for a fit result (one forward pass)."""
+def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames, e_bound: float | None = None) -> list[float]:
+    """The reconstruction loss of each of `frames` for a fit result (one forward pass). `e_bound`:
+    simulate at the adaptive substep of that stiffness (`pinned_substep`), not the one the
+    simulator happens to hold."""
     t, trajs, eff = _result_inputs(prob, r, s)
-    with torch.no_grad():
+    with torch.no_grad(), pinned_substep(prob, e_bound):
         try:
             x, F = prob.simulate(t(r.youngs), t(r.poisson), trajs, eff)
         except SimulationError:
             return [float("inf")] * len(frames)
         return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]
+
+
+class pinned_substep:
+    """Within it, the simulator's adaptive substep is the one for a field whose largest E is
+    `e_bound` (its rung; None: unchanged), whatever E is simulated. Models compared on held-back
+    frames are simulated at one substep: the adaptive substep depends on the largest E and, through
+    its hysteresis, on what was simulated before, and a different time step changes the loss (on
+    hemp_rope, grid 32, by about 2% between two rungs: as much as the candidates differ)."""
+
+    def __init__(self, prob, e_bound: float | None):
+        self.sim = getattr(prob, "sim", None)
+        self.e_bound = e_bound
+
+    def __enter__(self):
+        sim = self.sim
+        self.was = None
+        if self.e_bound is None or sim is None or not getattr(sim, "adaptive", False):
+            return self
+        self.was = sim.adaptive
+        want = sim.bound_for(float(self.e_bound))
+        if want != sim.e_bound:
+            sim._use_bound(want)
+        sim.adaptive = False
+        return self
+
+    def __exit__(self, *exc):
+        if self.was is not None:
+            self.sim.adaptive = self.was
+        return False
 
 
 def select_rule(uniform_val: list[float], field_val: list[float], added: int, s: FitSettings) -> dict:
@@ -767,7 +801,11 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
         return r
 
     def start_of(r: FitResult) -> dict:
-        return {"youngs": r.youngs, "poisson": r.poisson, "trajectories": r.trajectories,
+        # copies: on the CPU a fit started from these arrays optimises them in place (`torch.as_tensor`
+        # shares a numpy array's memory), which rewrote the trajectory of every model started from
+        # (uniform, parts) and made later candidates start from the last fit's trajectory
+        return {"youngs": np.array(r.youngs), "poisson": np.array(r.poisson),
+                "trajectories": {n: np.array(v) for n, v in (r.trajectories or {}).items()},
                 "effects": r.effect_parameters}
 
     # 1. the uniform stage
@@ -790,12 +828,20 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     coeffs = {"uniform": 1}
     losses = {}
 
-    def judge(name):
+    def judge(name, e_bound=None):
         r_ = models[name]
-        tl = frame_losses(prob, r_, s, train)
-        vl = frame_losses(prob, r_, s, val)
+        every = sorted(set(train) | set(val))           # one forward pass for both
+        fl = dict(zip(every, frame_losses(prob, r_, s, every, e_bound)))
+        tl, vl = [fl[k] for k in train], [fl[k] for k in val]
         losses[name] = {"training": float(np.mean(tl)), "held_back": float(np.mean(vl)) if vl else None,
                         "held_back_frames": vl, "coefficients": coeffs[name], "median_e": float(np.median(r_.youngs))}
+
+    def rejudge(names):
+        """The models compared, at one substep: the one for the stiffest of them."""
+        e_top = max(float(np.max(models[n].youngs)) for n in names)
+        for n in names:
+            judge(n, e_top)
+        model["judged_at_e"] = e_top
 
     judge("uniform")
     tests = {}
@@ -814,7 +860,7 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
             models["parts"] = rp
             coeffs["parts"] = len(rp.model["part_fit"])
             prec["e"] = [p["e"] for p in rp.model["part_fit"]]
-            judge("parts")
+            rejudge(["uniform", "parts"])
             if not rp.interrupted:
                 tests["parts"] = select_rule(losses["uniform"]["held_back_frames"], losses["parts"]["held_back_frames"],
                                              coeffs["parts"] - 1, s)
@@ -854,7 +900,10 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
                                                            start=start_of(models["uniform"])))
         coeffs["field_uniform"] = k_field
         judge("field_uniform")
-    # 5. the held-back tests: each step kept only if it pays for its added coefficients
+    # 5. the held-back tests: each step kept only if it pays for its added coefficients, every
+    # model simulated at one substep
+    if not any(m.interrupted for m in models.values()):
+        rejudge(list(models))
     chosen = base
     if "field" in models and not models["field"].interrupted:
         test = select_rule(losses[base]["held_back_frames"], losses["field"]["held_back_frames"],
