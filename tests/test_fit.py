@@ -199,8 +199,11 @@ def test_confidence_low_where_held_high_where_bending(fitted):
     assert held.sum() >= 20 and bending.sum() >= 40
     c = r.confidence
     assert np.median(c[bending]) > 5 * np.median(c[held]), (np.median(c[bending]), np.median(c[held]))
-    # absolute levels: the residuals' correlation discounts the pixel count (measured: ~0.21 vs 0.006)
-    assert np.median(c[bending]) > 0.15 and np.median(c[held]) < 0.05
+    # absolute levels: the residuals' correlation discounts the pixel count (measured with the
+    # finite-difference diagonal: 0.86 vs 0.065; with 4 Rademacher probes, before: 0.21 vs 0.006, the
+    # probes' noise pulling the confidence down: 32 probes give a median of 0.68 over all particles
+    # where the differences give 0.81, tests/test_fit_confidence.py)
+    assert np.median(c[bending]) > 0.5 and np.median(c[held]) < 0.15
     # per Gaussian: interpolated from the particles, so the same split shows
     from scipy.spatial import cKDTree
 

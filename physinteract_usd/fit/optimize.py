@@ -689,6 +689,7 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
         h = float(min(FD_LOG_E_STEP / max(float(reach[k]), 1e-12), 1.0))
         step = torch.zeros_like(theta.detach())
         step[k] = h
+        stopping.check("backward")   # these forwards are the estimate's work: a stop acts here, as in a probe's backward
         with torch.no_grad():
             mat.theta = theta.detach() - step
             try:
