@@ -46,6 +46,9 @@ def main():
     ap.add_argument("--set", action="append", default=[], help="key=value FitSettings override (select only)")
     ap.add_argument("--skip-bumps-all", action="store_true", help="no reference bumps fit on all frames")
     ap.add_argument("--skip-bumps", action="store_true", help="select only")
+    ap.add_argument("--field-uniform-iterations", type=int, default=None,
+                    help="select's field from uniform: this many iterations (default: the field step's; 15 = what "
+                         "the bumps ladder spends on its 8-bump level at 20 iterations)")
     a = ap.parse_args()
 
     import torch
@@ -87,7 +90,8 @@ def main():
 
     cands: dict = {}
     c0 = time.process_time()
-    rs = fit_select(prob, s, progress=False, log=log, candidates=cands)
+    rs = fit_select(prob, s, progress=False, log=log, candidates=cands,
+                    field_uniform_iterations=a.field_uniform_iterations)
     c_sel = round(time.process_time() - c0, 1)
     m = rs.model
     train, val = m["training_frames"], m["held_back_frames"]

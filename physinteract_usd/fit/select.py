@@ -775,10 +775,13 @@ def model_summary(model: dict | None) -> dict:
 
 
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
-               on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None) -> FitResult:
+               on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None,
+               field_uniform_iterations: int | None = None) -> FitResult:
     """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field.
     `candidates` (a dict, optional): receives every candidate model's FitResult by name, trained on
-    the training frames (benchmarks: what each candidate would have scored)."""
+    the training frames (benchmarks: what each candidate would have scored).
+    `field_uniform_iterations` (benchmarks): the field from the uniform model's iterations (default:
+    the field step's, n; the bumps ladder spends `level_share[-1]` of its budget there, 15 of 20)."""
     if start is not None:
         return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
     say = log or (lambda *a: None)
@@ -894,7 +897,8 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     # partition, and a field nested on them keeps their boundaries (docs/benchmarks/fit.md, session 8)
     if (base == "parts" and bool(s.select_field_from_uniform) and k_field > 1
             and not any(m.interrupted for m in models.values())):
-        sf = dataclasses.replace(s, levels=(k_field,), level_share=(1.0,), iterations=n_field, confidence_probes=0,
+        n_fu = n_field if field_uniform_iterations is None else max(int(field_uniform_iterations), 1)
+        sf = dataclasses.replace(s, levels=(k_field,), level_share=(1.0,), iterations=n_fu, confidence_probes=0,
                                  search_effects=())
         models["field_uniform"] = run(lambda cb: fit_bumps(view, sf, progress=progress, log=log, on_iteration=cb,
                                                            start=start_of(models["uniform"])))
