@@ -95,3 +95,29 @@ def test_a_uniform_level_at_the_searched_minimum_has_patience_one():
     demo = [0.0149, 0.0156]
     assert plateaued(demo, level_patience(3, True, 1), 0.005)
     assert not plateaued(demo, level_patience(3, False, 1), 0.005)
+
+
+def test_the_uniform_level_after_the_start_search_is_skipped_when_the_next_fits_nu(tmp_path):
+    """levels (1, 4) with nu fitted on both: the uniform level after the start search is skipped
+    (every iteration on 4 bumps, all the budget's iterations but the uniform level's share unused),
+    it runs when asked to (skip_searched_uniform off) or when the next level does not fit nu."""
+    import fit_scene as fs
+
+    from physinteract_usd import api
+    from physinteract_usd.fit import FitProblem, FitSettings
+    from physinteract_usd.fit import fit as run_fit
+    from physinteract_usd.usd.stage import read_stage
+
+    sc = fs.build(tmp_path / "base")
+    sd = read_stage(sc["stage"])
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, sc["gt"]))
+    ks = {}
+    for name, kw in (("skip", {}), ("off", {"skip_searched_uniform": False}), ("nu1", {"fit_poisson_levels": 1})):
+        seen, logs = [], []
+        s = FitSettings(iterations=4, levels=(1, 4), level_share=(0.5, 0.5), search_evals=2, joint=False,
+                        confidence_probes=0, seed=0, plateau_patience=0, **{"fit_poisson_levels": 2, **kw})
+        run_fit(prob, s, progress=False, log=logs.append, on_iteration=lambda it, lv, mat, tr: seen.append(mat.K))
+        ks[name] = (seen, any("skipped" in m for m in logs))
+    assert ks["skip"] == ([4, 4], True)
+    assert ks["off"] == ([1, 1, 4, 4], False)
+    assert ks["nu1"] == ([1, 1, 4, 4], False)

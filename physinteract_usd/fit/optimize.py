@@ -96,6 +96,7 @@ class FitSettings:
     plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
     plateau_tail: int = 4               # ... after this many iterations from the best iterate at a falling LR (0: off)
     plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
+    skip_searched_uniform: bool = True  # ... and that level is skipped where the next one fits nu too (no effects fitted)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -307,6 +308,14 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     it = 0
     try:
         for li, (k, n_it) in enumerate(zip(levels, per_level)):
+            if (li == 0 and start is None and s.skip_searched_uniform and k == 1 and mat.K == 1 and len(levels) > 1
+                    and s.fit_poisson_levels > 1 and not eff_raw):
+                # the uniform level after the start search: the search minimised this loss over
+                # this E and the next level fits nu too, so the level would repeat them (on the demo
+                # its iterations never beat its first: docs/benchmarks/cpu.md, "Levers, session 9")
+                if log:
+                    log("level 1 (K=1) skipped: the start search found its E, level 2 fits nu too")
+                continue
             if li > 0:
                 if "theta" in best:  # refine from the best iterate so far
                     mat.B, mat.nu_basis = best["B"], best["nu_basis"]
