@@ -217,3 +217,39 @@ def test_cli_schedule_select_prints_and_records_the_model(tmp_path, monkeypatch,
     assert "no held-back frames" in m["test"] and m["uniform_curve"] in ("flat", "single", "multimodal")
     rep = read_scene(b["stage"]).reports[-1]["material_model"]
     assert rep["chosen"] == "uniform" and rep["held_back_frames"] == []
+
+
+def test_a_fit_started_from_a_model_leaves_that_model_and_the_judged_substep_alone(tmp_path):
+    """On the CPU `torch.as_tensor` shares a numpy array's memory: a parts fit started from a model's
+    trajectory used to optimise that array in place, rewriting the model it started from (every
+    select candidate ended sharing one trajectory). And the held-back judge simulates at a pinned
+    substep, whatever rung the simulator held before."""
+    from physinteract_usd.app.fit import make_problem, prepare_fit
+    from physinteract_usd.fit.select import fit_parts, pinned_substep
+
+    b = fs.build(tmp_path / "bar", E=2e4, density=2e4 / E_OVER_RHO, n_frames=6, e_range=(1e3, 1e7), lift=LIFT)
+    job = prepare_fit(b["stage"], iterations=2, contact_from=b["gt"], joint=True, log=lambda *a: None,
+                      settings_overrides={"schedule": "select"})
+    prob = make_problem(job)
+    names = prob.sim.slot_names()
+    assert names, "the bar has a hand trajectory to fit"
+    start = {"poisson": np.full(len(prob.x0), 0.3), "effects": None,
+             "trajectories": {n: t.detach().cpu().numpy().copy() for n, t in zip(names, prob.initial_trajectories())}}
+    before = {n: v.copy() for n, v in start["trajectories"].items()}
+    labels = (prob.x0[:, 0] > np.median(prob.x0[:, 0])).astype(np.int64)
+    s = FitSettings(**{**SETTINGS, "joint": True})
+    r = fit_parts(prob, s, labels, np.log([1.5e4, 2.5e4]), start, 2)
+    for n in names:
+        # the result's trajectory is its own array (it was the start's, stepped in place)
+        assert not np.shares_memory(r.trajectories[n], start["trajectories"][n])
+        np.testing.assert_array_equal(start["trajectories"][n], before[n])
+    sim = prob.sim
+    with pinned_substep(prob, 1e7):
+        top = sim.substeps
+        E = torch.full((len(prob.x0),), 1e3, dtype=prob.tdtype)
+        with torch.no_grad():
+            prob.simulate(E, torch.full_like(E, 0.3))
+        assert sim.substeps == top          # a soft field does not move the pinned rung
+    with torch.no_grad():
+        prob.simulate(E, torch.full_like(E, 0.3))
+    assert sim.adaptive and sim.substeps < top    # unpinned again: the soft field's own rung
