@@ -702,3 +702,89 @@ def test_a_grasp_read_on_the_approach_moves_to_where_the_object_starts_to_follow
     still = coupled.copy()
     still[2] = 0                                              # a rest on the way: not an approach
     assert past_the_approach(0, still, speed, (5, 11)) == 0
+
+
+def _toucher_scene(hand: np.ndarray, obj: np.ndarray, R: float = 4.0):
+    """A one-frame analysis stand-in: the toucher's and the object's masks."""
+    return SimpleNamespace(hand=hand[None], obj=obj[None], R=R, T=1, H=hand.shape[0], W=hand.shape[1])
+
+
+def test_a_ball_touching_an_object_is_a_point_contact_however_long_its_interface():
+    """(#23, sixth pass) a plain sphere pressed into a ring or a bar meets it along an arc, which
+    the interface span read as a palm. A ball's free outline is one circle whose radius is half
+    its extent; a palm's (a flat ellipse with fingers) is not."""
+    from physinteract_usd.extract.analysis import disk_mask
+    from physinteract_usd.extract.interaction_type import circle_fit, is_ball, toucher_roundness
+
+    # the circle fit recovers a known circle
+    t = np.linspace(0, 1.5 * np.pi, 40)
+    c, r, rms = circle_fit(np.stack([3 + 7 * np.cos(t), -2 + 7 * np.sin(t)], 1))
+    assert np.allclose(c, [3, -2]) and r == pytest.approx(7) and rms < 1e-9
+    H = W = 80
+    obj = np.zeros((H, W), bool)
+    obj[40:, 10:70] = True                                     # the object, below
+    ball = disk_mask((H, W), (40, 30), 11.0) & ~obj            # a ball sunk into it, its lower part hidden
+    rnd = toucher_roundness(_toucher_scene(ball, obj), 0, np.array([40.0, 40.0]), 0)
+    assert rnd is not None and is_ball(rnd)
+    yy, xx = np.mgrid[0:H, 0:W]
+    palm = (((xx + 0.5 - 40) / 30) ** 2 + ((yy + 0.5 - 35) / 5) ** 2 <= 1) & ~obj
+    palm |= (xx >= 62) & (xx < 66) & (yy >= 20) & (yy < 36)   # a finger
+    rnd_p = toucher_roundness(_toucher_scene(palm, obj), 0, np.array([40.0, 40.0]), 0)
+    assert rnd_p is not None and not is_ball(rnd_p)
+    # the rules: the same long interface is a palm's unless the toucher is a ball
+    press = {"push_cos": -0.9, "contact_motion_px": 8.0, "interface_span": 0.7}
+    assert classify_interaction(press)[0] == "surfaceNonAdherent"
+    assert classify_interaction(dict(press, toucher_round=rnd))[0] == "pointNonAdherent"
+    assert classify_interaction(dict(press, toucher_round=rnd_p))[0] == "surfaceNonAdherent"
+
+
+def test_a_toucher_that_arrives_and_presses_on_at_once_rests_for_one_frame():
+    """(#23, sixth pass; dev_9301) a sphere comes down onto a stiff sheet (2.2 .. 0.36 px a frame),
+    slows to 0.27 px for one frame and presses on the same way: it arrived there (grasp 11, truly
+    11), not at the turn at the bottom of the press (18..22, read before)."""
+    from physinteract_usd.extract.timing import rest_onset
+
+    sp = np.array([2.2, 1.74, 1.27, 0.87, 0.36, 0.27, 0.38, 0.55, 0.83, 0.69, 0.91, 0.52, 0.33, 0.34,
+                   0.02, 0.33, 0.31, 0.82, 0.9, 0.65])
+    vh = np.zeros((len(sp), 2))
+    vh[:14, 1] = sp[:14]                        # down: the approach, then the press
+    vh[14:, 1] = -sp[14:]                       # back up
+    assert rest_onset(sp, vh, 0, len(sp) - 1) in (5, 6)
+    # one slow frame without an approach before it is no arrival (a pull's jitter)
+    calm = np.array([0.6, 0.5, 0.6, 0.5, 0.36, 0.27, 0.38, 0.55, 0.83, 0.69, 0.91, 0.52, 0.6, 0.7])
+    vc = np.zeros((len(calm), 2))
+    vc[:, 1] = calm
+    assert rest_onset(calm, vc, 0, len(calm) - 1) is None
+
+
+def test_a_collider_pressing_on_into_a_stiff_object_has_not_let_go():
+    """(#23, sixth pass; dev_9301) a sphere presses a stiff sheet: the sheet next to it moves at a
+    quarter of its speed (pairs 2..5 read apart), then it turns and the sheet springs back with it,
+    then it leaves. Moving on into the object it cannot have parted from it: the release is where
+    it leaves, not the press. A block knocked away faster than the toucher follows is released."""
+    from physinteract_usd.extract.timing import Timing, collider_release, coupling
+
+    T1 = 16
+    vh = np.zeros((T1, 2))
+    vo = np.zeros((T1, 2))
+    vh[0:2, 1] = [0.5, 0.8]
+    vo[0:2, 1] = [0.3, 0.5]                     # the object gives at first
+    vh[2:6, 1] = [0.8, 0.7, 0.9, 0.5]
+    vo[2:6, 1] = [0.1, 0.05, 0.0, 0.05]         # then barely: stiff
+    vh[6:8, 1] = [0.1, -0.1]
+    vh[8:12, 1] = [-0.8, -0.9, -0.6, -0.4]
+    vo[8:12, 1] = [-0.4, -0.5, -0.4, -0.3]      # it springs back with the toucher
+    vh[12:, 1] = [-5.0, -6.0, -6.0, -5.0]       # the toucher leaves
+    vo[12:, 1] = [-0.2, 0.0, 0.0, 0.0]
+    near = np.ones(T1 + 1, bool)
+    coupled = coupling(vh, vo, 0.35)
+    speed = np.linalg.norm(vh, axis=1)
+    tm = Timing(vh, vo, coupled, near, (0, T1), speed, 0, release(coupled, near, 0, speed, vh=vh, vo=vo, eps=0.35))
+    assert tm.release is not None and tm.release <= 3           # the press read as parting
+    assert collider_release(tm, np.array([0.0, 1.0])) >= 11
+    # knocked: the object moves on along the push faster than the toucher
+    vo2 = vo.copy()
+    vo2[2:6, 1] = [3.0, 4.0, 4.0, 3.0]
+    c2 = coupling(vh, vo2, 0.35)
+    tm2 = Timing(vh, vo2, c2, near, (0, T1), speed, 0, release(c2, near, 0, speed, vh=vh, vo=vo2, eps=0.35))
+    assert collider_release(tm2, np.array([0.0, 1.0])) == tm2.release

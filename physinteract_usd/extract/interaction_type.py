@@ -28,6 +28,10 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     brief = evidence.get("contact_frames")
     acting = evidence.get("acting_motion_px")
     still = acting is not None and acting < 2.0
+    if is_ball(evidence.get("toucher_round")):
+        # a ball touches a surface at a point, however long its seen interface with the object
+        # (a plain sphere pressed into a ring or a bar: the interface is its arc)
+        surface = 0.0
     if brief is not None and (brief <= 2 or still) and evidence.get("coupled_share", 1.0) < 0.5:
         # touched for a frame or two, or longer with the toucher moving less than 2 px while it
         # acts (a slow press into a sheet on a floor, dev_0009), and parted without the object
@@ -47,6 +51,13 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
             return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
         return "pointNonAdherent", float(min(1.0, -push))
     return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
+
+
+def is_ball(round_: list | None, residual: float = 0.1, size: tuple = (0.8, 1.25)) -> bool:
+    """The toucher is a ball (`toucher_roundness`): its free outline is one circle (RMS residual
+    under `residual` of its radius) whose radius is half its extent (within `size`: a disk's
+    outline circle is exactly that; a palm's or a hand's outline arcs fit a smaller one)."""
+    return round_ is not None and round_[0] < residual and size[0] <= round_[1] <= size[1]
 
 
 # ------------------------------------------------------------------------------ step
@@ -84,6 +95,7 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         into = unit(op.mean(0) - np.asarray(c2, float)) if len(op) else np.zeros(2)
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
     return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
+            "toucher_round": toucher_roundness(an, g, c2, p1),
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
             "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1),
@@ -105,6 +117,58 @@ def hand_body_direction(an: Analysis, k: int, c2: np.ndarray) -> np.ndarray:
     m = lab == comp if comp > 0 else hand
     pts = pixel_centres(m)
     return unit(pts.mean(0) - c2)
+
+
+def circle_fit(pts: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The least-squares circle through (N, 2) points (Kasa's algebraic fit): (centre, radius,
+    RMS distance of the points from it)."""
+    p = np.asarray(pts, np.float64)
+    A = np.column_stack([2 * p, np.ones(len(p))])
+    b = (p ** 2).sum(1)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    c = sol[:2]
+    r = float(np.sqrt(max(sol[2] + c @ c, 0.0)))
+    rms = float(np.sqrt(np.mean((np.linalg.norm(p - c, axis=1) - r) ** 2)))
+    return c, r, rms
+
+
+def toucher_roundness(an: Analysis, g: int, c2, end: int, min_px: int = 12):
+    """How much the toucher at the contact looks like a ball: per frame from the grasp to `end`,
+    the outline of the hand component that touches the object, less where it meets the object (the
+    object may hide part of it), fitted with a circle. Returns the median over the frames of
+    (RMS residual / radius) and of (radius / the component's half extent), or None where no frame
+    shows at least `min_px` free outline pixels. A ball's free outline is an arc of one circle
+    whose radius is half its extent (about (0, 1)); a palm's, a finger on a hand or a tool's is
+    not one circle (a large residual) or a much larger one."""
+    import cv2
+
+    res, size = [], []
+    for k in range(g, min(end, an.T - 1) + 1):
+        hand = an.hand[k]
+        if not hand.any():
+            continue
+        n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+        near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
+        if not (near > 0).any():
+            continue
+        m = lab == np.bincount(near[near > 0], minlength=n).argmax()
+        cont, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        if not cont:
+            continue
+        pts = np.concatenate([c.reshape(-1, 2) for c in cont]).astype(np.float64)
+        touch = dilate(an.obj[k], 2)
+        free = pts[~touch[pts[:, 1].astype(int), pts[:, 0].astype(int)]]
+        if len(free) < min_px:
+            continue
+        _, r, rms = circle_fit(free + 0.5)
+        comp = pixel_centres(m)
+        ext = float(np.ptp(comp, axis=0).max()) + 1.0
+        if r > 0:
+            res.append(rms / r)
+            size.append(r / (0.5 * ext))
+    if not res:
+        return None
+    return [float(np.median(res)), float(np.median(size))]
 
 
 def approach_velocity(an: Analysis, g: int, c2, frames: int = 3):

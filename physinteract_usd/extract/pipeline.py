@@ -46,7 +46,7 @@ from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts, unpin
-from .timing import apply_overrides, collider_start, find_timing, timing_confidence
+from .timing import apply_overrides, collider_release, collider_start, find_timing, timing_confidence
 
 
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
@@ -83,6 +83,12 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
             timing.grasp = g = g2
             evidence["grasp_frame"] = g
             grasp = contact_at_grasp(an, seen, g)
+            hand = track_hand(timing, grasp.uv)
+    if itype != "pointAdherent" and evidence.get("timing_source", {}).get("release") != "user":
+        r2 = collider_release(timing, hand.first_move, an.eps)
+        if r2 != timing.release:   # a collider moving on into the object has not let go of it
+            timing.release = r2
+            evidence["release_frame"] = r2
             hand = track_hand(timing, grasp.uv)
     timing_confidence(timing, an.eps, evidence, notes)
     if itype == "pointNonAdherent" and seen.hint_uv is None and seen.hint_particles is None:

@@ -24,6 +24,7 @@ class Timing:
     speed: np.ndarray              # (T-1,) the hand's speed, px / frame
     grasp: int                     # the frame the contact starts
     release: int | None            # None: held to the end
+    share: float = 0.0             # the share of the toucher's speed the object kept in contact (`contact_share`)
 
 
 def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
@@ -53,7 +54,7 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
-    return Timing(vh, vo, coupled, near, (p0, p1), speed, g, r)
+    return Timing(vh, vo, coupled, near, (p0, p1), speed, g, r, share)
 
 
 def contact_run(coupled: np.ndarray, near: np.ndarray, vh: np.ndarray, vo: np.ndarray, eps: float):
@@ -135,7 +136,7 @@ def apply_overrides(timing: Timing, hint, evidence: dict, notes: list) -> Timing
         src["release"] = "user"
     evidence.update({"timing_source": src, "grasp_frame": g, "release_frame": r})
     return Timing(timing.hand_velocity, timing.object_velocity, timing.coupled, timing.near, timing.period,
-                  timing.speed, g, r)
+                  timing.speed, g, r, timing.share)
 
 
 def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -> str:
@@ -213,6 +214,30 @@ def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
         if c[k] > 0:
             return k
     return g
+
+
+def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
+    """A collider's release (a fingertip, a sphere, a palm pushes; it cannot pull): a pair in which
+    it moves on into the object (within 60 deg of its push `push_uv`, the first main motion in the
+    image) faster than the object next to the contact gives way along the push cannot part them
+    (it would pass through the object: it presses a stiff one that barely gives, dev_9301: a
+    sphere pressing a 6e5 Pa sheet, moving 0.8 px a frame into it against the sheet's 0.2). Such
+    pairs are no evidence of parting; the release is read again without them (`release`). A
+    toucher that moves into the object slower than the object moves away along the push has lost
+    it (a knocked block that flies off, dev_0012)."""
+    d = np.asarray(push_uv, float)
+    nd = float(np.linalg.norm(d))
+    if nd < 1e-9:
+        return timing.release
+    d = d / nd
+    vh, vo, c = timing.hand_velocity, timing.object_velocity, timing.coupled.copy()
+    for k in range(timing.grasp, len(c)):
+        if c[k] >= 0 or not (np.isfinite(vh[k]).all() and np.isfinite(vo[k]).all()):
+            continue
+        ih, io = float(vh[k] @ d), float(vo[k] @ d)
+        if ih > max(eps, 0.5 * float(np.linalg.norm(vh[k]))) and io < ih:
+            c[k] = 0
+    return release(c, timing.near, timing.grasp, timing.speed, vh=vh, vo=vo, share=timing.share, eps=eps)
 
 
 def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> np.ndarray:
@@ -404,8 +429,18 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
         na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
         return speed[k] < min(na, nb) and float(np.dot(a, b)) < 0.5 * na * nb
 
+    def arrival(k):
+        # one frame slower than eps where the toucher, coming in at 3 eps or more within the 3
+        # pairs before, slows to its least speed and then moves on: it arrived there (a sphere
+        # that comes down onto a sheet and presses on at once, dev_9301: 1.3, 0.9, 0.4, 0.27, 0.4,
+        # 0.5 px; a hand's grasp with no dwell)
+        if not (slow(k) and 3 <= k < T1 - 1 and np.isfinite(speed[k - 1]) and np.isfinite(speed[k + 1])):
+            return False
+        before = [speed[j] for j in range(k - 3, k) if np.isfinite(speed[j])]
+        return speed[k - 1] > speed[k] < speed[k + 1] and bool(before) and max(before) >= 3 * eps
+
     s = next((k for k in range(p0, hi + 1) if (slow(k) and (slow(k + 1) or (k > 0 and not np.isfinite(speed[k - 1]))))
-              or turn(k)), None)
+              or turn(k) or arrival(k)), None)
     if s is None:
         return None
     w = [speed[s]]
