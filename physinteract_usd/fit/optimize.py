@@ -92,9 +92,11 @@ class FitSettings:
     lr_effects: float = 0.05            # ... on their log values (the ground's height as is)
     search_effects: tuple = ()          # effects just switched on: their start found first by a 1-D search
     effect_search_points: int = 6       # ... of this many log-spaced probes (+ 4 golden-section steps)
-    plateau_patience: int = 3           # convergence stop (fit/converge.py): a level ends when its last this-many
+    plateau_patience: int = 2           # convergence stop (fit/converge.py): a level ends when its last this-many
     plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
-    plateau_tail: int = 4               # ... after this many iterations from the best iterate at a falling LR (0: off)
+    plateau_tail: int = 2               # ... after this many iterations from the best iterate at a falling LR (0: off)
+                                        # (3 and 4 before: the demo 3 iterations longer, loss 1.3% lower, MA 0.926 vs
+                                        # 0.927, masked PSNR +0.16 dB; docs/benchmarks/cpu.md "Levers, session 9")
     plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
     skip_searched_uniform: bool = True  # ... and that level is skipped where the next one fits nu too (no effects fitted)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
