@@ -788,3 +788,20 @@ def test_a_collider_pressing_on_into_a_stiff_object_has_not_let_go():
     c2 = coupling(vh, vo2, 0.35)
     tm2 = Timing(vh, vo2, c2, near, (0, T1), speed, 0, release(c2, near, 0, speed, vh=vh, vo=vo2, eps=0.35))
     assert collider_release(tm2, np.array([0.0, 1.0])) == tm2.release
+
+
+def test_an_object_carrying_on_its_own_motion_is_not_following_the_toucher():
+    """(#23, sixth pass; dev_9331) a plush toy still sliding sideways on the floor (2.1 px a frame)
+    as a palm lands on it: its motion next to the contact in the first pairs carries on what it did
+    before the palm came, so it is no evidence the palm moves it; from where it turns (the press,
+    down) it is. An object at rest before the contact: nothing is discounted."""
+    from physinteract_usd.extract.timing import carried_on
+
+    vo = np.array([[2.24, 1.23], [1.61, 0.65], [1.12, 0.17], [-0.07, 0.25], [-0.22, 0.66], [-0.4, 0.6]])
+    coupled = np.ones(len(vo), np.int8)
+    before = np.array([2.06, 0.93])
+    assert carried_on(coupled, vo, 0, before, 0.35) == [0, 1, 2]
+    assert carried_on(coupled, vo, 0, np.array([0.1, 0.05]), 0.35) == []
+    assert carried_on(coupled, vo, 0, None, 0.35) == []
+    # faster than it was moving (1.5x): the toucher drives it
+    assert carried_on(coupled, vo * 2.0, 0, before, 0.35) == []

@@ -41,6 +41,11 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     coupled = coupling(vh, vo, an.eps)
     near = seen.touching | (np.array([c is not None for c in seen.centres]) & (seen.hint_uv is not None))
     p0, p1 = contact_period(near)
+    before = motion_before(an, seen.centres, p0)
+    own = carried_on(coupled, vo, p0, before, an.eps)
+    if own:
+        coupled[own] = 0
+        evidence["moving_before_contact_px"] = np.round(before, 3).tolist()
     speed = np.linalg.norm(vh, axis=1)
     g = contact_start(speed, near, p0, p1, coupled, vh)
     run = contact_run(coupled, near, vh, vo, an.eps)
@@ -309,6 +314,42 @@ def velocities(an: Analysis, centres: list):
         if v is not None:
             vo[k] = v
     return vh, vo
+
+
+def motion_before(an: Analysis, centres: list, p0: int) -> np.ndarray | None:
+    """The object's own image motion (px / frame) where the contact will be, in the frame pair just
+    before the toucher reaches it (p0 - 1 -> p0): its median flow within 2 R of the contact's
+    first centre, clear of the toucher. None where there is no such pair or nothing is seen."""
+    c = centres[p0] if 0 <= p0 < len(centres) else None
+    if c is None or p0 < 1:
+        return None
+    k = p0 - 1
+    o_in = erode(an.obj[k], 1) & ~dilate(an.hand[k] | an.hand[k + 1], an.clear)
+    v = median_flow(an.flows.forward[k], o_in & disk_mask((an.H, an.W), c, 2.0 * an.R))
+    return None if v is None else np.asarray(v, float)
+
+
+def carried_on(coupled: np.ndarray, vo: np.ndarray, p0: int, before, eps: float) -> list:
+    """The first pairs of the contact in which the object next to it only carries on moving as it
+    did before the toucher came (`before`, at least 2 `eps`: an object settling or sliding on its
+    own): its way (within 60 deg) and no faster than 1.5x. Its following there is no evidence the
+    toucher moves it (dev_9331: a plush toy still sliding sideways at 2 px a frame on the floor as
+    a palm lands on it read as a grasp pulling it sideways)."""
+    if before is None:
+        return []
+    nb = float(np.linalg.norm(before))
+    if nb < 2 * eps:
+        return []
+    out = []
+    for k in range(p0, len(coupled)):
+        v = vo[k]
+        if coupled[k] <= 0 or not np.isfinite(v).all():
+            break
+        n = float(np.linalg.norm(v))
+        if n > 1.5 * nb or float(np.dot(v, before)) < 0.5 * n * nb:
+            break
+        out.append(k)
+    return out
 
 
 def coupling(vh: np.ndarray, vo: np.ndarray, eps: float, floor: float = 0.05) -> np.ndarray:
