@@ -478,7 +478,16 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
         if not (slow(k) and 3 <= k < T1 - 1 and np.isfinite(speed[k - 1]) and np.isfinite(speed[k + 1])):
             return False
         before = [speed[j] for j in range(k - 3, k) if np.isfinite(speed[j])]
-        return speed[k - 1] > speed[k] < speed[k + 1] and bool(before) and max(before) >= 3 * eps
+        if not (speed[k - 1] > speed[k] and before and max(before) >= 3 * eps and k + 2 < T1):
+            return False
+        # ... and moves on from there: the next two pairs above its speed there (+ `noise`), the
+        # same way (the onset below); a toucher that settles after it came in (tongs, dev_9205:
+        # 3.7, 0.12, 0.6, 0.21, 0.19, 0 px) has not arrived at its first slow frame
+        u, v = vh[k + 1], vh[k + 2]
+        if not (np.isfinite(u).all() and np.isfinite(v).all()):
+            return False
+        nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+        return min(nu, nv) > speed[k] + noise and float(np.dot(u, v)) >= 0.5 * nu * nv
 
     s = next((k for k in range(p0, hi + 1) if (slow(k) and (slow(k + 1) or (k > 0 and not np.isfinite(speed[k - 1]))))
               or turn(k) or arrival(k)), None)
