@@ -49,6 +49,8 @@ def main():
     ap.add_argument("--field-uniform-iterations", type=int, default=None,
                     help="select's field from uniform: this many iterations (default: the field step's; 15 = what "
                          "the bumps ladder spends on its 8-bump level at 20 iterations)")
+    ap.add_argument("--attach-grasped", action="store_true",
+                    help="select's motion parts: the hand's grasped particles join the nearest free cluster")
     a = ap.parse_args()
 
     import torch
@@ -91,7 +93,7 @@ def main():
     cands: dict = {}
     c0 = time.process_time()
     rs = fit_select(prob, s, progress=False, log=log, candidates=cands,
-                    field_uniform_iterations=a.field_uniform_iterations)
+                    field_uniform_iterations=a.field_uniform_iterations, attach_grasped=a.attach_grasped)
     c_sel = round(time.process_time() - c0, 1)
     m = rs.model
     train, val = m["training_frames"], m["held_back_frames"]

@@ -253,3 +253,32 @@ def test_a_fit_started_from_a_model_leaves_that_model_and_the_judged_substep_alo
     with torch.no_grad():
         prob.simulate(E, torch.full_like(E, 0.3))
     assert sim.adaptive and sim.substeps < top    # unpinned again: the soft field's own rung
+
+
+def test_the_hands_grasp_can_join_its_neighbour_rather_than_cut_a_motion_part_of_its_own():
+    """A rod whose top wants stiffer and bottom softer (the score's sign), and whose grasped end has a
+    large score of its own (the hand's motion, not the material): the motion cut gives the grasp a
+    part of its own; with `attach_grasped` the grasp joins the bottom, two parts, top / bottom."""
+    import types
+
+    from physinteract_usd.fit.select import grasped_particles, part_candidates
+
+    P = 200
+    x0 = np.stack([np.zeros(P), np.linspace(0.995, 0.0, P), np.zeros(P)], 1)      # top first
+    score = np.linspace(-1.0, 1.0, P)           # a grading: stiffer wanted at the top, softer at the bottom
+    hand = np.arange(P - 20, P)
+    score[hand] = -5.0
+    prob = types.SimpleNamespace(
+        x0=x0, scene=types.SimpleNamespace(settings=types.SimpleNamespace(particle_spacing=0.005)),
+        held_particles=lambda: np.zeros(P, bool), particle_appearance=lambda: np.full((P, 3), 0.5),
+        contacts=[types.SimpleNamespace(indices=hand, type="pointAdherent")])
+    assert grasped_particles(prob).sum() == 20
+    s = FitSettings()
+    plain = [c for c in part_candidates(prob, s, score) if c["kind"] == "motion"][0]
+    assert plain["parts"] == 3 and len(set(plain["labels"][hand])) == 1
+    assert plain["labels"][hand[0]] != plain["labels"][P - 30]           # the grasp is a part of its own
+    fixed = [c for c in part_candidates(prob, s, score, attach_grasped=True) if c["kind"] == "motion"][0]
+    assert fixed["parts"] == 2
+    # the cut at the free particles' median (the middle of the 180), the grasp with the bottom
+    top, bottom = fixed["labels"][:85], fixed["labels"][95:]
+    assert len(set(top)) == 1 and len(set(bottom)) == 1 and top[0] != bottom[0]

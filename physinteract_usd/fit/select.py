@@ -202,14 +202,28 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
 PARTS_MIN_RATIO = 1.25
 
 
-def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None) -> list[dict]:
+def grasped_particles(prob) -> np.ndarray:
+    """(P,) True for particles a contact drives for part of the clip (a hand's grasp) that no support
+    holds from the first frame: while held, their motion is the hand's, not their material's."""
+    held = np.asarray(prob.held_particles(), bool)
+    out = np.zeros(len(prob.x0), bool)
+    for c in getattr(prob, "contacts", []) or []:
+        out[np.asarray(c.indices, np.int64)] = True
+    return out & ~held
+
+
+def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, attach_grasped: bool = False) -> list[dict]:
     """Candidate partitions of the object into parts (`fit.regions`), each {"kind", "labels" (P,)
     0..m-1, "parts"}: by appearance (colour clusters of the particles' local colours, k by
     `regions.colour_clusters`' rule) and by motion (the uniform model's score dL/dlog E split at
     its median: regions that want to strain differently), each cut into connected parts of at
     least `region_min_share` of the particles (smaller pieces join their neighbour), at most
     `select_max_parts`. Held particles (the video cannot see their material) join the nearest free
-    cluster before the cut. The same partition found twice is kept once."""
+    cluster before the cut. The same partition found twice is kept once. `attach_grasped`
+    (benchmarks, #24): in the motion candidate, the particles a hand grasps (`grasped_particles`)
+    join the nearest free cluster too, as held ones do, rather than cut a part of their own: their
+    score is the hand's motion, not their material's (hemp_rope: a part at the hand fitted 1.6
+    kPa, and another time 19.5 kPa, against a truth of 7.5)."""
     from . import regions as R
 
     st = prob.scene.settings
@@ -221,15 +235,16 @@ def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None) ->
     clusters = []
     if s.appearance > 0:
         clusters.append(("appearance", R.colour_clusters(prob.particle_appearance(), free, seed=s.seed)))
+    grasped = grasped_particles(prob) if attach_grasped else np.zeros(P, bool)
     if score is not None:
-        clusters.append(("motion", R.motion_clusters(score, free, graph)))
+        clusters.append(("motion", R.motion_clusters(score, free & ~grasped, graph)))
     out = []
     for kind, cl in clusters:
         if cl is None:
             continue
         # held particles join the nearest free cluster first: a part reaching into a support is
         # one piece through it
-        cl = R.attach_held(cl, held, prob.x0)
+        cl = R.attach_held(cl, held | (grasped if kind == "motion" else False), prob.x0)
         lab = R.connected_parts(cl, graph, min_size, int(s.select_max_parts))
         if lab is None or (lab < 0).any():
             continue
@@ -519,7 +534,7 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
 
 
 def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations: int, *, progress=False, log=None,
-                on_iteration=None) -> tuple[FitResult | None, dict]:
+                on_iteration=None, attach_grasped: bool = False) -> tuple[FitResult | None, dict]:
     """The parts step (module doc, 3.): candidate partitions (`part_candidates`), each part's E
     by a coordinate sweep (`part_sweep`) from the uniform model's E, and the best candidate's also
     from the uniform stage's other distinct minima (`select_part_starts`; the loss of a part can be
@@ -531,7 +546,7 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
     st = prob.scene.settings
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
     score = part_score(prob, ru, s, view._frames)
-    cands = part_candidates(prob, s, score, log=log)
+    cands = part_candidates(prob, s, score, log=log, attach_grasped=attach_grasped)
     rec: dict = {"candidates": []}
     if not cands:
         rec["why"] = "no candidate parts (one colour, and the motion does not split the object)"
@@ -776,12 +791,13 @@ def model_summary(model: dict | None) -> dict:
 
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
                on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None,
-               field_uniform_iterations: int | None = None) -> FitResult:
+               field_uniform_iterations: int | None = None, attach_grasped: bool = False) -> FitResult:
     """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field.
     `candidates` (a dict, optional): receives every candidate model's FitResult by name, trained on
     the training frames (benchmarks: what each candidate would have scored).
     `field_uniform_iterations` (benchmarks): the field from the uniform model's iterations (default:
-    the field step's, n; the bumps ladder spends `level_share[-1]` of its budget there, 15 of 20)."""
+    the field step's, n; the bumps ladder spends `level_share[-1]` of its budget there, 15 of 20).
+    `attach_grasped` (benchmarks): `part_candidates`' option."""
     if start is not None:
         return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
     say = log or (lambda *a: None)
@@ -854,7 +870,7 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
 
         def parts_go(cb):
             got["r"], got["rec"] = parts_stage(prob, view, s, uni, ru, n_parts, progress=progress, log=log,
-                                               on_iteration=cb)
+                                               on_iteration=cb, attach_grasped=attach_grasped)
             return got["r"] if got["r"] is not None else types.SimpleNamespace(loss_history=[])
 
         run(parts_go)
