@@ -33,12 +33,24 @@ def main(argv=None):
     ap.add_argument("gt")
     ap.add_argument("--c", default="0,0.6,1.3,2,2.6,3.5")
     ap.add_argument("--scales", default="", help="the fitted field x these too (comma-separated)")
+    ap.add_argument("--fitted-path", action="store_true",
+                    help="the interaction's path as the stage's current version fitted it (the base fit's), not the truth's")
     a = ap.parse_args(argv)
     t0, c0 = time.perf_counter(), time.process_time()
     sd = api.read_scene(a.stage)
     obs = load_observations(sd)
     obs.hand_masks = true_hand_masks(a.gt, sd.n_frames)
     contacts = true_contacts(sd, a.gt)
+    fitted_paths = {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}
+    if a.fitted_path:                  # the stage's fitted hand path instead of the true one (as a warm refit)
+        inter = [i for i, c in enumerate(contacts) if c.is_interaction]
+        for i in inter:
+            path = fitted_paths.get(contacts[i].name)
+            if path is None and len(inter) == 1 and len(fitted_paths) == 1:
+                path = next(iter(fitted_paths.values()))
+            if path is None:
+                raise SystemExit(f"no fitted path for {contacts[i].name} (fitted: {list(fitted_paths)})")
+            contacts[i] = contacts[i].replace(trajectory=np.asarray(path))
     prob = FitProblem(sd, obs, contacts, effects={"damping": {"coefficient": 0.0}})
     gt = np.load(f"{a.gt}/particles.npz")
     _, idx = cKDTree(gt["rest"]).query(sd.particles_positions)
@@ -62,7 +74,7 @@ def main(argv=None):
         d = np.linalg.norm(gpos[0] - at, axis=1)
         tip = np.argsort(d)[-max(3, int(0.15 * len(d))):]
     truth_c = json.load(open(f"{a.gt}/gt.json"))["hidden_effect"]["parameters"]["coefficient"]
-    out = {"stage": a.stage, "c_true": truth_c, "c": cs, "profiles": {}}
+    out = {"stage": a.stage, "fitted_path": a.fitted_path, "c_true": truth_c, "c": cs, "profiles": {}}
     for name, (E, nu) in fields.items():
         Et = torch.as_tensor(np.clip(E, st.youngs_min, st.youngs_max), dtype=prob.tdtype)
         nut = torch.as_tensor(np.minimum(nu, st.poisson_max), dtype=prob.tdtype)
