@@ -98,7 +98,7 @@ class FitSettings:
                                         # (3 and 4 before: the demo 3 iterations longer, loss 1.3% lower, MA 0.926 vs
                                         # 0.927, masked PSNR +0.16 dB; docs/benchmarks/cpu.md "Levers, session 9")
     plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
-    skip_searched_uniform: bool = True  # ... and that level is skipped where the next one fits nu too (no effects fitted)
+    skip_searched_uniform: bool = True  # ... that level skipped where the next one fits nu too (no effects fitted)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
@@ -700,7 +700,7 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
         h = float(min(FD_LOG_E_STEP / max(float(reach[k]), 1e-12), 1.0))
         step = torch.zeros_like(theta.detach())
         step[k] = h
-        stopping.check("backward")   # these forwards are the estimate's work: a stop acts here, as in a probe's backward
+        stopping.check("backward")   # these forwards are the estimate's work: a stop acts here (as in a backward)
         with torch.no_grad():
             mat.theta = theta.detach() - step
             try:
