@@ -812,3 +812,17 @@ def test_an_object_carrying_on_its_own_motion_is_not_following_the_toucher():
     assert carried_on(coupled, vo, 0, None, 0.35) == []
     # faster than it was moving (1.5x): the toucher drives it
     assert carried_on(coupled, vo * 2.0, 0, before, 0.35) == []
+
+
+def test_a_flat_face_moved_along_its_normal_into_the_object_is_a_press():
+    """(#23, sixth pass; dev_9331, dev_9332) a palm pressing a plush toy from above: its long
+    straight interface moves along its own normal into the object, while its body lies beside
+    the contact (push_cos near 0, which read as a pull). A long interface pulled out of the
+    object (a pinch round a ring, dev_0004) or moved along the face is no press."""
+    palm = {"push_cos": -0.13, "into_cos": 0.42, "contact_motion_px": 13.0, "interface_span": 0.59,
+            "face_normal_cos": 0.86}
+    assert classify_interaction(palm)[0] == "surfaceNonAdherent"
+    assert classify_interaction(dict(palm, face_normal_cos=None))[0] == "pointAdherent"     # as before
+    assert classify_interaction(dict(palm, into_cos=-0.21))[0] == "pointAdherent"           # pulled out
+    assert classify_interaction(dict(palm, face_normal_cos=0.36))[0] == "pointAdherent"     # along the face
+    assert classify_interaction(dict(palm, toucher_round=[0.03, 0.97]))[0] != "surfaceNonAdherent"  # a ball

@@ -39,6 +39,13 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         if surface > 0.45:
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
+    face, into = evidence.get("face_normal_cos"), evidence.get("into_cos")
+    if surface > 0.45 and moved >= 1.0 and face is not None and face >= FACE_NORMAL_COS and into is not None and into > 0:
+        # a long straight interface (not a ball's) whose first main motion goes along its own normal
+        # (closer to it than to the face) and into the object: a flat face pressed into it, a
+        # palm or a board, which cannot hold. Its body lies beside the contact along the face, so
+        # the push-away-from-the-body reading says nothing here (dev_9332: push_cos -0.13)
+        return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
     if push is None or moved < 1.0:
         return "pointAdherent", 0.3
     if push < -0.6 and approach is not None and ap_speed >= 1.0 and approach < 0.0:
@@ -51,6 +58,9 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
             return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
         return "pointNonAdherent", float(min(1.0, -push))
     return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
+
+
+FACE_NORMAL_COS = float(np.cos(np.pi / 4))   # a motion closer to a face's normal than to the face
 
 
 def is_ball(round_: list | None, residual: float = 0.1, size: tuple = (0.8, 1.25)) -> bool:
@@ -83,7 +93,7 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     motion, d2 = hand.motion, hand.first_move
     body = hand_body_direction(an, g, c2)
     push_cos = float(np.dot(unit(d2), body)) if motion > 0 and np.linalg.norm(body) > 0 else None
-    span = interface_span(an, g, c2, p1)
+    span, face = interface_span(an, g, c2, p1, with_normal=True)
     v_app = approach_velocity(an, g, c2)
     app_speed = float(np.linalg.norm(v_app)) if v_app is not None else 0.0
     approach_cos = float(np.dot(unit(v_app), unit(d2))) if app_speed > 0 and motion > 0 else None
@@ -94,7 +104,11 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         op = pixel_centres(an.rest.silhouette & disk_mask((an.H, an.W), c2, 3.0 * an.R))
         into = unit(op.mean(0) - np.asarray(c2, float)) if len(op) else np.zeros(2)
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
+    # the first main motion against the straight interface's normal: a flat face pushed into the
+    # object moves along its own normal
+    face_cos = float(abs(np.dot(unit(d2), face))) if face is not None and motion > 0 else None
     return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
+            "face_normal_cos": face_cos,
             "toucher_round": toucher_roundness(an, g, c2, p1),
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
@@ -183,10 +197,11 @@ def approach_velocity(an: Analysis, g: int, c2, frames: int = 3):
     return np.mean(vs, axis=0) if vs else None
 
 
-def interface_span(an: Analysis, g: int, c2, end: int) -> float:
+def interface_span(an: Analysis, g: int, c2, end: int, with_normal: bool = False):
     """Length of the straight hand-object interface relative to the object's size along it
-    (a palm on a ball: ~0.5+; fingertips: ~0.1-0.3), the largest over the grasp window."""
-    best = 0.0
+    (a palm on a ball: ~0.5+; fingertips: ~0.1-0.3), the largest over the grasp window; with
+    `with_normal`, also that interface's unit normal in the image (None where none is straight)."""
+    best, normal = 0.0, None
     for k in range(g, min(end, an.T - 1) + 1):
         a = an.hand[k] & dilate(an.obj[k], 2) & disk_mask((an.H, an.W), c2, 0.6 * an.obj_size_px)
         if a.sum() < 5:
@@ -201,6 +216,6 @@ def interface_span(an: Analysis, g: int, c2, end: int) -> float:
         op = pixel_centres(an.obj[k] | (an.rest.silhouette & ~an.hand[k]))
         size = float(np.ptp((op - mu) @ axis)) if len(op) else 1.0
         straight = length / max(thick, 1.0)
-        if straight >= 3.0:
-            best = max(best, length / max(size, 1.0))
-    return best
+        if straight >= 3.0 and length / max(size, 1.0) > best:
+            best, normal = length / max(size, 1.0), V[:, 0].copy()
+    return (best, normal) if with_normal else best
