@@ -996,8 +996,13 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
         good = [c for c in sig if c.accepted is not False]
         if not good:
             diag.verdict = "unexplained"
-            diag.reason = (f"{', '.join(c.effect for c in sig)} predicted a loss drop, but none lowered the loss on "
-                           "held-back frames when refitted: the residual is explained by no candidate tested")
+            how = "; ".join(f"{c.effect}: {c.held_back_drop:.2g} +- {c.held_back_se:.2g}, p = {c.held_back_p:.2g}"
+                            for c in sig if c.held_back_drop is not None and c.held_back_se is not None
+                            and c.held_back_p is not None)
+            diag.reason = (f"{', '.join(c.effect for c in sig)} predicted a loss drop, but refitted, none lowered the "
+                           "loss on held-back frames beyond the frames' own spread"
+                           + (f" (held-back drop {how})" if how else "")
+                           + ": the residual is explained by no candidate tested")
             return diag
         top = good[0]
         share = 100.0 * top.drop / L if L > 0 else 0.0
