@@ -287,8 +287,13 @@ def test_resume_needs_a_fit(scene, tmp_path):
 
 
 def _cli_settings(monkeypatch, **kw):
-    """The CLI builds FitSettings(iterations=, joint=, seed=); everything else explicit here."""
-    monkeypatch.setattr(fit_pkg, "FitSettings", fs.settings_factory(**{**fs.SMOKE_SETTINGS, **kw}))
+    """The CLI builds FitSettings(iterations=, joint=, seed=); everything else explicit here (the
+    name the fit verb's application module uses: it imports FitSettings itself)."""
+    import physinteract_usd.app.fit as app_fit
+
+    factory = fs.settings_factory(**{**fs.SMOKE_SETTINGS, **kw})
+    monkeypatch.setattr(fit_pkg, "FitSettings", factory)
+    monkeypatch.setattr(app_fit, "FitSettings", factory)
 
 
 def test_no_joint_leaves_the_trajectory_at_t0(scene, tmp_path, monkeypatch, capsys):
