@@ -94,9 +94,10 @@ class FitSettings:
     effect_search_points: int = 6       # ... of this many log-spaced probes (+ 4 golden-section steps)
     plateau_patience: int = 2           # convergence stop (fit/converge.py): a level ends when its last this-many
     plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
-    plateau_tail: int = 2               # ... after this many iterations from the best iterate at a falling LR (0: off)
-                                        # (3 and 4 before: the demo 3 iterations longer, loss 1.3% lower, MA 0.926 vs
-                                        # 0.927, masked PSNR +0.16 dB; docs/benchmarks/cpu.md "Levers, session 9")
+    plateau_tail: int = 0               # ... after this many iterations from the best iterate at a falling LR (0: the
+                                        # level ends at its best iterate). Patience 3 / tail 4 before: on the demo 5
+                                        # iterations more, loss 0.00474 vs 0.00483, MA 0.926 vs 0.927, masked PSNR
+                                        # 35.18 vs 34.96 dB (docs/benchmarks/cpu.md "Levers, session 9")
     plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
     skip_searched_uniform: bool = True  # ... that level skipped where the next one fits nu too (no effects fitted)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
@@ -392,7 +393,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                             st_["exp_avg"].zero_()   # first step is a full-LR one in every coordinate)
                     if log and stop_at < n_it:
                         log(f"level {li + 1} (K={mat.K}) plateaued at iteration {j + 1} of {n_it}: "
-                            + (f"{n_tail} annealed iterations more" if n_tail else "no better than its start, ends"))
+                            + (f"{n_tail} annealed iterations more" if n_tail else
+                               "ends at its best iterate" if improved(level_losses, s.plateau_tol) else
+                               "no better than its start, ends"))
     except KeyboardInterrupt:
         interrupted = True
         if log:
