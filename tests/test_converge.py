@@ -98,9 +98,9 @@ def test_a_uniform_level_at_the_searched_minimum_has_patience_one():
 
 
 def test_the_uniform_level_after_the_start_search_is_skipped_when_the_next_fits_nu(tmp_path):
-    """levels (1, 4) with nu fitted on both: the uniform level after the start search is skipped
-    (every iteration on 4 bumps, all the budget's iterations but the uniform level's share unused),
-    it runs when asked to (skip_searched_uniform off) or when the next level does not fit nu."""
+    """levels (1, 4) with nu fitted on both: with skip_searched_uniform on, the uniform level after the
+    start search is skipped (every iteration on 4 bumps, the uniform level's share unused); it runs by
+    default (off) and, when on, where the next level does not fit nu."""
     import fit_scene as fs
 
     from physinteract_usd import api
@@ -112,7 +112,7 @@ def test_the_uniform_level_after_the_start_search_is_skipped_when_the_next_fits_
     sd = read_stage(sc["stage"])
     prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, sc["gt"]))
     ks = {}
-    for name, kw in (("skip", {}), ("off", {"skip_searched_uniform": False}), ("nu1", {"fit_poisson_levels": 1})):
+    for name, kw in (("skip", {"skip_searched_uniform": True}), ("off", {}), ("nu1", {"skip_searched_uniform": True, "fit_poisson_levels": 1})):
         seen, logs = [], []
         s = FitSettings(iterations=4, levels=(1, 4), level_share=(0.5, 0.5), search_evals=2, joint=False,
                         confidence_probes=0, seed=0, plateau_patience=0, **{"fit_poisson_levels": 2, **kw})

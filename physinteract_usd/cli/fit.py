@@ -42,7 +42,7 @@ def add_parser(sub):
                         "model vs the bumps field chosen on held-back frames; ladder = uniform then regions")
     s.add_argument("--patience", type=int, default=None, metavar="N",
                    help="convergence stop: a level of the schedule ends when its last N iterations bring no new "
-                        "best loss 0.5%% below the one before (default 2; 0: every iteration runs)")
+                        "best loss 0.5%% below the one before (default 3; 0: every iteration runs)")
     s.add_argument("--track-weight", type=float, default=None, metavar="W",
                    help="weight of the point-track term: the video's 2D point tracks (OpenCV DIS flow, the report's, "
                         "cached) against the projected Gaussians, beside pixels and silhouette (default 0: off; "

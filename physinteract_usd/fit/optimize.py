@@ -92,14 +92,15 @@ class FitSettings:
     lr_effects: float = 0.05            # ... on their log values (the ground's height as is)
     search_effects: tuple = ()          # effects just switched on: their start found first by a 1-D search
     effect_search_points: int = 6       # ... of this many log-spaced probes (+ 4 golden-section steps)
-    plateau_patience: int = 2           # convergence stop (fit/converge.py): a level ends when its last this-many
+    plateau_patience: int = 3           # convergence stop (fit/converge.py): a level ends when its last this-many
     plateau_tol: float = 0.005          # losses brought no new best this much (relative) below the best before,
-    plateau_tail: int = 0               # ... after this many iterations from the best iterate at a falling LR (0: the
-                                        # level ends at its best iterate). Patience 3 / tail 4 before: on the demo 5
-                                        # iterations more, loss 0.00474 vs 0.00483, MA 0.926 vs 0.927, masked PSNR
-                                        # 35.18 vs 34.96 dB (docs/benchmarks/cpu.md "Levers, session 9")
-    plateau_patience_searched: int = 1  # ... the patience of a uniform level that starts at the start search's minimum
-    skip_searched_uniform: bool = True  # ... that level skipped where the next one fits nu too (no effects fitted)
+    plateau_tail: int = 4               # ... after this many iterations from the best iterate at a falling LR (0: the
+                                        # level ends at its best iterate). Session 9 tried patience 2 / tail 0 and the
+                                        # uniform level skipped (patience 1): on the demo 9 iterations fewer at the same
+                                        # MA, but on hemp_rope (H200, grid auto) level 2 stopped at loss 0.00616 instead
+                                        # of 0.00464 and MA fell 0.801 -> 0.397: reverted (docs/benchmarks/fit.md)
+    plateau_patience_searched: int = 3  # ... the patience of a uniform level that starts at the start search's minimum
+    skip_searched_uniform: bool = False  # ... that level skipped where the next one fits nu too (no effects fitted)
     select_supports: bool = True        # the first fit of a guessed support sizes it by the loss
     support_layers: int = 3             # ... at most this many layers more or less than found
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
