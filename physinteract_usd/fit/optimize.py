@@ -262,8 +262,10 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
         for i, (slot, _) in enumerate(prob.traj_slots):
             name = prob.contacts[slot].name
             if name in start.get("trajectories", {}):
-                trajs[i] = torch.as_tensor(start["trajectories"][name], dtype=prob.tdtype,
-                                           device=prob.tdev).requires_grad_(s.joint)
+                # a copy: on the CPU torch.as_tensor would share the caller's numpy array, and the
+                # optimiser would rewrite the result this fit starts from in place
+                trajs[i] = torch.tensor(np.asarray(start["trajectories"][name]), dtype=prob.tdtype,
+                                        device=prob.tdev).requires_grad_(s.joint)
         e_uniform = float(np.exp(np.mean(np.log(start["youngs"]))))
     else:
         skipped: list = []
