@@ -24,6 +24,16 @@ import time
 import numpy as np
 
 
+
+def parabola_min(cs, vals) -> float:
+    """The c of the lowest value, refined by a parabola through it and its two neighbours."""
+    i = int(np.argmin(vals))
+    if 0 < i < len(cs) - 1:
+        a, b, _ = np.polyfit(np.asarray(cs[i - 1:i + 2], float), np.asarray(vals[i - 1:i + 2], float), 2)
+        if a > 0:
+            return float(-b / (2 * a))
+    return float(cs[i])
+
 def _tip_motion(gt, x: np.ndarray, frac: float = 0.15) -> np.ndarray:
     """(T, 3) mean displacement of the particles in the free end: the `frac` farthest from the
     supports (the end that swings after release)."""
@@ -40,14 +50,7 @@ def scan(truth_tip: np.ndarray, gt, cs, after: int, effect_extra=None) -> dict:
         u = _tip_motion(gt, x)
         errs.append(float(np.sum((u[after:] - truth_tip[after:]) ** 2)))
     errs = np.array(errs)
-    i = int(np.argmin(errs))
-    cstar = float(cs[i])
-    if 0 < i < len(cs) - 1:                        # a parabola through the best three
-        x3, y3 = np.asarray(cs[i - 1:i + 2], float), errs[i - 1:i + 2]
-        a, b, _ = np.polyfit(x3, y3, 2)
-        if a > 0:
-            cstar = float(-b / (2 * a))
-    return {"c": [float(c) for c in cs], "err": errs.tolist(), "c_star": cstar}
+    return {"c": [float(c) for c in cs], "err": errs.tolist(), "c_star": parabola_min(cs, errs)}
 
 
 def trade(truth_tip: np.ndarray, gt, cs, e_factors, after: int) -> dict:

@@ -19,6 +19,8 @@ import time
 
 import numpy as np
 
+from damping_bias import parabola_min  # benchmarks/, beside this script
+
 
 def main(argv=None):
     import torch
@@ -89,20 +91,9 @@ def main(argv=None):
                     geo.append(float(np.mean(np.sum((m[1:] - gpos[1:]) ** 2, -1))))
                     geo_after.append(float(np.mean(np.sum((m[rel:] - gpos[rel:]) ** 2, -1))))
                     tip_after.append(float(np.mean(np.sum((m[rel:, tip].mean(1) - gpos[rel:, tip].mean(1)) ** 2, -1))))
-        i = int(np.argmin(prof))
-        cstar = cs[i]
-        if 0 < i < len(cs) - 1:
-            A, B, _ = np.polyfit(cs[i - 1:i + 2], prof[i - 1:i + 2], 2)
-            if A > 0:
-                cstar = float(-B / (2 * A))
-        out["profiles"][name] = {"loss": prof, "c_star": cstar, "median_E": float(np.median(E))}
+        out["profiles"][name] = {"loss": prof, "c_star": parabola_min(cs, prof), "median_E": float(np.median(E))}
         if geo:
-            j = int(np.argmin(geo))
-            gstar = cs[j]
-            if 0 < j < len(cs) - 1:
-                A, B, _ = np.polyfit(cs[j - 1:j + 2], geo[j - 1:j + 2], 2)
-                if A > 0:
-                    gstar = float(-B / (2 * A))
+            gstar = parabola_min(cs, geo)
             after = {}
             for key, g in (("after_release", geo_after), ("tip_after_release", tip_after)):
                 jj = int(np.argmin(g))
