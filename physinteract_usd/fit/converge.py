@@ -4,10 +4,11 @@ A level of the schedule (one basis size, one optimiser) has plateaued when none 
 `patience` losses is more than `tol` (relative) below the best loss before them. It then ends
 from its best iterate, with an optional short tail: `tail` more iterations with the learning rate
 annealed from where it was down to the floor (a cosine), instead of the rest of the level's budget
-(FitSettings' defaults since session 9: patience 2, no tail, so the level ends at its best
-iterate); a level that never got below its first loss ends at once (nothing to anneal). On the
-demo (samples/foam_bar, docs/benchmarks/cpu.md) the bumps level plateaus after ~20 of its 45
-iterations; what the rest of the budget, the patience and the tail bought is measured there.
+(FitSettings' defaults: patience 3, tail 4; a shorter stop cost hemp_rope half its MA, see
+docs/benchmarks/cpu.md, "Reverted the same day"); a level that never got below its first loss ends
+at once (nothing to anneal). On the demo (samples/foam_bar, docs/benchmarks/cpu.md) the bumps level
+plateaus after ~20 of its 45 iterations; what the rest of the budget, the patience and the tail
+bought is measured there.
 """
 
 from __future__ import annotations

@@ -627,24 +627,13 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     K = int(theta.numel())
     use_fd = method == "fd" or (method == "auto" and K < BACKWARD_PER_FORWARD * max(int(probes), 0))
 
-    def residuals_of(x, F):
-        """Per frame: the weighted RGB residual, the weighted silhouette residual (or None)."""
-        res = []
-        for k in range(1, prob.T):
-            out = prob.render_frame(k, x[k], F[k])
-            w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
-            r = (out["rgb"] - prob.frames[k]) * w[..., None]
-            rm = (out["alpha"] - prob.masks[k]) * w if prob.masks is not None else None
-            res.append((r, rm))
-        return res
-
     # one simulation and one set of renders at the estimate: the noise, and every probe's graph (the
     # probes differ only in their random signs, so each is a backward of the same graph, kept
     # between them) or the finite differences' base
     E = mat.youngs()
     with torch.set_grad_enabled(not use_fd):
         x, F = prob.simulate(E if not use_fd else E.detach(), nu, tr, eff)
-        res = residuals_of(x, F)
+        res = _weighted_residuals(prob, x, F)
     for r, rm in res:
         if rm is not None:
             rss += float((rm.detach() ** 2).sum())
@@ -661,7 +650,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
         else:   # a stepped simulation failed or changed the substep: the probes, on a fresh graph
             E = mat.youngs()
             x, F = prob.simulate(E, nu, tr, eff)
-            res = residuals_of(x, F)
+            res = _weighted_residuals(prob, x, F)
     if diag is None:
         gen = torch.Generator(device="cpu").manual_seed(seed + 11)
         diag = torch.zeros_like(theta)
@@ -688,6 +677,18 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     if return_sigma:     # and sigma(log E) per particle (the Laplace interval's half-width / 1.96)
         return conf.cpu().numpy(), sigma_p.cpu().numpy()
     return conf.cpu().numpy()
+
+
+def _weighted_residuals(prob: FitProblem, x, F) -> list:
+    """Per frame 1..T-1: the weighted RGB residual and the weighted silhouette residual (or None)."""
+    res = []
+    for k in range(1, prob.T):
+        out = prob.render_frame(k, x[k], F[k])
+        w = prob.weight[k] if prob.weight is not None else torch.ones_like(out["alpha"])
+        r = (out["rgb"] - prob.frames[k]) * w[..., None]
+        rm = (out["alpha"] - prob.masks[k]) * w if prob.masks is not None else None
+        res.append((r, rm))
+    return res
 
 
 def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torch.Tensor | None:
@@ -718,13 +719,9 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
             if getattr(prob.sim, "substeps", None) != substeps:
                 return None
             acc = 0.0
-            for kk, (r0, rm0) in enumerate(base):
-                out = prob.render_frame(kk + 1, x[kk + 1], F[kk + 1])
-                w = prob.weight[kk + 1] if prob.weight is not None else torch.ones_like(out["alpha"])
-                r = (out["rgb"] - prob.frames[kk + 1]) * w[..., None]
+            for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
                 acc += float((((r0.detach() - r) / h).double() ** 2).sum())
                 if rm0 is not None:
-                    rm = (out["alpha"] - prob.masks[kk + 1]) * w
                     acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
         diag[k] = acc
     return diag
