@@ -16,7 +16,9 @@ Cases: "1" = `fit_bumps` (the one fit the app runs); "B=2", "B=4" = `fit_bumps_b
 first B of `batched.START_FACTORS` (x 1, 0.71, 0.5, 0.35 of the searched uniform E: inside the x1
 start's substep rung; seeds 0..B-1; the first copy is the one fit's start). `--factors` gives other
 factors (e.g. `--factors 1 0.5 2 0.25`, the old starts); `--also-factors 1 0.5 2 0.25` runs one more
-batched case from those, last (a before/after on the same card in one run). Each copy stops on its own; the batch ends
+batched case from those, last (a before/after on the same card in one run); `--per-copy-renders`
+runs the largest batch once more, last, with its renders and loss per copy and frame
+(`batched.BATCH_RENDERS` off: the before of the batched renders). Each copy stops on its own; the batch ends
 with the last. Printed: wall and process CPU time in all and per lockstep iteration, the time
 against one fit (the issue's target: four small fits batched <= 2x one fit's time), the substep
 counts the rollouts ran at (count: rollouts), and each copy's iterations, final loss, MA (per
@@ -140,6 +142,7 @@ class Profile:
         import torch
         import warp._src.context as wctx
 
+        import physinteract_usd.render as rpkg
         from physinteract_usd import simulation
         from physinteract_usd.fit import batched, optimize, problem
         from physinteract_usd.render import function as rf
@@ -184,8 +187,10 @@ class Profile:
         self._wrap(rollout, "_torch_sync", "package host syncs", sync=False, on_call=synced)
         self._wrap(rollout, "_warp_sync", "package host syncs", sync=False, on_call=synced)
         self._wrap(problem, "render", "render forward")
+        self._wrap(rpkg, "render_batch", "render forward (batched over copies and frames)")
         self._wrap(rf.RasterizeGaussians, "backward", "render backward (raster)")
         self._wrap(problem, "reconstruction_loss", "loss terms")
+        self._wrap(rpkg, "reconstruction_loss_batch", "loss terms (batched)")
         self._wrap(problem.FitProblem, "loss", lambda a, kw: "last pass (renders kept)" if kw.get("keep_renders")
                    else None)
         self._wrap(torch.Tensor, "backward", "backward (all)")
@@ -273,6 +278,9 @@ def main(argv=None):
                          "starts, for a before/after on the same card in the same run)")
     ap.add_argument("--patience", type=int, default=None, help="the convergence stop's patience (default: the fit's)")
     ap.add_argument("--profile", action="store_true", help="the per-phase breakdown (module doc)")
+    ap.add_argument("--per-copy-renders", action="store_true",
+                    help="one more case, last: the largest batch with the renders and loss per copy and frame "
+                         "(batched.BATCH_RENDERS off: the before of the batched renders, same run)")
     ap.add_argument("--work", default=None, help="folder for the stage (default: a temporary one)")
     ap.add_argument("--out", default=None, help="write the rows as JSON lines into OUT/batch_fits.jsonl")
     a = ap.parse_args(argv)
@@ -357,20 +365,27 @@ def main(argv=None):
                 "factor": (r.model.get("start") or {}).get("factor", 1.0),
                 "status": (r.model.get("start") or {}).get("status", "interrupted" if r.interrupted else "done")}
 
-    def run_case(B, label, fs=None):
+    def run_case(B, label, fs=None, per_copy_renders=False):
+        from physinteract_usd.fit import batched
+
         p = make_problem(job)
         _sync(a.device)
-        with prof.phase(label):
-            w0, c0 = _clock()
-            if B == 1:
-                res = [fit_bumps(p, s, progress=False, uniform_e=e_u)]
-            else:
-                res = fit_bumps_batched(p, s, starts(B, s.seed, fs), uniform_e=e_u, progress=False)
-            _sync(a.device)
-            w1, c1 = _clock()
+        batched.BATCH_RENDERS = not per_copy_renders
+        try:
+            with prof.phase(label):
+                w0, c0 = _clock()
+                if B == 1:
+                    res = [fit_bumps(p, s, progress=False, uniform_e=e_u)]
+                else:
+                    res = fit_bumps_batched(p, s, starts(B, s.seed, fs), uniform_e=e_u, progress=False)
+                _sync(a.device)
+                w1, c1 = _clock()
+        finally:
+            batched.BATCH_RENDERS = True
         copies = [copy_row(r) for r in res]
         lock = max(c["iterations"] for c in copies)
-        return {"case": ("1" if B == 1 else f"B={B}") + (" (also-factors)" if fs else ""), "copies": B,
+        return {"case": ("1" if B == 1 else f"B={B}") + (" (also-factors)" if fs else "")
+                + (" (renders per copy)" if per_copy_renders else ""), "copies": B,
                 "device": dev, "grid": a.grid,
                 "particles": len(p.x0), "frames": p.T, "wall_s": w1 - w0, "cpu_s": c1 - c0, "lockstep_iterations": lock,
                 "wall_per_iteration_s": (w1 - w0) / max(lock, 1), "cpu_per_iteration_s": (c1 - c0) / max(lock, 1),
@@ -441,6 +456,15 @@ def main(argv=None):
 
     if a.profile:
         keep({"profile": prof.dump(), "device": dev})
+    if a.per_copy_renders:  # the batched renders' before, on the same card in the same run
+        big = max(int(b) for b in a.copies)
+        prof.install(timing=False)
+        r = run_case(big, "case per-copy renders", per_copy_renders=True)
+        prof.uninstall()
+        say(r)
+        same = next(x for x in rows if x["copies"] == big and not x["profiled"])
+        print(f"\nB={big}, renders and loss per copy and frame: {r['wall_s']:.1f} s ({r['wall_per_iteration_s']:.3f} s per "
+              f"lockstep iteration) against batched {same['wall_s']:.1f} s ({same['wall_per_iteration_s']:.3f} s)")
     if a.also_factors:      # last: a before/after on the same card (the other starts), after the profile
         prof.install(timing=False)
         r = run_case(len(a.also_factors), "case also-factors", tuple(a.also_factors))

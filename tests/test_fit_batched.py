@@ -381,3 +381,36 @@ def test_the_shared_substep_follows_the_stiffest_copys_field(scene):
     assert sim.e_bound == b2
     n3, b3 = run(1.0, 0.5)                      # softened again: back to the x1 rung
     assert (n3, b3) == (n1, b1)
+
+
+def test_batched_renders_equal_the_per_copy_renders_in_one_pass(scene, monkeypatch):
+    """The copies' renders and loss terms in one rasterizer pass (BATCH_RENDERS) against one render
+    and one loss per copy and frame: the same losses and gradients (float32: to 1e-6), one
+    rasterizer pass instead of B x (T - 1)."""
+    import physinteract_usd.fit.batched as fb
+    import physinteract_usd.render.rasterizer as R
+
+    prob = _problem(scene, dtype="float32")
+    E, nu, trajs = _fields(prob)
+    E, nu, trajs = E.float(), nu.float(), [t.float() for t in trajs]
+    calls = []
+    fwd = R.forward
+    monkeypatch.setattr(R, "forward", lambda *a, **k: calls.append(1) or fwd(*a, **k))
+    res = {}
+    for on in (True, False):
+        monkeypatch.setattr(fb, "BATCH_RENDERS", on)
+        calls.clear()
+        Eb = E.clone().requires_grad_(True)
+        tb = [t.clone().requires_grad_(True) for t in trajs]
+        outs, bad = batch_losses(prob, Eb, nu, tb)
+        assert not bad.any()
+        sum(o["rec"] + o["reg_traj"] for o in outs).backward()
+        res[on] = ([float(o["rec"].detach()) for o in outs], Eb.grad.clone(), [t.grad.clone() for t in tb], len(calls))
+    (l1, g1, t1, n1), (l0, g0, t0, n0) = res[True], res[False]
+    assert n1 == 1 and n0 == 2 * (prob.T - 1), (n1, n0)
+    for a, b in zip(l1, l0):
+        assert a == pytest.approx(b, rel=1e-6)
+    assert float((g1 - g0).abs().max()) <= 1e-5 * float(g0.abs().max())
+    for a, b in zip(t1, t0):
+        assert float((a - b).abs().max()) <= 1e-5 * float(b.abs().max()) + 1e-12
+    assert abs(l1[0] - l1[1]) > 1e-3 * l1[0]

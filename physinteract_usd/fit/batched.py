@@ -7,7 +7,8 @@ own material field, trajectories, AdamW state, level schedule and convergence st
 backpropagated is the sum of the copies' losses, so each copy's gradient is its own. A copy that
 converged keeps its best iterate and leaves the batch (the rollout shrinks); a copy whose
 simulation went unstable or left its own box is reported and dropped (it keeps the best iterate it
-had), not turned into inf for all. The renderer runs per copy (cheap beside the simulator).
+had), not turned into inf for all. The copies' renders and loss terms run batched too: every
+(copy, frame) image of an iteration in one rasterizer pass and one loss call (`copies_rec`).
 
     results = fit_bumps_batched(prob, settings, default_starts(4, seed=0), uniform_e=e)
     r = fit_starts(prob, settings, 4)          # the best start, every start's loss in r.model["starts"]
@@ -210,19 +211,69 @@ class _Copy:
                 t.copy_(b)
 
 
+# The copies' renders and loss terms: every (copy, frame) image of an iteration in one rasterizer
+# pass and one batched loss (`render.render_batch`, `render.reconstruction_loss_batch`) instead of
+# one render and one loss per copy and frame (B x (T - 1) of each). False: `FitProblem.loss` per copy
+# (the measurement's "before"; equal to 1e-6, tests/test_fit_batched.py).
+BATCH_RENDERS = True
+# At most this many Gaussians in one rasterizer pass: the images are grouped to fit (a paper-size
+# scene's copies x frames would otherwise hold every image's sort buffers at once).
+RENDER_PASS_GAUSSIANS = 1 << 22
+
+
+def copies_rec(prob: FitProblem, x, F, copies, frames=None):
+    """(len(copies),) reconstruction losses (`FitProblem.loss`'s "rec": the mean over `frames`, default
+    all but the rest frame, of `FitProblem.frame_loss`) of the copies `copies` of a batch's states
+    x (B, T, P, 3), F (B, T, P, 3, 3), with the renders and the loss terms of all their frames in
+    few batched passes. Differentiable in x and F."""
+    from ..render import reconstruction_loss_batch, render_batch
+
+    ks = list(range(1, prob.T)) if frames is None else [int(k) for k in frames]
+    pairs = [(int(b), k) for b in copies for k in ks]
+    if not pairs:
+        return torch.zeros(len(copies), dtype=prob.tdtype, device=prob.tdev)
+    n = int(prob.cov0.shape[0])
+    per = max(len(ks), RENDER_PASS_GAUSSIANS // max(n, 1))
+    w8 = prob.weights
+    totals = []
+    for i0 in range(0, len(pairs), per):
+        chunk = pairs[i0:i0 + per]
+        bi = torch.as_tensor([b for b, _ in chunk], device=x.device)
+        ki = torch.as_tensor([k for _, k in chunk], device=x.device)
+        means, covs = prob.gaussians_at(x[bi, ki], F[bi, ki])
+        out = render_batch(means, covs, prob.colors, prob.opacities, [prob.cameras[k] for _, k in chunk],
+                           background=prob.background)
+        w = None if prob.weight is None else prob.weight[ki]
+        mask = None if prob.masks is None else prob.masks[ki]
+        res = reconstruction_loss_batch(out["rgb"], prob.frames[ki], w, out["alpha"] if mask is not None else None,
+                                        mask, lambda_ssim=w8.ssim, lambda_mask=w8.mask)
+        tot = res["total"]
+        if prob.tracks is not None and w8.track > 0:
+            tot = tot + w8.track * torch.stack([prob.tracks.frame_term(k, means[j]) for j, (_, k) in enumerate(chunk)])
+        totals.append(tot)
+    return torch.cat(totals).reshape(len(copies), len(ks)).sum(1) / max(len(ks), 1)
+
+
 def batch_losses(prob: FitProblem, E, nu, trajectories=None):
     """The problem's loss of B fields in one tiled rollout: E, nu (B, P); `trajectories` one (B, T, 3)
     tensor per slot, or None. Returns ([the `FitProblem.loss` dict of each copy, None for a copy
     whose simulation went unstable or left its box], bad (B,) bool). Differentiable: the sum of
-    the copies' totals backpropagates each copy's own gradient through one backward."""
+    the copies' totals backpropagates each copy's own gradient through one backward. The copies'
+    renders and loss terms run batched (`copies_rec`) unless BATCH_RENDERS is off."""
     x, F, bad = prob.sim.simulate_batch(E, nu, trajectories)
+    good = [b for b in range(len(bad)) if not bad[b]]
+    recs = copies_rec(prob, x, F, good) if BATCH_RENDERS and good else None
     outs = []
     for b in range(len(bad)):
         if bad[b]:
             outs.append(None)
             continue
         tr = None if trajectories is None else [t[b] for t in trajectories]
-        outs.append(prob.loss(E[b], nu[b], tr, simulated=(x[b], F[b])))
+        if recs is None:
+            outs.append(prob.loss(E[b], nu[b], tr, simulated=(x[b], F[b])))
+            continue
+        reg = prob.trajectory_prior(tr) if tr is not None and prob.weights.trajectory > 0 else 0.0
+        outs.append({"rec": recs[good.index(b)], "reg_traj": reg, "x": x[b], "F": F[b], "renders": {}})
     return outs, np.asarray(bad, bool)
 
 
@@ -523,5 +574,5 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
     return win
 
 
-__all__ = ["Start", "START_FACTORS", "rung_factors", "default_starts", "batch_losses", "fit_bumps_batched", "fit_starts",
-           "batching_pays", "refit_regions_batched"]
+__all__ = ["Start", "START_FACTORS", "rung_factors", "default_starts", "batch_losses", "copies_rec", "fit_bumps_batched",
+           "fit_starts", "batching_pays", "refit_regions_batched", "BATCH_RENDERS"]

@@ -12,16 +12,16 @@ See docs/render.md.
 from .background import estimate_background
 from .deform import (GaussianBinding, covariance_from_scales_quats, deform_covariances, polar_rotation,
                      quat_to_rotmat, scales_quats_from_covariance)
-from .function import RasterizeGaussians, cov6_from_matrix, matrix_from_cov6, project, render
-from .losses import l1_loss, reconstruction_loss, silhouette_loss, ssim, ssim_loss, ssim_map
+from .function import RasterizeGaussians, cov6_from_matrix, matrix_from_cov6, project, render, render_batch
+from .losses import l1_loss, reconstruction_loss, reconstruction_loss_batch, silhouette_loss, ssim, ssim_loss, ssim_map
 from .rasterizer import RasterSettings
 from .sh import eval_sh, sh_basis, sh_to_color
 
 __all__ = [
-    "RasterSettings", "RasterizeGaussians", "render", "project", "cov6_from_matrix", "matrix_from_cov6",
+    "RasterSettings", "RasterizeGaussians", "render", "render_batch", "project", "cov6_from_matrix", "matrix_from_cov6",
     "eval_sh", "sh_basis", "sh_to_color",
     "GaussianBinding", "deform_covariances", "covariance_from_scales_quats", "scales_quats_from_covariance",
     "quat_to_rotmat", "polar_rotation",
     "estimate_background",
-    "l1_loss", "ssim", "ssim_map", "ssim_loss", "silhouette_loss", "reconstruction_loss",
+    "l1_loss", "ssim", "ssim_map", "ssim_loss", "silhouette_loss", "reconstruction_loss", "reconstruction_loss_batch",
 ]

@@ -65,12 +65,18 @@ class GaussianBinding:
                                self.offset.to(dtype=dtype, device=device))
 
     def deformation(self, F: torch.Tensor) -> torch.Tensor:
-        """Per-Gaussian deformation gradient (N, 3, 3) from per-particle F (P, 3, 3)."""
+        """Per-Gaussian deformation gradient (N, 3, 3) from per-particle F (P, 3, 3); (M, N, 3, 3)
+        from a batch of M states (M, P, 3, 3)."""
+        if F.dim() == 4:
+            return (self.weight[:, :, None, None] * F[:, self.index]).sum(2)
         return (self.weight[:, :, None, None] * F[self.index]).sum(1)
 
     def apply(self, x: torch.Tensor, F: torch.Tensor | None = None, cov0: torch.Tensor | None = None):
         """Particle positions x (P, 3) and deformation gradients F (P, 3, 3) or None ->
-        (means (N, 3), covs (N, 3, 3) = F_i cov0 F_i^T, or None without cov0)."""
+        (means (N, 3), covs (N, 3, 3) = F_i cov0 F_i^T, or None without cov0). A batch of M states
+        x (M, P, 3), F (M, P, 3, 3) gives (M, N, 3) and (M, N, 3, 3)."""
+        if x.dim() == 3:
+            return self._apply_batch(x, F, cov0)
         xj = x[self.index]  # (N, k, 3)
         if F is None:
             means = (self.weight[:, :, None] * (xj + self.offset)).sum(1)
@@ -78,6 +84,17 @@ class GaussianBinding:
         Fj = F[self.index]  # (N, k, 3, 3)
         moved = xj + torch.einsum("nkab,nkb->nka", Fj, self.offset)
         means = (self.weight[:, :, None] * moved).sum(1)
+        if cov0 is None:
+            return means, None
+        return means, deform_covariances(cov0, self.deformation(F))
+
+    def _apply_batch(self, x, F, cov0):
+        xj = x[:, self.index]  # (M, N, k, 3)
+        if F is None:
+            return (self.weight[:, :, None] * (xj + self.offset)).sum(2), cov0
+        Fj = F[:, self.index]  # (M, N, k, 3, 3)
+        moved = xj + torch.einsum("mnkab,nkb->mnka", Fj, self.offset)
+        means = (self.weight[:, :, None] * moved).sum(2)
         if cov0 is None:
             return means, None
         return means, deform_covariances(cov0, self.deformation(F))

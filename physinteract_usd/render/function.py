@@ -7,6 +7,7 @@ on CUDA Warp runs on torch's current stream. float32 in production, float64 for 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -68,7 +69,10 @@ class RasterizeGaussians(torch.autograd.Function):
     alpha (H,W), depth_acc (H,W) = sum of alpha-weighted camera-frame z).
 
     Differentiable w.r.t. all four inputs; `camera` (a static camera.Camera) and `settings`
-    (RasterSettings) are constants.
+    (RasterSettings) are constants. With `camera` a list of M static cameras of one image size,
+    M images in one pass: the inputs are M sets of N/M Gaussians one after another (image m
+    renders its own set with its own camera) and the outputs (M,H,W,3), (M,H,W), (M,H,W), each
+    image bitwise what it would be alone (`rasterizer.forward`).
     """
 
     @staticmethod
@@ -81,10 +85,13 @@ class RasterizeGaussians(torch.autograd.Function):
         cov6 = cov6.detach().to(dtype).contiguous()
         colors = colors.detach().to(dtype).contiguous()
         opacities = opacities.detach().to(dtype).contiguous()
-        H, W = int(camera.height), int(camera.width)
-        rgb = torch.empty((H, W, 3), dtype=dtype, device=dev)
-        alpha = torch.empty((H, W), dtype=dtype, device=dev)
-        depth = torch.empty((H, W), dtype=dtype, device=dev)
+        many = isinstance(camera, (list, tuple))
+        c0 = camera[0] if many else camera
+        H, W = int(c0.height), int(c0.width)
+        lead = (len(camera),) if many else ()
+        rgb = torch.empty(lead + (H, W, 3), dtype=dtype, device=dev)
+        alpha = torch.empty(lead + (H, W), dtype=dtype, device=dev)
+        depth = torch.empty(lead + (H, W), dtype=dtype, device=dev)
         with _Scope(dev):
             wm, wc, wcol, wo = _wp(means, k.vec3), _wp(cov6, k.vec6), _wp(colors, k.vec3), _wp(opacities, scalar)
             st = R.forward(wm, wc, wcol, wo, camera, settings,
@@ -163,6 +170,60 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
     return {"rgb": rgb, "alpha": alpha, "depth": depth, "depth_acc": depth_acc}
 
 
+def render_batch(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacities: torch.Tensor,
+                 cameras, background=None, settings: RasterSettings | None = None) -> dict:
+    """M renders in one rasterizer pass (one launch per stage for all of them): image m renders
+    Gaussian set m with `cameras[m]` (M static cameras of one image size; the same camera M times
+    for M copies of a scene, or each frame's camera for M frames).
+
+    Args (M sets of N Gaussians):
+        means: (M, N, 3). covs: (M, N, 3, 3) or (M, N, 6). colors: (N, 3) or (M, N, 3) RGB, or
+        (N, K, 3) / (M, N, K, 3) SH coefficients (each image's view directions from its camera).
+        opacities: (N,) or (M, N). background: as `render`'s (one for all images), or (M, H, W, 3).
+
+    Returns `render`'s dict with a leading image axis: ``rgb`` (M, H, W, 3), ``alpha``,
+    ``depth``, ``depth_acc`` (M, H, W); each image equal, bit for bit, to `render` of its own set
+    (the rasterizer's images are independent: tests/test_render_batch.py).
+    """
+    cameras = list(cameras)
+    M = len(cameras)
+    if M == 0:
+        raise ValueError("render_batch needs at least one camera")
+    if any(not c.is_static for c in cameras):
+        raise ValueError("render_batch needs static cameras: pass camera.at(frame)")
+    settings = settings or RasterSettings()
+    if means.dtype not in (torch.float32, torch.float64):
+        raise TypeError("means must be float32 or float64")
+    if means.dim() != 3 or means.shape[0] != M or means.shape[2] != 3:
+        raise ValueError(f"means must be (M, N, 3) with M = {M} cameras, got {tuple(means.shape)}")
+    dtype, dev = means.dtype, means.device
+    N = means.shape[1]
+    if covs.dim() == 4:
+        cov6 = cov6_from_matrix(covs.to(dtype).reshape(M * N, 3, 3))
+    elif covs.dim() == 3 and covs.shape[2] == 6:
+        cov6 = covs.to(dtype).reshape(M * N, 6)
+    else:
+        raise ValueError("covs must be (M, N, 3, 3) or (M, N, 6)")
+    colors = colors.to(dtype)
+    if colors.dim() == 2:                                   # (N, 3) RGB, every image
+        colors = colors.expand(M, N, 3)
+    elif not (colors.dim() == 3 and tuple(colors.shape) == (M, N, 3)):     # SH: (N, K, 3) or (M, N, K, 3)
+        if colors.dim() == 3:
+            colors = colors.expand(M, *colors.shape)
+        centres = torch.as_tensor(np.stack([c.position for c in cameras]), dtype=dtype, device=dev)
+        colors = torch.stack([sh_to_color(colors[m], means[m], centres[m]) for m in range(M)])
+    op = opacities.to(dtype)
+    op = op.expand(M, N) if op.dim() == 1 else op
+    rgb, alpha, depth_acc = RasterizeGaussians.apply(means.reshape(M * N, 3), cov6, colors.reshape(M * N, 3),
+                                                     op.reshape(M * N), cameras, settings)
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=dtype, device=dev)
+        rgb = rgb + (1.0 - alpha)[..., None] * bg
+    eps = 1e-6
+    depth = torch.where(alpha > eps, depth_acc / alpha.clamp_min(eps), torch.zeros_like(depth_acc))
+    return {"rgb": rgb, "alpha": alpha, "depth": depth, "depth_acc": depth_acc}
+
+
 @torch.no_grad()
 def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, camera,
             settings: RasterSettings | None = None) -> dict:
@@ -186,9 +247,9 @@ def project(means: torch.Tensor, covs: torch.Tensor, opacities: torch.Tensor, ca
     dkey = torch.zeros((n,), dtype=torch.float32, device=dev)
     if n:
         with _Scope(dev):
-            cam = R.make_cam(k, camera, settings, wp.device_from_torch(dev))
+            _, cams = R.make_cams(k, [camera], settings, wp.device_from_torch(dev))
             wp.launch(k.project, n, inputs=[_wp(means.contiguous(), k.vec3), _wp(cov6.contiguous(), k.vec6),
-                                            _wp(opacities.to(dtype).contiguous(), scalar), cam],
+                                            _wp(opacities.to(dtype).contiguous(), scalar), cams, n],
                       outputs=[_wp(pack, k.vec8), _wp(rect, wp.vec4i), _wp(count, wp.int32), _wp(dkey, wp.float32),
                                _wp(torch.zeros((n,), dtype=torch.int32, device=dev), wp.int32)],
                       device=wp.device_from_torch(dev))

@@ -139,5 +139,35 @@ def reconstruction_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, weight
     return out
 
 
+def reconstruction_loss_batch(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, weight: torch.Tensor | None = None,
+                              pred_alpha: torch.Tensor | None = None, target_mask: torch.Tensor | None = None,
+                              lambda_ssim: float = 0.2, lambda_mask: float = 1.0) -> dict:
+    """`reconstruction_loss` of M images at once, one value per image (a handful of batched torch
+    ops for all M instead of M times each). pred_rgb, target_rgb (M, H, W, C); weight, pred_alpha,
+    target_mask (M, H, W) or None. Returns {"total", "l1", "ssim"[, "mask"]}, each (M,): image m's
+    terms equal `reconstruction_loss` of image m alone up to the summation order (float rounding;
+    tests/test_render_batch.py)."""
+    _grey_ok(pred_rgb, target_rgb)
+    if pred_rgb.dim() != 4:
+        raise ValueError("reconstruction_loss_batch takes (M, H, W, C) images")
+    x, w = _bchw(pred_rgb, weight)
+    y, _ = _bchw(target_rgb.to(pred_rgb.dtype), None)
+    C = x.shape[1]
+    ws = w.sum((1, 2, 3))
+    l1 = ((x - y).abs() * w).sum((1, 2, 3)) / (C * ws).clamp_min(1e-12)
+    S, wc = ssim_map(pred_rgb, target_rgb, weight)
+    s = (S * wc).sum((1, 2, 3)) / (S.shape[1] * wc.sum((1, 2, 3))).clamp_min(1e-12)
+    total = l1 + lambda_ssim * (1.0 - s)
+    out = {"l1": l1, "ssim": s}
+    if pred_alpha is not None and target_mask is not None:
+        _grey_ok(pred_alpha, target_mask)
+        a = pred_alpha[:, None]
+        m = target_mask.to(pred_alpha.dtype)[:, None]
+        out["mask"] = (((a - m) ** 2) * w).sum((1, 2, 3)) / ws.clamp_min(1e-12)
+        total = total + lambda_mask * out["mask"]
+    out["total"] = total
+    return out
+
+
 __all__ = ["l1_loss", "silhouette_loss", "ssim", "ssim_map", "ssim_loss", "psnr", "gaussian_window",
-           "reconstruction_loss"]
+           "reconstruction_loss", "reconstruction_loss_batch"]

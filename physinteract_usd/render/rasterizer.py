@@ -122,9 +122,10 @@ def _build(scalar):
 
     @wp.kernel(module=mod)
     def project(means: wp.array(dtype=vec3), cov6: wp.array(dtype=vec6), opac: wp.array(dtype=scalar),
-                cam: Cam, pack: wp.array(dtype=vec8), rect: wp.array(dtype=wp.vec4i),
+                cams: wp.array(dtype=Cam), n_per: int, pack: wp.array(dtype=vec8), rect: wp.array(dtype=wp.vec4i),
                 count: wp.array(dtype=wp.int32), dkey: wp.array(dtype=wp.float32), order: wp.array(dtype=wp.int32)):
         i = wp.tid()
+        cam = cams[i / n_per]       # Gaussian i belongs to image i / n_per (n_per Gaussians each)
         order[i] = i
         count[i] = 0
         dkey[i] = wp.float32(FLOAT32_MAX)
@@ -186,6 +187,7 @@ def _build(scalar):
     @wp.kernel(module=mod)
     def emit_pairs(order: wp.array(dtype=wp.int32), counts_sorted: wp.array(dtype=wp.int32),
                    incl: wp.array(dtype=wp.int32), rect: wp.array(dtype=wp.vec4i), tiles_x: int,
+                   n_per: int, n_tiles: int,
                    keys: wp.array(dtype=wp.int32), vals: wp.array(dtype=wp.int32)):
         k = wp.tid()
         n = counts_sorted[k]
@@ -194,9 +196,10 @@ def _build(scalar):
         g = order[k]
         o = incl[k] - n
         r = rect[g]
+        base = (g / n_per) * n_tiles        # the tiles of Gaussian g's image
         for ty in range(r[1], r[3]):
             for tx in range(r[0], r[2]):
-                keys[o] = ty * tiles_x + tx
+                keys[o] = base + ty * tiles_x + tx
                 vals[o] = g
                 o += 1
 
@@ -225,14 +228,19 @@ def _build(scalar):
 
     @wp.func
     def pixel_of(tid: int, cam: Cam):
+        """Thread -> (tile over all images, image, pixel x, y); images one after another, each
+        tiles_x * tiles_y tiles of tile_size^2 threads."""
         ts2 = cam.tile_size * cam.tile_size
         tile = tid / ts2
         loc = tid - tile * ts2
-        tyi = tile / cam.tiles_x
-        txi = tile - tyi * cam.tiles_x
+        n_tiles = cam.tiles_x * cam.tiles_y
+        img = tile / n_tiles
+        lt = tile - img * n_tiles
+        tyi = lt / cam.tiles_x
+        txi = lt - tyi * cam.tiles_x
         px = txi * cam.tile_size + loc % cam.tile_size
         py = tyi * cam.tile_size + loc / cam.tile_size
-        return tile, px, py
+        return tile, img, px, py
 
     @wp.kernel(module=mod)
     def rasterize_forward(pk: wp.array(dtype=vec8), pcol: wp.array(dtype=vec3),
@@ -240,10 +248,10 @@ def _build(scalar):
                           out_rgb: wp.array(dtype=vec3), out_alpha: wp.array(dtype=scalar),
                           out_depth: wp.array(dtype=scalar), out_T: wp.array(dtype=scalar),
                           out_last: wp.array(dtype=wp.int32), tile_last: wp.array(dtype=wp.int32)):
-        tile, px, py = pixel_of(wp.tid(), cam)
+        tile, img, px, py = pixel_of(wp.tid(), cam)
         if px >= cam.width or py >= cam.height:
             return
-        pix = py * cam.width + px
+        pix = (img * cam.height + py) * cam.width + px
         pxc = scalar(px) + scalar(0.5)
         pyc = scalar(py) + scalar(0.5)
         r0 = ranges[tile, 0]
@@ -286,10 +294,10 @@ def _build(scalar):
                            g_rgb: wp.array(dtype=vec3), g_alpha: wp.array(dtype=scalar),
                            g_depth: wp.array(dtype=scalar),
                            g_pack: wp.array(dtype=vec8), g_colors: wp.array(dtype=vec3)):
-        tile, px, py = pixel_of(wp.tid(), cam)
+        tile, img, px, py = pixel_of(wp.tid(), cam)
         if px >= cam.width or py >= cam.height:
             return
-        pix = py * cam.width + px
+        pix = (img * cam.height + py) * cam.width + px
         start = ranges[tile, 0]
         last = last_idx[pix]
         # lockstep: every pixel of the tile walks the same k (uniform loads and atomics on a GPU)
@@ -358,12 +366,15 @@ def _build(scalar):
         pixel). Same arithmetic as rasterize_backward."""
         tile, lane = wp.tid()
         ts = cam.tile_size
-        tyi = tile / cam.tiles_x
-        txi = tile - tyi * cam.tiles_x
+        n_tiles = cam.tiles_x * cam.tiles_y
+        img = tile / n_tiles
+        lt = tile - img * n_tiles
+        tyi = lt / cam.tiles_x
+        txi = lt - tyi * cam.tiles_x
         px = txi * ts + lane % ts
         py = tyi * ts + lane / ts
         inside = px < cam.width and py < cam.height
-        pix = wp.min(py, cam.height - 1) * cam.width + wp.min(px, cam.width - 1)
+        pix = (img * cam.height + wp.min(py, cam.height - 1)) * cam.width + wp.min(px, cam.width - 1)
         start = ranges[tile, 0]
         kmax = tile_last[tile]
         last = start
@@ -421,11 +432,12 @@ def _build(scalar):
 
     @wp.kernel(module=mod)
     def project_backward(means: wp.array(dtype=vec3), cov6: wp.array(dtype=vec6), count: wp.array(dtype=wp.int32),
-                         pack: wp.array(dtype=vec8), g_pack: wp.array(dtype=vec8), cam: Cam,
-                         g_means: wp.array(dtype=vec3), g_cov6: wp.array(dtype=vec6)):
+                         pack: wp.array(dtype=vec8), g_pack: wp.array(dtype=vec8), cams: wp.array(dtype=Cam),
+                         n_per: int, g_means: wp.array(dtype=vec3), g_cov6: wp.array(dtype=vec6)):
         i = wp.tid()
         if count[i] == 0:
             return
+        cam = cams[i / n_per]
         gp = g_pack[i]
         p = pack[i]
         pc = cam.R * means[i] + cam.t
@@ -527,14 +539,27 @@ def make_cam(k, camera, settings: RasterSettings, device="cpu"):
     return c
 
 
+def make_cams(k, cameras, settings: RasterSettings, device="cpu"):
+    """(the first camera's struct, a Warp array of every image's struct) for a list of static
+    cameras of one image size (one image each)."""
+    cams = [make_cam(k, c, settings, device) for c in cameras]
+    if not cams:
+        raise ValueError("the renderer needs at least one camera")
+    for c in cams[1:]:
+        if (c.width, c.height) != (cams[0].width, cams[0].height):
+            raise ValueError("a batched render needs cameras of one image size "
+                             f"({cams[0].width}x{cams[0].height} vs {c.width}x{c.height})")
+    return cams[0], wp.array(cams, dtype=k.Cam, device=device)
+
+
 @dataclass
 class ForwardState:
     """What the backward pass needs from the forward pass (Warp arrays)."""
 
     k: object
-    cam: object
+    cam: object           # the first image's camera struct (the image size and cut-offs all share)
     device: object
-    n: int
+    n: int                # Gaussians over all images
     n_pairs: int
     pack: object
     rect: object
@@ -548,6 +573,9 @@ class ForwardState:
     backward: str = "pixel"
     pk: object = None     # per-pair copies of pack / colours, in tile and depth order
     pcol: object = None
+    cams: object = None   # every image's camera struct (Warp array)
+    n_per: int = 0        # Gaussians per image
+    n_img: int = 1
 
 
 def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
@@ -557,15 +585,26 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     means (N,) vec3, cov6 (N,) vec6 (xx, xy, xz, yy, yz, zz), colors (N,) vec3, opacities (N,)
     scalar, all of one float type and device; out_rgb (H*W,) vec3, out_alpha, out_depth (H*W,)
     scalar are written. Returns a ForwardState for `backward`.
+
+    Several images in one pass: `camera` a list of M static cameras of one image size, the
+    Gaussians M sets of N / M one after another (image m: Gaussians m N/M .. (m+1) N/M - 1), the
+    outputs M images one after another (M*H*W,). Each image is what it would be alone, bit for
+    bit: one depth sort over all Gaussians is stable (ties by index), so each image's tile lists
+    hold its Gaussians in the order its own sort gives, and every per-pixel loop is unchanged.
     """
     scalar = opacities.dtype
     k = kernels(scalar)
     dev = opacities.device
-    cam = make_cam(k, camera, settings, dev)
+    cameras = list(camera) if isinstance(camera, (list, tuple)) else [camera]
+    cam, cams = make_cams(k, cameras, settings, dev)
+    M = len(cameras)
     lockstep = settings.resolved_lockstep(dev)
     n = int(opacities.shape[0])
+    if n % M:
+        raise ValueError(f"{n} Gaussians do not split into {M} images")
+    n_per = max(n // M, 1)
     W, H = cam.width, cam.height
-    n_tiles = cam.tiles_x * cam.tiles_y
+    n_tiles = cam.tiles_x * cam.tiles_y * M     # over all images
     ts2 = cam.tile_size * cam.tile_size
     pack = wp.empty(max(n, 1), dtype=k.vec8, device=dev)
     rect = wp.empty(max(n, 1), dtype=wp.vec4i, device=dev)
@@ -575,8 +614,8 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     ranges = wp.zeros((n_tiles, 2), dtype=wp.int32, device=dev)
     n_pairs = 0
     if n > 0:
-        wp.launch(k.project, n, inputs=[means, cov6, opacities, cam], outputs=[pack, rect, count, dkey, order],
-                  device=dev)
+        wp.launch(k.project, n, inputs=[means, cov6, opacities, cams, n_per],
+                  outputs=[pack, rect, count, dkey, order], device=dev)
         wp.utils.radix_sort_pairs(dkey, order, n)
         counts_sorted = wp.empty(n, dtype=wp.int32, device=dev)
         wp.launch(k.gather_counts, n, inputs=[order, count], outputs=[counts_sorted], device=dev)
@@ -586,7 +625,8 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     keys = wp.empty(2 * max(n_pairs, 1), dtype=wp.int32, device=dev)
     ids = wp.empty(2 * max(n_pairs, 1), dtype=wp.int32, device=dev)
     if n_pairs > 0:
-        wp.launch(k.emit_pairs, n, inputs=[order, counts_sorted, incl, rect, cam.tiles_x],
+        wp.launch(k.emit_pairs, n, inputs=[order, counts_sorted, incl, rect, cam.tiles_x, n_per,
+                                           cam.tiles_x * cam.tiles_y],
                   outputs=[keys, ids], device=dev)
         wp.utils.radix_sort_pairs(keys, ids, n_pairs, 0, max(1, int(n_tiles - 1).bit_length()))
         wp.launch(k.tile_ranges, n_pairs, inputs=[keys, n_pairs], outputs=[ranges], device=dev)
@@ -594,15 +634,15 @@ def forward(means, cov6, colors, opacities, camera, settings: RasterSettings,
     pcol = wp.empty(max(n_pairs, 1), dtype=k.vec3, device=dev)
     if n_pairs > 0:
         wp.launch(k.gather_pairs, n_pairs, inputs=[ids, pack, colors], outputs=[pk, pcol], device=dev)
-    T = wp.empty(W * H, dtype=scalar, device=dev)
-    last = wp.empty(W * H, dtype=wp.int32, device=dev)
+    T = wp.empty(M * W * H, dtype=scalar, device=dev)
+    last = wp.empty(M * W * H, dtype=wp.int32, device=dev)
     tile_last = wp.zeros(n_tiles, dtype=wp.int32, device=dev)
     wp.launch(k.rasterize_forward, n_tiles * ts2, inputs=[pk, pcol, ranges, cam],
               outputs=[out_rgb, out_alpha, out_depth, T, last, tile_last], device=dev)
     if settings.backward not in ("pixel", "tiled"):
         raise ValueError(f"backward must be 'pixel' or 'tiled', not {settings.backward!r}")
     return ForwardState(k, cam, dev, n, n_pairs, pack, rect, count, ids, ranges, T, last, tile_last, lockstep,
-                        settings.backward, pk, pcol)
+                        settings.backward, pk, pcol, cams, n_per, M)
 
 
 def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
@@ -613,7 +653,7 @@ def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
     if st.n == 0 or st.n_pairs == 0:
         return
     ts2 = cam.tile_size * cam.tile_size
-    n_tiles = cam.tiles_x * cam.tiles_y
+    n_tiles = cam.tiles_x * cam.tiles_y * st.n_img
     if st.backward == "tiled":
         wp.launch_tiled(k.rasterize_backward_tiled, dim=[n_tiles],
                         inputs=[st.pk, st.pcol, st.ids, st.ranges, cam, st.T, st.last, st.tile_last,
@@ -624,7 +664,7 @@ def backward(st: ForwardState, means, cov6, colors, g_rgb, g_alpha, g_depth,
                   inputs=[st.pk, st.pcol, st.ids, st.ranges, cam, st.T, st.last, st.tile_last, int(st.lockstep),
                           g_rgb, g_alpha, g_depth],
                   outputs=[g_pack, g_colors], device=dev)
-    wp.launch(k.project_backward, st.n, inputs=[means, cov6, st.count, st.pack, g_pack, cam],
+    wp.launch(k.project_backward, st.n, inputs=[means, cov6, st.count, st.pack, g_pack, st.cams, st.n_per],
               outputs=[g_means, g_cov6], device=dev)
 
 
@@ -642,4 +682,4 @@ def warp_scalar(dtype) -> type:
     raise TypeError(f"the renderer works in float32 or float64, not {dtype}")
 
 
-__all__ = ["RasterSettings", "ForwardState", "forward", "backward", "kernels", "make_cam"]
+__all__ = ["RasterSettings", "ForwardState", "forward", "backward", "kernels", "make_cam", "make_cams"]
