@@ -77,7 +77,8 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
     k = key(sc, eff, s, seed)
     cap, stage = work / k, work / f"{k}.usda"
     row = {"case": k, "scene": sc, "hidden": eff, "strength": s, "seed": seed, "device": a.device,
-           "iterations": a.iterations, "frames": a.frames, "fit_grid": a.fit_grid}
+           "iterations": a.iterations, "frames": a.frames, "fit_grid": a.fit_grid,
+           "diagnose_refit_iterations": a.diagnose_refit_iterations, "refit_folds": a.refit_folds}
     quiet = lambda *_a, **_k: None  # noqa: E731
     t0, c0 = time.perf_counter(), time.process_time()
     if not (cap / "gt" / "gt.json").exists():
@@ -104,7 +105,7 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
         f"({row['fit_s']:.0f} s)")
     t2 = time.perf_counter()
     d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
-                     starts=a.starts, progress=False, log=quiet, write_stage=False)
+                     starts=a.starts, progress=False, log=quiet, write_stage=False, refit_folds=a.refit_folds)
     row["diagnose_s"] = round(time.perf_counter() - t2, 1)
     row["verdict"] = d.get("verdict")
     row["reason"] = d.get("reason")
@@ -131,6 +132,25 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
     row["pair"] = None if top_t is None else top_t.get("confusable_with")
     row["false_alarm"] = bool(eff == "none" and row["verdict"] == "missing_effect")
     log(f"{k}: diagnose {row['verdict']} {sig} ({row['diagnose_s']:.0f} s)")
+    if a.control_refit:
+        # the same warm refit without the effect (`fit --resume`: from v1, the same iterations): what the
+        # 20 more iterations alone gain, so the gain of adding the effect is not credited with them
+        ctl = work / "control_refit" / k
+        shutil.rmtree(ctl, ignore_errors=True)
+        ctl.mkdir(parents=True)
+        for suffix in (".usda", ".init.usdc", ".fit.usdc"):
+            if (work / f"{k}{suffix}").exists():
+                shutil.copy2(work / f"{k}{suffix}", ctl / f"{k}{suffix}")
+        if (work / f"{k}.versions").exists():
+            shutil.copytree(work / f"{k}.versions", ctl / f"{k}.versions")
+        (ctl / k).symlink_to(cap.resolve())          # the stage's capture paths are relative
+        t4 = time.perf_counter()
+        f3 = api.fit(ctl / f"{k}.usda", iterations=a.refit_iterations, contact_from=gt, device=a.device,
+                     progress=False, log=quiet, keep_best=False, resume=True)
+        row["control_refit_s"] = round(time.perf_counter() - t4, 1)
+        row["loss_after_control"] = f3.summary().get("final_loss")
+        row["after_control"] = scored(ctl / f"{k}.usda", gt, a.device)
+        log(f"{k}: the same refit without the effect: masked PSNR {row['after_control']['psnr_masked']:.2f} dB")
     if eff != "none":
         api.effects_add(stage, eff)
         t3 = time.perf_counter()
@@ -170,6 +190,18 @@ def _gain(r: dict) -> str:
     return f"{af['psnr_masked'] - b['psnr_masked']:+.2f} dB, {fmt(ratio, '{:.2f}')}"
 
 
+def _gain_control(r: dict) -> str:
+    """The masked PSNR gain of the same warm refit without the effect (`--control-refit`), and what
+    adding the effect gains beyond it."""
+    b, c, af = r.get("before") or {}, r.get("after_control") or {}, r.get("after") or {}
+    if b.get("psnr_masked") is None or c.get("psnr_masked") is None:
+        return "-"
+    out = f"{c['psnr_masked'] - b['psnr_masked']:+.2f} dB"
+    if af.get("psnr_masked") is not None:
+        out += f"; the effect beyond it {af['psnr_masked'] - c['psnr_masked']:+.2f} dB"
+    return out
+
+
 def table(rows: list[dict]) -> str:
     """The issue's table (effect x strength), the controls, the confusion matrix, then every row."""
     ok = [r for r in rows if "error" not in r]
@@ -178,8 +210,8 @@ def table(rows: list[dict]) -> str:
     ctrl = [r for r in ok if r.get("hidden") == "none"]
     out = ["| scene | hidden effect | strength | verdict: significant (best first) | rank of the hidden effect | "
            "named first: predicted / realised drop; held-back drop +- se (paired p) | hidden effect's test: p, predicted drop / loss (marginal) | "
-           "confusable pair | + hidden effect: masked PSNR gain, loss after / before | fitted / truth (refit; "
-           "diagnose) | s wall (CPU) |", "|---" * 11 + "|"]
+           "confusable pair | + hidden effect: masked PSNR gain, loss after / before | the same refit without it: "
+           "masked PSNR gain | fitted / truth (refit; diagnose) | s wall (CPU) |", "|---" * 12 + "|"]
     def held(e):
         """A refitted candidate's held-back drop +- its standard error (p of the paired test)."""
         c = next((c for c in r.get("tested") or [] if c["effect"] == e), {})
@@ -200,7 +232,8 @@ def table(rows: list[dict]) -> str:
                    f"{', '.join(r.get('significant') or []) or '-'} | {r.get('rank') or 'not named'} | "
                    f"{t.get('effect', '-')}: {fmt(t.get('predicted_loss_drop'))} / {fmt(t.get('realized_loss_drop'))}"
                    f"{held(t['effect']) if t.get('effect') else ''} | "
-                   f"{hp}{hh} | {', '.join(r['pair']) if isinstance(r.get('pair'), list) else (r.get('pair') or '-')} | {_gain(r)} | {fmt(r.get('estimate_ratio'), '{:.2f}x')}; "
+                   f"{hp}{hh} | {', '.join(r['pair']) if isinstance(r.get('pair'), list) else (r.get('pair') or '-')} | {_gain(r)} | "
+                   f"{_gain_control(r)} | {fmt(r.get('estimate_ratio'), '{:.2f}x')}; "
                    f"{fmt(r.get('diagnose_estimate_ratio'), '{:.2f}x')} | {fmt(r.get('wall_s'), '{:.0f}')} "
                    f"({fmt(r.get('cpu_s'), '{:.0f}')}) |")
     if named:
@@ -217,6 +250,11 @@ def table(rows: list[dict]) -> str:
         out.append(f"\nControls (nothing hidden, noise seeds {', '.join(str(r.get('seed', 0)) for r in ctrl)}): "
                    f"false alarms {fa}/{len(ctrl)} ({100.0 * fa / len(ctrl):.0f}%); verdicts "
                    + ", ".join(f"{k} {v}" for k, v in sorted(verdicts.items())))
+        cg = [r["after_control"]["psnr_masked"] - r["before"]["psnr_masked"] for r in ctrl
+              if (r.get("after_control") or {}).get("psnr_masked") is not None]
+        if cg:
+            out.append(f"The controls' warm refit ({len(cg)} of them, no effect): masked PSNR gain "
+                       f"{sum(cg) / len(cg):+.2f} dB on average ({min(cg):+.2f} to {max(cg):+.2f})")
     # the confusion matrix: hidden effect (rows) x what the verdict named first (columns)
     truth = sorted({r["hidden"] for r in ok})
     said = sorted({named_first(r) for r in ok})
@@ -286,6 +324,11 @@ def main(argv=None) -> int:
     ap.add_argument("--refit", type=int, default=3, help="diagnose --refit")
     ap.add_argument("--diagnose-refit-iterations", type=int, default=8, help="diagnose --refit-iterations")
     ap.add_argument("--starts", type=int, default=3, help="diagnose --starts")
+    ap.add_argument("--control-refit", action=argparse.BooleanOptionalAction, default=True,
+                    help="also the same warm refit without the effect (fit --resume, --refit-iterations): what the "
+                         "iterations alone gain (default on)")
+    ap.add_argument("--refit-folds", type=int, default=2, choices=(1, 2),
+                    help="diagnose's confirmation refits: 2 cross-fitted folds (default) or 1")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once, each in its own process")
     ap.add_argument("--out", default="/tmp/suite_diagnose")

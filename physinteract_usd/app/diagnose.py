@@ -144,14 +144,15 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
             b.best, b.step = b.marginal_probe
             b.estimate = estimate_of(b, prob)
             group.append(b)
-        val = group_frames(diag, group) if len(group) > 1 else None
+        folds = int(getattr(ctx.get("settings"), "refit_folds", 1))
+        val = group_frames(diag, group, folds=folds) if len(group) > 1 else None
         null = None
         if any(c.effect in PHYSICAL for c in group):
-            from ..diagnose.refit import held_back_frames
+            from ..diagnose.refit import held_back_folds
 
             if val is None:
                 col = cr.probes[cr.best].column if cr.best >= 0 else None
-                val = held_back_frames(prob.T, 4, ctx["res"], col)
+                val = held_back_folds(prob.T, 4, ctx["res"], col, folds)
             log(f"refitting the base alone ({iterations} iterations, held-back frames {val}): the control")
             null = refit_null(diag, val, iterations=iterations)
         for c in group:
@@ -205,7 +206,8 @@ START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these
 
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
-             progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None) -> dict:
+             progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
+             refit_folds: int | None = None) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -226,6 +228,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         raise InputError("--refit-iterations", f"must be a whole number >= 1, got {refit_iterations!r}")
     if starts is None or isinstance(starts, bool) or not 1 <= int(starts) <= len(START_FACTORS):
         raise InputError("--starts", f"must be 1, 2 or 3, got {starts!r}")
+    if refit_folds is not None and (isinstance(refit_folds, bool) or refit_folds not in (1, 2)):
+        raise InputError("--refit-folds", f"must be 1 or 2, got {refit_folds!r}")
     if trajectory_sigma_px is not None and not float(trajectory_sigma_px) > 0:
         raise InputError("--trajectory-sigma", f"must be a number of pixels > 0, got {trajectory_sigma_px!r}")
     cands = parse_candidates(candidates)
@@ -253,6 +257,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
     base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
     settings = DiagnoseSettings(candidates=cands, seed=seed, max_pixels=max_pixels)
+    if refit_folds is not None:
+        settings.refit_folds = int(refit_folds)
     base, starts_out = _best_start(prob, base, settings, int(starts), int(refit_iterations), log)
     bar = None
     if progress:

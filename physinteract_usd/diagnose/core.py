@@ -128,6 +128,10 @@ class DiagnoseSettings:
                                         # uncertainty (the fit's prior as ridge rows); False: free
     photometric: bool = True            # each frame's colour gain and offset projected out of the residual
                                         # (`ImageResidual.set_photometric`: flicker, exposure)
+    refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
+                                        # the control refitted twice, each time without one half of the frames the
+                                        # candidate changes most, and judged on it; the paired test pools both
+                                        # halves (twice the held-back blocks of one fold); 1 = one fold
 
 
 @dataclass
@@ -797,6 +801,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     res = ImageResidual(prob, max_pixels=s.max_pixels)
     run = _Runner(prob, base, res, log)
     x0, F0 = run.xf()
+    e_bound0 = getattr(prob.sim, "e_bound", None)    # the substep's stiffness the base's residual is taken at
     noise = None
     if s.photometric:
         res.set_photometric(x0, F0)
@@ -861,7 +866,8 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     for cr in results:
         cr.estimate = estimate_of(cr, prob)
     ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "r0a": r0a, "run": run,
-           "prior": prior, "names": names, "blocks": img_blocks, "n_blocks": img_nb, "settings": s}
+           "prior": prior, "names": names, "blocks": img_blocks, "n_blocks": img_nb, "settings": s,
+           "e_bound": e_bound0}
     if evidence is not None:
         for cr in results:
             if cr.significant:

@@ -23,6 +23,13 @@ from .residual import ImageResidual, loss
 _POSITIVE = {"coefficient", "yieldStress", "friction", "modulus", "relaxationTime"}
 
 
+def _strong_frames(res: ImageResidual, column) -> list[int]:
+    """The frames where a column changes the model most (its energy above the median)."""
+    e = np.square(np.asarray(column)).reshape(res.shape).sum((1, 2, 3))
+    order = [res.frames[i] for i in np.argsort(-e) if e[i] > 0]
+    return sorted(order[: max(2, len(order) // 2)])
+
+
 def held_back_frames(T: int, every: int = 4, res: ImageResidual | None = None, column=None) -> list[int]:
     """Frames left out of the refit to judge it. With the candidate's column: every other frame
     among those where the candidate changes the model most (its column's energy above the median:
@@ -31,20 +38,45 @@ def held_back_frames(T: int, every: int = 4, res: ImageResidual | None = None, c
 
     if res is None or column is None or T < 6:
         return _frames(T, every)[1]
-    e = np.square(np.asarray(column)).reshape(res.shape).sum((1, 2, 3))
-    order = [res.frames[i] for i in np.argsort(-e) if e[i] > 0]
-    strong = sorted(order[: max(2, len(order) // 2)])
+    strong = _strong_frames(res, column)
     return strong[1::2] if len(strong) > 1 else strong
+
+
+def held_back_folds(T: int, every: int = 4, res: ImageResidual | None = None, column=None, folds: int = 2
+                    ) -> list[list[int]]:
+    """The held-back frames of `folds` refits (cross-fitting): fold 1 is `held_back_frames` (every other
+    frame among the candidate's strong ones), fold 2 the strong frames fold 1 trains on, so that
+    every frame the candidate changes most judges it once (twice the held-back blocks of one fold).
+    Without a column (or with fewer than two strong frames), one fold."""
+    one = held_back_frames(T, every, res, column)
+    if folds < 2 or res is None or column is None or T < 6:
+        return [one]
+    strong = _strong_frames(res, column)
+    two = strong[0::2]
+    return [one, two] if one and two and len(strong) > 1 else [one]
+
+
+def as_folds(frames) -> list[list[int]] | None:
+    """A list of held-back frames (one fold) or a list of such lists (folds) -> a list of folds."""
+    if frames is None:
+        return None
+    frames = list(frames)
+    if frames and isinstance(frames[0], (list, tuple)):
+        return [list(f) for f in frames]
+    return [frames]
 
 
 def _frame_mask(res: ImageResidual, frames) -> np.ndarray:
     return np.isin(res.frame_of(), list(frames))
 
 
-def held_back_test(diag: Diagnosis, r_ref: np.ndarray, r_new: np.ndarray, m: np.ndarray) -> dict:
-    """`score.paired_drop` of the held-back elements `m` of two image residuals, over the diagnosis's
-    blocks (a few frames x an image tile, as its score tests): the drop of the held-back loss from
-    `r_ref` to `r_new`, its standard error and the one-sided p-value."""
+def held_back_test(diag: Diagnosis, r_ref, r_new=None, m=None) -> dict:
+    """`score.paired_drop` of held-back elements of two image residuals, over the diagnosis's blocks (a
+    few frames x an image tile, as its score tests): the drop of the held-back loss from `r_ref` to
+    `r_new`, its standard error and the one-sided p-value. `r_ref` may instead be a list of (r_ref,
+    r_new, m) triples, one per fold (each fold's refits trained without its held-back frames `m`):
+    their held-back elements are pooled (a block's elements from two folds are summed into the one
+    block: blocks stay independent)."""
     from . import score as S
 
     ctx = diag._ctx
@@ -55,49 +87,82 @@ def held_back_test(diag: Diagnosis, r_ref: np.ndarray, r_new: np.ndarray, m: np.
         nb = int(blocks.max()) + 1
     else:
         nb = int(ctx["n_blocks"])
-    return S.paired_drop(r_ref[m], r_new[m], blocks[m], nb, n_flips=getattr(s, "n_flips", 4000),
-                         seed=getattr(s, "seed", 0))
+    triples = r_ref if r_new is None else [(r_ref, r_new, m)]
+    a = np.concatenate([np.asarray(t[0])[t[2]] for t in triples])
+    b = np.concatenate([np.asarray(t[1])[t[2]] for t in triples])
+    bl = np.concatenate([blocks[t[2]] for t in triples])
+    return S.paired_drop(a, b, bl, nb, n_flips=getattr(s, "n_flips", 4000), seed=getattr(s, "seed", 0))
 
 
 def _alpha(diag: Diagnosis) -> float:
     return float(getattr(diag._ctx.get("settings"), "alpha", 0.05))
 
 
-def _accept(diag: Diagnosis, cr: CandidateResult, refs: list, r1: np.ndarray, m: np.ndarray) -> None:
-    """Acceptance on the held-back frames: a one-sided paired test (`held_back_test`) against each
-    model without the candidate in `refs` [(name, image residual)]; accepted when every p-value is
-    below alpha (an intersection-union test: below the base's and the control's at level alpha). The
-    drop and its standard error are reported against the reference with the lower held-back loss."""
-    tests = [(name, held_back_test(diag, r, r1, m)) for name, r in refs]
+def _accept(diag: Diagnosis, cr: CandidateResult, refs: dict, held: list) -> None:
+    """Acceptance on the held-back frames: a one-sided paired test (`held_back_test`, pooled over the
+    folds) against each model without the candidate: `refs` {name: [per fold: its image residual]},
+    `held` [per fold: (mask of the held-back elements, the candidate's image residual)]; accepted
+    when every p-value is below alpha (an intersection-union test: below the base's and the
+    control's at level alpha). The drop and its standard error are reported against the reference
+    with the lower held-back loss."""
+    tests = [(name, held_back_test(diag, [(rr[i], r1, m) for i, (m, r1) in enumerate(held)]))
+             for name, rr in refs.items()]
     # the lower reference: the smallest drop (the held-back loss to beat is the lower one)
     low = min(tests, key=lambda t: t[1]["drop"])
     p = max(t[1]["p"] for t in tests)
     cr.held_back_drop, cr.held_back_se, cr.held_back_p = low[1]["drop"], low[1]["se"], p
     cr.accepted = bool(p < _alpha(diag) and low[1]["drop"] > 0)
-    cr._held = (m, r1)
+    cr._held = held
 
 
-def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iterations: int, holdout_every: int, log):
-    """A short warm-started refit of the base (regions' log E, the trajectory) with `effect`'s
-    parameters too (None: the base alone, the control every candidate's refit is judged against),
-    on the frames not in `val`. Returns (image residual, augmented residual, state) or raises
-    SimulationError."""
+WARM = "field"   # how a refit starts (`warm_start`): "field" (the base's own E field, exactly) or "regions"
+                 # (before 2026-11-26: each region's median E, which flattened a smooth field to one value)
+
+
+def warm_start(lad, base, how: str = "field") -> None:
+    """Start a refit's ladder (`fit.ladder._Ladder`) at the base: its E and nu.
+
+    "field": a piecewise-constant base (`base.labels`) gets one log E per region (exact); any other
+    field is nested (`MaterialField.set_base`): log E = the base's own per particle, plus one offset
+    the refit moves (the score test's base column for such a field: the whole field's scale), so the
+    refit starts exactly where the base is and keeps its shape. "regions": each region's median E
+    (a smooth field becomes uniform: the refit starts far from the base, and 8 iterations do not get
+    back; docs/benchmarks/diagnose_named.md, 2026-11-26 (10th))."""
+    labels = base.labels if base.labels is not None else np.zeros(len(base.E), np.int64)
+    E = base.E.detach().cpu().numpy().astype(np.float64)
+    lad.labels = labels.astype(np.int64)
+    if how == "field" and base.labels is None and float(np.ptp(np.log(E))) > 1e-9:
+        lad.mat.set_basis(1)
+        lad.mat.set_base(E)
+    else:
+        lad.mat.set_regions(lad.labels)
+        lad.mat.set_region_log_e(np.array([np.log(np.median(E[labels == r])) for r in range(int(labels.max()) + 1)]))
+    nu = base.nu.detach().cpu().numpy().astype(np.float64)
+    if how == "field" and float(np.ptp(nu)) > 1e-9:
+        lad.mat.set_values(lad.mat.youngs().detach().cpu().numpy(), nu)      # nu's basis: one value, least squares
+    else:
+        nu0 = float(np.median(nu))
+        with torch.no_grad():
+            lad.mat.w_nu.copy_(torch.full_like(lad.mat.w_nu, float(math.log(nu0 / (lad.mat.nu_max - nu0)))))
+
+
+def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iterations: int, holdout_every: int, log,
+           warm: str | None = None, base_lr_scale: float = 1.0):
+    """A short warm-started refit of the base (`warm_start`: its E field and nu; the trajectory from the
+    fitted path) with `effect`'s parameters too (None: the base alone, the control every candidate's
+    refit is judged against), on the frames not in `val`. Returns (image residual, augmented
+    residual, state) or raises SimulationError."""
     from ..fit.ladder import _Ladder
     from ..fit.optimize import FitSettings
 
     ctx = diag._ctx
-    prob, base, res = ctx["prob"], ctx["base"], ctx["res"]
+    prob, base = ctx["prob"], ctx["base"]
     s = FitSettings(iterations=int(iterations), joint=True, fit_effects=(effect,) if effect else (),
                     holdout_every=holdout_every, confidence_probes=0)
+    if base_lr_scale != 1.0:      # the base's own parameters (E, the path) moved more gently than the effect's
+        s.lr_material, s.lr_trajectory = s.lr_material * base_lr_scale, s.lr_trajectory * base_lr_scale
     lad = _Ladder(prob, s, log, progress=False)
-    labels = base.labels if base.labels is not None else np.zeros(len(prob.x0), np.int64)
-    E = base.E.detach().cpu().numpy()
-    lad.labels = labels.astype(np.int64)
-    lad.mat.set_regions(lad.labels)
-    lad.mat.set_region_log_e(np.array([np.log(np.median(E[labels == r])) for r in range(int(labels.max()) + 1)]))
-    nu0 = float(base.nu.median())
-    with torch.no_grad():
-        lad.mat.w_nu.copy_(torch.full_like(lad.mat.w_nu, float(math.log(nu0 / (lad.mat.nu_max - nu0)))))
+    warm_start(lad, base, warm or WARM)
     for p, raw in (lad.effect_raw.get(effect, {}) if effect else {}).items():
         v = start.get(p)
         if v is None or not math.isfinite(float(v)):
@@ -117,91 +182,163 @@ def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iteratio
     full = {e: dict(p) for e, p in base.effects.items()}
     for e, ps in eff.items():
         full.setdefault(e, {}).update(ps)
-    trajs = [t.detach() for t in lad.trajs]
-    with torch.no_grad():
-        x, F = prob.simulate(lad.mat.youngs().detach(), lad.mat.poisson().detach(), trajs, effects=full)
-    run = ctx["run"]
+    state = {"E": lad.mat.youngs().detach(), "nu": lad.mat.poisson().detach(),
+             "trajectories": [t.detach() for t in lad.trajs], "effects": eff, "full_effects": full,
+             "history": list(lad.history)}
+    state["bound"] = rung_for(diag, state["E"])
+    r1, r1a = residual_at(diag, state, state["bound"])
+    return r1, r1a, state
+
+
+def rung_for(diag: Diagnosis, E) -> float | None:
+    """The adaptive substep's stiffness bound a refitted field is judged at: the base's own (the one
+    its residual was taken at) unless the field is stiffer than that rung allows (then its own)."""
+    sim = getattr(diag._ctx["prob"], "sim", None)
+    b0 = diag._ctx.get("e_bound")
+    if b0 is None or sim is None or not getattr(sim, "adaptive", False):
+        return None
+    return float(max(b0, sim.bound_for(float(E.max()))))
+
+
+def residual_at(diag: Diagnosis, state: dict | None, bound: float | None):
+    """(image residual, augmented residual) of a state {"E", "nu", "trajectories", "full_effects"}
+    (None: the base) simulated at the substep of stiffness `bound` (`fit.select.pinned_substep`):
+    models compared on held-back frames are simulated at one substep (a different time step alone
+    changes the loss by ~2%, as much as the candidates differ). The base at its own bound is the
+    diagnosis's own residual (no forward)."""
+    from ..fit.select import pinned_substep
+
+    ctx = diag._ctx
+    prob, base, res, run = ctx["prob"], ctx["base"], ctx["res"], ctx["run"]
+    if state is None:
+        if bound is None or bound == ctx.get("e_bound"):
+            return ctx["r0"], ctx["r0a"]
+        cache = ctx.setdefault("base_at", {})
+        if bound not in cache:
+            with torch.no_grad(), pinned_substep(prob, bound):
+                x, F = prob.simulate(base.E, base.nu, None, effects=base.effects)
+            cache[bound] = (res(x, F), ctx["r0a"][len(ctx["r0"]):])
+        r, p = cache[bound]
+        return r, run.aug(r, p)
+    trajs = state["trajectories"]
+    with torch.no_grad(), pinned_substep(prob, bound):
+        x, F = prob.simulate(state["E"], state["nu"], trajs, effects=state["full_effects"])
     p1 = prior_residual(prob, base, trajs) if len(run.p0) else np.zeros(0)
     sc = float(ctx["prior"].get("row_scale", 0.0))
     r1 = res(x, F)
-    state = {"E": lad.mat.youngs().detach(), "nu": lad.mat.poisson().detach(), "trajectories": trajs, "effects": eff}
-    return r1, run.aug(r1, p1 * sc), state
+    return r1, run.aug(r1, p1 * sc)
 
 
 def refit_null(diag: Diagnosis, val: list, *, iterations: int = 8, holdout_every: int = 4, log=None) -> dict | None:
     """The control of the candidates' refits: the base refitted alike (the same iterations, the same
-    held-back frames `val`), with no new effect. A few iterations from the fit move E and the path
-    too, and lower the held-back loss by themselves where the base was not quite converged: a
-    candidate counts only for what it adds beyond that. Returns {"frames", "held_back_loss",
-    "loss", "aloss"} or None when the simulation fails."""
+    held-back frames `val`: one list, or one list per fold, `as_folds`), with no new effect. A few
+    iterations from the fit move E and the path too, and lower the held-back loss by themselves where
+    the base was not quite converged (or raise it): a candidate counts only for what it adds beyond
+    that. Returns {"frames" (fold 1's), "folds": [{"frames", "state", "residual", "held_back_loss"}],
+    "held_back_loss" (over every fold's held-back frames), "loss", "aloss", "residual" (fold 1's)}, or
+    None when the simulation fails."""
     ctx = diag._ctx
     res, run = ctx["res"], ctx["run"]
-    try:
-        r1, r1a, _ = _refit(diag, None, {}, val, iterations, holdout_every, log)
-    except SimulationError:
-        return None
-    m = _frame_mask(res, val) if val else np.ones(len(r1), bool)
-    return {"frames": list(val), "held_back_loss": loss(r1[m]), "loss": loss(r1), "aloss": run.aloss(r1a),
-            "residual": r1}
+    out = []
+    for f in as_folds(val) or [[]]:
+        try:
+            r1, r1a, st = _refit(diag, None, {}, f, iterations, holdout_every, log)
+        except SimulationError:
+            return None
+        m = _frame_mask(res, f) if f else np.ones(len(r1), bool)
+        out.append({"frames": list(f), "state": st, "residual": r1, "aloss": run.aloss(r1a),
+                    "held_back_loss": loss(r1[m]), "mask": m})
+    allm = np.concatenate([o["residual"][o["mask"]] for o in out])
+    return {"frames": out[0]["frames"], "folds": out, "held_back_loss": loss(allm), "loss": loss(out[0]["residual"]),
+            "aloss": out[0]["aloss"], "residual": out[0]["residual"]}
 
 
-def group_frames(diag: Diagnosis, crs: list, holdout_every: int = 4) -> list[int]:
+def group_frames(diag: Diagnosis, crs: list, holdout_every: int = 4, folds: int = 1) -> list:
     """Held-back frames shared by candidates compared with each other (a confusable pair): every other
-    frame among those where the candidates together (each column normalised) change the model most."""
+    frame among those where the candidates together (each column normalised) change the model most.
+    `folds` 2: a list of the two folds' frames (`held_back_folds`)."""
     ctx = diag._ctx
     res, prob = ctx["res"], ctx["prob"]
     cols = [np.asarray(c.probes[c.best].column) for c in crs if c.best >= 0 and c.probes]
-    if not cols:
-        return held_back_frames(prob.T, holdout_every)
     e = 0.0
     for col in cols:
         col = col[: res.n]
         nrm = float(np.sum(np.square(col)))
         if nrm > 0:
             e = e + np.square(col) / nrm
-    return held_back_frames(prob.T, holdout_every, res, np.sqrt(e) if np.ndim(e) else None)
+    column = np.sqrt(e) if cols and np.ndim(e) else None
+    if folds > 1:
+        return held_back_folds(prob.T, holdout_every, res, column, folds)
+    return held_back_frames(prob.T, holdout_every, res, column)
 
 
 def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, holdout_every: int = 4, log=None,
-                 frames: list | None = None, null: dict | None = None):
+                 frames: list | None = None, null: dict | None = None, folds: int = 1):
     """Refit `cr`'s physical effect (module doc). Fills cr.realized_loss_drop, cr.accepted,
-    cr.held_back_drop and cr.estimate (the refitted parameters). `frames`: the held-back frames
-    (default: from the candidate's own column); `null`: the base refitted alike on those frames
-    (`refit_null`): the held-back loss to beat is the lower of the base's and that one's. Returns the refitted
-    state {"E", "nu", "trajectories", "effects"} or None."""
+    cr.held_back_drop and cr.estimate (the refitted parameters). `frames`: the held-back frames, one
+    list or one per fold (`as_folds`; default: from the candidate's own column, `folds` of them);
+    `null`: the base refitted alike on those frames (`refit_null`): the held-back loss to beat is the
+    lower of the base's and that one's, each compared at the candidate's substep. With several folds
+    the candidate is refitted once per fold and the paired test pools every fold's held-back blocks.
+    Returns fold 1's refitted state {"E", "nu", "trajectories", "effects"} or None."""
     ctx = diag._ctx
     prob, res, r0 = ctx["prob"], ctx["res"], ctx["r0"]
     if cr.effect not in PHYSICAL or cr.effect not in prob.effects:
         return None
     col = cr.probes[cr.best].column if cr.best >= 0 else None
-    val = list(frames) if frames is not None else held_back_frames(prob.T, holdout_every, res, col)
-    try:
-        r1, r1a, state = _refit(diag, cr.effect, dict(cr.estimate), val, iterations, holdout_every, log)
-    except SimulationError as exc:
-        cr.note = f"refit failed: {exc}"
-        cr.accepted = False
-        return None
+    fl = as_folds(frames) or held_back_folds(prob.T, holdout_every, res, col, folds)
+    nf = null.get("folds") if null is not None else None
+    if nf is not None and [o["frames"] for o in nf] != fl:
+        nf = None                                   # a control made on other frames cannot judge these
+    start = dict(cr.estimate)
+    held, refs, states, r1as = [], {"base": []}, [], []
+    for i, val in enumerate(fl):
+        try:
+            r1, r1a, state = _refit(diag, cr.effect, start, val, iterations, holdout_every, log)
+        except SimulationError as exc:
+            cr.note = f"refit failed: {exc}"
+            cr.accepted = False
+            return None
+        b = state["bound"]
+        m = _frame_mask(res, val) if val else np.ones(len(r0), bool)
+        held.append((m, r1))
+        refs["base"].append(residual_at(diag, None, b)[0])
+        if nf is not None:
+            cs = nf[i]["state"]
+            refs.setdefault("control", []).append(nf[i]["residual"] if cs.get("bound") == b
+                                                  else residual_at(diag, cs, b)[0])
+        states.append(state)
+        r1as.append(r1a)
     run = ctx["run"]
-    m = _frame_mask(res, val) if val else np.ones(len(r0), bool)
     # the drop beyond what the base parameters alone would give (their linear step), as predicted
     J, r0a = diag._J, ctx["r0a"]
     a0, *_ = np.linalg.lstsq(J, -r0a, rcond=None)
     b0 = r0a + J @ a0
-    cr.realized_loss_drop = run.aloss(b0) - run.aloss(r1a)
+    cr.realized_loss_drop = float(np.mean([run.aloss(b0) - run.aloss(ra) for ra in r1as]))
     # the loss to beat: the best model without the candidate, the base as it is or refitted alike (a
     # refit on the training frames can also raise the held-back loss: then the base itself is the bar)
-    v1 = loss(r1[m])
-    refs = [("base", r0)] + ([] if null is None or null.get("residual") is None else [("control", null["residual"])])
-    _accept(diag, cr, refs, r1, m)
-    cr.estimate = {**state["effects"].get(cr.effect, {})}
-    ref = "the base's" if null is None else f"the base refitted alike: {float(null['held_back_loss']):.3e}"
-    cr.note = (f"refit ({iterations} iterations, held-back frames {val}): held-back loss {loss(r0[m]):.3e} -> "
-               f"{v1:.3e} ({ref}); drop {cr.held_back_drop:.3g} +- {cr.held_back_se:.2g} (paired test over "
-               f"blocks, p = {cr.held_back_p:.3g}); loss {loss(r0):.3e} -> {loss(r1):.3e} ({run.aloss(b0):.3e} "
-               "with the base's own step alone)"
+    _accept(diag, cr, refs, held)
+    est = {}
+    for p_ in states[0]["effects"].get(cr.effect, {}):
+        vs = [float(st["effects"][cr.effect][p_]) for st in states]
+        est[p_] = float(np.exp(np.mean(np.log(vs)))) if p_ in _POSITIVE and min(vs) > 0 else float(np.mean(vs))
+    cr.estimate = est
+    hb = lambda rr: loss(np.concatenate([r[m] for r, (m, _) in zip(rr, held)]))  # noqa: E731
+    v1 = loss(np.concatenate([r1[m] for m, r1 in held]))
+    ref = "the base's" if nf is None else f"the base refitted alike: {hb(refs['control']):.3e}"
+    where = (f"held-back frames {fl[0]}" if len(fl) == 1 else
+             f"{len(fl)} folds, held-back frames " + " and ".join(str(f) for f in fl))
+    cr.note = (f"refit ({iterations} iterations from the base's field and path, the effect from its estimate; "
+               f"{where}): held-back loss {hb(refs['base']):.3e} -> {v1:.3e} ({ref}); drop {cr.held_back_drop:.3g} "
+               f"+- {cr.held_back_se:.2g} (paired test over blocks, p = {cr.held_back_p:.3g}); loss {loss(r0):.3e} -> "
+               f"{loss(held[0][1]):.3e} ({run.aloss(b0):.3e} with the base's own step alone)"
                + ("" if cr.accepted else ": not accepted (the held-back drop is within the frames' own spread)"
                   if cr.held_back_drop > 0 else ": not accepted"))
-    return state
+    return states[0]
+
+
+def _same_folds(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(np.array_equal(x[0], y[0]) for x, y in zip(a, b))
 
 
 def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
@@ -216,9 +353,10 @@ def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
     a = _alpha(diag)
     best, bt = None, None
     for c in group:
-        if c is cr or getattr(c, "_held", None) is None or held is None or not np.array_equal(c._held[0], held[0]):
+        if c is cr or getattr(c, "_held", None) is None or held is None or not _same_folds(c._held, held):
             continue
-        t = held_back_test(diag, held[1], c._held[1], held[0])    # from cr's held-back residual to c's
+        # from cr's held-back residual to c's, pooled over the folds
+        t = held_back_test(diag, [(h[1], g[1], h[0]) for h, g in zip(held, c._held)])
         c.rival_test = {"against": cr.effect, "drop": t["drop"], "se": t["se"], "p": t["p"]}
         told = t["p"] < a and t["drop"] > 0
         c.note = (f"against {cr.effect} on the same held-back frames: {t['drop']:.3g} +- {t['se']:.2g} lower "
@@ -234,7 +372,8 @@ def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
 def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, frames: list | None = None) -> None:
     """A non-physical cause (or `heterogeneity`): its best probe taken for real, the base
     parameters re-adjusted by their linear step; realised drop on all frames, accepted when the
-    held-back frames' loss falls too."""
+    held-back frames' loss falls too (`frames`: one list, or one per fold: the same residual judged on
+    each fold's frames, pooled)."""
     from .core import realised_gauss_newton
 
     ctx = diag._ctx
@@ -252,17 +391,18 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
         r1 = r0 + col * cr.step                 # render-only / gravity: the linear step itself
     else:
         r1 = r0 + col                           # the probe itself (amplitude 1)
-    val = list(frames) if frames is not None else held_back_frames(prob.T, holdout_every, res, p.column)
+    fl = as_folds(frames) or [held_back_frames(prob.T, holdout_every, res, p.column)]
     a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
     a1, *_ = np.linalg.lstsq(J, -r1, rcond=None)
     b0, b1 = r0 + J @ a0, r1 + J @ a1
     cr.realized_loss_drop = run.aloss(b0) - run.aloss(b1)
     n = run.n_img or len(r0)
-    m = _frame_mask(res, val) if val else np.ones(n, bool)
-    _accept(diag, cr, [("base", b0[:n])], b1[:n], m)
+    ms = [_frame_mask(res, f) if f else np.ones(n, bool) for f in fl]
+    _accept(diag, cr, {"base": [b0[:n]] * len(ms)}, [(m, b1[:n]) for m in ms])
 
 
-__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "group_frames", "held_back_test",
+__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
+           "held_back_test", "warm_start", "residual_at", "rung_for",
            "compare_rivals"]
 
 
