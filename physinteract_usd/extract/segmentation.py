@@ -200,6 +200,11 @@ class ColourMotionSegmenter:
             if _pass == 0:
                 bg, seen = estimate_background(f, cover | hand, dilate=2, return_seen=True)
                 bg = _inpaint(bg, seen == 0)
+                # a toucher that arrives and then sits still is what the median shows where it sits:
+                # the background there is the side of the pixel's one lasting change that looks like
+                # the background, not like the toucher or the object (what it showed before the
+                # toucher arrived, or after it left)
+                bg = background_across_changes(f, ~dilate_all(cover, 2), bg, thr, h_hand, h_obj)
         if have_masks:
             obj = M & ~hand
         else:
@@ -227,6 +232,84 @@ class ColourMotionSegmenter:
         fg = (dist > thr) & (np.abs(raw).max(-1) > 0.5 * thr)
         fg = np.stack([open_close(x, 0, 1) for x in fg])
         return fg, float(sig.max()), thr
+
+
+def step_changes(f: np.ndarray, free: np.ndarray, min_frames: int = 2):
+    """Per pixel, the one lasting change of its colour over the frames in which it is `free`: the
+    split (frames before t, frames from t on) that best fits its colours with two constant ones
+    (least squares), each side holding at least `min_frames` free frames. f (T, H, W, 3), free
+    (T, H, W) bool. Returns (before, after, step, rms): the two sides' mean colours (H, W, 3), the
+    largest channel difference between them and the RMS residual of the two-colour fit (H, W);
+    step 0 where no split has `min_frames` on both sides."""
+    T, H, W, _ = f.shape
+    w = free.astype(np.float64)[..., None]
+    fw = f.astype(np.float64) * w
+    S_all, Q_all, N_all = fw.sum(0), (fw * f).sum((0, 3)), w[..., 0].sum(0)
+    s1 = np.zeros((H, W, 3))
+    q1 = np.zeros((H, W))
+    n1 = np.zeros((H, W))
+    best = np.full((H, W), np.inf)
+    before = np.zeros((H, W, 3))
+    after = np.zeros((H, W, 3))
+    for t in range(1, T):
+        s1 += fw[t - 1]
+        q1 += (fw[t - 1] * f[t - 1]).sum(-1)
+        n1 += w[t - 1, ..., 0]
+        n2 = N_all - n1
+        ok = (n1 >= min_frames) & (n2 >= min_frames)
+        if not ok.any():
+            continue
+        s2 = S_all - s1
+        with np.errstate(all="ignore"):
+            m1, m2 = s1 / n1[..., None], s2 / n2[..., None]
+            sse = (q1 - (s1 * m1).sum(-1)) + ((Q_all - q1) - (s2 * m2).sum(-1))
+        better = ok & (sse < best)
+        best = np.where(better, sse, best)
+        before = np.where(better[..., None], m1, before)
+        after = np.where(better[..., None], m2, after)
+    found = np.isfinite(best)
+    step = np.where(found, np.abs(before - after).max(-1), 0.0)
+    with np.errstate(all="ignore"):
+        rms = np.where(found, np.sqrt(np.maximum(best, 0.0) / np.maximum(3 * N_all, 1)), np.inf)
+    return before.astype(np.float32), after.astype(np.float32), step, rms
+
+
+def background_across_changes(f: np.ndarray, free: np.ndarray, bg: np.ndarray, thr: float,
+                              h_hand: np.ndarray, h_obj: np.ndarray | None, consistent: float = 0.25,
+                              margin: float = 2.0, eps: float = 1e-6) -> np.ndarray:
+    """`bg` corrected where a pixel's colour changes once and lasts (`step_changes`: a step over the
+    foreground threshold `thr`, both sides steady: RMS residual under `consistent` x the step): a
+    toucher that arrives and sits still for most of the video, or one that sat still and left, is
+    what the per-pixel median shows there. Of the two sides, the background is the one that looks
+    more like the background's colours where nothing changes (the pixels without such a step) than
+    like the toucher's (`h_hand`) or the object's (`h_obj`) colours, by at least `margin` in log
+    likelihood ratio (as decisive as a colour must be to make a pixel hand alone); where the colours
+    do not decide (a glove the colour of the floor, dev_9372) the median stands. Pixels whose
+    background so chosen differs from `bg` by under `thr` are left as they are."""
+    before, after, step, rms = step_changes(f, free)
+    changed = (step > thr) & (rms < consistent * step)
+    if not changed.any():
+        return bg
+    steady = (~changed) & free.any(0)
+    if steady.sum() < 16:
+        return bg
+    h_bg = colour_histogram(bg[steady])
+
+    def score(c):
+        other = likelihood(h_hand, c)
+        if h_obj is not None:
+            other = np.maximum(other, likelihood(h_obj, c))
+        return np.log(likelihood(h_bg, c) + eps) - np.log(other + eps)
+
+    b, a = before[changed], after[changed]
+    d = score(b) - score(a)
+    pick = np.where((d >= 0)[:, None], b, a)
+    out = bg.copy()
+    cur = out[changed]
+    move = (np.abs(d) >= margin) & (np.abs(pick - cur).max(-1) > thr)
+    cur[move] = pick[move]
+    out[changed] = cur
+    return out.astype(np.float32)
 
 
 def drop_still_props(hand: np.ndarray, seeds: np.ndarray, share: float = 0.5) -> np.ndarray:
