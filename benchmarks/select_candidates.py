@@ -51,6 +51,17 @@ def main():
                          "the bumps ladder spends on its 8-bump level at 20 iterations)")
     ap.add_argument("--attach-grasped", action="store_true",
                     help="select's motion parts: the hand's grasped particles join the nearest free cluster")
+    ap.add_argument("--section-cut", action="store_true",
+                    help="select's motion parts: the score averaged over the object's thickness before the cut")
+    ap.add_argument("--exposure-floor", type=float, default=0.0,
+                    help="select's motion parts: particles strained less than this x the median (mean square "
+                         "Hencky strain, the uniform model's rollout) get no part of their own (0.1: select's "
+                         "EXPOSURE_FLOOR)")
+    ap.add_argument("--dump", default=None,
+                    help="an .npz of per-particle arrays (#24, where is the field wrong): every candidate's E, the "
+                         "truth per particle, the parts' labels, the grasped / held particles, the uniform model's "
+                         "score, and each model's strain exposure (rotation-free Hencky strain from its rollout, "
+                         "max and mean square over the frames), also under the true material")
     a = ap.parse_args()
 
     import torch
@@ -93,7 +104,8 @@ def main():
     cands: dict = {}
     c0 = time.process_time()
     rs = fit_select(prob, s, progress=False, log=log, candidates=cands,
-                    field_uniform_iterations=a.field_uniform_iterations, attach_grasped=a.attach_grasped)
+                    field_uniform_iterations=a.field_uniform_iterations, attach_grasped=a.attach_grasped,
+                    section_cut=a.section_cut, exposure_floor=a.exposure_floor)
     c_sel = round(time.process_time() - c0, 1)
     m = rs.model
     train, val = m["training_frames"], m["held_back_frames"]
@@ -132,10 +144,57 @@ def main():
             ra = fit_bumps(prob, sb, progress=False, log=None)
             row("bumps on all frames (reference)", ra, train, val, round(time.process_time() - c0, 1))
     emit(max(float(np.max(r.youngs)) for _, r, *_ in results))
+    if a.dump:
+        dump(a.dump, prob, s, cands, results, e_p, rs)
     if a.out:
         with open(a.out, "a") as f:
             for r in rows:
                 f.write(json.dumps(r) + "\n")
+
+
+def strain_exposure(prob, youngs, poisson, trajectories, effects=None) -> tuple[np.ndarray, np.ndarray]:
+    """(max over frames, mean square over frames) of each particle's rotation-free strain (the norm
+    of the Hencky strain log V, F = V R), from a rollout of the given material at its own rung."""
+    import torch
+
+    from physinteract_usd.fit.select import SimulationError, pinned_substep
+
+    t = lambda v: torch.as_tensor(np.asarray(v), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
+    with torch.no_grad(), pinned_substep(prob, float(np.max(youngs))):
+        try:
+            _, F = prob.simulate(t(youngs), t(poisson), trajectories, effects)
+        except SimulationError:
+            nan = np.full(len(prob.x0), np.nan)
+            return nan, nan
+    Fs = np.stack([np.asarray(F[k].detach().cpu(), np.float64) for k in range(1, prob.T)])   # (T-1, P, 3, 3)
+    h = np.sqrt((np.log(np.clip(np.linalg.svd(Fs, compute_uv=False), 1e-6, None)) ** 2).sum(-1))
+    return h.max(0), (h ** 2).mean(0)
+
+
+def dump(path, prob, s, cands, results, e_p, rs):
+    """The per-particle arrays of `--dump` (module doc)."""
+    from physinteract_usd.fit.select import _result_inputs, grasped_particles, part_score
+
+    out = {"x0": np.asarray(prob.x0), "e_true": np.asarray(e_p), "held": np.asarray(prob.held_particles(), bool),
+           "grasped": grasped_particles(prob), "training": np.asarray(rs.model["training_frames"]),
+           "held_back": np.asarray(rs.model["held_back_frames"])}
+    if "parts" in cands:
+        out["labels_parts"] = np.asarray(cands["parts"].regions, np.int64)
+    if "uniform" in cands:
+        sc = part_score(prob, cands["uniform"], s, rs.model["training_frames"])
+        if sc is not None:
+            out["score_uniform"] = sc
+    for name, r, *_ in results:
+        key = name.split(" (")[0].replace(" ", "_")
+        out[f"E__{key}"] = np.asarray(r.youngs)
+        _, trajs, eff = _result_inputs(prob, r, s)
+        mx, ms = strain_exposure(prob, r.youngs, r.poisson, trajs, eff)
+        out[f"strain_max__{key}"], out[f"strain_ms__{key}"] = mx, ms
+        if name == "uniform":    # the truth's material on the uniform model's hand path and nu
+            mx, ms = strain_exposure(prob, e_p, r.poisson, trajs, eff)
+            out["strain_max__truth"], out["strain_ms__truth"] = mx, ms
+    np.savez(path, **out)
+    print(f"per-particle arrays: {path}", flush=True)
 
 
 if __name__ == "__main__":

@@ -282,3 +282,74 @@ def test_the_hands_grasp_can_join_its_neighbour_rather_than_cut_a_motion_part_of
     # the cut at the free particles' median (the middle of the 180), the grasp with the bottom
     top, bottom = fixed["labels"][:85], fixed["labels"][95:]
     assert len(set(top)) == 1 and len(set(bottom)) == 1 and top[0] != bottom[0]
+
+
+def _rod(nx=60, ny=6, nz=6, h=0.005):
+    """Particles on a lattice: a rod along x, `ny` x `nz` particles across."""
+    g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"), -1).reshape(-1, 3)
+    return g * h
+
+
+def test_the_motion_cut_averaged_over_a_section_runs_across_the_rod_not_along_it():
+    """A rod graded along its length (the score's small trend: stiffer wanted at x = 0) whose score
+    also flips across the section (a bend: one side wants stiffer, the other softer, 5x the trend):
+    smoothed over the particle graph (4 rounds) the median cut splits the rod lengthwise, side by
+    side; averaged over a ball of 1.5 rod thicknesses (`section`, select's rule) the cut runs
+    across, at mid-length."""
+    from physinteract_usd.fit import regions as R
+    from physinteract_usd.fit.select import SECTION_BALL
+    from physinteract_usd.thickness import occupancy, thinnest_part
+
+    h = 0.005
+    x = _rod(h=h)
+    P = len(x)
+    ymid = x[:, 1].mean()
+    score = (x[:, 0] / x[:, 0].max() - 0.5) + 2.5 * np.sign(x[:, 1] - ymid)
+    free = np.ones(P, bool)
+    graph = R.particle_graph(x, 1.6 * h)
+    plain = R.motion_clusters(score, free, graph)
+    # lengthwise: each side of the section is one cluster, whatever x
+    assert (plain[x[:, 1] < ymid] == plain[x[:, 1] < ymid][0]).all() and plain[x[:, 1] > ymid][0] != plain[x[:, 1] < ymid][0]
+    t = thinnest_part(occupancy(x, h), h).thinnest
+    assert 4 * h <= t <= 7 * h, t          # the rod is 6 particles (~5-6 spacings) across
+    sec = R.motion_clusters(score, free, graph, points=x, section=SECTION_BALL * t)
+    near, far = sec[x[:, 0] < 0.3 * x[:, 0].max()], sec[x[:, 0] > 0.7 * x[:, 0].max()]
+    assert (near == near[0]).all() and (far == far[0]).all() and near[0] != far[0]
+
+
+def test_strain_exposure_is_rotation_free_and_unstrained_particles_get_no_part_of_their_own():
+    """Known answers: a particle rotated by 40 degrees has no strain, one stretched 10% along x has
+    log(1.1)^2 (mean over frames); and a motion candidate with the barely strained particles marked
+    `unconstrained` has no part for them (they join their strained neighbour)."""
+    import types
+
+    from physinteract_usd.fit.select import part_candidates, strain_exposure
+
+    P, T = 4, 3
+    c, s_ = np.cos(0.7), np.sin(0.7)
+    Rz = torch.tensor([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    S = torch.diag(torch.tensor([1.1, 1.0, 1.0], dtype=torch.float64))
+    F = torch.eye(3, dtype=torch.float64).repeat(T, P, 1, 1)
+    F[1:, 0] = Rz
+    F[1:, 1] = Rz @ S
+    F[2, 2] = S                      # stretched in one of the two frames
+    prob = types.SimpleNamespace(tdtype=torch.float64, tdev="cpu", T=T, x0=np.zeros((P, 3)),
+                                 simulate=lambda E, nu, tr=None, eff=None: (None, F))
+    e = strain_exposure(prob, np.full(P, 1e4), np.full(P, 0.3))
+    np.testing.assert_allclose(e, [0.0, np.log(1.1) ** 2, 0.5 * np.log(1.1) ** 2, 0.0], atol=1e-12)
+
+    # a rod graded along its length, its free tip (the last 20 particles) barely strained
+    n = 200
+    x0 = np.stack([np.zeros(n), np.linspace(0.995, 0.0, n), np.zeros(n)], 1)
+    score = np.linspace(-1.0, 1.0, n)
+    score[-20:] = -5.0                   # the tip's score: whatever its E, an arbitrary side
+    rod = types.SimpleNamespace(
+        x0=x0, scene=types.SimpleNamespace(settings=types.SimpleNamespace(particle_spacing=0.005)),
+        held_particles=lambda: np.zeros(n, bool), particle_appearance=lambda: np.full((n, 3), 0.5), contacts=[])
+    fs_ = FitSettings()
+    plain = [c for c in part_candidates(rod, fs_, score) if c["kind"] == "motion"][0]
+    assert plain["parts"] == 3 and plain["labels"][-1] != plain["labels"][-40]     # the tip: a part of its own
+    tip = np.zeros(n, bool)
+    tip[-20:] = True
+    fixed = [c for c in part_candidates(rod, fs_, score, unconstrained=tip) if c["kind"] == "motion"][0]
+    assert fixed["parts"] == 2 and fixed["labels"][-1] == fixed["labels"][-40] != fixed["labels"][0]

@@ -212,7 +212,8 @@ def grasped_particles(prob) -> np.ndarray:
     return out & ~held
 
 
-def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, attach_grasped: bool = False) -> list[dict]:
+def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, attach_grasped: bool = False,
+                    section: float | None = None, unconstrained: np.ndarray | None = None) -> list[dict]:
     """Candidate partitions of the object into parts (`fit.regions`), each {"kind", "labels" (P,)
     0..m-1, "parts"}: by appearance (colour clusters of the particles' local colours, k by
     `regions.colour_clusters`' rule) and by motion (the uniform model's score dL/dlog E split at
@@ -223,7 +224,12 @@ def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, at
     (benchmarks, #24): in the motion candidate, the particles a hand grasps (`grasped_particles`)
     join the nearest free cluster too, as held ones do, rather than cut a part of their own: their
     score is the hand's motion, not their material's (hemp_rope: a part at the hand fitted 1.6
-    kPa, and another time 19.5 kPa, against a truth of 7.5)."""
+    kPa, and another time 19.5 kPa, against a truth of 7.5). `section` (metres; benchmarks, #24): the
+    motion score averaged over a ball of the object's thickness before the cut
+    (`regions.motion_clusters`). `unconstrained` (P,) bool (benchmarks, #24): particles the clip
+    barely strains (`strain_exposure` below a floor) join the nearest strained cluster in the motion
+    candidate, as held ones do: the video cannot tell their material, so they get no part (and no E)
+    of their own but their strained neighbours'."""
     from . import regions as R
 
     st = prob.scene.settings
@@ -236,8 +242,11 @@ def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, at
     if s.appearance > 0:
         clusters.append(("appearance", R.colour_clusters(prob.particle_appearance(), free, seed=s.seed)))
     grasped = grasped_particles(prob) if attach_grasped else np.zeros(P, bool)
-    if score is not None:
-        clusters.append(("motion", R.motion_clusters(score, free & ~grasped, graph)))
+    if unconstrained is not None:
+        grasped = grasped | (np.asarray(unconstrained, bool) & free)
+    if score is not None and (free & ~grasped).sum() >= 4:
+        clusters.append(("motion", R.motion_clusters(score, free & ~grasped, graph, points=np.asarray(prob.x0),
+                                                     section=section)))
     out = []
     for kind, cl in clusters:
         if cl is None:
@@ -265,6 +274,53 @@ def _result_inputs(prob, r: FitResult, s: FitSettings):
     if r.effect_parameters:
         eff = effect_values(effect_parameters(prob, s.fit_effects, r.effect_parameters), prob.traj_scale)
     return t, trajs, eff
+
+
+def strain_exposure(prob, youngs, poisson, trajectories=None, effects=None, frames=None,
+                    e_bound: float | None = None) -> np.ndarray | None:
+    """Each particle's strain exposure over the clip: the mean square over `frames` (default: all
+    but the rest frame) of its rotation-free strain, the norm of the Hencky strain log V (F = V R:
+    a swing's rotation is no strain), from one rollout of the given material (no gradients). A
+    particle that barely strains tells the video nothing about its E (a rope's free tip below the
+    hand: its E moves the picture by less than the noise). None if the rollout fails."""
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
+    with torch.no_grad(), pinned_substep(prob, e_bound):
+        try:
+            _, F = prob.simulate(t(youngs), t(poisson), trajectories, effects)
+        except SimulationError:
+            return None
+    ks = list(range(1, prob.T)) if frames is None else list(frames)
+    Fs = torch.stack([F[k] for k in ks]).detach().to("cpu", torch.float64).numpy()
+    sv = np.linalg.svd(Fs, compute_uv=False)
+    h2 = (np.log(np.clip(sv, 1e-6, None)) ** 2).sum(-1)           # (frames, P)
+    out = h2.mean(0)
+    return out if np.isfinite(out).all() else None
+
+
+# a particle is "unconstrained" when its strain exposure is below this share of the object's median
+# (mean square strain: a tenth of the median is a third of its RMS strain); chosen before measuring,
+# not fitted (benchmarks only, `fit_select(exposure_floor=...)`)
+EXPOSURE_FLOOR = 0.1
+
+
+# the motion score's section average (`regions.motion_clusters(section=...)`): a ball of this many
+# object thicknesses (a ball centred on one face of a rod reaches across the section and about as far
+# along it either way, so the two faces average nearly the same particles; on a rod whose score flips
+# across the section at 5x its trend along the length, 1 thickness still cut 15% of the ends wrongly)
+SECTION_BALL = 1.5
+
+
+def object_thickness(prob) -> float | None:
+    """The object's thinnest part (metres) from its particles at rest (`thickness.thinnest_part` on
+    their occupancy at the particle spacing); None if it cannot be measured."""
+    from ..thickness import occupancy, thinnest_part
+
+    try:
+        h = float(prob.scene.settings.particle_spacing)
+        th = thinnest_part(occupancy(np.asarray(prob.x0, np.float64), h), h)
+    except (ValueError, AttributeError):
+        return None
+    return float(th.thinnest) if math.isfinite(th.thinnest) and th.thinnest > 0 else None
 
 
 def part_score(prob, r: FitResult, s: FitSettings, frames) -> np.ndarray | None:
@@ -534,7 +590,8 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
 
 
 def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations: int, *, progress=False, log=None,
-                on_iteration=None, attach_grasped: bool = False) -> tuple[FitResult | None, dict]:
+                on_iteration=None, attach_grasped: bool = False, section_cut: bool = False,
+                exposure_floor: float = 0.0) -> tuple[FitResult | None, dict]:
     """The parts step (module doc, 3.): candidate partitions (`part_candidates`), each part's E
     by a coordinate sweep (`part_sweep`) from the uniform model's E, and the best candidate's also
     from the uniform stage's other distinct minima (`select_part_starts`; the loss of a part can be
@@ -546,8 +603,24 @@ def parts_stage(prob, view, s: FitSettings, uni: dict, ru: FitResult, iterations
     st = prob.scene.settings
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
     score = part_score(prob, ru, s, view._frames)
-    cands = part_candidates(prob, s, score, log=log, attach_grasped=attach_grasped)
     rec: dict = {"candidates": []}
+    section = object_thickness(prob) if section_cut else None
+    section = SECTION_BALL * section if section else None
+    unconstrained = None
+    if section_cut:
+        rec["section_m"] = section
+    if exposure_floor > 0:
+        _, trajs_u, eff_u = _result_inputs(prob, ru, s)
+        expo = strain_exposure(prob, ru.youngs, ru.poisson, trajs_u, eff_u, frames=view._frames,
+                               e_bound=float(np.max(ru.youngs)))
+        if expo is not None:
+            free = ~np.asarray(prob.held_particles(), bool)
+            unconstrained = free & (expo < float(exposure_floor) * float(np.median(expo[free])))
+            rec["unconstrained"] = {"floor": float(exposure_floor), "particles": int(unconstrained.sum())}
+            say(f"parts: {int(unconstrained.sum())} of {int(free.sum())} free particles barely strain (exposure "
+                f"< {exposure_floor:g} x the median): no part of their own")
+    cands = part_candidates(prob, s, score, log=log, attach_grasped=attach_grasped, section=section,
+                            unconstrained=unconstrained)
     if not cands:
         rec["why"] = "no candidate parts (one colour, and the motion does not split the object)"
         say(f"parts: {rec['why']}")
@@ -791,13 +864,17 @@ def model_summary(model: dict | None) -> dict:
 
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
                on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None,
-               field_uniform_iterations: int | None = None, attach_grasped: bool = False) -> FitResult:
+               field_uniform_iterations: int | None = None, attach_grasped: bool = False,
+               section_cut: bool = False, exposure_floor: float = 0.0) -> FitResult:
     """The "select" schedule (module doc). A resumed fit (`start`) goes on with the bumps field.
     `candidates` (a dict, optional): receives every candidate model's FitResult by name, trained on
     the training frames (benchmarks: what each candidate would have scored).
     `field_uniform_iterations` (benchmarks): the field from the uniform model's iterations (default:
     the field step's, n; the bumps ladder spends `level_share[-1]` of its budget there, 15 of 20).
-    `attach_grasped` (benchmarks): `part_candidates`' option."""
+    `attach_grasped` (benchmarks): `part_candidates`' option. `section_cut`, `exposure_floor`
+    (benchmarks, #24): the motion score averaged over the object's thickness before the cut, and the
+    particles strained less than `exposure_floor` x the median (the uniform model's rollout) given
+    no motion part of their own (`parts_stage`)."""
     if start is not None:
         return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
     say = log or (lambda *a: None)
@@ -870,7 +947,8 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
 
         def parts_go(cb):
             got["r"], got["rec"] = parts_stage(prob, view, s, uni, ru, n_parts, progress=progress, log=log,
-                                               on_iteration=cb, attach_grasped=attach_grasped)
+                                               on_iteration=cb, attach_grasped=attach_grasped,
+                                               section_cut=section_cut, exposure_floor=exposure_floor)
             return got["r"] if got["r"] is not None else types.SimpleNamespace(loss_history=[])
 
         run(parts_go)
