@@ -232,3 +232,59 @@ def test_grasp_size_and_support_probes_resize_their_own_contacts(control):
     assert {kinds[p.meta["contact"]] for p in support} == {"fixed"}
     assert all("radius" in p.meta for p in grasp) and not any("radius" in p.meta for p in support)
     assert {p.meta["direction"] for p in grasp + support} <= {"more", "less"}
+
+
+def _smooth_base(prob, base, amplitude: float = 0.35):
+    """The base with a smooth, non-uniform E field (a gradient along the bar, about E_TRUE on
+    average), as the default bumps fit leaves one: not piecewise constant (no regions)."""
+    import torch
+
+    from physinteract_usd.diagnose import BaseState
+
+    x = np.asarray(prob.x0, np.float64)[:, 0]
+    g = (x - x.mean()) / max(float(np.ptp(x)), 1e-9)
+    E = base.E * torch.as_tensor(np.exp(amplitude * g), dtype=base.E.dtype)
+    return BaseState(E, base.nu, base.effects, None)
+
+
+def test_a_refit_starts_at_the_base_field_and_a_refit_that_can_only_help_is_not_made_worse(damped):
+    """The confirmation refit starts exactly at the base (its smooth E field, nu, path), not at a
+    uniform E at the field's median (the flattening that made diagnose's refits worse than the base
+    on the H200's foam_bar); with the true effect at its score estimate the refit step does not make
+    the held-back frames worse than its own start, nor than the base, and with 2 folds every strong
+    frame is judged once."""
+    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
+    from physinteract_usd.diagnose import refit as RF
+    from physinteract_usd.diagnose.residual import loss
+    from physinteract_usd.fit.ladder import _Ladder
+    from physinteract_usd.fit.optimize import FitSettings
+
+    prob, base0 = _problem(damped)
+    base = _smooth_base(prob, base0)
+    lad = _Ladder(prob, FitSettings(iterations=1), progress=False)
+    RF.warm_start(lad, base, "field")
+    E = base.E.detach().cpu().numpy()
+    assert np.allclose(lad.mat.youngs().detach().cpu().numpy(), E, rtol=1e-4)
+    RF.warm_start(lad, base, "regions")          # the old start: one E, the field's median
+    assert np.max(np.abs(lad.mat.youngs().detach().cpu().numpy() / E - 1)) > 0.1
+
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("damping",)))
+    cr = d.results[0]
+    assert cr.significant and cr.estimate["coefficient"] > 0
+    folds = RF.held_back_folds(prob.T, 4, d._ctx["res"], cr.probes[cr.best].column, 2)
+    assert len(folds) == 2 and not set(folds[0]) & set(folds[1])
+    val = folds[0]
+    m = RF._frame_mask(d._ctx["res"], val)
+    # the start itself (no iteration: the base's field and path, damping at the score's estimate)
+    r_start, _, s0 = RF._refit(d, "damping", dict(cr.estimate), val, 0, 4, None)
+    assert np.allclose(s0["E"].cpu().numpy(), E, rtol=1e-4)
+    r_base = d._ctx["r0"]
+    assert loss(r_start[m]) < loss(r_base[m])    # the true effect at its estimate helps already
+    r_fit, _, s1 = RF._refit(d, "damping", dict(cr.estimate), val, 3, 4, None)
+    assert loss(r_fit[m]) <= 1.02 * loss(r_start[m])
+    assert loss(r_fit[m]) < loss(r_base[m])
+    # accepted against the base and the control (each refitted alike, 2 folds pooled)
+    null = RF.refit_null(d, folds, iterations=3)
+    RF.refit_effect(d, cr, iterations=3, frames=folds, null=null)
+    assert cr.accepted, cr.note
+    assert "2 folds" in cr.note and cr.held_back_drop > 0
