@@ -9,7 +9,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..fit.problem import Observations
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:     # the fit (torch) loads only where observations are built: `info` and `export` need none
+    from ..fit.problem import Observations
 from ..scene import SceneData
 from ..usd.stage import read_stage
 
@@ -46,6 +49,8 @@ def load_observations(sd: SceneData, *, with_hand_masks: bool = True) -> Observa
     masks = None
     if sd.mask_assets:
         masks = np.stack([read_mask(p) for p in sd.mask_assets[: sd.n_frames]])
+    from ..fit.problem import Observations
+
     return Observations(frames=frames, masks=masks,
                         hand_masks=hand_masks(sd, sd.n_frames) if with_hand_masks else None)
 

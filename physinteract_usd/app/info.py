@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fit.select import identifiability, model_summary
 from ..usd.stage import read_grid_choice
 from .adapters import read_scene
 
@@ -59,6 +58,8 @@ def info(stage_path) -> dict:
     cur = [r for r in sd.reports if r.get("current")] or sd.reports[-1:]
     if cur and cur[-1].get("material_model") is not None:
         # what the current version's fit said about E (fit/select.identifiability, as `fit` printed it)
+        from ..fit.select import identifiability, model_summary
+
         conf = d["material"].get("confidence", {}).get("mean")
         d["material"]["identifiability"] = identifiability(model_summary(cur[-1]["material_model"]), conf,
                                                            float(np.median(e)))

@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from .. import __version__
-from ..devices import check_device, quiet_warp_init
+from ..devices import check_device, quiet_warp_init_on_load
 from ..errors import InputError, SimulationError
 from ..stopping import sigterm_as_interrupt
 from . import batch, diagnose, effects, evaluate, export, extract, fit, info, init, report, simulate, synth, versions
@@ -71,7 +71,7 @@ def _main(argv=None) -> int:
     try:
         device = getattr(args, "device", None)
         check_device(device)
-        quiet_warp_init(device)
+        quiet_warp_init_on_load(device)
         with sigterm_as_interrupt():   # SIGTERM (timeout, schedulers) ends a verb as Ctrl-C does: exit 130
             return args.run(args)
     except InputError as exc:

@@ -12,13 +12,27 @@ Public API:
 USD is kept out of this package: it never imports pxr.
 """
 
+from typing import TYPE_CHECKING
+
 from .cfl import p_wave_speed, stable_dt, substeps_per_frame
 from .control import CONTACT_TYPES, Contact, Control
 from .effects import DEFAULTS, EFFECT_NAMES, NULL_VALUES, PARAMETERS, Effects
 from .model import MATERIALS, GridSpec, SimModel
-from .rollout import Rollout, effect_inputs, simulate
 from .solver import MPMSolver, SimParams
 from .state import SimState
+
+if TYPE_CHECKING:
+    from .rollout import Rollout, effect_inputs, simulate
+
+
+def __getattr__(name):
+    """The torch entry points (rollout.py imports torch) load on first use, so importing the
+    simulator's tables (effects, cfl: `effects list`, `init`) does not import torch."""
+    if name in ("Rollout", "effect_inputs", "simulate"):
+        from . import rollout
+
+        return getattr(rollout, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "SimModel", "GridSpec", "MATERIALS", "Effects", "EFFECT_NAMES", "PARAMETERS", "DEFAULTS", "NULL_VALUES",
