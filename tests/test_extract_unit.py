@@ -872,3 +872,89 @@ def test_a_glove_sitting_still_is_not_the_background(arrive, leave):
     assert np.median(step[sat]) > 0.3 and np.median(rms[sat]) < 0.05
     glove_side = before if leave is not None else after
     assert np.median(np.abs(glove_side[sat] - [0.15, 0.25, 0.8]).max(-1)) < 0.05
+
+
+def _pairs(*runs):
+    """Velocities per frame pair from (count, (vx, vy)) runs."""
+    return np.array([v for n, v in runs for _ in range(n)], float)
+
+
+def test_a_press_pushes_along_the_inward_normal_and_the_object_never_follows_out():
+    """A fingertip press: the object next to the contact moves only along the inward normal and
+    comes back at most to its rest surface as the toucher withdraws (#23 (d): a finger press typed
+    a grasp). Its first main motion may still read as a pull (push_cos -0.1: the withdrawal, or the
+    toucher's body beside the contact), which alone types it a grasp."""
+    from physinteract_usd.extract.interaction_type import normal_motion
+
+    into = np.array([1.0, 0.0])
+    # the toucher comes in (3 pairs), presses 4 pairs (the object gives 0.4 px a pair), withdraws
+    # 5 pairs (the object springs back 0.4 px a pair for 4, then rests at its rest surface)
+    vh = _pairs((3, (1.0, 0.0)), (4, (0.5, 0.05)), (5, (-1.5, 0.0)), (2, (0.0, 0.0)))
+    vo = _pairs((3, (0.0, 0.0)), (4, (0.4, 0.03)), (4, (-0.4, 0.0)), (3, (0.0, 0.0)))
+    ev = normal_motion(vh, vo, into, start=0, g=3, end=12)
+    assert ev["pressed_in_px"] == pytest.approx(1.6, abs=1e-6)
+    assert ev["pulled_out_px"] < 0.05 and ev["tension_px"] < 0.05
+    assert ev["press_cos"] > 0.99
+    base = {"push_cos": -0.1, "contact_motion_px": 3.0, "interface_span": 0.2, "approach_cos": 0.5,
+            "approach_speed_px": 1.0, "contact_frames": 9, "coupled_share": 0.6}
+    assert classify_interaction(base)[0] == "pointAdherent"          # the evidence before: a grasp
+    assert classify_interaction({**base, **ev})[0] == "pointNonAdherent"
+    # a grasp dragging the contact region along the surface with the toucher is no press
+    drag = normal_motion(_pairs((6, (0.1, 1.0))), _pairs((6, (0.05, 0.7))), into, start=0, g=0, end=6)
+    assert drag["press_cos"] < 0.2
+    assert classify_interaction({**base, **drag})[0] == "pointAdherent"
+    # an object pressed in and overshooting out past its rest surface while the toucher withdraws
+    # (a rebound, not held): still no tension to speak of
+    over = normal_motion(vh, _pairs((3, (0.0, 0.0)), (4, (0.4, 0.0)), (5, (-0.4, 0.0)), (2, (0.0, 0.0))),
+                         into, start=0, g=3, end=12)
+    assert over["pulled_out_px"] == pytest.approx(0.4, abs=1e-6) and over["tension_px"] < 0.5
+
+
+def test_a_grasp_holds_the_object_as_the_toucher_moves_away_from_the_surface():
+    """A grasp: the object follows the toucher out past its rest surface (tension), which a palm or
+    a board cannot do, however long and straight the interface and however much the motion runs
+    along its normal (#23 (d): a glove typed a surface press)."""
+    from physinteract_usd.extract.interaction_type import normal_motion
+
+    into = np.array([0.0, -1.0])
+    # the glove comes in and rests (4 pairs), then moves out 1 px a pair, the object following at 0.6
+    vh = _pairs((2, (0.0, -1.0)), (2, (0.0, 0.0)), (6, (0.0, 1.0)))
+    vo = _pairs((4, (0.0, 0.0)), (6, (0.0, 0.6)))
+    ev = normal_motion(vh, vo, into, start=0, g=3, end=10)
+    assert ev["tension_px"] == pytest.approx(3.6, abs=1e-6) and ev["pulled_out_px"] == pytest.approx(3.6, abs=1e-6)
+    assert ev["press_cos"] < -0.99 and ev["pressed_in_px"] == 0.0
+    # a long straight face moved along its normal: the face rule alone says a press
+    base = {"push_cos": 0.3, "contact_motion_px": 6.0, "interface_span": 0.6, "face_normal_cos": 0.95,
+            "into_cos": 0.4, "approach_cos": 0.2, "approach_speed_px": 1.0, "contact_frames": 7,
+            "coupled_share": 0.9}
+    assert classify_interaction(base)[0] == "surfaceNonAdherent"
+    assert classify_interaction({**base, **ev})[0] == "pointAdherent"
+    # the same toucher moving out with the object staying at its rest surface holds nothing
+    free = normal_motion(vh, np.zeros_like(vo), into, start=0, g=3, end=10)
+    assert free["tension_px"] == 0.0
+    assert classify_interaction({**base, **free})[0] == "surfaceNonAdherent"
+
+
+def test_a_collider_acts_until_it_is_one_cell_clear_of_the_object():
+    """A sphere withdrawing from a ring that stops following it (dev_9302) parts from it in the
+    video at once, but the simulator's collider moves the grid nodes within one cell of its surface:
+    it acts until it is that far clear. The release moves on by the toucher's motion relative to the
+    object, up to where it stops touching in the image or comes to rest."""
+    from physinteract_usd.extract.timing import Timing, collider_clear
+
+    # pairs 0-3 pressing (object following), from 4 the toucher withdraws at 1.5 px a pair, the
+    # object next to the contact still
+    vh = _pairs((4, (1.0, 0.0)), (8, (-1.5, 0.0)))
+    vo = _pairs((4, (0.8, 0.0)), (8, (0.0, 0.0)))
+    near = np.ones(13, bool)
+    t = Timing(vh, vo, np.zeros(12, np.int8), near, (0, 12), np.linalg.norm(vh, axis=1), 0, 4)
+    assert collider_clear(t, 4.0) == 7          # 1.5 + 1.5 + 1.5 >= 4 px after pair 6
+    assert collider_clear(t, 0.0) == 4
+    near[6:] = False                            # it leaves the object in the image first
+    assert collider_clear(t, 4.0) == 6
+    near[:] = True
+    vh[5:] = 0.0                                # it comes to rest 1.5 px clear of it
+    t = Timing(vh, vo, np.zeros(12, np.int8), near, (0, 12), np.linalg.norm(vh, axis=1), 0, 4)
+    assert collider_clear(t, 4.0) == 5
+    t.release = None                            # held to the end: nothing to move
+    assert collider_clear(t, 4.0) is None

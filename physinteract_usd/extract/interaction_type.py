@@ -39,7 +39,22 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         if surface > 0.45:
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
+    tension = evidence.get("tension_px") or 0.0
+    if (evidence.get("press_cos") or 0.0) >= PRESS_COS and (evidence.get("pressed_in_px") or 0.0) >= 1.0 \
+            and tension < 0.5:
+        # the object next to the contact moved only along the inward normal (its largest displacement
+        # from rest within 32 deg of it) and never followed the toucher out past its rest surface:
+        # pushed, not held (a grasp drags the contact region along the surface with the toucher, or
+        # holds it as the toucher moves away; dev_0007's stick, typed a grasp by its withdrawal)
+        if surface > 0.45:
+            return "surfaceNonAdherent", 0.6
+        return "pointNonAdherent", 0.6
     face, into = evidence.get("face_normal_cos"), evidence.get("into_cos")
+    if tension >= TENSION_PX and surface > 0.45:
+        # a long straight interface, but the object followed the toucher out past its rest surface
+        # (tension): a palm or a board cannot pull, a hand that holds can (a glove's flat side read
+        # as a press)
+        return "pointAdherent", 0.5
     if surface > 0.45 and moved >= 1.0 and face is not None and face >= FACE_NORMAL_COS and into is not None and into > 0:
         # a long straight interface (not a ball's) whose first main motion goes along its own normal
         # (closer to it than to the face) and into the object: a flat face pressed into it, a
@@ -61,6 +76,38 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
 
 
 FACE_NORMAL_COS = float(np.cos(np.pi / 4))   # a motion closer to a face's normal than to the face
+PRESS_COS = 0.85      # the object's largest displacement within 32 deg of the inward normal: a press
+TENSION_PX = 2.0      # px the object followed the toucher out past its rest surface: held
+
+
+def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, g: int, end: int,
+                  eps: float = 0.35) -> dict:
+    """How the object next to the contact moved against the surface's inward normal `into` (unit,
+    image), from rest (`start`, the first frame of the contact period or the grasp, whichever is
+    earlier) to `end` (the release; the last pair otherwise): `pressed_in_px` and `pulled_out_px`,
+    its largest displacement into and out past its rest surface; `press_cos`, the cosine of its
+    largest displacement with `into`; `tension_px`, its outward motion in the pairs from the grasp
+    in which the toucher moves out (over `eps`) and the object follows it out while past its rest
+    surface (summed, each pair's at most how far past it is). A press pushes along the inward
+    normal and the object comes back at most to its rest surface; a grasp drags the contact region
+    along the surface or holds it as the toucher moves away (the object follows it out: tension)."""
+    d = np.asarray(into, float)
+    X = np.zeros(2)
+    big = np.zeros(2)
+    out_max = in_max = tension = 0.0
+    for k in range(max(0, start), min(end, len(vo))):
+        o = vo[k]
+        if np.isfinite(o).all():
+            X = X + o
+        if np.linalg.norm(X) > np.linalg.norm(big):
+            big = X.copy()
+        out_max, in_max = max(out_max, float(-X @ d)), max(in_max, float(X @ d))
+        if k >= g and np.isfinite(vh[k]).all() and np.isfinite(o).all():
+            if float(-vh[k] @ d) > eps and float(-o @ d) > 0 and float(-X @ d) > 0:
+                tension += min(float(-o @ d), float(-X @ d))
+    nb = float(np.linalg.norm(big))
+    return {"pressed_in_px": in_max, "pulled_out_px": out_max, "tension_px": tension,
+            "press_cos": float(big @ d / nb) if nb > 2 * eps else None}
 
 
 def is_ball(round_: list | None, residual: float = 0.1, size: tuple = (0.8, 1.25)) -> bool:
@@ -98,12 +145,18 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     app_speed = float(np.linalg.norm(v_app)) if v_app is not None else 0.0
     approach_cos = float(np.dot(unit(v_app), unit(d2))) if app_speed > 0 and motion > 0 else None
     into_cos = None
+    # the direction from the contact into the object at rest (the surface's inward normal there)
+    op = pixel_centres(an.rest.silhouette & disk_mask((an.H, an.W), c2, 3.0 * an.R))
+    into = unit(op.mean(0) - np.asarray(c2, float)) if len(op) else np.zeros(2)
     if motion > 0:
-        # the first main motion against the direction from the contact into the object at rest
-        # (a push goes into the object, a pull out of it, whatever the toucher's body looks like)
-        op = pixel_centres(an.rest.silhouette & disk_mask((an.H, an.W), c2, 3.0 * an.R))
-        into = unit(op.mean(0) - np.asarray(c2, float)) if len(op) else np.zeros(2)
+        # the first main motion against it (a push goes into the object, a pull out of it, whatever
+        # the toucher's body looks like)
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
+    normal = {}
+    if np.linalg.norm(into) > 0:
+        end = len(timing.object_velocity) if timing.release is None else timing.release
+        normal = normal_motion(timing.hand_velocity, timing.object_velocity, into, min(timing.period[0], g), g,
+                               end)
     # the first main motion against the straight interface's normal: a flat face pushed into the
     # object moves along its own normal
     face_cos = float(abs(np.dot(unit(d2), face))) if face is not None and motion > 0 else None
@@ -113,7 +166,7 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
             "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1),
-            "contact_frames": None if timing.release is None else int(timing.release - g)}
+            "contact_frames": None if timing.release is None else int(timing.release - g), **normal}
 
 
 # ------------------------------------------------------------------------------ evidence
