@@ -12,7 +12,11 @@ the rest with it), all within `--deadline` seconds of wall time:
 3. our renderer (bench_render.py, medians) forward+backward per frame at 15k, 512^2 and 2k, 256^2;
 4. a small fit: the bundled sample (samples/foam_bar: 14 frames, grid 24, the demo's settings),
    true contacts, default iterations, `fit --device cuda`, then `evaluate` (MA, masked PSNR);
-5. a paper-size fit: `synth SCENE --size paper --device cuda`, `init --grid 100`, true contacts,
+5. four small fits batched in one process against one fit (benchmarks/batch_fits.py --copies 4: the
+   bundled sample at grid 24, 60 iterations each, the start search once beforehand; with
+   `--batch-before` also B=4 with its renders and loss per copy and frame, the before of the batched
+   renders);
+6. a paper-size fit: `synth SCENE --size paper --device cuda`, `init --grid 100`, true contacts,
    `fit --device cuda` with whatever time is left (SIGTERM at the deadline: the fit keeps its best
    iterate and writes it), then `evaluate`.
 
@@ -150,7 +154,12 @@ def main(argv=None):
     ap.add_argument("--paper-iterations", type=int, default=20)
     ap.add_argument("--device", default="cuda", help="cuda (cpu: a smoke test of this script)")
     ap.add_argument("--small-iterations", type=int, default=None)
-    ap.add_argument("--skip", default="", help="comma list of steps to skip: probes,sim,render,small,paper")
+    ap.add_argument("--skip", default="", help="comma list of steps to skip: probes,sim,render,small,batch,paper")
+    ap.add_argument("--batch-before", action="store_true",
+                    help="the batch step also runs B=4 with per-copy renders (batch_fits.py --per-copy-renders)")
+    ap.add_argument("--batch-args", default="", help="more arguments for batch_fits.py (e.g. '--grid 12 "
+                                                     "--iterations 2' for a CPU smoke test)")
+    ap.add_argument("--batch-limit", type=float, default=200.0, help="seconds for the batch step at most")
     a = ap.parse_args(argv)
     out = Path(a.out)
     global DEVICE
@@ -207,6 +216,19 @@ def main(argv=None):
                              init_args=["--grid", "24", "--padding", "0.3", "--youngs-range", "1e3,6e4",
                                         "--max-poisson", "0.4", "--density", "150"],
                              fit_limit=150, iterations=a.small_iterations, reserve=max(0.0, min(250.0, left(dl) - 160))))
+    batch_rows = []
+    if "batch" not in skip:
+        bf = out / "bf"
+        shutil.rmtree(bf, ignore_errors=True)
+        argv = [py, "benchmarks/batch_fits.py", "--device", DEVICE, "--copies", "4", "--work", "/tmp/gpu_bench/bf",
+                "--out", bf] + (["--per-copy-renders"] if a.batch_before else []) + a.batch_args.split()
+        # keep ~170 s for the paper-size fit after it (unless it is skipped)
+        run("batch_fits", argv, out, a.batch_limit, dl, reserve=0.0 if "paper" in skip else 170.0)
+        try:
+            batch_rows = [json.loads(x) for x in (bf / "batch_fits.jsonl").read_text().splitlines() if x.strip()]
+        except OSError:
+            batch_rows = []
+        batch_rows = [r for r in batch_rows if "case" in r and not r.get("profiled")]
     if "paper" not in skip:
         cap = f"/tmp/gpu_bench/paper_{a.paper_scene}"
         rows.append(fit_case("paper", out, dl, capture=cap, stage="/tmp/gpu_bench/paper/scene.usda",
@@ -242,11 +264,22 @@ def main(argv=None):
                      f"masked PSNR {f(r.get('psnr_masked'), '{:.2f}')} dB"
                      + (f"; synth {r['synth_s']:.0f} s" if r.get("synth_s") else "")
                      + (f"; {r['note']}" if r.get("note") else "") + " | - |")
+    one = next((r for r in batch_rows if r["case"] == "1"), None)
+    for r in batch_rows:
+        if r["case"] == "1" or one is None:
+            continue
+        per = ", ".join(f"MA {c['ma']:.3f}" if c.get("ma") is not None else "MA ?" for c in r["copy"])
+        lines.append(f"| {r['copies']} small fits batched in one process ({r['case']}), {r['lockstep_iterations']} "
+                     f"lockstep iterations | the bundled sample, {r['particles']} particles, {r['frames']} frames | "
+                     f"{r['wall_s']:.1f} s = {r['wall_s'] / one['wall_s']:.2f}x one fit's {one['wall_s']:.1f} s "
+                     f"({one['lockstep_iterations']} iterations, MA {f(one['copy'][0].get('ma'), '{:.3f}')}); "
+                     f"{r['wall_per_iteration_s']:.3f} s / iteration (one fit {one['wall_per_iteration_s']:.3f}); {per} | - |")
     lines.append("")
     lines.append(f"total wall time {time.monotonic() - T0:.0f} s; raw logs in {out}/")
     table = "\n".join(lines)
     (out / "gpu_bench.md").write_text(table + "\n")
-    (out / "gpu_bench.json").write_text(json.dumps({"head": head, "R": R, "fits": rows}, indent=1, default=str))
+    (out / "gpu_bench.json").write_text(json.dumps({"head": head, "R": R, "fits": rows, "batch": batch_rows}, indent=1,
+                                                   default=str))
     print(table)
 
 
