@@ -934,27 +934,3 @@ def test_a_grasp_holds_the_object_as_the_toucher_moves_away_from_the_surface():
     assert free["tension_px"] == 0.0
     assert classify_interaction({**base, **free})[0] == "surfaceNonAdherent"
 
-
-def test_a_collider_acts_until_it_is_one_cell_clear_of_the_object():
-    """A sphere withdrawing from a ring that stops following it (dev_9302) parts from it in the
-    video at once, but the simulator's collider moves the grid nodes within one cell of its surface:
-    it acts until it is that far clear. The release moves on by the toucher's motion relative to the
-    object, up to where it stops touching in the image or comes to rest."""
-    from physinteract_usd.extract.timing import Timing, collider_clear
-
-    # pairs 0-3 pressing (object following), from 4 the toucher withdraws at 1.5 px a pair, the
-    # object next to the contact still
-    vh = _pairs((4, (1.0, 0.0)), (8, (-1.5, 0.0)))
-    vo = _pairs((4, (0.8, 0.0)), (8, (0.0, 0.0)))
-    near = np.ones(13, bool)
-    t = Timing(vh, vo, np.zeros(12, np.int8), near, (0, 12), np.linalg.norm(vh, axis=1), 0, 4)
-    assert collider_clear(t, 4.0) == 7          # 1.5 + 1.5 + 1.5 >= 4 px after pair 6
-    assert collider_clear(t, 0.0) == 4
-    near[6:] = False                            # it leaves the object in the image first
-    assert collider_clear(t, 4.0) == 6
-    near[:] = True
-    vh[5:] = 0.0                                # it comes to rest 1.5 px clear of it
-    t = Timing(vh, vo, np.zeros(12, np.int8), near, (0, 12), np.linalg.norm(vh, axis=1), 0, 4)
-    assert collider_clear(t, 4.0) == 5
-    t.release = None                            # held to the end: nothing to move
-    assert collider_clear(t, 4.0) is None

@@ -46,8 +46,7 @@ from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts, unpin
-from .timing import (apply_overrides, collider_clear, collider_release, collider_start, find_timing,
-                     timing_confidence)
+from .timing import apply_overrides, collider_release, collider_start, find_timing, timing_confidence
 
 
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
@@ -90,13 +89,6 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
         if r2 != timing.release:   # a collider moving on into the object has not let go of it
             timing.release = r2
             evidence["release_frame"] = r2
-            hand = track_hand(timing, grasp.uv)
-        # ... and acts on it until it is one of the fit's grid cells clear of it
-        r3 = collider_clear(timing, float(scene.settings.cell_size) * an.px_per_m, an.eps)
-        if r3 != timing.release:
-            evidence["release_parting_frame"] = timing.release
-            timing.release = r3
-            evidence["release_frame"] = r3
             hand = track_hand(timing, grasp.uv)
     timing_confidence(timing, an.eps, evidence, notes)
     if itype == "pointNonAdherent" and seen.hint_uv is None and seen.hint_particles is None:

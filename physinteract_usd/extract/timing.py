@@ -245,33 +245,6 @@ def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
     return release(c, timing.near, timing.grasp, timing.speed, vh=vh, vo=vo, share=timing.share, eps=eps)
 
 
-def collider_clear(timing: Timing, reach_px: float, eps: float = 0.35) -> int | None:
-    """A collider acts on the object until it is `reach_px` clear of it (the simulator's collider
-    touches the grid nodes within one cell of its surface: a sphere or a plane one cell away from
-    the object still moves it), not at the first frame the two move apart (`release`: where the
-    object stops following the withdrawing toucher). From the release on, the toucher's motion
-    relative to the object next to the contact is summed (the object's taken as still where it is
-    not seen); the release is the frame at which that reaches `reach_px`, or earlier where the
-    toucher stops touching the object in the image, is no longer seen, or comes to rest (under `eps`)
-    before it gets that far. dev_9302: a sphere withdrawing at 1.6-2.2 px a frame from a ring that
-    stops following it: released at 24, the truth's last touch within one cell at 26."""
-    r = timing.release
-    if r is None or reach_px <= 0:
-        return r
-    vh, vo, near = timing.hand_velocity, timing.object_velocity, timing.near
-    sep = 0.0
-    for k in range(r, len(vh)):
-        if not near[k] or not np.isfinite(vh[k]).all():
-            return k
-        o = vo[k] if np.isfinite(vo[k]).all() else np.zeros(2)
-        if float(np.linalg.norm(vh[k])) < eps:
-            return k
-        sep += float(np.linalg.norm(vh[k] - o))
-        if sep >= reach_px:
-            return k + 1
-    return len(vh)
-
-
 def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> np.ndarray:
     """`coupled` with the pairs in which the object follows at less than half its usual share of the
     toucher's speed (the median over the run's pairs where the toucher moves at >= 2 eps; at least
