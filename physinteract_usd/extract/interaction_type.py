@@ -40,8 +40,12 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
     tension = evidence.get("tension_px") or 0.0
-    if (evidence.get("press_cos") or 0.0) >= PRESS_COS and (evidence.get("pressed_in_px") or 0.0) >= 1.0 \
-            and tension < 0.5:
+    # it looks pushed away from the hand, but the hand came in and went back out the way it came: a
+    # pull toward the camera, whose motion in depth the image does not show (below)
+    in_depth = (push is not None and moved >= 1.0 and push < -0.6 and approach is not None and ap_speed >= 1.0
+                and approach < 0.0)
+    if not in_depth and (evidence.get("press_cos") or 0.0) >= PRESS_COS \
+            and (evidence.get("pressed_in_px") or 0.0) >= 1.0 and tension < 0.5:
         # the object next to the contact moved only along the inward normal (its largest displacement
         # from rest within 32 deg of it) and never followed the toucher out past its rest surface:
         # pushed, not held (a grasp drags the contact region along the surface with the toucher, or
@@ -63,9 +67,7 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
     if push is None or moved < 1.0:
         return "pointAdherent", 0.3
-    if push < -0.6 and approach is not None and ap_speed >= 1.0 and approach < 0.0:
-        # it looks pushed away from the hand, but the hand came in and went back out the way it
-        # came: a pull toward the camera (depth is not seen)
+    if in_depth:
         return "pointAdherent", 0.5
     if push < -0.6:
         # the object only moved away from the hand: pushed. A long flat interface is a palm.
