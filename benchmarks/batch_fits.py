@@ -142,7 +142,6 @@ class Profile:
         import torch
         import warp._src.context as wctx
 
-        import physinteract_usd.render as rpkg
         from physinteract_usd import simulation
         from physinteract_usd.fit import batched, optimize, problem
         from physinteract_usd.render import function as rf
@@ -187,10 +186,10 @@ class Profile:
         self._wrap(rollout, "_torch_sync", "package host syncs", sync=False, on_call=synced)
         self._wrap(rollout, "_warp_sync", "package host syncs", sync=False, on_call=synced)
         self._wrap(problem, "render", "render forward")
-        self._wrap(rpkg, "render_batch", "render forward (batched over copies and frames)")
+        self._wrap(problem, "render_batch", "render forward (batched over copies and frames)")
         self._wrap(rf.RasterizeGaussians, "backward", "render backward (raster)")
         self._wrap(problem, "reconstruction_loss", "loss terms")
-        self._wrap(rpkg, "reconstruction_loss_batch", "loss terms (batched)")
+        self._wrap(problem, "reconstruction_loss_batch", "loss terms (batched)")
         self._wrap(problem.FitProblem, "loss", lambda a, kw: "last pass (renders kept)" if kw.get("keep_renders")
                    else None)
         self._wrap(torch.Tensor, "backward", "backward (all)")

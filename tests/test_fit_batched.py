@@ -414,3 +414,32 @@ def test_batched_renders_equal_the_per_copy_renders_in_one_pass(scene, monkeypat
     for a, b in zip(t1, t0):
         assert float((a - b).abs().max()) <= 1e-5 * float(b.abs().max()) + 1e-12
     assert abs(l1[0] - l1[1]) > 1e-3 * l1[0]
+
+
+@pytest.mark.parametrize("dtype,tol", [("float32", 1e-6), ("float64", 1e-12)])
+def test_a_fits_frames_rendered_in_one_pass_equal_one_by_one(scene, monkeypatch, dtype, tol):
+    """`FitProblem.loss` with its frames batched (problem.BATCH_FRAMES, the CUDA default) against one
+    render and one loss per frame: the same loss and gradients (to float rounding) and the same kept
+    renders, bit for bit."""
+    import physinteract_usd.fit.problem as fp
+
+    prob = _problem(scene, dtype=dtype)
+    E, nu, trajs = _fields(prob)
+    td = torch.float32 if dtype == "float32" else torch.float64
+    res = {}
+    for on in (True, False):
+        monkeypatch.setattr(fp, "BATCH_FRAMES", on)
+        Eb = E[0].to(td).clone().requires_grad_(True)
+        tb = [t[0].to(td).clone().requires_grad_(True) for t in trajs]
+        out = prob.loss(Eb, nu[0].to(td), tb, keep_renders=True)
+        (out["rec"] + out["reg_traj"]).backward()
+        res[on] = (float(out["rec"].detach()), Eb.grad.clone(), [t.grad.clone() for t in tb], out["renders"])
+    (l1, g1, t1, r1), (l0, g0, t0, r0) = res[True], res[False]
+    assert l1 == pytest.approx(l0, rel=tol)
+    assert float((g1 - g0).abs().max()) <= 10 * tol * float(g0.abs().max())
+    for a, b in zip(t1, t0):
+        assert float((a - b).abs().max()) <= 10 * tol * float(b.abs().max()) + 1e-12
+    assert sorted(r1) == sorted(r0) == list(range(1, prob.T))
+    for k in r0:
+        for name in ("rgb", "alpha", "depth"):
+            assert torch.equal(r1[k][name], r0[k][name]), (k, name)

@@ -212,46 +212,17 @@ class _Copy:
 
 
 # The copies' renders and loss terms: every (copy, frame) image of an iteration in one rasterizer
-# pass and one batched loss (`render.render_batch`, `render.reconstruction_loss_batch`) instead of
-# one render and one loss per copy and frame (B x (T - 1) of each). False: `FitProblem.loss` per copy
-# (the measurement's "before"; equal to 1e-6, tests/test_fit_batched.py).
+# pass and one batched loss (`FitProblem.frames_rec`: `render.render_batch`,
+# `render.reconstruction_loss_batch`) instead of one render and one loss per copy and frame (B x (T - 1)
+# of each). False: `FitProblem.loss` per copy (the measurement's "before"; equal to 1e-6,
+# tests/test_fit_batched.py).
 BATCH_RENDERS = True
-# At most this many Gaussians in one rasterizer pass: the images are grouped to fit (a paper-size
-# scene's copies x frames would otherwise hold every image's sort buffers at once).
-RENDER_PASS_GAUSSIANS = 1 << 22
 
 
 def copies_rec(prob: FitProblem, x, F, copies, frames=None):
-    """(len(copies),) reconstruction losses (`FitProblem.loss`'s "rec": the mean over `frames`, default
-    all but the rest frame, of `FitProblem.frame_loss`) of the copies `copies` of a batch's states
-    x (B, T, P, 3), F (B, T, P, 3, 3), with the renders and the loss terms of all their frames in
-    few batched passes. Differentiable in x and F."""
-    from ..render import reconstruction_loss_batch, render_batch
-
-    ks = list(range(1, prob.T)) if frames is None else [int(k) for k in frames]
-    pairs = [(int(b), k) for b in copies for k in ks]
-    if not pairs:
-        return torch.zeros(len(copies), dtype=prob.tdtype, device=prob.tdev)
-    n = int(prob.cov0.shape[0])
-    per = max(len(ks), RENDER_PASS_GAUSSIANS // max(n, 1))
-    w8 = prob.weights
-    totals = []
-    for i0 in range(0, len(pairs), per):
-        chunk = pairs[i0:i0 + per]
-        bi = torch.as_tensor([b for b, _ in chunk], device=x.device)
-        ki = torch.as_tensor([k for _, k in chunk], device=x.device)
-        means, covs = prob.gaussians_at(x[bi, ki], F[bi, ki])
-        out = render_batch(means, covs, prob.colors, prob.opacities, [prob.cameras[k] for _, k in chunk],
-                           background=prob.background)
-        w = None if prob.weight is None else prob.weight[ki]
-        mask = None if prob.masks is None else prob.masks[ki]
-        res = reconstruction_loss_batch(out["rgb"], prob.frames[ki], w, out["alpha"] if mask is not None else None,
-                                        mask, lambda_ssim=w8.ssim, lambda_mask=w8.mask)
-        tot = res["total"]
-        if prob.tracks is not None and w8.track > 0:
-            tot = tot + w8.track * torch.stack([prob.tracks.frame_term(k, means[j]) for j, (_, k) in enumerate(chunk)])
-        totals.append(tot)
-    return torch.cat(totals).reshape(len(copies), len(ks)).sum(1) / max(len(ks), 1)
+    """(len(copies),) reconstruction losses of the copies `copies` of a batch's states x (B, T, P, 3),
+    F (B, T, P, 3, 3), all their frames' renders and loss terms batched (`FitProblem.frames_rec`)."""
+    return prob.frames_rec(x, F, list(copies), frames)[0]
 
 
 def batch_losses(prob: FitProblem, E, nu, trajectories=None):

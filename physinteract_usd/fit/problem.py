@@ -24,11 +24,19 @@ import numpy as np
 import torch
 
 from ..contacts import ContactSet
-from ..render import estimate_background, render
-from ..render.losses import reconstruction_loss
+from ..render import estimate_background, render, render_batch
+from ..render.losses import reconstruction_loss, reconstruction_loss_batch
 from ..scene import SceneData
 from ..simulation import build_simulation
 from .interaction_check import TRAJ_SIGMA_PX
+
+# `FitProblem.loss` renders its frames in few batched passes (`FitProblem.frames_rec`: one rasterizer
+# pass and one loss call for all frames, instead of one of each per frame): None (default) on CUDA,
+# where each render's launches and host sync cost more than its pixels; one by one on the CPU (the
+# same values there, to float rounding; the CPU's time is the simulator's). True / False force it.
+BATCH_FRAMES: bool | None = None
+# at most this many Gaussians in one rasterizer pass (the images are grouped to fit)
+RENDER_PASS_GAUSSIANS = 1 << 22
 
 # The trajectory prior's weight against the reconstruction loss: a path 1 sigma off the measured one
 # on every frame costs TRAJ_PRIOR_WEIGHT. Chosen on development data only (the tests' tiny bars,
@@ -198,16 +206,61 @@ class FitProblem:
         ks = range(1, self.T) if frames is None else frames
         total = 0.0
         renders = {}
-        for k in ks:
-            out = self.render_frame(k, x[k], F[k])
-            total = total + self.frame_loss(k, out)["total"]
-            if keep_renders:
-                renders[k] = {n: v.detach() for n, v in out.items()}
-        rec = total / max(len(ks), 1)
+        batch = str(self.tdev).startswith("cuda") if BATCH_FRAMES is None else bool(BATCH_FRAMES)
+        if batch and len(ks):
+            recs, kept = self.frames_rec(x[None], F[None], [0], ks, keep_renders)
+            rec, renders = recs[0], kept[0]
+        else:
+            for k in ks:
+                out = self.render_frame(k, x[k], F[k])
+                total = total + self.frame_loss(k, out)["total"]
+                if keep_renders:
+                    renders[k] = {n: v.detach() for n, v in out.items()}
+            rec = total / max(len(ks), 1)
         reg = 0.0
         if trajectories is not None and self.weights.trajectory > 0:
             reg = self.trajectory_prior(trajectories)
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
+
+    def frames_rec(self, x, F, copies, frames=None, keep_renders: bool = False):
+        """The reconstruction loss (`loss`'s "rec": the mean over `frames`, default all but the rest
+        frame, of `frame_loss`'s total) of the copies `copies` of a batch of states x (B, T, P, 3),
+        F (B, T, P, 3, 3), with the renders and loss terms of all their frames in few batched passes
+        (`render.render_batch`, `render.reconstruction_loss_batch`; each image bitwise its own
+        render, the loss to float rounding). Returns ((len(copies),) tensor, per copy {frame: its
+        renders, detached} when `keep_renders`, else empty dicts). Differentiable in x and F."""
+        ks = list(range(1, self.T)) if frames is None else [int(k) for k in frames]
+        pairs = [(int(b), k) for b in copies for k in ks]
+        kept = [{} for _ in copies]
+        if not pairs:
+            return torch.zeros(len(copies), dtype=self.tdtype, device=self.tdev), kept
+        n = int(self.cov0.shape[0])
+        per = max(len(ks), RENDER_PASS_GAUSSIANS // max(n, 1))
+        w8 = self.weights
+        totals = []
+        for i0 in range(0, len(pairs), per):
+            chunk = pairs[i0:i0 + per]
+            bi = torch.as_tensor([b for b, _ in chunk], device=x.device)
+            ki = torch.as_tensor([k for _, k in chunk], device=x.device)
+            means, covs = self.gaussians_at(x[bi, ki], F[bi, ki])
+            out = render_batch(means, covs, self.colors, self.opacities, [self.cameras[k] for _, k in chunk],
+                               background=self.background)
+            w = None if self.weight is None else self.weight[ki]
+            mask = None if self.masks is None else self.masks[ki]
+            res = reconstruction_loss_batch(out["rgb"], self.frames[ki], w, out["alpha"] if mask is not None else None,
+                                            mask, lambda_ssim=w8.ssim, lambda_mask=w8.mask)
+            tot = res["total"]
+            if self.tracks is not None and w8.track > 0:
+                tot = tot + w8.track * torch.stack([self.tracks.frame_term(k, means[j])
+                                                    for j, (_, k) in enumerate(chunk)])
+            totals.append(tot)
+            if keep_renders:
+                if self.tracks is not None:
+                    out["means"] = means
+                for j, (b, k) in enumerate(chunk):
+                    kept[copies.index(b)][k] = {nm: v[j].detach() for nm, v in out.items()}
+        rec = torch.cat(totals).reshape(len(copies), len(ks)).sum(1) / max(len(ks), 1)
+        return rec, kept
 
     def trajectory_prior_residual(self, trajectories, reference=None) -> torch.Tensor:
         """The trajectory prior as a residual vector whose sum of squares is `trajectory_prior`: per
