@@ -11,7 +11,9 @@ The scene: a block of P particles (2 per cell per axis) in the middle of an n^3 
 corotated, float32, gravity, damping, a grasp pulling one end and a clamp on the other (so the
 pin and effect code paths run), T frames of S substeps.
 
-`--zeroing both` adds, after the main table (the default path: fused zeroing kernels on CUDA,
+`--kernels both` adds the same before / after table for the fused transfer kernels
+(`sim.solver.FUSED_KERNELS` False: p2g_stress, p2g_scatter, g2p_gather, g2p_update; True: p2g_fused,
+g2p_fused). `--zeroing both` adds, after the main table (the default path: fused zeroing kernels on CUDA,
 memsets on the CPU), a before /
 after table in the same run: the memset path (`sim.solver.FUSED_ZERO = False`) against the fused
 one, wall and host CPU time (`time.process_time`, the measure to trust on a shared CPU) per
@@ -84,13 +86,15 @@ def median_wall(fn, device, reps: int) -> float:
 STAT = "min"
 
 
-def _rollout(m, ctrl, fused: bool | None = None):
-    old = solver_mod.FUSED_ZERO
-    solver_mod.FUSED_ZERO = fused          # read when the solver is built (None: the device's default)
+def _rollout(m, ctrl, fused: bool | None = None, switch: str = "FUSED_ZERO"):
+    """A rollout with `sim.solver.<switch>` (FUSED_ZERO or FUSED_KERNELS) = fused (None: the device's
+    default), read when the solver is built."""
+    old = getattr(solver_mod, switch)
+    setattr(solver_mod, switch, fused)
     try:
         return Rollout(m, ctrl)
     finally:
-        solver_mod.FUSED_ZERO = old
+        setattr(solver_mod, switch, old)
 
 
 def time_rollout(P, n, T, S, device, reps):
@@ -120,13 +124,14 @@ def time_rollout(P, n, T, S, device, reps):
     return m.n_particles, tf / (T * S), tb / (T * S)
 
 
-def compare_zeroing(P, n, T, S, device, reps):
-    """Memsets vs fused zeroing on one scene: per path, (wall fwd, wall fwd+bwd, cpu fwd, cpu fwd+bwd)
-    per substep, the `STAT` over `reps` rounds; the two paths alternate within each round."""
+def compare_zeroing(P, n, T, S, device, reps, switch="FUSED_ZERO"):
+    """Memsets vs fused zeroing (switch "FUSED_KERNELS": separate vs fused transfer kernels) on one
+    scene: per path, (wall fwd, wall fwd+bwd, cpu fwd, cpu fwd+bwd) per substep, the `STAT` over
+    `reps` rounds; the two paths alternate within each round."""
     m, ctrl = make_scene(P, n, T, S, device)
     tdev = "cpu" if device == "cpu" else device
     E = torch.full((m.n_particles,), 1e4, device=tdev, requires_grad=True)
-    ros = {f: _rollout(m, ctrl, f) for f in (False, True)}
+    ros = {f: _rollout(m, ctrl, f, switch) for f in (False, True)}
     for ro in ros.values():                  # warm up: compile, capture
         x, F = ro(E)
         (x[-1].sum() + F[-1].sum()).backward()
@@ -154,8 +159,9 @@ def compare_zeroing(P, n, T, S, device, reps):
     return m.n_particles, {f: [float(stat(t[(f, k)])) / (T * S) for k in range(4)] for f in ros}
 
 
-def zeroing_table(rows) -> str:
-    lines = ["| particles | grid | measure (us/substep) | memsets | fused | change |", "|---:|---:|---|---:|---:|---:|"]
+def zeroing_table(rows, names=("memsets", "fused")) -> str:
+    lines = [f"| particles | grid | measure (us/substep) | {names[0]} | {names[1]} | change |",
+             "|---:|---:|---|---:|---:|---:|"]
     for Pm, n, r in rows:
         old, new = r[False], r[True]
         for name, i in (("wall forward", 0), ("wall fwd+bwd", 1), ("wall backward", None), ("CPU forward", 2),
@@ -215,6 +221,9 @@ def main(argv=None):
     ap.add_argument("--stat", choices=("min", "median"), default="min", help="statistic over the runs")
     ap.add_argument("--zeroing", choices=("fused", "both"), default="fused",
                     help="both: also a before / after table, memsets vs fused zeroing kernels")
+    ap.add_argument("--kernels", choices=("fused", "both"), default="fused",
+                    help="both: also a before / after table, separate vs fused transfer kernels "
+                         "(sim.solver.FUSED_KERNELS: p2g_fused, g2p_fused)")
     args = ap.parse_args(argv)
     global STAT
     STAT = args.stat
@@ -254,6 +263,16 @@ def main(argv=None):
         print(f"\nzeroing: memsets (FUSED_ZERO=False) vs fused kernels, alternating rounds, "
               f"{'best' if STAT == 'min' else 'median'} of {args.reps}; backward = fwd+bwd - forward\n")
         print(zeroing_table(zrows))
+    if args.kernels == "both":
+        krows = []
+        for s in sizes:
+            P, n = (int(v) for v in s.split(":"))
+            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, "FUSED_KERNELS")
+            krows.append((Pm, n, r))
+        print(f"\ntransfer kernels: separate (FUSED_KERNELS=False: stress, scatter, gather, update) vs fused "
+              f"(p2g_fused, g2p_fused), alternating rounds, {'best' if STAT == 'min' else 'median'} of {args.reps}; "
+              "backward = fwd+bwd - forward\n")
+        print(zeroing_table(krows, ("separate", "fused")))
 
 
 if __name__ == "__main__":

@@ -3,14 +3,17 @@ substep is launch-bound on a GPU, so the count is what fusion can lower). Runs o
 launches, counted by wrapping `wp.launch`, `wp.array.zero_` and `wp.copy`); each launch is one
 node of the captured graph on a GPU.
 
-    python benchmarks/count_launches.py                 # the tiny scene, both zeroing paths
+    python benchmarks/count_launches.py                 # the tiny scene, every effect on
     python benchmarks/count_launches.py --effects none  # the base model (no effect kernels)
 
 The scene: a 3x3x3 block on a 10^3 grid, a clamp, a grasp, a sphere collider, optionally every
 effect (plasticity, viscoelasticity, damping, ground); 2 frames x 6 substeps, float64. Printed per
 substep: the forward (`MPMSolver.step`) and the backward (`MPMSolver.step_adjoint`, the replay path
-and the stored-states path) with each kernel's name, and per frame the rollout's own launches
-outside the substeps (status checks, adjoint carries)."""
+and the stored-states path) with each kernel's name, for the CUDA default (fused zeroing and fused transfer
+kernels, `sim.solver.FUSED_ZERO` / `FUSED_KERNELS`), the CUDA default before it and the CPU default; per
+frame and per call, the rollout's own launches outside the substeps (status checks, adjoint carries,
+input copies; eager, so the first call's buffer allocations are in these counts: a captured graph
+replays only the per-frame ones)."""
 
 from __future__ import annotations
 
@@ -89,11 +92,12 @@ def main(argv=None):
     phase(solver_mod.MPMSolver, "step", "forward substep")
     phase(solver_mod.MPMSolver, "step_adjoint", "backward substep")
 
-    def run(T, fused, store):
+    def run(T, fused, store, kernels):
         ctrl_t = Control([Contact("fixed", indices=bottom[:2]),
                           Contact("pointNonAdherent", trajectory=np.repeat(sph[:1], T + 1, 0), radius=0.03,
                                   friction=0.2)], n_frames=T)
         solver_mod.FUSED_ZERO = fused
+        solver_mod.FUSED_KERNELS = kernels
         rollout_mod.STORE_STATES_BYTES = (1 << 40) if store else 0
         counts.clear()
         calls.clear()
@@ -107,17 +111,22 @@ def main(argv=None):
 
     del ctrl
     print(f"effects: {a.effects}; {S} substeps per frame; eager launches on the CPU (a GPU graph has one node each)")
-    for fused in (True, False):
-        for store in (True, False):
-            c2, k2 = run(2, fused, store)
-            c4, k4 = run(4, fused, store)
+    configs = [(True, True, True, "the CUDA default since session 10 (fused zeroing, fused transfer kernels)"),
+               (True, False, True, "the CUDA default before (fused zeroing, separate kernels)"),
+               (False, False, True, "the CPU default (memsets, separate kernels)"),
+               (True, True, False, "the CUDA default, backward by replay (states too large to store)")]
+    for fused, kernels, store, what in configs:
+        if True:
+            c2, k2 = run(2, fused, store, kernels)
+            c4, k4 = run(4, fused, store, kernels)
             fwd, bwd = c4.get("forward substep", {}), c4.get("backward substep", {})
             nf, nb = k4.get("forward substep", 1), k4.get("backward substep", 1)
             out2 = sum(c2.get("rollout (outside substeps)", {}).values())
             out4 = sum(c4.get("rollout (outside substeps)", {}).values())
             per_frame = (out4 - out2) / 2
             per_call = out2 - 2 * per_frame
-            print(f"\n## zeroing {'fused' if fused else 'memsets'}, backward from "
+            print(f"\n## {what}: zeroing {'fused' if fused else 'memsets'}, transfer kernels "
+                  f"{'fused' if kernels else 'separate'}, backward from "
                   f"{'stored substep states' if store else 'the replay (each substep recomputed forward)'}")
             print(f"- forward substep ({nf} calls): {sum(fwd.values()) / nf:g} launches+memsets: "
                   + ", ".join(f"{k} {v / nf:g}" for k, v in sorted(fwd.items())))

@@ -362,13 +362,11 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         return v
 
     # ------------------------------------------------------------------ kernels
-    @wp.kernel(module=module, enable_backward=False)
-    def p2g_stress(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
-                   mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
-                   eff: wp.array(dtype=T), flags: int, material: int, inv_dx: T, dt: T,
-                   A: wp.array(dtype=mat33)):
+    @wp.func
+    def affine_A(p: int, F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
+                 mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+                 eff: wp.array(dtype=T), flags: int, material: int, inv_dx: T, dt: T):
         # the MLS-MPM affine matrix: -dt V0 (4 / dx^2) tau + m C, tau the Kirchhoff stress
-        p = wp.tid()
         nup = nu[p]
         mu, lam = lame(E[p], nup)
         tau = kirchhoff(F[p], mu, lam, material)
@@ -376,7 +374,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             mu_v = eff[4] / (T(2.0) * (T(1.0) + nup))
             Fvp = Fv[p]
             tau = tau + maxwell_P(Fvp, mu_v) * wp.transpose(Fvp)
-        A[p] = (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + mass[p] * C[p]
+        return (-dt * vol[p] * T(4.0) * inv_dx * inv_dx) * tau + mass[p] * C[p]
+
+    @wp.kernel(module=module, enable_backward=False)
+    def p2g_stress(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
+                   mass: wp.array(dtype=T), vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+                   eff: wp.array(dtype=T), flags: int, material: int, inv_dx: T, dt: T,
+                   A: wp.array(dtype=mat33)):
+        p = wp.tid()
+        A[p] = affine_A(p, F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt)
 
     @wp.kernel(module=module, enable_backward=False)
     def p2g_stress_adj(F: wp.array(dtype=mat33), mass: wp.array(dtype=T), vol: wp.array(dtype=T),
@@ -464,6 +470,40 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         Ap = A[p]
+        pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
+                    d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, w * (mv + Ap * d))
+                    wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, w * m)
+                    if pinned != 0:
+                        wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
+                        wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
+
+    @wp.kernel(module=module, enable_backward=False)
+    def p2g_fused(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
+                  vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+                  eff: wp.array(dtype=T), flags: int, material: int, dt: T,
+                  x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), mass: wp.array(dtype=T),
+                  pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
+                  A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+        # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
+        # reads it). The scatter's loop is p2g_scatter's, written out again: as a wp.func taking the
+        # grid arrays it ran ~1.8x slower on the CPU backend. The two must stay the same arithmetic
+        # (tests/test_fused_kernels.py compares them bit for bit).
+        p = wp.tid()
+        Ap = affine_A(p, F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt)
+        A[p] = Ap
+        m = mass[p]
+        dx = T(1.0) / inv_dx
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        mv = m * v[p]
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
         for i in range(3):
             for j in range(3):
@@ -623,11 +663,10 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                                     frame, alpha, fps, blend_r)
             gv[t] = vel
 
-    @wp.kernel(module=module, enable_backward=False)
-    def g2p_gather(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
-                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33)):
+    @wp.func
+    def gather_particle(p: int, x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T,
+                        res: wp.vec3i):
         # APIC: v = sum w g, C = (4 / dx^2) sum w g (x_i - x_p)^T
-        p = wp.tid()
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
@@ -641,8 +680,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     g = gv[base[0] + i, base[1] + j, base[2] + k]
                     nv = nv + w * g
                     B = B + w * wp.outer(g, e)
+        return nv, (T(4.0) * inv_dx) * B
+
+    @wp.kernel(module=module, enable_backward=False)
+    def g2p_gather(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
+                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33)):
+        p = wp.tid()
+        nv, nC = gather_particle(p, x, gv, lo, inv_dx, res)
         vg[p] = nv
-        Cg[p] = (T(4.0) * inv_dx) * B
+        Cg[p] = nC
 
     @wp.kernel(module=module, enable_backward=False)
     def g2p_gather_adj(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
@@ -672,16 +718,14 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
         adj_x[p] = adj_x[p] + inv_dx * g_fx
 
-    @wp.kernel(module=module)
-    def g2p_update(x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
-                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33),
-                   E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
-                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-                   frame: int, fps: T, dt: T,
-                   x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
-                   F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
-        p = wp.tid()
-        nC = Cg[p]
+    @wp.func
+    def update_particle(p: int, x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
+                        vgp: vec3, nC: mat33,
+                        E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
+                        pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
+                        pin_pos: wp.array2d(dtype=vec3), frame: int, fps: T, dt: T,
+                        x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
+                        F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
         I = wp.identity(n=3, dtype=T)
         Fn = (I + dt * nC) * F[p]
         if (flags & 2) != 0:
@@ -694,7 +738,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if (flags & 8) != 0:
             a = wp.exp(-dt / eff[5])
             Fvn = dev_scale((I + dt * nC) * Fvn, a)
-        nv = vg[p]
+        nv = vgp
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
         if pinned != 0:
             nv = pv
@@ -703,6 +747,33 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         F1[p] = Fn
         Fv1[p] = Fvn
         x1[p] = x[p] + dt * nv
+
+    @wp.kernel(module=module)
+    def g2p_update(x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
+                   vg: wp.array(dtype=vec3), Cg: wp.array(dtype=mat33),
+                   E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
+                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                   frame: int, fps: T, dt: T,
+                   x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
+                   F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
+        p = wp.tid()
+        update_particle(p, x, F, Fv, vg[p], Cg[p], E, nu, eff, flags, pin_id, pin_active, pin_pos, frame, fps, dt,
+                        x1, v1, C1, F1, Fv1)
+
+    @wp.kernel(module=module, enable_backward=False)
+    def g2p_fused(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
+                  F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
+                  E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
+                  pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                  frame: int, fps: T, dt: T,
+                  x1: wp.array(dtype=vec3), v1: wp.array(dtype=vec3), C1: wp.array(dtype=mat33),
+                  F1: wp.array(dtype=mat33), Fv1: wp.array(dtype=mat33)):
+        # g2p_gather and g2p_update in one launch, forward only (the same arithmetic; the gathered
+        # velocity and its gradient stay in registers: the backward recomputes them with g2p_gather)
+        p = wp.tid()
+        nv, nC = gather_particle(p, x, gv, lo, inv_dx, res)
+        update_particle(p, x, F, Fv, nv, nC, E, nu, eff, flags, pin_id, pin_active, pin_pos, frame, fps, dt,
+                        x1, v1, C1, F1, Fv1)
 
     @wp.kernel(module=module, enable_backward=False)
     def check(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), F: wp.array(dtype=mat33),
@@ -812,7 +883,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     return SimpleNamespace(
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
         p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
-        p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj,
+        p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj, p2g_fused=p2g_fused, g2p_fused=g2p_fused,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,

@@ -1,6 +1,7 @@
 """MPMSolver: one MLS-MPM substep (forward) and its adjoint (reverse), plus the per-frame check.
 
 The forward substep is p2g_stress -> p2g_scatter -> grid_update -> g2p_gather -> g2p_update
+(on CUDA fused into p2g_fused -> grid_update -> g2p_fused, `FUSED_KERNELS`; the same arithmetic)
 (kernels.py). The adjoint of a substep first recomputes that substep's grid from the stored particle
 state (so no grid is kept per substep), then runs the reverse kernels in reverse order: Warp's
 generated adjoints for the per-particle / per-node physics (stress, update, grid update) and
@@ -33,6 +34,12 @@ from .state import SimState
 # how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
 # fused on CUDA devices and memsets on the CPU
 FUSED_ZERO: bool | None = None
+# whether new solvers launch the fused transfer kernels (kernels.p2g_fused: stress + scatter; g2p_fused:
+# gather + particle update, forward only): 4 launches per forward substep instead of 6 (with fused
+# zeroing), one fewer per backward substep; bitwise the same results (tests/test_fused_kernels.py).
+# None (default): fused on CUDA devices (launch-bound graphs), separate on the CPU (its graphs replay
+# without launch overhead, and the fused forward measured +4-6% CPU time there); True / False force it
+FUSED_KERNELS: bool | None = None
 
 
 class SimParams:
@@ -127,6 +134,7 @@ class MPMSolver:
         self._adj_flat = None
         # read when launching: set it before a rollout captures its graphs
         self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
+        self.fused_kernels = wp.get_device(d).is_cuda if FUSED_KERNELS is None else bool(FUSED_KERNELS)
 
     # ------------------------------------------------------------------ argument lists
     def _stress_args(self, s: SimState, p: SimParams):
@@ -153,23 +161,33 @@ class MPMSolver:
         return [s.x, s.v, s.C, s.F, s.Fv]
 
     # ------------------------------------------------------------------ forward
-    def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None, clear: bool = True):
+    def grid(self, s: SimState, frame: int, substep: int, params=None, ctrl=None, clear: bool = True,
+             gather: bool = True):
         """Stress, p2g and the grid update of substep ``substep`` of frame ``frame`` (fills self.gv),
-        then the gather of the grid velocity and its gradient at the particles (self.vg, self.Cg).
-        ``clear=False``: the caller has already zeroed the grid's scatter targets."""
+        then the gather of the grid velocity and its gradient at the particles (self.vg, self.Cg;
+        ``gather=False``: not gathered, `step`'s fused update does it). ``clear=False``: the caller
+        has already zeroed the grid's scatter targets."""
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
         P = s.x.shape[0]
         if clear:
             self._clear_grid()
-        wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
-        wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c), [self.gm, self.gmv, self.gpm, self.gpmv],
-                  device=d, record_tape=False)
+        if self.fused_kernels:
+            sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
+            wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
+                                       s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
+                                       self.fps, self.lo, self.inv_dx, self.res3],
+                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv], device=d, record_tape=False)
+        else:
+            wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
+            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c), [self.gm, self.gmv, self.gpm, self.gpmv],
+                      device=d, record_tape=False)
         wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False)
-        wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg], device=d,
-                  record_tape=False)
+        if gather:
+            wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg],
+                      device=d, record_tape=False)
 
     def _clear_grid(self):
         if self.fused_zero:
@@ -186,6 +204,13 @@ class MPMSolver:
         """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
         p = params or self.params
         c = ctrl or self.ctrl
+        if self.fused_kernels:
+            self.grid(s_in, frame, substep, p, c, gather=False)
+            ua = self._update_args(s_in, frame, p, c)    # x, F, Fv, vg, Cg, E, nu, eff, flags, pins, frame, fps, dt
+            wp.launch(self.K.g2p_fused, s_in.x.shape[0], [s_in.x, self.gv, self.lo, self.inv_dx, self.res3,
+                                                          ua[1], ua[2]] + ua[5:], self._outs(s_out),
+                      device=self.device, record_tape=False)
+            return
         self.grid(s_in, frame, substep, p, c)
         wp.launch(self.K.g2p_update, s_in.x.shape[0], self._update_args(s_in, frame, p, c), self._outs(s_out),
                   device=self.device, record_tape=False)
