@@ -102,7 +102,11 @@ def tiny_problem(tmp_path_factory):
     return make_problem(job)
 
 
-def test_fit_problem_losses_batch_match_one_at_a_time(tiny_problem):
+@pytest.mark.parametrize("batch_frames", [False, True], ids=["frames-one-by-one", "frames-batched"])
+def test_fit_problem_losses_batch_match_one_at_a_time(tiny_problem, monkeypatch, batch_frames):
+    import physinteract_usd.fit.problem as fp
+
+    monkeypatch.setattr(fp, "BATCH_FRAMES", batch_frames)      # batched: the CUDA default
     prob = tiny_problem
     prob.sim.ensure_stable(2e4)
     prob.sim.adaptive = False          # one substep for all (the batch takes the largest E's rung)

@@ -305,9 +305,11 @@ class FitProblem:
             x, F, bad = self.sim.simulate_batch(E, nu, trajectories, effects)
             ks = range(1, self.T) if frames is None else frames
             out = np.full(len(x), np.inf)
-            for b in range(len(x)):
-                if bad[b]:
-                    continue
+            good = [b for b in range(len(x)) if not bad[b]]
+            if good and len(ks) and (str(self.tdev).startswith("cuda") if BATCH_FRAMES is None else BATCH_FRAMES):
+                out[good] = self.frames_rec(x, F, good, ks)[0].cpu().numpy()
+                good = []
+            for b in good:
                 total = 0.0
                 for k in ks:
                     total = total + self.frame_loss(k, self.render_frame(k, x[b, k], F[b, k]))["total"]
