@@ -204,7 +204,7 @@ class ColourMotionSegmenter:
                 # the background there is the side of the pixel's one lasting change that looks like
                 # the background, not like the toucher or the object (what it showed before the
                 # toucher arrived, or after it left)
-                bg = background_across_changes(f, ~dilate_all(cover, 2), bg, thr, h_hand, h_obj)
+                bg = background_across_changes(f, ~dilate_all(cover, 2), bg, thr, h_hand, h_obj, min_area=min_area)
         if have_masks:
             obj = M & ~hand
         else:
@@ -276,7 +276,7 @@ def step_changes(f: np.ndarray, free: np.ndarray, min_frames: int = 2):
 
 def background_across_changes(f: np.ndarray, free: np.ndarray, bg: np.ndarray, thr: float,
                               h_hand: np.ndarray, h_obj: np.ndarray | None, consistent: float = 0.25,
-                              margin: float = 2.0, eps: float = 1e-6) -> np.ndarray:
+                              margin: float = 2.0, min_area: int = 6, eps: float = 1e-6) -> np.ndarray:
     """`bg` corrected where a pixel's colour changes once and lasts (`step_changes`: a step over the
     foreground threshold `thr`, both sides steady: RMS residual under `consistent` x the step): a
     toucher that arrives and sits still for most of the video, or one that sat still and left, is
@@ -285,7 +285,9 @@ def background_across_changes(f: np.ndarray, free: np.ndarray, bg: np.ndarray, t
     like the toucher's (`h_hand`) or the object's (`h_obj`) colours, by at least `margin` in log
     likelihood ratio (as decisive as a colour must be to make a pixel hand alone); where the colours
     do not decide (a glove the colour of the floor, dev_9372) the median stands. Pixels whose
-    background so chosen differs from `bg` by under `thr` are left as they are."""
+    background so chosen differs from `bg` by under `thr` are left as they are, and so are the
+    pieces of such pixels smaller than `min_area` (a toucher that sits still covers a blob; scattered
+    pixels are noise deciding: dev_0014's fingertip, whose flow at the contact they turned)."""
     before, after, step, rms = step_changes(f, free)
     changed = (step > thr) & (rms < consistent * step)
     if not changed.any():
@@ -307,6 +309,10 @@ def background_across_changes(f: np.ndarray, free: np.ndarray, bg: np.ndarray, t
     out = bg.copy()
     cur = out[changed]
     move = (np.abs(d) >= margin) & (np.abs(pick - cur).max(-1) > thr)
+    where = np.zeros(changed.shape, bool)
+    where[changed] = move
+    where = drop_small(open_close(where, 1, 0), min_area)
+    move &= where[changed]
     cur[move] = pick[move]
     out[changed] = cur
     return out.astype(np.float32)
