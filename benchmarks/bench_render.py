@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from physinteract_usd.camera import GL_TO_CV, Camera
-from physinteract_usd.render import RasterSettings, render
+from physinteract_usd.render import RasterSettings, render, render_batch
 
 DEFAULT_SIZES = "2000x128,10000x256,10000x512,100000x256,100000x512"
 
@@ -63,6 +63,41 @@ def time_fwd_bwd(n, size, device, reps=5, warmup=2, settings=None):
     def fwd():
         with torch.no_grad():
             render(*params, cam, settings=settings)
+
+    for _ in range(warmup):
+        step()
+    _sync(device)
+    res = {}
+    for name, fn in (("fwd_bwd", step), ("fwd", fwd)):
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            _sync(device)
+            ts.append(1e3 * (time.perf_counter() - t0))
+        res[name + "_ms"] = statistics.median(ts)
+        res[name + "_min_ms"] = min(ts)
+    return res
+
+
+def time_batch(n, size, device, M, reps=5, warmup=2, settings=None):
+    """`render_batch` of M images (the scene's Gaussians moved a little per image, one camera) forward
+    and forward+backward: ms for all M (median, min)."""
+    means, cov6, colors, op, cam = probe_scene(n, size, device)
+    g = torch.Generator().manual_seed(1)
+    shift = (0.002 * torch.randn(M, 1, 3, generator=g)).to(device=device, dtype=means.dtype)
+    mb = (means[None] + shift).clone().requires_grad_(True)
+    cb = cov6[None].expand(M, n, 6).clone().requires_grad_(True)
+    cams = [cam] * M
+
+    def step():
+        mb.grad = cb.grad = None
+        out = render_batch(mb, cb, colors, op, cams, settings=settings)
+        (out["rgb"].sum() + out["alpha"].sum()).backward()
+
+    def fwd():
+        with torch.no_grad():
+            render_batch(mb, cb, colors, op, cams, settings=settings)
 
     for _ in range(warmup):
         step()
@@ -151,6 +186,9 @@ def main(argv=None):
                     help="torch intra-op threads on CPU (default 1: Warp's CPU backend is single-threaded "
                          "and torch's thread pool only adds overhead on small images)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--batch", type=int, default=0,
+                    help="also M images in one pass (render_batch, as the batched fit renders its copies' and "
+                         "frames' images): ms per image against one render per image")
     ap.add_argument("--png", help="also save the rendered image of the first size here")
     ap.add_argument("--check-cpu", action="store_true", help="CPU vs this device: one fwd+bwd, max abs diff")
     ap.add_argument("--cpu-ref", help="with --check-cpu: the CPU side from this .npz (saved with --save-cpu)")
@@ -180,6 +218,19 @@ def main(argv=None):
         rows.append({"n": n, "size": size, "device": a.device, **r})
         print(f"| {n} | {size}^2 | {r['fwd_bwd_ms']:.2f} | {r['fwd_ms']:.2f} | {r['fwd_bwd_min_ms']:.2f} |")
         sys.stdout.flush()
+    if a.batch > 1:
+        print(f"\n{a.batch} images in one pass (render_batch) against one render each, ms per image (median)\n")
+        print("| Gaussians per image | image | batched fwd+bwd | one by one fwd+bwd | batched fwd | one by one fwd |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for r in list(rows):
+            if "batch" in r:
+                continue
+            b = time_batch(r["n"], r["size"], a.device, a.batch, a.reps, a.warmup, settings)
+            M = a.batch
+            rows.append({"n": r["n"], "size": r["size"], "device": a.device, "batch": M,
+                         **{k: v / M for k, v in b.items()}})
+            print(f"| {r['n']} | {r['size']}^2 | {b['fwd_bwd_ms'] / M:.3f} | {r['fwd_bwd_ms']:.3f} | "
+                  f"{b['fwd_ms'] / M:.3f} | {r['fwd_ms']:.3f} |")
     if a.json:
         for r in rows:
             print(json.dumps(r))

@@ -9,7 +9,8 @@ the rest with it), all within `--deadline` seconds of wall time:
    gsplat_probe.py (gsplat forward+backward) at 15k Gaussians, 512^2;
 2. our simulator (bench_sim.py, medians of 5) at the same sizes, forward and forward+backward per
    substep, and (`--kernels both`, in its log) the fused transfer kernels against the separate ones;
-3. our renderer (bench_render.py, medians) forward+backward per frame at 15k, 512^2 and 2k, 256^2;
+3. our renderer (bench_render.py, medians) forward+backward per frame at 15k, 512^2 and 2k, 256^2,
+   one image per call and 13 per call (`render_batch`, as a fit renders its frames on CUDA);
 4. a small fit: the bundled sample (samples/foam_bar: 14 frames, grid 24, the demo's settings),
    true contacts, default iterations, `fit --device cuda`, then `evaluate` (MA, masked PSNR);
 5. four small fits batched in one process against one fit (benchmarks/batch_fits.py --copies 4: the
@@ -202,13 +203,14 @@ def main(argv=None):
                                                    float(m.group(3).replace(",", "")), float(m.group(4).replace(",", "")))
     if "render" not in skip:
         run("bench_render", [py, "benchmarks/bench_render.py", "--device", "cuda", "--sizes", "15000x512,2000x256",
-                             "--reps", "10", "--json"], out, 150, dl)
+                             "--reps", "10", "--json", "--batch", "13"], out, 150, dl)
         txt = (out / "bench_render.log").read_text() if (out / "bench_render.log").exists() else ""
         for line in txt.splitlines():
             if line.startswith("{"):
                 try:
                     r = json.loads(line)
-                    R[f"render_{r['n']}_{r['size']}"] = (r["fwd_ms"], r["fwd_bwd_ms"])
+                    R[f"render_{r['n']}_{r['size']}" + (f"_batch{r['batch']}" if "batch" in r else "")] = (
+                        r["fwd_ms"], r["fwd_bwd_ms"])
                 except (json.JSONDecodeError, KeyError):
                     pass
     rows = []
@@ -250,7 +252,9 @@ def main(argv=None):
                          f"mpm_probe graph {f(p[0], '{:.0f}')} |")
             lines.append(f"| simulator fwd+bwd, us/substep | {s[0]:,} particles, {s[1]}^3 | {s[3]:.0f} "
                          f"(bwd/fwd {(s[3] - s[2]) / s[2]:.1f}) | mpm_probe graph {f(p[1], '{:.0f}')} |")
-    for key, size in (("render_15000_512", "15k Gaussians, 512^2"), ("render_2000_256", "2k Gaussians, 256^2")):
+    for key, size in (("render_15000_512", "15k Gaussians, 512^2"), ("render_2000_256", "2k Gaussians, 256^2"),
+                      ("render_15000_512_batch13", "15k Gaussians, 512^2, 13 images in one pass, per image"),
+                      ("render_2000_256_batch13", "2k Gaussians, 256^2, 13 images in one pass, per image")):
         r = R.get(key)
         if r:
             g = f(R.get("gsplat"), "{:.2f}") if key == "render_15000_512" else "-"
