@@ -439,3 +439,35 @@ def test_two_folds_pooled_keep_false_alarms_under_alpha_and_add_power():
           f"accepted: one fold {p1}/100, two folds {p2}/100")
     assert fa1 / runs <= 0.075 and fa2 / runs <= 0.075
     assert p2 >= p1
+
+
+def test_of_two_accepted_candidates_the_one_clearly_better_on_the_same_held_back_frames_is_named_first():
+    """`app.diagnose.order_accepted`: two selected candidates both accepted on the same held-back
+    frames (not a confusable pair); the later one is named first only when its held-back residual is
+    below the first's by the paired test (the H200's damping@2 named viscoelasticity before damping,
+    whose held-back drop was larger); a difference within the blocks' spread keeps the order."""
+    from physinteract_usd.app.diagnose import order_accepted
+    from physinteract_usd.diagnose.core import CandidateResult, DiagnoseSettings, Diagnosis
+
+    rng = np.random.default_rng(3)
+    n_blocks, per = 40, 50
+    blocks = np.repeat(np.arange(n_blocks), per)
+    m = np.ones(len(blocks), bool)
+    base = rng.normal(size=len(blocks))
+
+    def diag_with(shrink_second):
+        a = CandidateResult("viscoelasticity", [], significant=True, accepted=True)
+        b = CandidateResult("damping", [], significant=True, accepted=True)
+        a._held = [(m, 0.8 * base + 0.3 * rng.normal(size=len(base)))]
+        b._held = [(m, shrink_second * base + 0.3 * rng.normal(size=len(base)))]
+        d = Diagnosis("missing_effect", "", [a, b], 1.0, 0.1)
+        d._ctx = {"blocks": blocks, "n_blocks": n_blocks, "settings": DiagnoseSettings()}
+        return d, a, b
+
+    d, a, b = diag_with(0.5)                 # damping's residual clearly smaller: named first
+    order_accepted(d, 3)
+    assert [c.effect for c in d.significant] == ["damping", "viscoelasticity"]
+    assert b.rival_test["against"] == "viscoelasticity" and b.rival_test["p"] < 0.05
+    d, a, b = diag_with(0.8)                 # the same size: the order stays
+    order_accepted(d, 3)
+    assert [c.effect for c in d.significant] == ["viscoelasticity", "damping"]
