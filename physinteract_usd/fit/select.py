@@ -852,6 +852,8 @@ def model_summary(model: dict | None) -> dict:
             parts.setdefault("candidates", []).append(
                 {"kind": c["kind"], "parts": c["parts"], "particles": c.get("particles"),
                  "sweep": [{"from_e": st["from_e"], "e": st["e"], "loss": st["loss"]} for st in c.get("starts", [])]})
+        if pr.get("unconstrained"):                         # particles the clip barely strains: no part of their own
+            parts["unconstrained"] = pr["unconstrained"]
         if best is not None:
             parts["sweep_interval"] = best["interval"]      # each part's E within 1% of its line's best
         if final:
