@@ -45,9 +45,12 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     in_depth = (push is not None and moved >= 1.0 and push < -0.6 and approach is not None and ap_speed >= 1.0
                 and approach < 0.0)
     if not in_depth and (evidence.get("press_cos") or 0.0) >= PRESS_COS \
-            and (evidence.get("pressed_in_px") or 0.0) >= 1.0 and tension < 0.5:
+            and (evidence.get("pressed_in_px") or 0.0) >= 1.0 and tension < 0.7 \
+            and (evidence.get("withdrawn_px") or 0.0) >= 1.0:
         # the object next to the contact moved only along the inward normal (its largest displacement
-        # from rest within 32 deg of it) and never followed the toucher out past its rest surface:
+        # from rest within 32 deg of it) and never followed the toucher out past its rest surface (by
+        # more than 2 eps, the noise), though the toucher moved out (a grasp that only pushes looks
+        # the same until it pulls: dev_9372, a glove dragging a rope across itself):
         # pushed, not held (a grasp drags the contact region along the surface with the toucher, or
         # holds it as the toucher moves away; dev_0007's stick, typed a grasp by its withdrawal)
         if surface > 0.45:
@@ -82,6 +85,25 @@ PRESS_COS = 0.85      # the object's largest displacement within 32 deg of the i
 TENSION_PX = 2.0      # px the object followed the toucher out past its rest surface: held
 
 
+def inward_normal(silhouette: np.ndarray, c2, smooth: float = 1.5, min_grad: float = 0.5):
+    """The surface's inward normal in the image at the contact `c2` (u, v): the gradient of the
+    silhouette's signed distance (positive inside, smoothed by `smooth` px), unit; None where it is
+    not defined (under `min_grad`: on the ridge of a thin object, a rope or a bar under the hand,
+    where "inward" is across it both ways; along it the object is dragged, not pressed)."""
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    sil = np.asarray(silhouette, bool)
+    if not sil.any() or sil.all():
+        return None
+    sd = gaussian_filter(distance_transform_edt(sil) - distance_transform_edt(~sil), smooth)
+    gy, gx = np.gradient(sd)
+    H, W = sil.shape
+    u, v = int(np.clip(np.floor(c2[0]), 0, W - 1)), int(np.clip(np.floor(c2[1]), 0, H - 1))
+    g = np.array([gx[v, u], gy[v, u]], float)
+    n = float(np.linalg.norm(g))
+    return g / n if n >= min_grad else None
+
+
 def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, g: int, end: int,
                   eps: float = 0.35) -> dict:
     """How the object next to the contact moved against the surface's inward normal `into` (unit,
@@ -92,12 +114,16 @@ def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, 
     in which the toucher moves out (over `eps`) and the object follows it out while past its rest
     surface (summed, each pair's at most how far past it is). A press pushes along the inward
     normal and the object comes back at most to its rest surface; a grasp drags the contact region
-    along the surface or holds it as the toucher moves away (the object follows it out: tension)."""
+    along the surface or holds it as the toucher moves away (the object follows it out: tension).
+    `withdrawn_px`: the toucher's outward motion from the grasp to `end`, summed (the
+    no-tension reading says something only where it moved out)."""
     d = np.asarray(into, float)
     X = np.zeros(2)
     big = np.zeros(2)
-    out_max = in_max = tension = 0.0
+    out_max = in_max = tension = withdrawn = 0.0
     for k in range(max(0, start), min(end, len(vo))):
+        if k >= g and np.isfinite(vh[k]).all():
+            withdrawn += max(0.0, float(-vh[k] @ d))
         o = vo[k]
         if np.isfinite(o).all():
             X = X + o
@@ -108,7 +134,7 @@ def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, 
             if float(-vh[k] @ d) > eps and float(-o @ d) > 0 and float(-X @ d) > 0:
                 tension += min(float(-o @ d), float(-X @ d))
     nb = float(np.linalg.norm(big))
-    return {"pressed_in_px": in_max, "pulled_out_px": out_max, "tension_px": tension,
+    return {"pressed_in_px": in_max, "pulled_out_px": out_max, "tension_px": tension, "withdrawn_px": withdrawn,
             "press_cos": float(big @ d / nb) if nb > 2 * eps else None}
 
 
@@ -155,9 +181,10 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         # the toucher's body looks like)
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
     normal = {}
-    if np.linalg.norm(into) > 0:
+    n_in = inward_normal(an.rest.silhouette, c2)
+    if n_in is not None:
         end = len(timing.object_velocity) if timing.release is None else timing.release
-        normal = normal_motion(timing.hand_velocity, timing.object_velocity, into, min(timing.period[0], g), g,
+        normal = normal_motion(timing.hand_velocity, timing.object_velocity, n_in, min(timing.period[0], g), g,
                                end)
     # the first main motion against the straight interface's normal: a flat face pushed into the
     # object moves along its own normal
