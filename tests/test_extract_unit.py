@@ -934,3 +934,24 @@ def test_a_grasp_holds_the_object_as_the_toucher_moves_away_from_the_surface():
     assert free["tension_px"] == 0.0
     assert classify_interaction({**base, **free})[0] == "surfaceNonAdherent"
 
+
+
+def test_the_press_rule_needs_a_surface_normal_and_a_toucher_that_moved_out():
+    """The inward normal is the silhouette's signed-distance gradient: across a bar at its side,
+    along it at its end, none on its ridge (under a hand over a thin rope "inward" is both ways).
+    And a toucher that only pushes (never moves out) leaves the press untested: a grasp that drags
+    the object into itself looks the same until it pulls (dev_9372: a glove dragging a rope)."""
+    from physinteract_usd.extract.interaction_type import inward_normal, normal_motion
+
+    yy, xx = np.mgrid[0:40, 0:60]
+    bar = (np.abs(yy + 0.5 - 20.5) <= 3.5) & (xx > 10) & (xx < 50)
+    assert inward_normal(bar, (30.5, 20.5)) is None                       # the ridge
+    assert np.allclose(inward_normal(bar, (30.5, 16.5)), [0.0, 1.0], atol=0.05)   # its upper side
+    assert np.allclose(inward_normal(bar, (30.5, 14.5)), [0.0, 1.0], atol=0.05)   # just off it
+    assert np.allclose(inward_normal(bar, (9.5, 20.5)), [1.0, 0.0], atol=0.05)    # its left end
+    into = np.array([1.0, 0.0])
+    push = normal_motion(_pairs((8, (1.0, 0.0))), _pairs((8, (0.8, 0.0))), into, start=0, g=0, end=8)
+    assert push["press_cos"] > 0.99 and push["withdrawn_px"] == 0.0
+    base = {"push_cos": 0.5, "contact_motion_px": 8.0, "interface_span": 0.1, "approach_cos": 0.5,
+            "approach_speed_px": 1.0, "contact_frames": 8, "coupled_share": 0.9}
+    assert classify_interaction({**base, **push})[0] == "pointAdherent"
