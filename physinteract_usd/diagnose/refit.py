@@ -149,11 +149,14 @@ def warm_start(lad, base, how: str = "field") -> None:
             lad.mat.w_nu.copy_(torch.full_like(lad.mat.w_nu, float(math.log(nu0 / (lad.mat.nu_max - nu0)))))
 
 
-BASE_LR_SCALE = 0.2   # the refits move the base's own parameters (E, the path) at this x the fit's learning rates
-                      # (the effect's at the fit's): on foam_bar (CPU, grid 16) at the fit's rates 8 iterations from the
-                      # converged base raised the held-back loss of the control by 9-24% (training on the frames the
-                      # candidate does not change, the base re-balances toward them); at 0.2x by 1.4%, the effect's
-                      # gain unchanged (docs/benchmarks/diagnose_named.md, 2026-11-26 (10th))
+BASE_LR_SCALE = 0.0   # the refits move the base's own parameters (E, the path) at this x the fit's learning rates
+                      # (the effect's at the fit's). 0: the base held, only the effect's parameters fitted on the
+                      # training frames, and the control is the base itself (no refit). On foam_bar (CPU, grid 16;
+                      # docs/benchmarks/diagnose_named.md, 2026-11-26 (10th)) at the fit's rates 8 iterations from the
+                      # converged base raised the control's held-back loss by 9-24% (trained without the frames the
+                      # candidate changes most, the base moves toward the others), at 0.2x still by 1.4-27%; held,
+                      # plasticity@1's held-back gain was the same (p 0.002) and viscoelasticity@1's rose from
+                      # 1e-6 (p 0.48) to 8.9e-5 (p 0.07)
 
 
 def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iterations: int, holdout_every: int, log,
@@ -252,10 +255,13 @@ def refit_null(diag: Diagnosis, val: list, *, iterations: int = 8, holdout_every
     res, run = ctx["res"], ctx["run"]
     out = []
     for f in as_folds(val) or [[]]:
-        try:
-            r1, r1a, st = _refit(diag, None, {}, f, iterations, holdout_every, log)
-        except SimulationError:
-            return None
+        if BASE_LR_SCALE == 0:      # the base's parameters held: the control is the base itself
+            (r1, r1a), st = residual_at(diag, None, ctx.get("e_bound")), None
+        else:
+            try:
+                r1, r1a, st = _refit(diag, None, {}, f, iterations, holdout_every, log)
+            except SimulationError:
+                return None
         m = _frame_mask(res, f) if f else np.ones(len(r1), bool)
         out.append({"frames": list(f), "state": st, "residual": r1, "aloss": run.aloss(r1a),
                     "held_back_loss": loss(r1[m]), "mask": m})
@@ -316,8 +322,9 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
         refs["base"].append(residual_at(diag, None, b)[0])
         if nf is not None:
             cs = nf[i]["state"]
-            refs.setdefault("control", []).append(nf[i]["residual"] if cs.get("bound") == b
-                                                  else residual_at(diag, cs, b)[0])
+            refs.setdefault("control", []).append(
+                residual_at(diag, None, b)[0] if cs is None else
+                nf[i]["residual"] if cs.get("bound") == b else residual_at(diag, cs, b)[0])
         states.append(state)
         r1as.append(r1a)
     run = ctx["run"]
