@@ -145,12 +145,16 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
             shutil.copytree(work / f"{k}.versions", ctl / f"{k}.versions")
         (ctl / k).symlink_to(cap.resolve())          # the stage's capture paths are relative
         t4 = time.perf_counter()
-        f3 = api.fit(ctl / f"{k}.usda", iterations=a.refit_iterations, contact_from=gt, device=a.device,
-                     progress=False, log=quiet, keep_best=False, resume=True)
-        row["control_refit_s"] = round(time.perf_counter() - t4, 1)
-        row["loss_after_control"] = f3.summary().get("final_loss")
-        row["after_control"] = scored(ctl / f"{k}.usda", gt, a.device)
-        log(f"{k}: the same refit without the effect: masked PSNR {row['after_control']['psnr_masked']:.2f} dB")
+        try:        # the attribution's failure is its own, not the case's
+            f3 = api.fit(ctl / f"{k}.usda", iterations=a.refit_iterations, contact_from=gt, device=a.device,
+                         progress=False, log=quiet, keep_best=False, resume=True)
+            row["control_refit_s"] = round(time.perf_counter() - t4, 1)
+            row["loss_after_control"] = f3.summary().get("final_loss")
+            row["after_control"] = scored(ctl / f"{k}.usda", gt, a.device)
+            log(f"{k}: the same refit without the effect: masked PSNR {row['after_control']['psnr_masked']:.2f} dB")
+        except Exception as exc:  # noqa: BLE001
+            row["control_refit_error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+            log(f"{k}: the control refit failed: {row['control_refit_error']}")
     if eff != "none":
         api.effects_add(stage, eff)
         t3 = time.perf_counter()
