@@ -9,6 +9,9 @@ relative in both dtypes (and gradients within 1e-4 in float64, 1e-2 in float32).
 
     python benchmarks/check_sim_cuda.py              # cpu vs cuda:0
     python benchmarks/check_sim_cuda.py --device cpu # self-check without a GPU (graphs vs eager)
+    python benchmarks/check_sim_cuda.py --save-cpu ref.npz              # here: the CPU reference
+    python benchmarks/check_sim_cuda.py --cpu-ref ref.npz --kernels both # on a GPU host whose Warp has no
+        # CPU compiler: CUDA with the separate and with the fused transfer kernels, each against it
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import warp as wp
 wp.config.quiet = True
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from physinteract_usd.sim import Contact, Control, GridSpec, Rollout, SimModel  # noqa: E402
+from physinteract_usd.sim import solver as solver_mod  # noqa: E402
 
 T, S = 2, 50
 
@@ -52,7 +56,8 @@ def scene(dtype: str, device: str):
     return m, ctrl, grab, sph
 
 
-def run(dtype: str, device: str, graphs: bool):
+def run(dtype: str, device: str, graphs: bool, fused=None):
+    solver_mod.FUSED_KERNELS = fused     # None: the solver's default (fused on CUDA, separate on the CPU)
     m, ctrl, grab, sph = scene(dtype, device)
     tdev = "cpu" if device == "cpu" else device
     td = torch.float64 if dtype == "float64" else torch.float32
@@ -98,6 +103,9 @@ def main(argv=None):
     ap.add_argument("--save-cpu", metavar="NPZ", help="run the CPU reference only and save it (for a GPU host "
                     "whose Warp has no CPU compiler)")
     ap.add_argument("--cpu-ref", metavar="NPZ", help="compare against a CPU reference saved with --save-cpu")
+    ap.add_argument("--kernels", choices=("default", "both"), default="default",
+                    help="both: run the device with the separate and with the fused transfer kernels "
+                    "(sim.solver.FUSED_KERNELS False / True), each against the CPU reference")
     args = ap.parse_args(argv)
     wp.init()
     if args.save_cpu:
@@ -119,12 +127,14 @@ def main(argv=None):
                 ref = {k.split("/", 1)[1]: saved[k] for k in saved.files if k.startswith(dtype + "/")}
             else:
                 ref = run(dtype, "cpu", graphs=False)
-            for graphs in (True, False):
-                o = run(dtype, dev, graphs=graphs)
+            kernels = (None,) if args.kernels == "default" else (False, True)
+            for graphs, fused in [(g, f) for g in (True, False) for f in kernels]:
+                o = run(dtype, dev, graphs=graphs, fused=fused)
                 res, disp = compare(ref, o)
                 good = res["x"] < 1e-4 and all(v < gtol for k, v in res.items() if k != "x")
                 ok &= good
-                print(f"{dtype} {dev} graphs={graphs} (used: {o['graphs']}): max |dx| / max displacement "
+                kern = "" if fused is None else f" kernels={'fused' if fused else 'separate'}"
+                print(f"{dtype} {dev}{kern} graphs={graphs} (used: {o['graphs']}): max |dx| / max displacement "
                       f"({disp:.3g} m) = {res['x']:.2e}; gradients: "
                       + ", ".join(f"{k} {v:.1e}" for k, v in res.items() if k != "x")
                       + f"; {o['seconds']:.1f}s -> {'PASS' if good else 'FAIL'}", flush=True)
