@@ -193,8 +193,9 @@ def test_cli_json_exit_codes_and_errors(damped, tmp_path, capsys):
     assert main(["diagnose", str(damped["stage"]), "--refit", "-1"]) == 2
     assert main(["diagnose", str(damped["stage"]), "--starts", "4"]) == 2
     assert main(["diagnose", str(damped["stage"]), "--trajectory-sigma", "0"]) == 2
+    assert main(["diagnose", str(damped["stage"]), "--refit-folds", "3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert "--starts" in err[-2] and "--trajectory-sigma" in err[-1]
+    assert "--starts" in err[-3] and "--trajectory-sigma" in err[-2] and "--refit-folds" in err[-1]
 
 
 @pytest.fixture(scope="module")

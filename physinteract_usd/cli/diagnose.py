@@ -19,6 +19,9 @@ def add_parser(sub):
     s.add_argument("--refit", type=int, default=3, metavar="N",
                    help="refit the top N significant candidates briefly (default 3; 0: none)")
     s.add_argument("--refit-iterations", type=int, default=8, metavar="K", help="iterations of each refit (default 8)")
+    s.add_argument("--refit-folds", type=int, default=None, metavar="K",
+                   help="2 (default): each refit is trained on one half of the frames and judged on the other, "
+                        "both ways, and the paired test pools both; 1: one split (half the refit time, less power)")
     s.add_argument("--candidates", metavar="A,B,...", help="test only these candidates (default: all)")
     s.add_argument("--starts", type=int, default=3, metavar="N",
                    help="base starts before scoring: 1 scores the fit as it is; 3 (default) first refits the base "
@@ -40,7 +43,7 @@ def run(a) -> int:
 
     d = api.diagnose(a.stage, refit=a.refit, refit_iterations=a.refit_iterations, candidates=a.candidates,
                      write_stage=not a.no_stage, device=a.device, starts=a.starts,
-                     trajectory_sigma_px=a.trajectory_sigma, progress=not a.json and sys.stderr.isatty(),
+                     trajectory_sigma_px=a.trajectory_sigma, refit_folds=a.refit_folds, progress=not a.json and sys.stderr.isatty(),
                      log=(lambda *m: print(*m, file=sys.stderr)) if a.json else print)
     if a.json:
         print(json.dumps(d, indent=1, allow_nan=False))
