@@ -162,8 +162,14 @@ def render(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, opacit
         colors = sh_to_color(colors.to(dtype), means, center)
     rgb, alpha, depth_acc = RasterizeGaussians.apply(means, cov6, colors.to(dtype), opacities.to(dtype).reshape(-1),
                                                      camera, settings)
+    return _composite(rgb, alpha, depth_acc, background)
+
+
+def _composite(rgb, alpha, depth_acc, background) -> dict:
+    """The rasterizer's accumulated colour over `background` (if any), and the depth normalised by
+    the coverage (0 where nothing covers the pixel): `render`'s and `render_batch`'s outputs."""
     if background is not None:
-        bg = torch.as_tensor(background, dtype=dtype, device=dev)
+        bg = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
         rgb = rgb + (1.0 - alpha)[..., None] * bg
     eps = 1e-6
     depth = torch.where(alpha > eps, depth_acc / alpha.clamp_min(eps), torch.zeros_like(depth_acc))
@@ -216,12 +222,7 @@ def render_batch(means: torch.Tensor, covs: torch.Tensor, colors: torch.Tensor, 
     op = op.expand(M, N) if op.dim() == 1 else op
     rgb, alpha, depth_acc = RasterizeGaussians.apply(means.reshape(M * N, 3), cov6, colors.reshape(M * N, 3),
                                                      op.reshape(M * N), cameras, settings)
-    if background is not None:
-        bg = torch.as_tensor(background, dtype=dtype, device=dev)
-        rgb = rgb + (1.0 - alpha)[..., None] * bg
-    eps = 1e-6
-    depth = torch.where(alpha > eps, depth_acc / alpha.clamp_min(eps), torch.zeros_like(depth_acc))
-    return {"rgb": rgb, "alpha": alpha, "depth": depth, "depth_acc": depth_acc}
+    return _composite(rgb, alpha, depth_acc, background)
 
 
 @torch.no_grad()
