@@ -64,6 +64,12 @@ def time_fwd_bwd(n, size, device, reps=5, warmup=2, settings=None):
         with torch.no_grad():
             render(*params, cam, settings=settings)
 
+    return _time_steps(step, fwd, device, reps, warmup)
+
+
+def _time_steps(step, fwd, device, reps, warmup):
+    """Forward+backward (`step`) and forward (`fwd`) timed after `warmup` steps: ms, median and min
+    of `reps`."""
     for _ in range(warmup):
         step()
     _sync(device)
@@ -99,20 +105,7 @@ def time_batch(n, size, device, M, reps=5, warmup=2, settings=None):
         with torch.no_grad():
             render_batch(mb, cb, colors, op, cams, settings=settings)
 
-    for _ in range(warmup):
-        step()
-    _sync(device)
-    res = {}
-    for name, fn in (("fwd_bwd", step), ("fwd", fwd)):
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            fn()
-            _sync(device)
-            ts.append(1e3 * (time.perf_counter() - t0))
-        res[name + "_ms"] = statistics.median(ts)
-        res[name + "_min_ms"] = min(ts)
-    return res
+    return _time_steps(step, fwd, device, reps, warmup)
 
 
 def device_name(device: str) -> str:
