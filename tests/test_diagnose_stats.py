@@ -416,25 +416,21 @@ def test_two_folds_pooled_keep_false_alarms_under_alpha_and_add_power():
     block); a misfit 25% smaller is accepted at least as often as with fold A alone."""
     rng = np.random.default_rng(5)
     n, fpb = 200, 12
-    fa1 = fa2 = 0
+
+    def accepted(better):
+        """(fold A alone, both folds pooled): accepted at alpha 0.05 on one drawn case."""
+        folds = _two_fold_case(rng, better)
+        a, b, fr = folds[0]
+        one = S.paired_drop(a, b, _held_blocks(fr, n, fpb), 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
+        aa = np.concatenate([f[0] for f in folds])
+        bb = np.concatenate([f[1] for f in folds])
+        bl = np.concatenate([_held_blocks(f[2], n, fpb) for f in folds])
+        pooled = S.paired_drop(aa, bb, bl, 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
+        return int(one), int(pooled)
+
     runs = 200
-    for _ in range(runs):
-        folds = _two_fold_case(rng, None)
-        a, b, fr = folds[0]
-        fa1 += S.paired_drop(a, b, _held_blocks(fr, n, fpb), 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
-        aa = np.concatenate([f[0] for f in folds])
-        bb = np.concatenate([f[1] for f in folds])
-        bl = np.concatenate([_held_blocks(f[2], n, fpb) for f in folds])
-        fa2 += S.paired_drop(aa, bb, bl, 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
-    p1 = p2 = 0
-    for _ in range(100):
-        folds = _two_fold_case(rng, 0.25)
-        a, b, fr = folds[0]
-        p1 += S.paired_drop(a, b, _held_blocks(fr, n, fpb), 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
-        aa = np.concatenate([f[0] for f in folds])
-        bb = np.concatenate([f[1] for f in folds])
-        bl = np.concatenate([_held_blocks(f[2], n, fpb) for f in folds])
-        p2 += S.paired_drop(aa, bb, bl, 60, n_flips=400, seed=int(rng.integers(1 << 30)))["p"] < 0.05
+    fa1, fa2 = map(sum, zip(*(accepted(None) for _ in range(runs))))
+    p1, p2 = map(sum, zip(*(accepted(0.25) for _ in range(100))))
     print(f"false alarms: one fold {fa1 / runs:.3f}, two folds pooled {fa2 / runs:.3f}; a misfit 25% smaller "
           f"accepted: one fold {p1}/100, two folds {p2}/100")
     assert fa1 / runs <= 0.075 and fa2 / runs <= 0.075
