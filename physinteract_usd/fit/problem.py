@@ -206,8 +206,7 @@ class FitProblem:
         ks = range(1, self.T) if frames is None else frames
         total = 0.0
         renders = {}
-        batch = str(self.tdev).startswith("cuda") if BATCH_FRAMES is None else bool(BATCH_FRAMES)
-        if batch and len(ks):
+        if self.batch_frames and len(ks):
             recs, kept = self.frames_rec(x[None], F[None], [0], ks, keep_renders)
             rec, renders = recs[0], kept[0]
         else:
@@ -221,6 +220,11 @@ class FitProblem:
         if trajectories is not None and self.weights.trajectory > 0:
             reg = self.trajectory_prior(trajectories)
         return {"rec": rec, "reg_traj": reg, "x": x, "F": F, "renders": renders}
+
+    @property
+    def batch_frames(self) -> bool:
+        """Whether the frames are rendered and scored in batched passes (`BATCH_FRAMES`; None: on CUDA)."""
+        return str(self.tdev).startswith("cuda") if BATCH_FRAMES is None else bool(BATCH_FRAMES)
 
     def frames_rec(self, x, F, copies, frames=None, keep_renders: bool = False):
         """The reconstruction loss (`loss`'s "rec": the mean over `frames`, default all but the rest
@@ -306,7 +310,7 @@ class FitProblem:
             ks = range(1, self.T) if frames is None else frames
             out = np.full(len(x), np.inf)
             good = [b for b in range(len(x)) if not bad[b]]
-            if good and len(ks) and (str(self.tdev).startswith("cuda") if BATCH_FRAMES is None else BATCH_FRAMES):
+            if good and len(ks) and self.batch_frames:
                 out[good] = self.frames_rec(x, F, good, ks)[0].cpu().numpy()
                 good = []
             for b in good:
