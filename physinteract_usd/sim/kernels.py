@@ -334,6 +334,44 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.clamp(int(wp.floor(xp[1] - T(0.5))), 0, res[1] - 3),
                         wp.clamp(int(wp.floor(xp[2] - T(0.5))), 0, res[2] - 3))
 
+    @wp.func
+    def out_of_box(base: wp.vec3i, box: wp.array(dtype=wp.vec3i)):
+        # whether a stencil (nodes base .. base + 2) leaves the grid box [box[0], box[0] + box[1])
+        b0 = box[0]
+        b1 = b0 + box[1]
+        return (base[0] < b0[0] or base[1] < b0[1] or base[2] < b0[2]
+                or base[0] + 3 > b1[0] or base[1] + 3 > b1[1] or base[2] + 3 > b1[2])
+
+    @wp.func
+    def box_span(tid: int, nthr: int, contig: int, box: wp.array(dtype=wp.vec3i), res: wp.vec3i):
+        # the nodes q (row-major over the box's extent, decoded by box_node) that thread tid of nthr
+        # visits, as (start, stop, step). contig != 0 (the CPU): one thread per (i, j) row of the whole
+        # grid (nthr = res[0] res[1]), visiting that row's nodes in the box in order, so nodes are
+        # visited (and Warp's generated adjoints accumulate) in the same order whatever the box: the
+        # box is bitwise the whole grid. contig == 0 (a GPU): a grid-stride loop over the box (coalesced;
+        # atomics add in no fixed order there anyway). Either way any nthr covers the box: a graph
+        # captured with one box stays valid when the (device-side) box changes.
+        b0 = box[0]
+        e = box[1]
+        if contig != 0:
+            i = tid / res[1] - b0[0]
+            j = tid % res[1] - b0[1]
+            if i >= 0 and i < e[0] and j >= 0 and j < e[1]:
+                start = (i * e[1] + j) * e[2]
+                return start, start + e[2], 1
+            return 0, 0, 1
+        return tid, e[0] * e[1] * e[2], nthr
+
+    @wp.func
+    def box_node(q: int, box: wp.array(dtype=wp.vec3i), res: wp.vec3i):
+        # node q of the box (row-major over its extent) -> (i, j, k) and its flat index in the grid
+        b0 = box[0]
+        e = box[1]
+        i = b0[0] + q / (e[1] * e[2])
+        j = b0[1] + (q / e[2]) % e[1]
+        k = b0[2] + q % e[2]
+        return i, j, k, (i * res[1] + j) * res[2] + k
+
     # ------------------------------------------------------------------ contact helpers
     @wp.func
     def soft_weight(phi: T, band: T):
@@ -459,14 +497,16 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def p2g_scatter(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                     mass: wp.array(dtype=T),
                     pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-                    frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
+                    frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i),
                     gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
         p = wp.tid()
         m = mass[p]
         dx = T(1.0) / inv_dx
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
+        if out_of_box(base, box):
+            wp.atomic_add(box_flag, 0, 1)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         Ap = A[p]
@@ -488,9 +528,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                   eff: wp.array(dtype=T), flags: int, material: int, dt: T,
                   x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), mass: wp.array(dtype=T),
                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
+                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i),
                   A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3)):
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
         # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
         # reads it). The scatter's loop is p2g_scatter's, written out again: as a wp.func taking the
         # grid arrays it ran ~1.8x slower on the CPU backend. The two must stay the same arithmetic
@@ -502,6 +542,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         dx = T(1.0) / inv_dx
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
+        if out_of_box(base, box):
+            wp.atomic_add(box_flag, 0, 1)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
@@ -642,21 +684,19 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     pin_gain: T, pin_floor: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
-                    frame: int, alpha: T, fps: T, res: wp.vec3i, chunk: int, m_eps: T, blend_r: T,
+                    frame: int, alpha: T, fps: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i), nthr: int,
+                    contig: int, m_eps: T, blend_r: T,
                     gv: wp.array(dtype=vec3)):
-        # flat launch over the grid, ``chunk`` nodes per thread (the CPU pays per thread; chunk = 1
-        # on CUDA); a node's index is decoded only where there is mass. Iterations are independent.
-        n = gm.shape[0]
-        t0 = wp.tid() * chunk
-        for t in range(t0, wp.min(t0 + chunk, n)):
+        # flat launch of nthr threads over the nodes of the grid box (`box_span`; the whole grid when
+        # the box is): nodes outside the box are neither read nor written. Iterations are independent.
+        start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
+        for q in range(start, stop, step):
+            i, j, k, t = box_node(q, box, res)
             m = gm[t]
             vel = vec3()
             # nodes that only graze a particle's stencil edge (mass far below a particle's) are
             # left empty: their velocity mv / m has an adjoint ~1/m that overflows to inf * 0 = NaN
             if m > m_eps:
-                i = t / (res[1] * res[2])
-                j = (t / res[2]) % res[1]
-                k = t % res[2]
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                 vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
                                     pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
@@ -806,22 +846,23 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         gpmv[t] = vec3()
 
     @wp.kernel(module=module, enable_backward=False)
-    def zero_grid(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
-                  gpmv: wp.array(dtype=vec3)):
-        # the grid's scatter targets (flat views), ``chunk`` nodes per thread
-        n = gm.shape[0]
-        t0 = wp.tid() * chunk
-        for t in range(t0, wp.min(t0 + chunk, n)):
+    def zero_grid(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
+                  gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3)):
+        # the grid's scatter targets (flat views) over the grid box, nthr threads (`box_span`)
+        start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
+        for q in range(start, stop, step):
+            i, j, k, t = box_node(q, box, res)
             clear_scatter_node(t, gm, gmv, gpm, gpmv)
 
     @wp.kernel(module=module, enable_backward=False)
-    def zero_grid_adj(chunk: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
+    def zero_grid_adj(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
+                      gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
                       gpmv: wp.array(dtype=vec3), a_gm: wp.array(dtype=T), a_gmv: wp.array(dtype=vec3),
                       a_gpm: wp.array(dtype=T), a_gpmv: wp.array(dtype=vec3), a_gv: wp.array(dtype=vec3)):
-        # the scatter targets and the five grid adjoints of a backward substep
-        n = gm.shape[0]
-        t0 = wp.tid() * chunk
-        for t in range(t0, wp.min(t0 + chunk, n)):
+        # the scatter targets and the five grid adjoints of a backward substep, over the grid box
+        start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
+        for q in range(start, stop, step):
+            i, j, k, t = box_node(q, box, res)
             clear_scatter_node(t, gm, gmv, gpm, gpmv)
             a_gm[t] = T(0.0)
             a_gmv[t] = vec3()

@@ -49,6 +49,10 @@ STORE_STATES_BYTES = 1 << 30   # a rollout keeps every substep's state for its b
 # capture and replay a probe's forward against 1.0 s eager; on CUDA the capture's launches cost what
 # eager ones do, plus the instantiation and the replay after them).
 EAGER_FORWARDS = 1
+# the grid box (`MPMSolver.grid_box`): the nodes the particles' stencils reached in this rollout's
+# forwards so far (the rest shape and the contacts' reach before the first) plus this many cells on
+# each side. A pass whose particles leave the box (every p2g checks) is redone on the whole grid.
+BOX_MARGIN = 4
 
 
 def _torch_device(model) -> torch.device:
@@ -124,6 +128,57 @@ class Rollout:
         self._eager_forwards_left = EAGER_FORWARDS     # forwards without gradients before capturing
         self._replay_graphs: dict[int, object] = {}
         self._adj_graphs: dict[int, object] = {}
+        self.box_redos = 0             # passes redone on the whole grid because particles left the box
+        self._reach = None             # (lo, hi) grid nodes the stencils reached in the forwards so far
+        if self.solver.grid_box:
+            self._initial_box()
+
+    # ------------------------------------------------------------------ the grid box
+    def _node_span(self, lo_x, hi_x):
+        """Grid nodes (lo, hi exclusive) the stencils of particles in [lo_x, hi_x] (m) touch."""
+        g = self.model.grid
+        lo = np.floor((np.asarray(lo_x) - g.lower) / g.dx - 0.5).astype(int)
+        hi = np.floor((np.asarray(hi_x) - g.lower) / g.dx - 0.5).astype(int) + 3
+        return lo, hi
+
+    def _initial_box(self) -> None:
+        """Before any forward: the rest shape, moved as far as any contact's trajectory moves (from its
+        first frame, per axis and sign), plus BOX_MARGIN cells. Only a guess: the forwards check it."""
+        x0 = np.asarray(self.model.x0, dtype=np.float64)
+        lo_x, hi_x = x0.min(0), x0.max(0)
+        for c in self.control.contacts:
+            t = getattr(c, "trajectory", None)
+            if t is None:
+                continue
+            t = t.detach().double().cpu().numpy() if torch.is_tensor(t) else np.asarray(t, dtype=np.float64)
+            d = t - t[:1]
+            lo_x, hi_x = lo_x + np.minimum(d.min(0), 0.0), hi_x + np.maximum(d.max(0), 0.0)
+        lo, hi = self._node_span(lo_x, hi_x)
+        self.solver.set_box(lo - BOX_MARGIN, hi + BOX_MARGIN)
+
+    def _update_box(self) -> None:
+        """After a forward that stayed finite: the box of every forward's reach so far + BOX_MARGIN."""
+        x = self.ck.t["x"].reshape(-1, 3)
+        ext = torch.stack([x.amin(0), x.amax(0)]).double().cpu().numpy()     # one host sync
+        if not np.all(np.isfinite(ext)):
+            return
+        lo, hi = self._node_span(ext[0], ext[1])
+        if self._reach is not None:
+            lo, hi = np.minimum(lo, self._reach[0]), np.maximum(hi, self._reach[1])
+        self._reach = (lo, hi)
+        self.solver.set_box(lo - BOX_MARGIN, hi + BOX_MARGIN)
+
+    def _left_box(self) -> bool:
+        """Whether the pass just run had particles whose stencil left the grid box (one host sync);
+        if so the box becomes the whole grid, cleared, for the pass to be redone."""
+        sol = self.solver
+        if not sol.grid_box or int(sol.box_flag.numpy()[0]) == 0:
+            return False
+        self.box_redos += 1
+        sol.set_box(None)
+        sol.clear_all()
+        sol.box_flag.zero_()
+        return True
 
     # ------------------------------------------------------------------ one frame, forward / backward
     def _forward_frame(self, k: int) -> None:
@@ -131,6 +186,7 @@ class Rollout:
         a, b = self._pp
         if k == 0:
             self.status.zero_()
+            sol.box_flag.zero_()
             a.set_rest(self.model, self.v0)
             self.ck.frame(0).assign(a)
         else:
@@ -147,6 +203,7 @@ class Rollout:
         st = self._states[k]
         if k == 0:
             self.status.zero_()
+            sol.box_flag.zero_()
             st[0].set_rest(self.model, self.v0)
             self.ck.frame(0).assign(st[0])
         else:
@@ -248,15 +305,20 @@ class Rollout:
             self._eager_forwards_left -= 1
         else:
             self._ensure_graphs(graphs, fn)
-        for k in range(self.T):
-            stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
-            if eager:
-                fn(k)
-            else:
-                self._frame(graphs, fn, k)
+        for _ in range(2):                     # the second time on the whole grid, if the box was left
+            for k in range(self.T):
+                stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
+                if eager:
+                    fn(k)
+                else:
+                    self._frame(graphs, fn, k)
+            if not self._left_box():
+                break
         if eager:
             self._warm.add(id(graphs))         # its modules are loaded: the capture needs no warm-up frame
         self.solver.raise_on_status(self.status)
+        if self.solver.grid_box:
+            self._update_box()
         return gen
 
     def run_backward(self, generation: int | None = None) -> SimState:
@@ -276,17 +338,24 @@ class Rollout:
                 self._ensure_graphs(self._replay_graphs, self._replay_frame_stored)
         else:
             self._ensure_graphs(self._bwd_graphs, self._backward_frame)
-        self.adj_params.zero_()
-        self.adj_ctrl.zero_()
-        self._adj[0].zero_()
-        for k in reversed(range(self.T)):
-            stopping.check("backward")
-            if not stored:
-                self._frame(self._bwd_graphs, self._backward_frame, k)
-                continue
-            if not fresh:
-                self._frame(self._replay_graphs, self._replay_frame_stored, k)
-            self._frame(self._adj_graphs, self._adjoint_frame_stored, k)
+        self.solver.box_flag.zero_()
+        for _ in range(2):                     # the second time on the whole grid, if the box was left
+            self.adj_params.zero_()
+            self.adj_ctrl.zero_()
+            self._adj[0].zero_()
+            for k in reversed(range(self.T)):
+                stopping.check("backward")
+                if not stored:
+                    self._frame(self._bwd_graphs, self._backward_frame, k)
+                    continue
+                if not fresh:
+                    self._frame(self._replay_graphs, self._replay_frame_stored, k)
+                self._frame(self._adj_graphs, self._adjoint_frame_stored, k)
+            if not self._left_box():
+                break
+            if stored and fresh:
+                self._ensure_graphs(self._replay_graphs, self._replay_frame_stored)
+            fresh = False      # the adjoints rewrite the stored states from their (wrong) grids: replay them
         if stored:     # a replay (or a graph's warm-up run) may have overwritten the stored states
             self.states_generation += 1 if not fresh else 0
         return self._adj[0]

@@ -40,6 +40,11 @@ FUSED_ZERO: bool | None = None
 # None (default): fused on CUDA devices (launch-bound graphs), separate on the CPU (its graphs replay
 # without launch overhead, and the fused forward measured +4-6% CPU time there); True / False force it
 FUSED_KERNELS: bool | None = None
+# whether new solvers run their grid kernels (clear, grid update, their adjoints) over a box of nodes
+# bounded to the object (`MPMSolver.set_box`; the box a rollout picks is rollout.Rollout's) instead of
+# the whole grid: True / False force it, None (default) on CUDA devices only (where a 100^3 grid's
+# clear and scan are ~30% of a 15k substep); bitwise the same results (tests/test_grid_box.py)
+GRID_BOX: bool | None = None
 
 
 class SimParams:
@@ -126,15 +131,56 @@ class MPMSolver:
         self.vg = wp.zeros(P, dtype=K.vec3, device=d)     # gathered grid velocity
         self.Cg = wp.zeros(P, dtype=K.mat33, device=d)    # gathered velocity gradient
         n_nodes = int(np.prod(self.res))
-        self.chunk = 64 if wp.get_device(d).is_cpu else 1
         self.n_nodes = n_nodes
-        self.n_grid_threads = (n_nodes + self.chunk - 1) // self.chunk
+        # the grid box: nodes box_lo .. box_hi - 1 per axis, device-side (box[0] = lower, box[1] =
+        # extent) so that captured graphs stay valid when it changes; every p2g counts the particles
+        # whose stencil leaves it into box_flag[0] (the caller checks and redoes the pass on the full grid)
+        self.contig = 1 if wp.get_device(d).is_cpu else 0      # CPU: a thread per (i, j) row (kernels.box_span)
+        self.box = wp.array(np.array([[0, 0, 0], list(self.res)], dtype=np.int32), dtype=wp.vec3i, device=d)
+        self.box_flag = wp.zeros(1, dtype=wp.int32, device=d)
+        self.box_lo = (0, 0, 0)
+        self.box_hi = tuple(self.res)
         self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
         self._adj_grid = None
         self._adj_flat = None
         # read when launching: set it before a rollout captures its graphs
         self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
         self.fused_kernels = wp.get_device(d).is_cuda if FUSED_KERNELS is None else bool(FUSED_KERNELS)
+        self.grid_box = wp.get_device(d).is_cuda if GRID_BOX is None else bool(GRID_BOX)
+
+    # ------------------------------------------------------------------ the grid box
+    @property
+    def box_volume(self) -> int:
+        return int(np.prod(np.subtract(self.box_hi, self.box_lo)))
+
+    @property
+    def n_grid_threads(self) -> int:
+        """Threads of a launch over the box (read at launch / capture; any count covers the box)."""
+        return self.res[0] * self.res[1] if self.contig else self.box_volume
+
+    def set_box(self, lo=None, hi=None) -> None:
+        """Run the grid kernels over nodes lo .. hi - 1 per axis (clipped to the grid; None: the whole
+        grid). Not during a graph capture: it writes a device array the captured kernels read."""
+        lo = np.zeros(3, int) if lo is None else np.clip(np.asarray(lo, int), 0, np.asarray(self.res) - 3)
+        hi = np.asarray(self.res) if hi is None else np.clip(np.asarray(hi, int), lo + 3, self.res)
+        if (tuple(int(v) for v in lo), tuple(int(v) for v in hi)) == (self.box_lo, self.box_hi):
+            return
+        self.box_lo, self.box_hi = tuple(int(v) for v in lo), tuple(int(v) for v in hi)
+        self.box.assign(np.array([self.box_lo, np.subtract(self.box_hi, self.box_lo)], dtype=np.int32))
+
+    def full_box(self) -> bool:
+        return self.box_lo == (0, 0, 0) and self.box_hi == self.res
+
+    def clear_all(self) -> None:
+        """Zero the whole grid and its adjoint (after a pass whose particles left the box, which
+        scattered into nodes outside it that the box's clears do not reach)."""
+        for a in self._flat.values():
+            a.zero_()
+        for a in (self._adj_flat or {}).values():
+            a.zero_()
+
+    def _box_args(self):
+        return [self.box, self.n_grid_threads, self.contig, self.res3]
 
     # ------------------------------------------------------------------ argument lists
     def _stress_args(self, s: SimState, p: SimParams):
@@ -143,14 +189,15 @@ class MPMSolver:
 
     def _scatter_args(self, s: SimState, frame: int, c: ControlArrays):
         return [s.x, s.v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
-                self.inv_dx, self.res3]
+                self.inv_dx, self.res3]     # p2g_scatter: + the box (and box_flag among its outputs)
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
         f = self._flat
         return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], p.eff, self.flags, self.gravity, self.dt, self.lo,
                 self.dx, self.band, self.pin_gain, self.pin_floor, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
-                c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.chunk, self.m_eps, self.blend_r]
+                c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.box, self.n_grid_threads, self.contig,
+                self.m_eps, self.blend_r]
 
     def _update_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
         return [s.x, s.F, s.Fv, self.vg, self.Cg, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos,
@@ -177,12 +224,12 @@ class MPMSolver:
             sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
                                        s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
-                                       self.fps, self.lo, self.inv_dx, self.res3],
-                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv], device=d, record_tape=False)
+                                       self.fps, self.lo, self.inv_dx, self.res3, self.box],
+                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
         else:
             wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
-            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c), [self.gm, self.gmv, self.gpm, self.gpmv],
-                      device=d, record_tape=False)
+            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [self.box],
+                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
         wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False)
         if gather:
@@ -190,9 +237,9 @@ class MPMSolver:
                       device=d, record_tape=False)
 
     def _clear_grid(self):
-        if self.fused_zero:
+        if self.fused_zero or self.grid_box:
             f = self._flat
-            wp.launch(self.K.zero_grid, self.n_grid_threads, [self.chunk, f["gm"], f["gmv"], f["gpm"], f["gpmv"]],
+            wp.launch(self.K.zero_grid, self.n_grid_threads, self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"]],
                       device=self.device, record_tape=False)
         else:
             self.gm.zero_()
@@ -244,14 +291,21 @@ class MPMSolver:
         ag = self._alloc_adj()
         af = self._adj_flat
         ap = self._adj_part
-        if self.fused_zero:
+        if self.fused_zero or self.grid_box:
+            # the scatter targets and the grid adjoints in one launch over the box, then the grid
             f = self._flat
             wp.launch(K.zero_grid_adj, self.n_grid_threads,
-                      [self.chunk, f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"], af["gpmv"],
-                       af["gv"]], device=d, record_tape=False)
+                      self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"],
+                                          af["gpmv"], af["gv"]], device=d, record_tape=False)
             self.grid(s_in, frame, substep, p, c, clear=False)
-            wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
-                                               adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
+            if self.fused_zero:
+                wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
+                                                   adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
+            else:
+                if clear_adj_in:
+                    adj_in.zero_()
+                for a in ap.values():
+                    a.zero_()
         else:
             if clear_adj_in:
                 adj_in.zero_()
@@ -270,7 +324,7 @@ class MPMSolver:
                   [adj_in.x, ag["gv"]], device=d, record_tape=False)
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
-                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, 0, 0.0, 0.0]
+                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
         wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
         # scatter (hand-written adjoint) -> adj x, v, A, pins
