@@ -100,3 +100,26 @@ def test_object_leaving_its_box_is_redone_on_the_whole_grid(graphs):
             for a, b in zip(ref[0], got[0]):
                 assert torch.equal(a, b), (store, float((a - b).abs().max()))
             assert ro.box_redos == 2, (store, ro.box_redos)   # the first forward's, then the backward's
+
+
+@pytest.mark.parametrize("graphs", [False, True], ids=["eager", "graphs"])
+def test_frames_past_the_store_budget_replay_bitwise(graphs):
+    """States of the frames that fit the budget are stored, the others replayed from their checkpoints
+    (rollout.py `frames_to_store`): the loss and every gradient bitwise those of all stored and of all
+    replayed (with the box on: the backward's stored and replayed frames run over it alike)."""
+    m, ctrl, pts, eff, trajs = _scene(T=3)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rollout_mod, "BOX_MARGIN", 1)
+        fb = _rollout(m, ctrl, True, graphs, mp)._frame_bytes()
+        res = {}
+        for budget, n_stored in ((1 << 40, 3), (2 * fb, 1), (3 * fb - 1, 1), (fb, 0), (0, 0)):
+            mp.setattr(rollout_mod, "STORE_STATES_BYTES", budget)
+            ro = _rollout(m, ctrl, True, graphs, mp)
+            assert ro.frames_to_store() == n_stored, (budget, fb)
+            res[budget] = _loss_and_grads(ro, pts, eff, trajs)
+            assert (ro._states is None) == (n_stored == 0)
+            assert n_stored == 0 or len(ro._states) == n_stored
+            assert (ro._replay is not None) == (n_stored < 3)
+        ref = res[1 << 40]
+        for budget, got in res.items():
+            _same(ref, got, budget)

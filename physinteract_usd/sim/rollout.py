@@ -42,7 +42,15 @@ from .solver import ControlAdjoint, MPMSolver, SimParams
 from .state import SimState
 
 _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
-STORE_STATES_BYTES = 1 << 30   # a rollout keeps every substep's state for its backward up to this size
+# A rollout keeps substep states for its backward up to this size: every frame's when they fit, else
+# as many frames' as fit (the others are replayed from their checkpoints, into one frame's replay
+# buffer, counted in the budget). None (default): 1 GiB on the CPU; on a GPU STORE_STATES_GPU_FRACTION
+# of its memory, at most what is free less STORE_STATES_GPU_HEADROOM bytes when they are allocated
+# (the paper fit's 21k particles x 45 frames x 421 states are ~53 GB: without this every backward
+# replayed its whole forward, ~20% of an iteration)
+STORE_STATES_BYTES: int | None = None
+STORE_STATES_GPU_FRACTION = 0.5
+STORE_STATES_GPU_HEADROOM = 4 << 30
 # A forward without gradients runs its launches eagerly this many times before its graphs are
 # captured: a rollout at a new rung is often used once (a start-search probe), and capturing T
 # graphs for one replay costs more than launching them (CPU, the sample at grid 12: 3.5 s to
@@ -198,7 +206,10 @@ class Rollout:
         self.ck.frame(k + 1).assign(a)
 
     def _forward_frame_stored(self, k: int) -> None:
-        """`_forward_frame`, keeping every substep's state in `self._states[k]`."""
+        """`_forward_frame`, keeping every substep's state in `self._states[k]` (frames past the
+        stored ones: `_forward_frame`)."""
+        if k >= len(self._states):
+            return self._forward_frame(k)
         sol = self.solver
         st = self._states[k]
         if k == 0:
@@ -223,9 +234,12 @@ class Rollout:
         self._adjoint_frame(self._replay, k)
 
     def _replay_frame_stored(self, k: int) -> None:
-        self._replay_into(self._states[k], k)
+        if k < len(self._states):       # frames past the stored ones replay in `_adjoint_frame_stored`
+            self._replay_into(self._states[k], k)
 
     def _adjoint_frame_stored(self, k: int) -> None:
+        if k >= len(self._states):
+            return self._backward_frame(k)
         self._adjoint_frame(self._states[k], k)
 
     def _adjoint_frame(self, st: list, k: int) -> None:
@@ -268,10 +282,30 @@ class Rollout:
             fn(k)
 
     # ------------------------------------------------------------------ warp-level passes
+    def _frame_bytes(self) -> int:
+        """The bytes of one frame's substep states (S + 1 states of x, v, C, F, Fv)."""
+        return (self.S + 1) * 33 * (4 if self.model.dtype == "float32" else 8) * self.P
+
+    def store_budget(self) -> int:
+        """Bytes the stored substep states may take (STORE_STATES_BYTES; see there)."""
+        if STORE_STATES_BYTES is not None:
+            return int(STORE_STATES_BYTES)
+        dev = wp.get_device(self.model.device)
+        if not dev.is_cuda:
+            return 1 << 30
+        return int(max(0, min(STORE_STATES_GPU_FRACTION * dev.total_memory,
+                              dev.free_memory - STORE_STATES_GPU_HEADROOM)))
+
     def states_fit(self) -> bool:
-        """Whether every substep's state of every frame fits in STORE_STATES_BYTES."""
-        per_state = 33 * (4 if self.model.dtype == "float32" else 8) * self.P     # x, v, C, F, Fv
-        return self.T * (self.S + 1) * per_state <= STORE_STATES_BYTES
+        """Whether every substep's state of every frame fits in the budget (`store_budget`)."""
+        return self.T * self._frame_bytes() <= self.store_budget()
+
+    def frames_to_store(self) -> int:
+        """How many frames' substep states a forward for a backward keeps: all when they fit, else as
+        many as fit beside the replay buffer of the others (frames 0 .. n - 1; the rest replay)."""
+        if self.states_fit():
+            return self.T
+        return int(max(0, min(self.T - 1, self.store_budget() // self._frame_bytes() - 1)))
 
     def drop_states(self) -> None:
         """Free the stored substep states (and the graphs that use them); a later forward for a
@@ -290,11 +324,13 @@ class Rollout:
         substep's state for `run_backward` (when they fit); returns the stored states' generation
         (None: not stored)."""
         gen = None
-        if store and (self._states is not None or self.states_fit()):
-            if self._states is None:
+        if store and self._states is None:
+            n = self.frames_to_store()
+            if n > 0:
                 m = self.model
                 self._states = [[SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
-                                for _ in range(self.T)]
+                                for _ in range(n)]
+        if store and self._states is not None:
             self.states_generation += 1
             gen = self.states_generation
             graphs, fn = self._fwd_store_graphs, self._forward_frame_stored
@@ -327,7 +363,7 @@ class Rollout:
         `generation`: what `run_forward(store=True)` returned; the stored states are used as they
         are while no later forward stored over them (else they are replayed from self.ck)."""
         m = self.model
-        if self._replay is None and self._states is None:
+        if self._replay is None and (self._states is None or len(self._states) < self.T):
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
         self.solver._alloc_adj()
         stored = self._states is not None
