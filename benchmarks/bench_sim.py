@@ -11,6 +11,9 @@ The scene: a block of P particles (2 per cell per axis) in the middle of an n^3 
 corotated, float32, gravity, damping, a grasp pulling one end and a clamp on the other (so the
 pin and effect code paths run), T frames of S substeps.
 
+`--box both` adds the same before / after table for the grid bounded to the object
+(`sim.solver.GRID_BOX` False: the grid kernels over the whole grid; True: over the box of nodes the
+block's stencils reach + `rollout.BOX_MARGIN` cells; the box's size is printed).
 `--kernels both` adds the same before / after table for the fused transfer kernels
 (`sim.solver.FUSED_KERNELS` False: p2g_stress, p2g_scatter, g2p_gather, g2p_update; True: p2g_fused,
 g2p_fused). `--zeroing both` adds, after the main table (the default path: fused zeroing kernels on CUDA,
@@ -136,6 +139,11 @@ def compare_zeroing(P, n, T, S, device, reps, switch="FUSED_ZERO"):
         x, F = ro(E)
         (x[-1].sum() + F[-1].sum()).backward()
     sync(device)
+    if switch == "GRID_BOX":
+        s = ros[True].solver
+        print(f"  grid box ({m.n_particles} particles, {n}^3): nodes {s.box_lo} .. {s.box_hi} = {s.box_volume:,} "
+              f"of {s.n_nodes:,} ({s.box_volume / s.n_nodes:.1%}); passes redone on the whole grid: "
+              f"{ros[True].box_redos}", flush=True)
 
     def fwd(ro):
         with torch.no_grad():
@@ -221,6 +229,9 @@ def main(argv=None):
     ap.add_argument("--stat", choices=("min", "median"), default="min", help="statistic over the runs")
     ap.add_argument("--zeroing", choices=("fused", "both"), default="fused",
                     help="both: also a before / after table, memsets vs fused zeroing kernels")
+    ap.add_argument("--box", choices=("default", "both"), default="default",
+                    help="both: also a before / after table, the grid kernels over the whole grid vs over "
+                         "the object's box (sim.solver.GRID_BOX)")
     ap.add_argument("--kernels", choices=("fused", "both"), default="fused",
                     help="both: also a before / after table, separate vs fused transfer kernels "
                          "(sim.solver.FUSED_KERNELS: p2g_fused, g2p_fused)")
@@ -263,6 +274,16 @@ def main(argv=None):
         print(f"\nzeroing: memsets (FUSED_ZERO=False) vs fused kernels, alternating rounds, "
               f"{'best' if STAT == 'min' else 'median'} of {args.reps}; backward = fwd+bwd - forward\n")
         print(zeroing_table(zrows))
+    if args.box == "both":
+        brows = []
+        for s in sizes:
+            P, n = (int(v) for v in s.split(":"))
+            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, "GRID_BOX")
+            brows.append((Pm, n, r))
+        print(f"\ngrid box: the grid kernels over the whole grid (GRID_BOX=False) vs over the object's box "
+              f"(True), alternating rounds, {'best' if STAT == 'min' else 'median'} of {args.reps}; "
+              "backward = fwd+bwd - forward\n")
+        print(zeroing_table(brows, ("whole grid", "box")))
     if args.kernels == "both":
         krows = []
         for s in sizes:

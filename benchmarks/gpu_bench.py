@@ -8,7 +8,8 @@ the rest with it), all within `--deadline` seconds of wall time:
 1. the baselines: mpm_probe.py (naive MLS-MPM, wp.Tape, CUDA graphs) at 2k / 32^3 and 15k / 100^3,
    gsplat_probe.py (gsplat forward+backward) at 15k Gaussians, 512^2;
 2. our simulator (bench_sim.py, medians of 5) at the same sizes, forward and forward+backward per
-   substep, and (`--kernels both`, in its log) the fused transfer kernels against the separate ones;
+   substep, and (`--kernels both`, `--box both`, in its log) the fused transfer kernels against the
+   separate ones, the grid kernels over the object's box against the whole grid;
 3. our renderer (bench_render.py, medians) forward+backward per frame at 15k, 512^2 and 2k, 256^2,
    one image per call and 13 per call (`render_batch`, as a fit renders its frames on CUDA);
 4. a small fit: the bundled sample (samples/foam_bar: 14 frames, grid 24, the demo's settings),
@@ -193,7 +194,7 @@ def main(argv=None):
     if "sim" not in skip:
         run("bench_sim", [py, "benchmarks/bench_sim.py", "--device", "cuda", "--sizes", "2000:32", "15000:100",
                           "--frames", "2", "--substeps", "50", "--reps", "5", "--stat", "median", "--probe", "",
-                          "--kernels", "both"],
+                          "--kernels", "both", "--box", "both"],
             out, 240, dl)
         for P in ("2,0", "15,0"):
             m = re.search(rf"\| ({P}\d\d) \| (\d+)\^3 \| ([\d,]+) \| ([\d,]+) \|", (out / "bench_sim.log").read_text()

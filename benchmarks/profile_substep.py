@@ -8,6 +8,14 @@ the whole substep timed eagerly (every launch from Python) and as the captured g
     python benchmarks/profile_substep.py --device cuda --sizes 2000:32 15000:100
     python benchmarks/profile_substep.py --device cpu --sizes 500:16
 
+The per-kernel backward is profiled twice: as the fit runs it (the forward stored every substep's
+state: the adjoints alone, each recomputing its substep's grid) and replaying (the frame's substeps
+replayed from its checkpoint first: what a rollout whose states exceed `rollout.STORE_STATES_BYTES`
+does; until session 11 the only backward this script profiled, hence its ~2 p2g per substep).
+
+`--box both` profiles the grid kernels over the whole grid (`sim.solver.GRID_BOX = False`) and over
+the object's box (True) in the same process, with a before / after table; `--box on|off` one.
+
 `--zeroing both` (the default) profiles the memset path (`sim.solver.FUSED_ZERO = False`: each
 grid / adjoint buffer cleared by its own memset) and the fused path (one clearing kernel over the
 grid nodes, one over the particles) in the same process, and ends each size with a before / after
@@ -77,13 +85,14 @@ class _HostLaunchTimer:
         return False
 
 
-def profile(P, n, S, device, reps, fused: bool = True):
-    old = solver_mod.FUSED_ZERO
+def profile(P, n, S, device, reps, fused: bool = True, box: bool | None = None):
+    old = solver_mod.FUSED_ZERO, solver_mod.GRID_BOX
     solver_mod.FUSED_ZERO = fused          # read by every solver built below
+    solver_mod.GRID_BOX = box
     try:
         return _profile(P, n, S, device, reps)
     finally:
-        solver_mod.FUSED_ZERO = old
+        solver_mod.FUSED_ZERO, solver_mod.GRID_BOX = old
 
 
 def _profile(P, n, S, device, reps):
@@ -123,7 +132,10 @@ def _profile(P, n, S, device, reps):
     (x[-1].sum() + F[-1].sum()).backward()
     ro.grad_x.zero_()
     per = {}
-    for phase, fn in (("forward", ro.run_forward), ("backward", ro.run_backward)):
+    gen = ro.run_forward(store=True)        # the fit's backward: stored states, no replay
+    per_box = (ro.solver.box_volume, ro.solver.n_nodes, ro.box_redos)
+    for phase, fn in (("forward", ro.run_forward), ("backward", lambda: ro.run_backward(gen)),
+                      ("backward, replaying", ro.run_backward)):
         if device == "cpu":
             with _HostLaunchTimer() as tm:
                 for _ in range(reps):
@@ -142,7 +154,7 @@ def _profile(P, n, S, device, reps):
                 acc[r.name] += r.elapsed
                 cnt[r.name] += 1
             per[phase] = {k: (acc[k] / reps / S, cnt[k] / reps / S) for k in acc}
-    return m.n_particles, rows, per, grads
+    return m.n_particles, rows, per, grads, per_box
 
 
 def _short(name: str) -> str:
@@ -159,11 +171,11 @@ def _clears(per) -> tuple[float, float]:
     return mem, ker
 
 
-def compare_table(Pn, n, old, new) -> str:
+def compare_table(Pn, n, old, new, names=("memsets", "fused")) -> str:
     """Before (memsets) / after (fused zeroing) in one table: graph and eager times per substep,
     the backward alone (forward+backward minus forward), and the clears per substep."""
     lines = [f"### before / after: {Pn} particles, {n}^3 grid (us per substep)\n",
-             "| path | memsets | fused | change |", "|---|---:|---:|---:|"]
+             f"| path | {names[0]} | {names[1]} | change |", "|---|---:|---:|---:|"]
     for graphs, label in ((True, "graph"), (False, "eager")):
         (fo, fbo), (fn_, fbn) = old[0][graphs], new[0][graphs]
         for name, a, b in (("forward", fo, fn_), ("forward+backward", fbo, fbn), ("backward", fbo - fo, fbn - fn_)):
@@ -194,37 +206,50 @@ def main(argv=None):
     ap.add_argument("--sizes", nargs="*", default=["500:16"], help="P:n pairs (particles : grid cells per axis)")
     ap.add_argument("--substeps", type=int, default=25)
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--box", choices=("default", "on", "off", "both"), default="default",
+                    help="the grid kernels over the object's box (on), the whole grid (off), both (before / "
+                         "after in one run) or the device's default (sim.solver.GRID_BOX = None)")
     ap.add_argument("--zeroing", choices=("both", "fused", "memset"), default="both",
                     help="which way the substep clears its buffers (both: before / after in one run)")
     args = ap.parse_args(argv)
     device = "cuda:0" if args.device == "cuda" else args.device
     wp.init()
     print(f"device: {device_name(device)}; Warp {wp.__version__}; medians of {args.reps}; float32\n")
-    modes = {"both": (False, True), "fused": (True,), "memset": (False,)}[args.zeroing]
+    zmodes = {"both": (False, True), "fused": (True,), "memset": (False,)}[args.zeroing]
+    bmodes = {"default": (None,), "on": (True,), "off": (False,), "both": (False, True)}[args.box]
     for spec in args.sizes:
         P, n = (int(v) for v in spec.split(":"))
         res = {}
-        for fused in modes:
-            Pn, rows, per, grads = profile(P, n, args.substeps, device, args.reps, fused=fused)
-            res[fused] = (rows, per, grads)
-            zeroing = "fused zeroing kernels" if fused else "memsets"
-            print(f"### {Pn} particles, {n}^3 grid, {args.substeps} substeps; zeroing: {zeroing}\n")
-            print("| path | forward us/substep | forward+backward us/substep |")
-            print("|---|---:|---:|")
-            for graphs, label in ((True, "captured graph (the fit's path)"), (False, "eager launches")):
-                f, fb = rows[graphs]
-                print(f"| {label} | {f * 1e6:.1f} | {fb * 1e6:.1f} |")
-            print()
-            for phase in ("forward", "backward"):
-                tot = sum(v[0] for v in per[phase].values())
-                print(f"| {phase} pass: kernel / memset | calls per substep | us per substep | share |")
-                print("|---|---:|---:|---:|")
-                for k, (ms, c) in sorted(per[phase].items(), key=lambda kv: -kv[1][0]):
-                    print(f"| {_short(k)} | {c:.2f} | {ms * 1e3:.2f} | {ms / tot:.0%} |")
-                print(f"| **sum of {phase} kernel times** | | **{tot * 1e3:.1f}** | |\n")
-        if len(res) == 2:
-            print(compare_table(Pn, n, res[False], res[True]))
-            print(grad_check(res[False][2], res[True][2]) + "\n", flush=True)
+        for fused in zmodes:
+            for box in bmodes:
+                Pn, rows, per, grads, pbox = profile(P, n, args.substeps, device, args.reps, fused=fused, box=box)
+                res[(fused, box)] = (rows, per, grads)
+                zeroing = "fused zeroing kernels" if fused else "memsets"
+                boxs = {None: "the device's default", True: "on", False: "off (whole grid)"}[box]
+                print(f"### {Pn} particles, {n}^3 grid, {args.substeps} substeps; zeroing: {zeroing}; grid box: "
+                      f"{boxs} ({pbox[0]:,} of {pbox[1]:,} nodes, {pbox[0] / pbox[1]:.1%}; passes redone: {pbox[2]})\n")
+                print("| path | forward us/substep | forward+backward us/substep |")
+                print("|---|---:|---:|")
+                for graphs, label in ((True, "captured graph (the fit's path)"), (False, "eager launches")):
+                    f, fb = rows[graphs]
+                    print(f"| {label} | {f * 1e6:.1f} | {fb * 1e6:.1f} |")
+                print()
+                for phase in ("forward", "backward", "backward, replaying"):
+                    tot = sum(v[0] for v in per[phase].values())
+                    print(f"| {phase} pass: kernel / memset | calls per substep | us per substep | share |")
+                    print("|---|---:|---:|---:|")
+                    for k, (ms, c) in sorted(per[phase].items(), key=lambda kv: -kv[1][0]):
+                        print(f"| {_short(k)} | {c:.2f} | {ms * 1e3:.2f} | {ms / tot:.0%} |")
+                    print(f"| **sum of {phase} kernel times** | | **{tot * 1e3:.1f}** | |\n")
+        for box in bmodes:
+            if len(zmodes) == 2:
+                print(compare_table(Pn, n, res[(False, box)], res[(True, box)]))
+                print(grad_check(res[(False, box)][2], res[(True, box)][2]) + "\n", flush=True)
+        if len(bmodes) == 2:
+            z = zmodes[-1]
+            print(compare_table(Pn, n, res[(z, False)], res[(z, True)], ("whole grid", "box")))
+            print(grad_check(res[(z, False)][2], res[(z, True)][2]).replace("memsets vs fused", "whole grid vs box")
+                  + "\n", flush=True)
 
 
 if __name__ == "__main__":

@@ -81,6 +81,10 @@ class Checkpoints:
     def frame(self, k: int) -> SimState:
         return SimState(*(self.w[f][k] for f in SimState.FIELDS))
 
+    def states(self) -> list[SimState]:
+        """Every row as a SimState (views of the arrays)."""
+        return [self.frame(k) for k in range(self.w["x"].shape[0])]
+
 
 class Rollout:
     """A differentiable rollout of ``control.n_frames`` frames of ``model`` under ``control``.
@@ -327,9 +331,9 @@ class Rollout:
         if store and self._states is None:
             n = self.frames_to_store()
             if n > 0:
-                m = self.model
-                self._states = [[SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
-                                for _ in range(n)]
+                # one (S + 1, P) array per field and frame, each state a row of them (a paper fit's
+                # ~19k states x 5 fields would otherwise be ~95k allocations)
+                self._states = [Checkpoints(self.model, self.S).states() for _ in range(n)]
         if store and self._states is not None:
             self.states_generation += 1
             gen = self.states_generation
