@@ -194,11 +194,18 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
 def collider_left(gt_dir: Path, g: dict) -> int | None:
     """The frame after a collider's last touch of the object in the ground truth (its surface
     within one truth grid cell of a particle, the reach of a grid collider) from its arrival to
-    the end of its motion, at least the grasp frame; None without the truth's particles. A sphere's distance from its centre
+    the end of its motion, at least the grasp frame; None without the truth's particles (or, without them, the value kept in
+    release_true_first.json). A sphere's distance from its centre
     (gt.json's trajectory; a finger's or a stick's capsule by its tip sphere), a plane's height."""
     it = g["interaction"]
     f = gt_dir / "particles.npz"
     if not f.exists():
+        # captures kept without the truth's particles (to save space) carry this value, computed
+        # where the particles were (data/world_dev7: on the GPU host); null where it failed there
+        kept = gt_dir / "release_true_first.json"
+        if kept.exists():
+            v = json.loads(kept.read_text()).get("release_true_first")
+            return None if v is None else int(v)
         return None
     x = np.load(f)["positions"]
     tr = np.asarray(it["trajectory"], float)
