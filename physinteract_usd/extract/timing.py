@@ -51,11 +51,18 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     run = contact_run(coupled, near, vh, vo, an.eps)
     g = not_after_the_motion(g, coupled, vo, run)
     g = past_the_approach(g, coupled, speed, run, an.eps)
+    g_hand = g
+    g = following_onset(g, coupled, vo, an.eps)
     share = 0.0
     if run is not None:
         coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
         share = contact_share(coupled, vh, vo, run, an.eps)
     r = release(coupled, near, g, speed, vh=vh, vo=vo, share=share, eps=an.eps)
+    evidence["timing_cues"] = {
+        "grasp": "the object starts to follow the toucher" if g != g_hand or (g < len(coupled) and coupled[g] > 0)
+                 else "the toucher's onset from rest (the object's motion does not show it)",
+        "release": "held to the end" if r is None else ("the toucher leaves the object" if r < len(near) and not near[r]
+                                                        else "the toucher moves off and the object does not follow")}
     evidence.update({"contact_period": [p0, p1], "coupling": coupled.tolist(),
                      "hand_velocity_px": np.round(vh, 3).tolist(),
                      "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
@@ -197,6 +204,12 @@ def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -
                 reasons.append(f"release uncertain: the object next to the contact barely moves around frame {r} (at "
                                f"most {float(np.max(so[around])):.2f} px a frame): the release is read from the hand "
                                "moving away alone; --release-frame sets it")
+        own = moved_alone(timing, eps)
+        if own is not None:
+            a, b, peak = own
+            reasons.append(f"release uncertain: the object next to the contact moves on its own (up to {peak:.1f} px "
+                           f"a frame) while the hand rests on it in frames {a}..{b + 1}, before the hand moves off "
+                           f"at frame {r}: it may have let go at frame {a}; --release-frame sets it")
     hidden = [k for k in range(g, end) if not np.isfinite(sh[k])]
     if len(hidden) >= max(2, 0.3 * max(end - g, 1)):
         reasons.append(f"the hand is hidden near the contact in {len(hidden)} of frames {g}..{end}: its motion "
@@ -207,6 +220,29 @@ def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -
     evidence["timing_uncertain"] = reasons
     notes.extend(reasons)
     return level
+
+
+def moved_alone(timing: Timing, eps: float):
+    """Where the two cues of the release disagree: the pairs between the grasp and the release in
+    which the object next to the contact moves clearly (>= 2 `eps`) and not with the toucher
+    (decoupled) while the toucher rests on it (slower than 2 `eps`: `moves_off` says no). The
+    release is put where the toucher moves off; an object that moved away from a resting hand may
+    have been let go there. (first pair, last pair, the fastest such motion in px a frame) of the
+    first run of them, or None."""
+    g, r = timing.grasp, timing.release
+    if r is None:
+        return None
+    so = np.linalg.norm(timing.object_velocity, axis=1)
+    ks = [k for k in range(g + 1, min(r, len(so))) if timing.near[k] and timing.coupled[k] < 0
+          and np.isfinite(so[k]) and so[k] >= 2 * eps and not moves_off(k, timing.hand_velocity, eps)]
+    if not ks:
+        return None
+    run = [ks[0]]
+    for k in ks[1:]:
+        if k != run[-1] + 1:
+            break
+        run.append(k)
+    return run[0], run[-1], float(max(so[k] for k in run))
 
 
 def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
@@ -510,6 +546,26 @@ def rest_onset(speed: np.ndarray, vh: np.ndarray, p0: int, p1: int, coupled: np.
     return None
 
 
+def following_onset(g: int, coupled: np.ndarray, vo: np.ndarray, eps: float, reach: int = 2) -> int:
+    """The grasp from the object's own motion: the first frame pair k within `reach` pairs from
+    the toucher's rest onset g from which the object next to the contact follows the toucher
+    (`coupling` +1) and moves (>= `eps`) in two pairs running; the grasp is frame k, the last one
+    before the object moves. The toucher's onset (read against its own noise floor) comes first
+    and the object's visible motion up to two pairs later: a pull starting smoothly from rest moves
+    the object next to the contact by less than `eps` in its first pair or two, and the object
+    takes up the toucher's motion only once it has hold (on the fresh dev captures the toucher's
+    onset alone put the grasp a frame early on 5 of 12 captures, 2 on one). Past `reach` the two
+    onsets are not the same event (the object was already moving, or moves by itself): g stands.
+    Where the object next to the contact does not visibly follow (a stiff object, the contact
+    hidden), the toucher's onset stands."""
+    so = np.linalg.norm(vo, axis=1)
+    T1 = len(coupled)
+    for k in range(g, min(T1 - 1, g + reach + 1)):
+        if coupled[k] > 0 and coupled[k + 1] > 0 and so[k] >= eps and so[k + 1] >= eps:
+            return k
+    return g
+
+
 def not_after_the_motion(g: int, coupled: np.ndarray, vo: np.ndarray, run) -> int:
     """A grasp comes before the object moves with the toucher: where the object next to the contact
     has already made most of its following motion over the contact run (`contact_run`) before the
@@ -592,7 +648,11 @@ def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | N
             r_c = k
             break
         if motion:
-            if coupled[k] < 0 and parted(k, near, vh, vo, share, eps, window, coupled):
+            if PARTING == "toucher":
+                if coupled[k] < 0 and moves_off(k, vh, eps, vo) and parted(k, near, vh, vo, share, eps, window, coupled):
+                    r_c = k
+                    break
+            elif coupled[k] < 0 and parted(k, near, vh, vo, share, eps, window, coupled):
                 r_c = k
                 break
             continue
@@ -606,6 +666,10 @@ def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | N
             break
     if r_c is None or speed is None:
         return r_c
+    if motion and r_c - 1 > g and np.isfinite(speed[r_c - 1]) and speed[r_c - 1] < eps:
+        # the toucher rested in the pair before (below eps): its moving off starts at r_c, not a
+        # pair late; walking back would put the release into the hold
+        return r_c
     ks = []
     for k in range(r_c - 1, max(g, r_c - 3), -1):
         if not np.isfinite(speed[k]) or coupled[k] == 0:
@@ -618,6 +682,36 @@ def release(coupled: np.ndarray, near: np.ndarray, g: int, speed: np.ndarray | N
         return r_c
     k_min = min(k for k in ks if speed[k] <= best + 0.1)
     return k_min + 1
+
+
+PARTING = "toucher"
+
+
+def moves_off(k: int, vh: np.ndarray, eps: float, vo: np.ndarray | None = None) -> bool:
+    """Whether frame pair k can show the toucher parting from the object: the toucher is seen
+    moving at >= 2 `eps` (twice the level below which nothing is "moving") in a new motion, not
+    carrying on the one before. While it is still (or hidden) the video says nothing about the
+    hold: a held elastic object swings, settles or springs about a still hand (dev_0104: a glove
+    holding a ball still for 4 frames while the ball rolled on at 1.5-2.8 px a frame, released 4
+    frames early). While it carries on its motion (the pair before moved at >= 2 `eps`, this one
+    within 60 deg of it and no faster than it by more than `eps`, the noise: a pull slowing to its
+    end) the object next to the contact falling behind is the held material stretching or
+    swinging back, not a letting go (dev_0136: a hanging ball's side stopped while the glove
+    finished its pull over 3 frames). Letting go is a new motion of the toucher: it starts from
+    rest, speeds up or turns away, and the object does not follow it. Or, with the object's
+    velocity `vo`, the object next to the contact outruns the toucher along its motion (by more
+    than `eps`): nothing held or pushed can, so it has left it (a block knocked away)."""
+    if not np.isfinite(vh[k]).all():
+        return False
+    s = float(np.linalg.norm(vh[k]))
+    if s < 2 * eps:
+        return False
+    if k >= 1 and np.isfinite(vh[k - 1]).all():
+        p = vh[k - 1]
+        sp = float(np.linalg.norm(p))
+        if sp >= 2 * eps and float(np.dot(p, vh[k])) >= 0.5 * sp * s and s <= sp + eps:
+            return bool(vo is not None and np.isfinite(vo[k]).all() and float(vo[k] @ vh[k]) / s > s + eps)
+    return True
 
 
 def contact_seen(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, g: int) -> int | None:
