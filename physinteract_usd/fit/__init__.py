@@ -4,13 +4,15 @@ through the differentiable simulator and renderer. No USD here.
 `fit(problem, settings)` runs the schedule `settings.schedule` names: "ladder" (model selection,
 uniform E then regions split by score tests; `ladder.py`), "bumps" (a coarse-to-fine field of
 Gaussian bumps; `optimize.py`) or "select" (a dense uniform sweep, then uniform vs the bumps field
-by held-back frames; `select.py`)."""
+by held-back frames; `select.py`). Two options of any schedule (#24): `uniform_guard` (bumps: the
+field only where its held-back loss clearly beats the uniform model's) and `unconstrained_floor` (the
+particles the video does not constrain marked and filled from their neighbours)."""
 
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
 from .problem import FitProblem, LossWeights, Observations
-from .select import fit_select
+from .select import fill_unconstrained, fit_guarded, fit_select
 
 SCHEDULES = {"ladder": fit_ladder, "bumps": fit_bumps, "select": fit_select}
 
@@ -27,7 +29,13 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if tw > 0 and prob.tracks is None:
         raise ValueError("track_weight > 0 needs point tracks in the fit's observations (Observations.tracks)")
     prob.weights.track = tw      # the point tracks' term (fit/tracks_loss.py) counts in every schedule's loss
-    return SCHEDULES[s.schedule](prob, s, **kw)
+    if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
+        r = fit_guarded(prob, s, **kw)
+    else:
+        r = SCHEDULES[s.schedule](prob, s, **kw)
+    if float(s.unconstrained_floor) > 0 and not r.interrupted:   # what the video does not constrain (#24)
+        r = fill_unconstrained(prob, r, s, s.unconstrained_floor, log=kw.get("log"))
+    return r
 
 
 __all__ = ["fit", "fit_ladder", "fit_bumps", "fit_select", "FitSettings", "FitResult", "FitProblem", "Observations",

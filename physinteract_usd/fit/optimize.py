@@ -106,6 +106,12 @@ class FitSettings:
     support_margin: float = 0.01        # ... a layer is taken when it lowers the loss by more than this
     track_weight: float = 0.0           # the video's point tracks against the projected Gaussians as a loss term
                                         # (fit/tracks_loss.py; 1: a 1-px error on every track ~ a 1-px outline shift)
+    unconstrained_floor: float = 0.0    # after the fit, particles whose strain exposure over the clip is below this
+                                        # share of the median (select.EXPOSURE_FLOOR = 0.1) and the held ones are
+                                        # "unconstrained": confidence 0, E filled from the constrained material they
+                                        # are attached to (select.fill_unconstrained; 0: off). #24
+    uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
+                                        # below the best uniform E's, else the uniform model (select.fit_guarded). #24
 
 
 @dataclass
@@ -455,10 +461,7 @@ def assemble_result(prob: FitProblem, s: FitSettings, E, nu, conf, trajs, x, F, 
             m, c = prob.gaussians_at(x[k], F[k])
             means.append(m.cpu().numpy())
             covs.append(c.cpu().numpy())
-    w = prob.binding.weight.cpu().numpy()
-    idx = prob.binding.index.cpu().numpy()
-    if feats is not None:  # material values per Gaussian from the particles of its own colour
-        w = appearance_transfer_weights(w, idx, prob.gaussian_appearance(), feats)
+    w, idx = gaussian_weights(prob, feats)
     En = E.detach().cpu().numpy()
     nun = nu.detach().cpu().numpy()
     names = prob.sim.slot_names()
@@ -472,6 +475,17 @@ def assemble_result(prob: FitProblem, s: FitSettings, E, nu, conf, trajs, x, F, 
         runtime_s=time.perf_counter() - t0, device=device_name(prob.device),
         settings={**asdict(s), "levels": list(s.levels), "level_share": list(s.level_share)},
         effects=dict(prob.effects), interrupted=interrupted, uniform_start=e_uniform, **extra)
+
+
+def gaussian_weights(prob: FitProblem, feats) -> tuple[np.ndarray, np.ndarray]:
+    """(weights, particle indices) (N, k) that carry per-particle material values to the Gaussians:
+    the binding's, restricted to the particles of the Gaussian's own colour when the appearance prior
+    is on (`feats`: the particles' appearance features, None when it is off)."""
+    w = prob.binding.weight.cpu().numpy()
+    idx = prob.binding.index.cpu().numpy()
+    if feats is not None:  # material values per Gaussian from the particles of its own colour
+        w = appearance_transfer_weights(w, idx, prob.gaussian_appearance(), feats)
+    return w, idx
 
 
 def _split(total, shares, n):

@@ -294,3 +294,32 @@ def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
     a, b = np.asarray(a), np.asarray(b)
     pairs = np.unique(np.stack([a, b], 1), axis=0)
     return len(pairs) == len(np.unique(a)) == len(np.unique(b))
+
+
+def harmonic_fill(values: np.ndarray, known: np.ndarray, graph: sp.csr_matrix) -> np.ndarray:
+    """`values` where `known`, and elsewhere the harmonic extension of the known values over the
+    particle graph: each unknown value is the mean of its graph neighbours' (the discrete Laplace
+    equation with the known particles as its boundary). An unknown region attached to one known
+    material takes that material's value exactly (a constant is harmonic); one between two takes a
+    blend weighted by how near each is along the graph. A piece of unknown particles that touches no
+    known one keeps its own values (nothing to attach it to)."""
+    from scipy.sparse.linalg import spsolve
+
+    v = np.asarray(values, np.float64).copy()
+    known = np.asarray(known, bool)
+    if known.all() or not known.any():
+        return v
+    A = sp.csr_matrix(graph, dtype=np.float64)
+    # the unknown pieces that reach a known particle; the others keep their values
+    reach = np.zeros(len(v), bool)
+    for piece in components(~known, A):
+        if A[piece][:, known].nnz:
+            reach[piece] = True
+    iu, ik = np.where(reach)[0], np.where(known)[0]
+    if not len(iu):
+        return v
+    deg = np.asarray(A[iu].sum(1)).ravel()
+    L_uu = sp.diags(deg) - A[iu][:, iu]
+    rhs = A[iu][:, ik] @ v[ik]
+    v[iu] = spsolve(sp.csc_matrix(L_uu), rhs)
+    return v

@@ -299,8 +299,181 @@ def strain_exposure(prob, youngs, poisson, trajectories=None, effects=None, fram
 
 # a particle is "unconstrained" when its strain exposure is below this share of the object's median
 # (mean square strain: a tenth of the median is a third of its RMS strain); chosen before measuring,
-# not fitted (benchmarks only, `fit_select(exposure_floor=...)`)
+# not fitted (`fit_select(exposure_floor=...)`, benchmarks; `FitSettings.unconstrained_floor`)
 EXPOSURE_FLOOR = 0.1
+
+
+def unconstrained_particles(exposure: np.ndarray, held: np.ndarray, floor: float = EXPOSURE_FLOOR) -> np.ndarray:
+    """The particles whose E the video does not constrain (P,) bool: the held ones (a support moves
+    them whatever their E) and the free ones whose strain exposure is below `floor` x the free
+    particles' median. The rule: a particle's E enters the motion through its stress, E times its
+    strain, so a particle that barely strains moves the picture by the same amount whatever its E;
+    the floor is relative (to this object's median over this clip), not a number of Pa or pixels."""
+    held = np.asarray(held, bool)
+    e = np.asarray(exposure, np.float64)
+    free = ~held & np.isfinite(e)
+    if not free.any():
+        return held.copy()
+    return held | (free & (e < float(floor) * float(np.median(e[free]))))
+
+
+def fill_unconstrained(prob, r: FitResult, s: FitSettings, floor: float | None = None, log=None) -> FitResult:
+    """Identifiability as part of the result (#24): the particles the video does not constrain
+    (`unconstrained_particles`, from the strain exposure of the fitted field's own rollout) get the
+    E of the constrained material they are attached to, the harmonic fill of log E over the particle
+    graph (`regions.harmonic_fill`), not the value the optimiser happened to leave there, and
+    confidence 0 (the video says nothing about them). The result's E, per Gaussian too, and its
+    confidence are replaced in place; `r.model["unconstrained"]` records the rule, the counts, how
+    far the fill moved E and the reconstruction loss before and after (all frames, one substep:
+    by the rule it barely changes). The animation stays the fitted field's."""
+    from .optimize import gaussian_weights
+    from .regions import harmonic_fill, particle_graph
+
+    floor = EXPOSURE_FLOOR if floor is None else float(floor)
+    t, trajs, eff = _result_inputs(prob, r, s)
+    e_top = float(np.max(r.youngs))
+    expo = strain_exposure(prob, r.youngs, r.poisson, trajs, eff, e_bound=e_top)
+    rec: dict = {"floor": floor, "rule": "strain exposure (mean square rotation-free strain over the clip, the "
+                 "fitted field's rollout) below floor x the free particles' median, or held by a support"}
+    if expo is None:
+        rec["why"] = "the fitted field's rollout failed: nothing marked"
+        r.model = {**(r.model or {}), "unconstrained": rec}
+        return r
+    held = np.asarray(prob.held_particles(), bool)
+    unc = unconstrained_particles(expo, held, floor)
+    graph = particle_graph(np.asarray(prob.x0, np.float64), 1.6 * float(prob.scene.settings.particle_spacing))
+    log_e0 = np.log(np.asarray(r.youngs, np.float64))
+    log_e = harmonic_fill(log_e0, ~unc, graph)
+    frames = list(range(1, prob.T))
+    before = frame_losses(prob, r, s, frames, e_top)
+    feats = prob.particle_appearance() if s.appearance > 0 else None
+    w, idx = gaussian_weights(prob, feats)
+    r.youngs = np.exp(log_e).astype(np.asarray(r.youngs).dtype)
+    r.youngs_gaussian = np.exp((w * log_e[idx]).sum(1))
+    conf = np.where(unc, 0.0, np.asarray(r.confidence, np.float64))
+    r.confidence, r.confidence_gaussian = conf, np.clip((w * conf[idx]).sum(1), 0.0, 1.0)
+    after = frame_losses(prob, r, s, frames, max(e_top, float(np.max(r.youngs))))
+    moved = np.abs(log_e - log_e0)[unc]
+    rec.update(particles=int(unc.sum()), of=int(len(unc)), held=int(held.sum()),
+               barely_strained=int((unc & ~held).sum()), median_exposure=float(np.median(expo[~held])) if (~held).any()
+               else None, fill="harmonic (log E) over the particle graph from the constrained particles",
+               moved_median=float(np.exp(np.median(moved))) if len(moved) else 1.0,
+               moved_max=float(np.exp(np.max(moved))) if len(moved) else 1.0,
+               loss_before=float(np.mean(before)), loss_after=float(np.mean(after)))
+    r.model = {**(r.model or {}), "unconstrained": rec}
+    if log:
+        log(f"unconstrained: {rec['particles']} of {rec['of']} particles ({rec['held']} held, "
+            f"{rec['barely_strained']} strained < {floor:g} x the median): confidence 0, E from the material they are "
+            f"attached to (moved {rec['moved_median']:.2f}x median, {rec['moved_max']:.2f}x at most; loss "
+            f"{rec['loss_before']:.5f} -> {rec['loss_after']:.5f})")
+    return r
+
+
+# the guard's sign test (`guard_rule`): the field must be lower on so many held-back frames that a coin
+# would do it this rarely (one-sided): 4 of 4 frames (p = 1/16); 3 of 4 (p = 5/16) is not "clearly"
+GUARD_ALPHA = 0.1
+
+
+def guard_rule(uniform_val: list[float], field_val: list[float], added: int, s: FitSettings) -> dict:
+    """"Never below one number" (#24): the field is kept over the uniform model only if select's test
+    keeps it (`select_rule`: the mean held-back drop above the price of its added coefficients) and
+    it is lower on so many held-back frames that chance would do so at most `GUARD_ALPHA` of the
+    time (a one-sided sign test: select's "most frames" chooses between models; the guard asks for
+    clear evidence that a field beats one number). {"keep_field", "sign_p", ... select_rule's}."""
+    r = select_rule(uniform_val, field_val, added, s)
+    n = len(field_val)
+    k = int(r.get("better_frames", 0))
+    p = float(sum(math.comb(n, j) for j in range(k, n + 1)) / 2 ** n) if n else 1.0
+    keep = bool(r["keep_field"] and p <= GUARD_ALPHA)
+    why = r["why"] + (f"; sign test p = {p:.3g} {'<=' if p <= GUARD_ALPHA else '>'} {GUARD_ALPHA}" if n else "")
+    return {**r, "keep_field": keep, "sign_p": p, "why": why}
+
+
+def fit_guarded(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
+                on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None) -> FitResult:
+    """The bumps schedule with a guard (`FitSettings.uniform_guard`, #24): the bumps field (the
+    default schedule, its whole budget) and the uniform model (select's: the bumps start search's E
+    polished with nu and the trajectory, `select_uniform_share` of the iterations) both fitted on
+    the training frames (`holdout_frames`, as select), judged on the held-back frames at one
+    substep; the field is kept only if `guard_rule` says it is clearly better, else the uniform E is
+    returned and the field recorded as the rejected candidate (`model["guard"]`). The kept model is
+    then polished on all frames (`select_final_share`), with its confidence. A resumed fit, or a
+    clip too short to hold frames back, is the plain bumps fit. `candidates`: receives both
+    training-frame models (benchmarks)."""
+    if start is not None:
+        return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
+    say = log or (lambda *a: None)
+    after_release = [c.release_frame + 1 for c in prob.contacts if getattr(c, "release_frame", None) is not None]
+    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+    if not val:
+        r = fit_bumps(prob, s, progress=progress, log=log, on_iteration=on_iteration, uniform_e=uniform_e)
+        r.model = {**(r.model or {}), "guard": {"why": "no held-back frames (fewer than 6 frames): the field unjudged"}}
+        return r
+    view = FrameView(prob, train)
+    N = max(int(s.iterations), 0)
+    n_final = int(round(s.select_final_share * N)) if N else 0
+    n_uni = max(int(round(s.select_uniform_share * N)), 1) if N else 0
+    used, histories = [0], []
+
+    def run(go):
+        base = used[0]
+        r_ = go(lambda it, *a: on_iteration(base + it, *a) if on_iteration is not None else None)
+        used[0] += len(r_.loss_history)
+        histories.extend(r_.loss_history)
+        return r_
+
+    sb = dataclasses.replace(s, confidence_probes=0)
+    rb = run(lambda cb: fit_bumps(view, sb, progress=progress, log=log, on_iteration=cb, uniform_e=uniform_e))
+    if rb.interrupted:
+        rb.model = {**(rb.model or {}), "guard": {"why": "interrupted before the held-back test"}}
+        return rb
+    su = dataclasses.replace(s, levels=(1,), level_share=(1.0,), iterations=n_uni, confidence_probes=0,
+                             trajectory_levels=1, fit_poisson_levels=1, search_effects=())
+    ru = run(lambda cb: fit_bumps(view, su, progress=progress, log=log, on_iteration=cb, uniform_e=rb.uniform_start))
+    models = {"uniform": ru, "field": rb}
+    if candidates is not None:
+        candidates.update(models)
+    e_top = max(float(np.max(m.youngs)) for m in models.values())
+    every = sorted(set(train) | set(val))
+    losses = {}
+    for name, m in models.items():
+        fl = dict(zip(every, frame_losses(prob, m, s, every, e_top)))
+        losses[name] = {"training": float(np.mean([fl[k] for k in train])),
+                        "held_back": float(np.mean([fl[k] for k in val])), "held_back_frames": [fl[k] for k in val],
+                        "median_e": float(np.median(m.youngs))}
+    k_field = int(max(s.levels))
+    test = guard_rule(losses["uniform"]["held_back_frames"], losses["field"]["held_back_frames"], max(k_field - 1, 1), s)
+    chosen = "field" if test["keep_field"] else "uniform"
+    say(f"guard: {chosen} ({test['why']})")
+    guard = {"chosen": chosen, "rejected": "uniform" if chosen == "field" else "field", "training_frames": train,
+             "held_back_frames": val, "models": losses, "test": test, "judged_at_e": e_top}
+    if ru.interrupted:
+        chosen, guard["why"] = "field", "the uniform model was interrupted: the field unjudged"
+    r0 = models[chosen]
+    levels = (1,) if chosen == "uniform" else (k_field,)
+    sc = dataclasses.replace(s, levels=levels, level_share=(1.0,), iterations=n_final, search_effects=(),
+                             trajectory_levels=1, fit_poisson_levels=1 if chosen == "uniform" else s.fit_poisson_levels)
+    r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb, start=start_of(r0)))
+    r.loss_history = histories
+    r.uniform_start = rb.uniform_start
+    r.interrupted = r.interrupted or ru.interrupted
+    r.settings = {**r.settings, **{k: v for k, v in dataclasses.asdict(s).items() if k not in ("levels", "level_share")},
+                  "levels": list(s.levels), "level_share": list(s.level_share), "iterations": int(s.iterations)}
+    model = {"schedule": "bumps", "chosen": chosen, "guard": guard}
+    if (rb.model or {}).get("uniform_probes"):
+        model["uniform_probes"] = rb.model["uniform_probes"]      # the start search's (training frames)
+    r.model = {**{k: v for k, v in (r.model or {}).items() if k not in ("schedule", "uniform_probes")}, **model}
+    return r
+
+
+def start_of(r: FitResult) -> dict:
+    """A fit result as another fit's start (`fit_bumps(start=...)`). Copies: on the CPU a fit started
+    from these arrays optimises them in place (`torch.as_tensor` shares a numpy array's memory),
+    which rewrote the trajectory of every model started from (uniform, parts) and made later
+    candidates start from the last fit's trajectory."""
+    return {"youngs": np.array(r.youngs), "poisson": np.array(r.poisson),
+            "trajectories": {n: np.array(v) for n, v in (r.trajectories or {}).items()},
+            "effects": r.effect_parameters}
 
 
 # the motion score's section average (`regions.motion_clusters(section=...)`): a ball of this many
@@ -810,6 +983,15 @@ def identifiability(model_sum: dict, confidence_mean: float | None, e_median: fl
             out["sentence"] = (f"E may not be determined by this video: mean confidence {confidence_mean:.2f} (the "
                                "share of the object whose E is likely within 20%); `fit --schedule select` sweeps "
                                "a uniform E and gives the interval")
+    unc = model_sum.get("unconstrained") or {}
+    n_free = (unc.get("of") or 0) - (unc.get("held") or 0)
+    if unc.get("barely_strained") and n_free > 0:
+        # the particles the clip barely strains (`fill_unconstrained`): their E is their neighbours'
+        share = unc["barely_strained"] / n_free
+        out["unconstrained_share"] = share
+        out["sentence"] = ((out["sentence"] + "; ") if out["sentence"] else "") + (
+            f"{share:.0%} of the free particles barely strain in this clip (< {unc['floor']:g} x the median): the "
+            "video does not see their E, which is the material they are attached to (confidence 0)")
     return out
 
 
@@ -859,6 +1041,13 @@ def model_summary(model: dict | None) -> dict:
         if final:
             parts["final"] = final                          # with the chosen model's 95% intervals
         out["parts"] = parts
+    g = m.get("guard")
+    if g:                       # the bumps field against one number on held-back frames (`fit_guarded`)
+        out["guard"] = ({"why": g["why"]} if "chosen" not in g else
+                        {"chosen": g["chosen"], "rejected": g["rejected"], "why": g["test"]["why"],
+                         "held_back": {k: v["held_back"] for k, v in g["models"].items()}})
+    if m.get("unconstrained"):  # the particles the video does not constrain (`fill_unconstrained`)
+        out["unconstrained"] = {k: v for k, v in m["unconstrained"].items() if k != "rule"}
     if "regions" in m:          # the ladder's
         out["regions"] = m["regions"]
     return out
@@ -897,14 +1086,6 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
         used[0] += len(r.loss_history)
         histories.extend(r.loss_history)
         return r
-
-    def start_of(r: FitResult) -> dict:
-        # copies: on the CPU a fit started from these arrays optimises them in place (`torch.as_tensor`
-        # shares a numpy array's memory), which rewrote the trajectory of every model started from
-        # (uniform, parts) and made later candidates start from the last fit's trajectory
-        return {"youngs": np.array(r.youngs), "poisson": np.array(r.poisson),
-                "trajectories": {n: np.array(v) for n, v in (r.trajectories or {}).items()},
-                "effects": r.effect_parameters}
 
     # 1. the uniform stage
     if uniform_e is not None:   # a search already found it (app: the support sizing)
