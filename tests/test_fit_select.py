@@ -483,3 +483,18 @@ def test_bumps_with_the_guard_returns_one_number_for_a_uniform_bar(tmp_path):
     assert u["held"] > 0 and u["particles"] >= u["held"]
     summ = out.summary()["model"]
     assert summ["guard"]["rejected"] == "field" and summ["unconstrained"]["particles"] == u["particles"]
+
+
+def test_cli_refuses_a_guard_it_cannot_apply_and_a_bad_floor(tmp_path, capsys):
+    """`fit --guard` guards the bumps schedule's single fit: with --schedule select, or --starts > 1, a
+    one-line input error (exit 2) naming the flag; `--unconstrained-floor` outside [0, 1) too."""
+    from physinteract_usd.cli import main
+
+    b = fs.build(tmp_path / "cli")
+    capsys.readouterr()
+    assert main(["fit", str(b["stage"]), "--guard", "--schedule", "select"]) == 2
+    assert "--guard" in capsys.readouterr().err
+    assert main(["fit", str(b["stage"]), "--guard", "--starts", "2"]) == 2
+    assert "--guard" in capsys.readouterr().err
+    assert main(["fit", str(b["stage"]), "--unconstrained-floor", "1.5"]) == 2
+    assert "--unconstrained-floor" in capsys.readouterr().err

@@ -55,6 +55,14 @@ def add_parser(sub):
                         "fit's time, docs/benchmarks/gpu.md); on the CPU one after another, N times one fit "
                         "(tiling saves ~20%% there at best, and loses when the stiffest start needs more substeps). "
                         "Bumps schedule only; default 1")
+    s.add_argument("--guard", action="store_true",
+                   help="bumps schedule: fit the field and the uniform model on training frames and return the field "
+                        "only if its loss on the held-back frames is clearly lower (else one E, the field recorded as "
+                        "rejected); about 1.1x the fit's time (#24)")
+    s.add_argument("--unconstrained-floor", type=float, default=None, metavar="F",
+                   help="after the fit, mark the particles strained less than F x the median over the clip (and the "
+                        "held ones) as unconstrained: confidence 0, E from the material they are attached to (0.1 is "
+                        "select.EXPOSURE_FLOOR; default 0: off)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -80,6 +88,15 @@ def run(a) -> int:
         if not a.track_weight >= 0:
             raise InputError("--track-weight", f"must be >= 0, got {a.track_weight}")
         over["track_weight"] = a.track_weight
+    if a.guard:
+        if (a.schedule or "bumps") != "bumps" or a.starts > 1:
+            raise InputError("--guard", "guards the bumps schedule's single fit (not --schedule select / ladder, "
+                             "not --starts > 1)")
+        over["uniform_guard"] = True
+    if a.unconstrained_floor is not None:
+        if not 0 <= a.unconstrained_floor < 1:
+            raise InputError("--unconstrained-floor", f"must be in [0, 1), got {a.unconstrained_floor}")
+        over["unconstrained_floor"] = a.unconstrained_floor
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,

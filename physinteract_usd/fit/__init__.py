@@ -33,7 +33,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
         r = fit_guarded(prob, s, **kw)
     else:
         r = SCHEDULES[s.schedule](prob, s, **kw)
-    if float(s.unconstrained_floor) > 0 and not r.interrupted:   # what the video does not constrain (#24)
+    if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
+        # what the video does not constrain (#24; not on a stop's zero-iteration last pass)
         r = fill_unconstrained(prob, r, s, s.unconstrained_floor, log=kw.get("log"))
     return r
 
