@@ -123,3 +123,27 @@ def test_frames_past_the_store_budget_replay_bitwise(graphs):
         ref = res[1 << 40]
         for budget, got in res.items():
             _same(ref, got, budget)
+
+
+def test_solver_simulate_redoes_a_run_that_left_the_box():
+    """MPMSolver.simulate (no rollout) with a box its particles leave: redone on the whole grid, the
+    same positions as without a box."""
+    from physinteract_usd.sim import GridSpec, SimModel, SimState
+    from sim_helpers import block
+    dx = 0.05
+    pts = block((2, 2, 2), dx / 2, (0.15, 0.2, 0.25))
+    m = SimModel.create(pts, (dx / 2) ** 3, 1000.0, 2e3, 0.3, grid=GridSpec((0, 0, 0), dx, (14, 10, 10)), fps=10,
+                        substeps=4, E_max=1e4, dtype="float64", gravity=(0.0, 0.0, 0.0))
+    out = {}
+    with pytest.MonkeyPatch.context() as mp:
+        for box in (False, True):
+            mp.setattr(solver_mod, "GRID_BOX", box)
+            sol = solver_mod.MPMSolver(m)
+            if box:
+                sol.set_box((1, 2, 3), (6, 7, 8))        # around the rest shape only
+                assert sol.box_volume == 5 * 5 * 5
+            out[box] = sol.simulate(3, state=SimState.rest(m, v0=(0.6, 0.0, 0.0)))
+            if box:
+                assert sol.full_box()                   # it was left, and the run redone on the whole grid
+    assert np.array_equal(out[False]["x"], out[True]["x"])
+    assert out[True]["x"][-1][:, 0].min() > pts[:, 0].max() + dx       # it did move out of the box

@@ -376,17 +376,26 @@ class MPMSolver:
         m = self.model
         if state is None:
             state = SimState.rest(m)
-        a, b = state, SimState.zeros(m.n_particles, m.dtype, m.device)
-        status = self.new_status(n_frames)
-        frames = {"x": [a.x.numpy().copy()], "v": [a.v.numpy().copy()], "F": [a.F.numpy().copy()]}
-        for k in range(n_frames):
-            for s in range(self.S):
-                self.step(a, b, k, s)
-                a, b = b, a
-            self.check(a, k, status)
-            frames["x"].append(a.x.numpy().copy())
-            frames["v"].append(a.v.numpy().copy())
-            frames["F"].append(a.F.numpy().copy())
+        start = SimState.zeros(m.n_particles, m.dtype, m.device)
+        start.assign(state)
+        for _ in range(2):          # the second time on the whole grid, if the particles left the grid box
+            a, b = SimState.zeros(m.n_particles, m.dtype, m.device), SimState.zeros(m.n_particles, m.dtype, m.device)
+            a.assign(start)
+            self.box_flag.zero_()
+            status = self.new_status(n_frames)
+            frames = {"x": [a.x.numpy().copy()], "v": [a.v.numpy().copy()], "F": [a.F.numpy().copy()]}
+            for k in range(n_frames):
+                for s in range(self.S):
+                    self.step(a, b, k, s)
+                    a, b = b, a
+                self.check(a, k, status)
+                frames["x"].append(a.x.numpy().copy())
+                frames["v"].append(a.v.numpy().copy())
+                frames["F"].append(a.F.numpy().copy())
+            if self.full_box() or int(self.box_flag.numpy()[0]) == 0:
+                break
+            self.set_box(None)
+            self.clear_all()
         if check:
             self.raise_on_status(status)
         if a is not state:
