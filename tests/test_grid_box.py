@@ -147,3 +147,27 @@ def test_solver_simulate_redoes_a_run_that_left_the_box():
                 assert sol.full_box()                   # it was left, and the run redone on the whole grid
     assert np.array_equal(out[False]["x"], out[True]["x"])
     assert out[True]["x"][-1][:, 0].min() > pts[:, 0].max() + dx       # it did move out of the box
+
+
+@pytest.mark.parametrize("box", [False, True], ids=["whole-grid", "box"])
+def test_gpu_grid_stride_loop_on_the_cpu(box):
+    """The GPU's launch over the grid (a grid-stride loop over the box's nodes, `kernels.box_span`
+    contig = 0), run on the CPU: the same positions bit for bit as the CPU's row-per-thread launch and
+    the same gradients to round-off (Warp's generated adjoints add the effect parameters' node terms
+    in another order), also with a thread count smaller than the box (as a graph captured with a
+    smaller box runs)."""
+    m, ctrl, pts, eff, trajs = _scene()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(rollout_mod, "BOX_MARGIN", 1)
+        ref = _loss_and_grads(_rollout(m, ctrl, False, False, mp), pts, eff, trajs)
+        for nthr in (None, 7):
+            ro = _rollout(m, ctrl, box, False, mp)
+            ro.solver.contig = 0
+            if nthr is not None:
+                mp.setattr(solver_mod.MPMSolver, "n_grid_threads", property(lambda self: nthr))
+            got = _loss_and_grads(ro, pts, eff, trajs)
+            for call_r, call_g in zip(ref, got):
+                assert torch.equal(call_r[0], call_g[0])
+                for a, b in zip(call_r[1:], call_g[1:]):
+                    assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), \
+                        float((a - b).abs().max())
