@@ -154,17 +154,19 @@ class Rollout:
         return lo, hi
 
     def _initial_box(self) -> None:
-        """Before any forward: the rest shape, moved as far as any contact's trajectory moves (from its
-        first frame, per axis and sign), plus BOX_MARGIN cells. Only a guess: the forwards check it."""
+        """Before any forward: the rest shape, widened on both sides of each axis by as far as any
+        contact's trajectory moves along it (from its first frame: what is pulled aside may swing
+        back past rest), plus BOX_MARGIN cells. Only a guess: the forwards check it, and the box
+        after the first forward is that forward's reach (+ the margin), which may be smaller."""
         x0 = np.asarray(self.model.x0, dtype=np.float64)
-        lo_x, hi_x = x0.min(0), x0.max(0)
+        r = np.zeros(3)
         for c in self.control.contacts:
             t = getattr(c, "trajectory", None)
             if t is None:
                 continue
             t = t.detach().double().cpu().numpy() if torch.is_tensor(t) else np.asarray(t, dtype=np.float64)
-            d = t - t[:1]
-            lo_x, hi_x = lo_x + np.minimum(d.min(0), 0.0), hi_x + np.maximum(d.max(0), 0.0)
+            r = np.maximum(r, np.abs(t - t[:1]).max(0))
+        lo_x, hi_x = x0.min(0) - r, x0.max(0) + r
         lo, hi = self._node_span(lo_x, hi_x)
         self.solver.set_box(lo - BOX_MARGIN, hi + BOX_MARGIN)
 
