@@ -16,9 +16,9 @@ candidate effect is present at its null value:
    `heterogeneity` by the split directions of `fit.regions` from the residual's gradient in log E;
 3. each column projected off the base columns; predicted drop (r . j_perp)^2 / |j_perp|^2,
    one-sided for bounded parameters; significance by block sign flips (`score.block_signflip`);
-4. a candidate is significant when its p-value is below alpha / (number of candidates) and its
-   predicted drop is at least `min_relative_drop` of the loss; significant ones are ranked by
-   predicted drop.
+4. a candidate is significant when its p-value is below alpha / (number of candidates) (and,
+   only when no refit confirms it, `DiagnoseSettings.confirmed` False, its predicted drop is at least
+   `min_relative_drop` of the loss); significant ones are ranked by predicted drop.
 
 No USD, no CLI: a `fit.FitProblem` and arrays in, a `Diagnosis` out.
 """
@@ -118,7 +118,12 @@ class DiagnoseSettings:
                                           # own correlation time x 2, `residual.correlation_frames`; >= 2)
     tiles: int = 6
     alpha: float = 0.05
-    min_relative_drop: float = 0.03
+    min_relative_drop: float = 0.03     # the practical size gate (a share of the loss), only where nothing confirms
+                                        # a candidate (`confirmed` False: `diagnose --refit 0`)
+    confirmed: bool = False             # True: the significant candidates are confirmed by refits on held-back
+                                        # frames (`diagnose --refit N`, N >= 1): no size gate; every candidate past
+                                        # the Bonferroni p is significant, the top N are refitted and a paired
+                                        # held-back test (Holm over the candidates tested) decides which are named
     n_flips: int = 4000
     seed: int = 0
     traj_knots: int = 3
@@ -167,6 +172,8 @@ class CandidateResult:
     held_back_se: float | None = None    # its standard error from the held-back blocks' own spread
     held_back_p: float | None = None     # the one-sided paired test's p-value (`score.paired_drop`; against
                                          # the base and the control both: the larger): accepted when < alpha
+    held_back_level: float | None = None  # the level it had to pass after Holm's correction over every candidate
+                                          # judged on held-back frames (`app.diagnose.holm`)
     rival_of: str | None = None     # a selected candidate that explains this one away (a confusable pair:
                                     # significant alone, not given it); both are refitted, the held-back
                                     # frames decide (`app.diagnose`)
@@ -210,6 +217,7 @@ class Diagnosis:
                             "relative_drop": c.relative_drop, "significant": c.significant,
                             "accepted": c.accepted, "held_back_drop": c.held_back_drop,
                             "held_back_se": c.held_back_se, "held_back_p": c.held_back_p,
+                            "held_back_level": c.held_back_level,
                             "rival_test": c.rival_test,
                             "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
                             "collinearity": c.collinearity, "note": c.note} for c in self.results],
@@ -666,6 +674,15 @@ def test_candidate(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarr
     return cr
 
 
+def min_drop(s: DiagnoseSettings, L0: float) -> float:
+    """The smallest predicted drop a significant candidate needs: none where refits confirm the
+    candidates on held-back frames (`s.confirmed`: the paired test there is calibrated, 4.5% false
+    alarms on synthetic residuals, tests/test_diagnose_stats.py); else the practical gate
+    `min_relative_drop` x the loss (the score test's sign flips cannot tell the rendering's own
+    systematic error, e.g. soft alpha against a binary silhouette, from physics)."""
+    return 0.0 if s.confirmed else float(s.min_relative_drop) * float(L0)
+
+
 def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float,
                     n_img: int | None = None):
     """Forward selection: the best significant candidate is taken, its column joins the base, and
@@ -677,12 +694,13 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
     for cr in results:
         cr.marginal = (cr.p_value, cr.drop)
         cr.marginal_probe = (cr.best, cr.step)
-    named = [c for c in results if c.probes and c.p_value < thr and c.drop >= s.min_relative_drop * L0]
+    gate = min_drop(s, L0)
+    named = [c for c in results if c.probes and c.p_value < thr and c.drop > 0 and c.drop >= gate]
     chosen: list = []
     r, Jc = r0.copy(), J
     pool = [c for c in results if c.probes]
     while pool:
-        ok = [c for c in pool if c.p_value < thr and c.drop >= s.min_relative_drop * L0]
+        ok = [c for c in pool if c.p_value < thr and c.drop > 0 and c.drop >= gate]
         if not ok:
             break
         best = max(ok, key=lambda c: c.drop)
@@ -854,7 +872,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
             probes.append(_refined(eff, cr, run, r0))
             cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         if (eff in ("plasticity", "ground") and cr.best >= 0 and cr.p_value < s.alpha
-                and cr.drop >= s.min_relative_drop * L0):
+                and cr.drop > 0 and cr.drop >= min_drop(s, L0)):
             # a threshold's grid is coarse: a 1-D search between its points for a candidate that counts
             extra = _threshold_search(eff, cr, run, r0, Ja)
             if extra is not None:
@@ -991,28 +1009,39 @@ __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Pro
 
 
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
-    """The verdict: `missing_effect` when a candidate is significant (and, where refitted, at
-    least one held up on held-back frames), `unexplained` when the residual is well above the rest
-    frame's floor (x `excess_factor`) and nothing explains it (or every refit failed), else
-    `adequate`."""
+    """The verdict: `missing_effect` when a candidate is significant and confirmed (where the
+    candidates are confirmed by refits, `DiagnoseSettings.confirmed`: accepted by the held-back test;
+    else not rejected by it), `unexplained` when the residual is well above the rest frame's floor (x
+    `excess_factor`) and nothing explains it (or every refit failed), else `adequate` (a candidate
+    significant by the score test but not confirmed on held-back frames is said in the reason)."""
     sig = diag.significant
     L, floor = diag.loss, diag.floor
     above = floor > 0 and L > excess_factor * floor
+    st = (getattr(diag, "_ctx", None) or {}).get("settings")
+    confirmed = bool(getattr(st, "confirmed", False))
     if sig:
-        good = [c for c in sig if c.accepted is not False]
+        good = [c for c in sig if (c.accepted is True if confirmed else c.accepted is not False)]
         if not good:
-            diag.verdict = "unexplained"
             how = "; ".join(f"{c.effect}: {c.held_back_drop:.2g} +- {c.held_back_se:.2g}, p = {c.held_back_p:.2g}"
                             for c in sig if c.held_back_drop is not None and c.held_back_se is not None
                             and c.held_back_p is not None)
-            diag.reason = (f"{', '.join(c.effect for c in sig)} predicted a loss drop, but refitted, none lowered the "
-                           "loss on held-back frames beyond the frames' own spread"
-                           + (f" (held-back drop {how})" if how else "")
-                           + ": the residual is explained by no candidate tested")
+            untested = [c.effect for c in sig if c.accepted is None]
+            why = (f"{', '.join(c.effect for c in sig)} predicted a loss drop, but "
+                   + ("refitted, none lowered the loss on held-back frames beyond the frames' own spread"
+                      if not untested else f"none was confirmed on held-back frames ({', '.join(untested)} not "
+                      "refitted: `--refit` more)")
+                   + (f" (held-back drop {how})" if how else ""))
+            if above or not confirmed:
+                diag.verdict = "unexplained"
+                diag.reason = why + ": the residual is explained by no candidate tested"
+            else:
+                diag.verdict = "adequate"
+                diag.reason = (f"{why}; the residual (loss {L:.3g}) is "
+                               f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor")
             return diag
         top = good[0]
         share = 100.0 * top.drop / L if L > 0 else 0.0
-        also = [c.effect for c in sig if c is not top]
+        also = [c.effect for c in (good if confirmed else sig) if c is not top]
         diag.verdict = "missing_effect"
         diag.reason = (f"{top.effect} explains ~{share:.0f}% of the residual (p = {top.p_value:.2g}"
                        + (f", refit: realised drop {top.realized_loss_drop:.3g}" if top.realized_loss_drop is not None

@@ -64,6 +64,31 @@ def _residual_by_frame(ctx) -> np.ndarray:
     return dict(zip(res.frames, e))
 
 
+def _phases(ctx, R, video, model) -> str:
+    """Where the residual sits: during the pull (frames before the release: the load held) or after the
+    release (nothing held), and how the silhouettes' centroid speed falls after the release in the video
+    and in the model: what separates damping (it slows every motion, most visibly after the release)
+    from viscoelasticity (rate-dependent stress under the held load, a slow relaxation of the shape)."""
+    if R is None:
+        return ""
+    byf = _residual_by_frame(ctx)
+    tot = sum(byf.values())
+    if tot <= 0:
+        return ""
+    after = sum(v for k, v in byf.items() if k >= R) / tot
+    cv, cm = _centroids(video), _centroids(model)
+    sv = np.linalg.norm(np.diff(cv, axis=0), axis=1)[R:]
+    sm = np.linalg.norm(np.diff(cm, axis=0), axis=1)[R:]
+    out = f"; {100 * after:.0f}% of the residual is after the release at frame {R}, {100 * (1 - after):.0f}% under the held load"
+    if len(sv) >= 4 and np.isfinite(sv).all() and np.isfinite(sm).all():
+        h = len(sv) // 2
+        rv = float(np.mean(sv[h:]) / max(np.mean(sv[:h]), 1e-9))
+        rm = float(np.mean(sm[h:]) / max(np.mean(sm[:h]), 1e-9))
+        out += (f"; after the release the centroid's speed falls to {rv:.2f}x in the video and {rm:.2f}x in the model "
+                "(second half against first)")
+    return out
+
+
 def describe(effect: str, cr, ctx) -> str:
     prob = ctx["prob"]
     video, model = _silhouettes(ctx)
@@ -87,11 +112,12 @@ def describe(effect: str, cr, ctx) -> str:
             parts.append(f"{where} the model keeps moving ({np.nanmean(after_m[-3:]):.1f} px/frame over the last "
                          f"frames) while the video "
                          + (f"settles in {sv_k} frames" if sv_k is not None else "slows")
-                         + f" ({np.nanmean(after_v[-3:]):.1f} px/frame); damping c ~ {est.get('coefficient', 0):.2g}/s")
+                         + f" ({np.nanmean(after_v[-3:]):.1f} px/frame); damping c ~ {est.get('coefficient', 0):.2g}/s"
+                         + _phases(ctx, R, video, model))
     elif effect == "viscoelasticity":
         parts.append(f"the motion decays and the shape creeps in a way a single elastic material does not "
                      f"(E_v ~ {est.get('modulus', 0):.3g} Pa, tau ~ {est.get('relaxationTime', 0):.2g} s)"
-                     + _return_to_rest(video, model, R))
+                     + _return_to_rest(video, model, R) + _phases(ctx, R, video, model))
     elif effect == "plasticity":
         iv, im = _iou(video[-1], video[0]), _iou(model[-1], model[0])
         if im - iv >= 0.03:

@@ -387,36 +387,68 @@ def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
     return max(ok, key=lambda c: c.held_back_drop) if ok else cr
 
 
-def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, frames: list | None = None) -> None:
-    """A non-physical cause (or `heterogeneity`): its best probe taken for real, the base
-    parameters re-adjusted by their linear step; realised drop on all frames, accepted when the
-    held-back frames' loss falls too (`frames`: one list, or one per fold: the same residual judged on
-    each fold's frames, pooled)."""
-    from .core import realised_gauss_newton
+def _train_lstsq(A: np.ndarray, y: np.ndarray, train: np.ndarray) -> np.ndarray:
+    """Least squares of `y` on the columns of `A` over the rows `train` only."""
+    if A.size == 0:
+        return np.zeros(A.shape[1] if A.ndim == 2 else 0)
+    a, *_ = np.linalg.lstsq(A[train], -y[train], rcond=None)
+    return a
 
+
+def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, frames: list | None = None) -> None:
+    """A non-physical cause (or `heterogeneity`), judged as a physical one is (cross-fitted): per fold
+    its amplitude (a continuous probe: the Gauss-Newton step; `heterogeneity` then simulated for
+    real, the field moved by that step; a discrete probe is taken whole) and the base parameters'
+    re-adjustment (their linear step) are fitted on the training rows only (every image element not
+    in that fold's held-back frames, and the trajectory prior's rows), the base re-adjusted alike
+    without the candidate is the reference, and the paired test pools the folds' held-back blocks
+    (`_accept`). Before 2026-11-26 the step and the re-adjustment were fitted on all frames, the
+    held-back ones included, so the held-back test was not one. `realized_loss_drop`: the drop on
+    all frames beyond the base's own linear step (fold 1's amplitude)."""
     ctx = diag._ctx
     prob, res, r0, J, run = ctx["prob"], ctx["res"], ctx["r0a"], diag._J, ctx["run"]
     if cr.best < 0:
         return
     p = cr.probes[cr.best]
     col = _pad(p.column, len(r0))
-    if cr.effect in ("heterogeneity", "camera:time_offset", "camera:depth_scale"):
-        if cr.effect == "heterogeneity":
-            d = realised_gauss_newton(diag, cr)
-            cr.realized_loss_drop = d
-            cr.accepted = None if d is None else bool(d > 0)
-            return
-        r1 = r0 + col * cr.step                 # render-only / gravity: the linear step itself
-    else:
-        r1 = r0 + col                           # the probe itself (amplitude 1)
     fl = as_folds(frames) or [held_back_frames(prob.T, holdout_every, res, p.column)]
-    a0, *_ = np.linalg.lstsq(J, -r0, rcond=None)
-    a1, *_ = np.linalg.lstsq(J, -r1, rcond=None)
-    b0, b1 = r0 + J @ a0, r1 + J @ a1
-    cr.realized_loss_drop = run.aloss(b0) - run.aloss(b1)
     n = run.n_img or len(r0)
-    ms = [_frame_mask(res, f) if f else np.ones(n, bool) for f in fl]
-    _accept(diag, cr, {"base": [b0[:n]] * len(ms)}, [(m, b1[:n]) for m in ms])
+    held, refs, real = [], {"base": []}, None
+    for f in fl:
+        m = _frame_mask(res, f) if f else np.ones(n, bool)
+        train = np.concatenate([~m, np.ones(len(r0) - n, bool)]) if f else np.ones(len(r0), bool)
+        a0 = _train_lstsq(J, r0, train)
+        b0 = r0 + (J @ a0 if J.size else 0.0)
+        if p.discrete or cr.effect not in ("heterogeneity", "camera:time_offset", "camera:depth_scale"):
+            r1 = r0 + col                           # the probe itself (amplitude 1)
+        else:
+            A = np.column_stack([J, col]) if J.size else col[:, None]
+            t = float(_train_lstsq(A, r0, train)[-1])
+            if p.sign and t * p.sign < 0:
+                t = 0.0
+            if cr.effect == "heterogeneity":        # the field moved by that step, simulated
+                v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype, device=run.base.E.device)
+                try:
+                    r1 = run.aug(run.r(E=run.base.E * torch.exp(t * v)))
+                except SimulationError as exc:
+                    cr.note = f"judged: the step failed ({exc})"
+                    cr.accepted = False
+                    return
+            else:
+                r1 = r0 + col * t                   # render-only / gravity: the linear step itself
+        a1 = _train_lstsq(J, r1, train)
+        b1 = r1 + (J @ a1 if J.size else 0.0)
+        if real is None:
+            af, *_ = np.linalg.lstsq(J, -r0, rcond=None) if J.size else (np.zeros(0),)
+            a1f, *_ = np.linalg.lstsq(J, -r1, rcond=None) if J.size else (np.zeros(0),)
+            real = run.aloss(r0 + (J @ af if J.size else 0.0)) - run.aloss(r1 + (J @ a1f if J.size else 0.0))
+        held.append((m, b1[:n]))
+        refs["base"].append(b0[:n])
+    cr.realized_loss_drop = real
+    _accept(diag, cr, refs, held)
+    cr.note = (f"judged on held-back frames ({' and '.join(str(f) for f in fl)}; its amplitude and the base's "
+               f"re-adjustment fitted without them): drop {cr.held_back_drop:.3g} +- {cr.held_back_se:.2g}, p = "
+               f"{cr.held_back_p:.3g}" + ("" if cr.accepted else ": not accepted") + ("; " + cr.note if cr.note else ""))
 
 
 __all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
