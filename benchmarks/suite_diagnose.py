@@ -40,12 +40,13 @@ TRUTH_PARAM = {"damping": "coefficient", "plasticity": "yieldStress", "ground": 
 NOISE = 0.015
 
 
-def cases(scenes: list[str], effects: list[str] | None, strengths: list[float], controls: int = 1
-          ) -> list[tuple[str, str, float, int]]:
+def cases(scenes: list[str], effects: list[str] | None, strengths: list[float], controls: int = 1,
+          first_seed: int = 0) -> list[tuple[str, str, float, int]]:
     """Every (scene, effect, strength, seed) to run: a scene's own hidden effects (the generator's list
     for it) unless `effects` names them (seed 0), and `controls` controls (`none`, seeds 0..N-1) per
-    scene. The effects first, strength by strength, then the controls interleaved, so that a run cut
-    by its deadline has a bit of everything."""
+    scene (seeds `first_seed`.. `first_seed` + N - 1: `--control-seed`, so that two runs on two machines
+    make different controls). The effects first, strength by strength, then the controls interleaved,
+    so that a run cut by its deadline has a bit of everything."""
     from physinteract_usd.synth.scenes import get_scene
 
     eff_cases, ctrl = [], []
@@ -54,7 +55,7 @@ def cases(scenes: list[str], effects: list[str] | None, strengths: list[float], 
         effs = [e for e in (effects or own) if e != "none"]
         for s in strengths:
             eff_cases += [(sc, e, s, 0) for e in effs]
-        ctrl += [(sc, "none", 0.0, k) for k in range(int(controls))]
+        ctrl += [(sc, "none", 0.0, k) for k in range(int(first_seed), int(first_seed) + int(controls))]
     out, step = [], max(1, len(eff_cases) // max(len(ctrl), 1))
     while eff_cases or ctrl:
         out += eff_cases[:step]
@@ -317,7 +318,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="foam_bar")
     ap.add_argument("--effects", default=None, help="comma-separated (default: each scene's own hidden effects)")
     ap.add_argument("--strengths", default="1")
-    ap.add_argument("--controls", type=int, default=1, help="control runs per scene (noise seeds 0..N-1)")
+    ap.add_argument("--controls", type=int, default=1, help="control runs per scene (noise seeds S..S+N-1)")
+    ap.add_argument("--control-seed", type=int, default=0, help="S: the controls' first noise seed (default 0)")
+    ap.add_argument("--rows", default=None, help="more results.jsonl files (another run's) merged into the table")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--fit-grid", type=int, default=None,
@@ -357,7 +360,8 @@ def main(argv=None) -> int:
     done = {r["case"] for r in _rows(jl) if "error" not in r}      # failed cases are tried again
     t0 = time.time()
     todo = [c for c in cases(a.scenes.split(","), a.effects.split(",") if a.effects else None,
-                             [float(v) for v in a.strengths.split(",")], a.controls) if key(*c) not in done]
+                             [float(v) for v in a.strengths.split(",")], a.controls, a.control_seed)
+            if key(*c) not in done]
     print(f"{len(todo)} cases to run ({len(done)} done before)", flush=True)
     jobs = [(sc, eff, s, seed, a, t0) for sc, eff, s, seed in todo]
     if a.jobs > 1 and len(jobs) > 1:
@@ -379,7 +383,8 @@ def main(argv=None) -> int:
                 print("deadline: stopping", flush=True)
                 break
             _append(jl, row)
-    text = table(_rows(jl))
+    rows = {r["case"]: r for f in ([jl] + [Path(x) for x in (a.rows.split(",") if a.rows else [])]) for r in _rows(f)}
+    text = table(list(rows.values()))
     print(text)
     if a.write:
         Path(a.write).write_text("# diagnose on the suite's named scenes\n\n" + __doc__.split("\n\n")[1] + "\n\n" + text)
