@@ -26,7 +26,11 @@ buffers and graphs between calls: use it in a fit loop) and `simulate(model, con
 
 from __future__ import annotations
 
+import atexit
+import itertools
 import math
+import os
+import sys
 from typing import Mapping
 
 import numpy as np
@@ -61,6 +65,21 @@ EAGER_FORWARDS = 1
 # forwards so far (the rest shape and the contacts' reach before the first) plus this many cells on
 # each side. A pass whose particles leave the box (every p2g checks) is redone on the whole grid.
 BOX_MARGIN = 4
+# PHYSINTERACT_SIM_STATS=1 in the environment: at exit, one line per rollout on stderr (its size, the
+# grid box's share of the grid, passes redone, frames whose states were stored, forwards / backwards run)
+_STATS: dict | None = {} if os.environ.get("PHYSINTERACT_SIM_STATS") else None   # rollout no. -> line (no references)
+
+
+_ROLLOUT_NO = itertools.count()
+
+
+def _print_stats() -> None:
+    for line in (_STATS or {}).values():
+        print(line, file=sys.stderr)
+
+
+if _STATS is not None:
+    atexit.register(_print_stats)
 
 
 def _torch_device(model) -> torch.device:
@@ -141,6 +160,8 @@ class Rollout:
         self._replay_graphs: dict[int, object] = {}
         self._adj_graphs: dict[int, object] = {}
         self.box_redos = 0             # passes redone on the whole grid because particles left the box
+        self.n_forwards = self.n_backwards = 0
+        self._stats_key = next(_ROLLOUT_NO)
         self._reach = None             # (lo, hi) grid nodes the stencils reached in the forwards so far
         if self.solver.grid_box:
             self._initial_box()
@@ -330,6 +351,7 @@ class Rollout:
         substep's state for `run_backward` (when they fit); returns the stored states' generation
         (None: not stored)."""
         gen = None
+        self.n_forwards += 1
         if store and self._states is None:
             n = self.frames_to_store()
             if n > 0:
@@ -361,7 +383,19 @@ class Rollout:
         self.solver.raise_on_status(self.status)
         if self.solver.grid_box:
             self._update_box()
+        self._record_stats()
         return gen
+
+    def _record_stats(self) -> None:
+        if _STATS is None:
+            return
+        sol = self.solver
+        _STATS[self._stats_key] = (
+            f"sim stats: {self.P} particles, {self.T} frames x {self.S} substeps, grid {sol.res}: box "
+            f"{sol.box_volume:,} of {sol.n_nodes:,} nodes ({sol.box_volume / sol.n_nodes:.1%}, "
+            f"{'on' if sol.grid_box else 'off'}), passes redone {self.box_redos}; states stored for "
+            f"{0 if self._states is None else len(self._states)} of {self.T} frames; forwards {self.n_forwards}, "
+            f"backwards {self.n_backwards}")
 
     def run_backward(self, generation: int | None = None) -> SimState:
         """From self.ck (the forward's checkpoints) and self.grad_x / self.grad_F (dL/dx, dL/dF per
@@ -369,6 +403,7 @@ class Rollout:
         `generation`: what `run_forward(store=True)` returned; the stored states are used as they
         are while no later forward stored over them (else they are replayed from self.ck)."""
         m = self.model
+        self.n_backwards += 1
         if self._replay is None and (self._states is None or len(self._states) < self.T):
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
         self.solver._alloc_adj()
@@ -400,6 +435,7 @@ class Rollout:
             fresh = False      # the adjoints rewrite the stored states from their (wrong) grids: replay them
         if stored:     # a replay (or a graph's warm-up run) may have overwritten the stored states
             self.states_generation += 1 if not fresh else 0
+        self._record_stats()
         return self._adj[0]
 
     # ------------------------------------------------------------------ torch
