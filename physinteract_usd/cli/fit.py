@@ -58,7 +58,7 @@ def add_parser(sub):
     s.add_argument("--guard", action="store_true",
                    help="bumps schedule: fit the field and the uniform model on training frames and return the field "
                         "only if its loss on the held-back frames is clearly lower (else one E, the field recorded as "
-                        "rejected); about 1.1x the fit's time (#24)")
+                        "rejected); about 1.1-1.4x the fit's time (#24)")
     s.add_argument("--unconstrained-floor", type=float, default=None, metavar="F",
                    help="after the fit, mark the particles strained less than F x the median over the clip (and the "
                         "held ones) as unconstrained: confidence 0, E from the material they are attached to (0.1 is "
