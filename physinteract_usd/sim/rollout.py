@@ -49,12 +49,12 @@ _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
 # A rollout keeps substep states for its backward up to this size: every frame's when they fit, else
 # as many frames' as fit (the others are replayed from their checkpoints, into one frame's replay
 # buffer, counted in the budget). None (default): 1 GiB on the CPU; on a GPU STORE_STATES_GPU_FRACTION
-# of its memory, at most what is free less STORE_STATES_GPU_HEADROOM bytes when they are allocated
+# of its memory, at most what is free less STORE_STATES_GPU_HEADROOM of it (at least 4 GiB) when they are allocated
 # (the paper fit's 21k particles x 45 frames x 421 states are ~53 GB: without this every backward
 # replayed its whole forward, ~20% of an iteration)
 STORE_STATES_BYTES: int | None = None
 STORE_STATES_GPU_FRACTION = 0.5
-STORE_STATES_GPU_HEADROOM = 4 << 30
+STORE_STATES_GPU_HEADROOM = 0.1
 # A forward without gradients runs its launches eagerly this many times before its graphs are
 # captured: a rollout at a new rung is often used once (a start-search probe), and capturing T
 # graphs for one replay costs more than launching them (CPU, the sample at grid 12: 3.5 s to
@@ -320,8 +320,8 @@ class Rollout:
         dev = wp.get_device(self.model.device)
         if not dev.is_cuda:
             return 1 << 30
-        return int(max(0, min(STORE_STATES_GPU_FRACTION * dev.total_memory,
-                              dev.free_memory - STORE_STATES_GPU_HEADROOM)))
+        headroom = max(4 << 30, STORE_STATES_GPU_HEADROOM * dev.total_memory)
+        return int(max(0, min(STORE_STATES_GPU_FRACTION * dev.total_memory, dev.free_memory - headroom)))
 
     def states_fit(self) -> bool:
         """Whether every substep's state of every frame fits in the budget (`store_budget`)."""
