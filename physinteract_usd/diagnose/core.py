@@ -590,7 +590,11 @@ def _resized(c, way: str, x0: np.ndarray, contacts, spacing: float):
     return dataclasses.replace(c, indices=np.sort(idx).astype(np.int64))
 
 
-def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> list[Probe]:
+def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings, weight: np.ndarray | None = None
+                          ) -> list[Probe]:
+    """`heterogeneity`'s probes: the split directions of `fit.regions` from the gradient of the
+    residual's square in log E (`weight`: per image element, e.g. 0 on held-back frames, so that a
+    direction chosen for a held-back test has not seen those frames)."""
     from ..fit import regions as R
 
     prob, b = run.prob, run.base
@@ -601,7 +605,9 @@ def _heterogeneity_probes(run: _Runner, r0: np.ndarray, s: DiagnoseSettings) -> 
             eff["plasticity"]["yieldStress"] = 1e20      # never reached; the adjoint of inf is not finite
         x, F = prob.sim.simulate(torch.exp(logE), b.nu, None, effects=eff)
         r = run.res.torch(x, F)
-        (r * r).sum().backward()
+        w = 1.0 if weight is None else torch.as_tensor(np.asarray(weight).reshape(tuple(r.shape)), dtype=r.dtype,
+                                                       device=r.device)
+        (r * r * w).sum().backward()
     run.forwards += 2
     g = logE.grad.detach().cpu().numpy().astype(np.float64)
     held = prob.held_particles()

@@ -422,12 +422,21 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
         if p.discrete or cr.effect not in ("heterogeneity", "camera:time_offset", "camera:depth_scale"):
             r1 = r0 + col                           # the probe itself (amplitude 1)
         else:
-            A = np.column_stack([J, col]) if J.size else col[:, None]
+            pf = p
+            if cr.effect == "heterogeneity" and f:
+                # the split direction chosen again without the held-back frames (the score test's was chosen
+                # from the residual's gradient on all frames: a selection the held-back test would not undo)
+                from .core import _heterogeneity_probes
+
+                again = _heterogeneity_probes(run, r0[:n], ctx["settings"], weight=(~m).astype(np.float64))
+                pf = again[0] if again else p
+            cf = _pad(pf.column, len(r0))
+            A = np.column_stack([J, cf]) if J.size else cf[:, None]
             t = float(_train_lstsq(A, r0, train)[-1])
-            if p.sign and t * p.sign < 0:
+            if pf.sign and t * pf.sign < 0:
                 t = 0.0
             if cr.effect == "heterogeneity":        # the field moved by that step, simulated
-                v = torch.as_tensor(p.meta["direction"], dtype=run.base.E.dtype, device=run.base.E.device)
+                v = torch.as_tensor(pf.meta["direction"], dtype=run.base.E.dtype, device=run.base.E.device)
                 try:
                     r1 = run.aug(run.r(E=run.base.E * torch.exp(t * v)))
                 except SimulationError as exc:
@@ -435,7 +444,7 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
                     cr.accepted = False
                     return
             else:
-                r1 = r0 + col * t                   # render-only / gravity: the linear step itself
+                r1 = r0 + cf * t                    # render-only / gravity: the linear step itself
         a1 = _train_lstsq(J, r1, train)
         b1 = r1 + (J @ a1 if J.size else 0.0)
         if real is None:
