@@ -133,6 +133,24 @@ def test_control_scene_with_noise_is_adequate(control):
                                                    "camera:time_offset"}
 
 
+def test_with_refits_a_control_names_nothing_though_a_candidate_passes_the_score_test(control):
+    """Without the 3% size gate (refits confirm: `DiagnoseSettings.confirmed`), the control's
+    `camera:depth_scale` (p at the sign flips' floor: the rendering's soft alpha against the binary
+    masks, ~1.8% of the loss) is significant and goes to the held-back test, which rejects it; the
+    residual is at the rest frame's floor, so the verdict is `adequate` and nothing is named."""
+    from physinteract_usd import api
+
+    d = api.diagnose(control["stage"], refit=3, refit_iterations=2, progress=False, log=lambda *a: None,
+                     write_stage=False, starts=1, candidates="damping,viscoelasticity,camera:depth_scale")
+    t = {x["effect"]: x for x in d["tested"]}
+    ds_ = t["camera:depth_scale"]
+    assert ds_["significant"] and ds_["relative_drop"] < 0.03          # the old gate would have stopped it
+    assert ds_["held_back_p"] is not None and ds_["accepted"] is False
+    assert ds_["held_back_p"] >= ds_["held_back_level"]
+    assert d["verdict"] == "adequate", d["reason"]
+    assert "held-back" in d["reason"]
+
+
 def test_a_refit_on_a_scene_without_the_effect_is_not_accepted(control):
     """Damping refitted on the control scene (no hidden effect) from c = 2/s, against the base and
     the base refitted alike on the same held-back frames: not accepted, with its drop's standard
