@@ -223,19 +223,21 @@ def timing_confidence(timing: Timing, eps: float, evidence: dict, notes: list) -
 
 
 def moved_alone(timing: Timing, eps: float):
-    """Where the two cues of the release disagree: the pairs between the grasp and the release in
-    which the object next to the contact moves clearly (>= 2 `eps`) and not with the toucher
-    (decoupled) while the toucher rests on it (slower than 2 `eps`, or hidden: no evidence either
-    way, `moves_off`). The
-    release is put where the toucher moves off; an object that moved away from a resting hand may
-    have been let go there. (first pair, last pair, the fastest such motion in px a frame) of the
+    """Where the two cues of the release disagree: the pairs before the release (after the object
+    last followed the toucher) in which the object next to the contact moves clearly (>= 2 `eps`)
+    and not with the toucher (decoupled) while the toucher rests on it (slower than 2 `eps`, or
+    hidden: no evidence either way, `moves_off`). The release is put where the toucher moves off;
+    an object that moved away from a resting hand may have been let go there. (first pair, last pair, the fastest such motion in px a frame) of the
     first run of them, or None."""
     g, r = timing.grasp, timing.release
     if r is None:
         return None
     so = np.linalg.norm(timing.object_velocity, axis=1)
     sh = np.linalg.norm(timing.hand_velocity, axis=1)
-    ks = [k for k in range(g + 1, min(r, len(so))) if timing.near[k] and timing.coupled[k] < 0
+    # after the object last followed the toucher (before it, the pull had not yet taken the object
+    # along: a slow start, not a letting go)
+    last = max([k for k in range(g, min(r, len(so))) if timing.coupled[k] > 0], default=g)
+    ks = [k for k in range(last + 1, min(r, len(so))) if timing.near[k] and timing.coupled[k] < 0
           and np.isfinite(so[k]) and so[k] >= 2 * eps and not (np.isfinite(sh[k]) and sh[k] >= 2 * eps)]
     if not ks:
         return None
