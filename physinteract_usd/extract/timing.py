@@ -561,11 +561,13 @@ def following_onset(g: int, coupled: np.ndarray, vo: np.ndarray, eps: float, rea
     onset alone put the grasp a frame early on 5 of 12 captures, 2 on one). Past `reach` the two
     onsets are not the same event (the object was already moving, or moves by itself): g stands.
     Where the object next to the contact does not visibly follow (a stiff object, the contact
-    hidden), or is not seen at rest before it does (it moves on its own: a plush toy still sliding
-    as a palm lands on it, dev_9331, whose grasp this put 2 frames late), the toucher's onset
-    stands."""
+    hidden), or is not seen at rest before it does, from the pair before the toucher's onset on (it
+    moves on its own: a plush toy still sliding as a palm lands on it, dev_9331, whose grasp this
+    put 2 frames late), the toucher's onset stands."""
     so = np.linalg.norm(vo, axis=1)
     T1 = len(coupled)
+    if g >= 1 and np.isfinite(so[g - 1]) and so[g - 1] >= eps:
+        return g      # the object was moving (on its own) into the toucher's onset: no onset of its own
     for k in range(g, min(T1 - 1, g + reach + 1)):
         if coupled[k] > 0 and coupled[k + 1] > 0 and so[k] >= eps and so[k + 1] >= eps:
             return k
