@@ -227,8 +227,8 @@ def moved_alone(timing: Timing, eps: float):
     last followed the toucher) in which the object next to the contact moves clearly (>= 2 `eps`)
     and not with the toucher (decoupled) while the toucher rests on it (slower than 2 `eps`, or
     hidden: no evidence either way, `moves_off`). The release is put where the toucher moves off;
-    an object that moved away from a resting hand may have been let go there. (first pair, last pair, the fastest such motion in px a frame) of the
-    first run of them, or None."""
+    an object that moved away from a resting hand may have been let go there. Returns (first pair,
+    last pair, the fastest such motion in px a frame) of the first run of them, or None."""
     g, r = timing.grasp, timing.release
     if r is None:
         return None
