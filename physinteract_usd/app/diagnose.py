@@ -169,6 +169,13 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
         if len(group) < 2:
             continue
         win = compare_rivals(diag, cr, group)
+        if win is cr and cr.effect in TIE_PAIR:
+            # the paired rival test could not tell them apart: damping vs viscoelasticity, the frames after
+            # the release decide (`tie_break_after_release`)
+            mate = next((c for c in group[1:] if c.effect in TIE_PAIR and c.effect != cr.effect), None)
+            got = _after_release(diag, cr, mate) if mate is not None else None
+            if got is not None:
+                win = got[0]
         if win is cr:
             continue
         # the rival explains the held-back frames better: it is named in the selected one's place
@@ -254,26 +261,15 @@ def order_accepted(diag, refit: int) -> None:
 TIE_PAIR = frozenset(("damping", "viscoelasticity"))
 
 
-def tie_break_after_release(diag, pair=TIE_PAIR) -> dict | None:
-    """Damping and viscoelasticity both accepted, their held-back drops overlapping within their
-    standard errors (|D_a - D_b| <= sqrt(se_a^2 + se_b^2)): the one whose refitted model leaves the
-    lower residual on the held-back frames **after the release** is named first. After the release no
-    load is held, and the two differ most there: damping slows every motion (the swing's amplitude,
-    the rigid part of it too), a Maxwell branch only relaxes the shape toward rest; while the hand
-    pulls, both change the frames alike (on the tests' tiny bar their projected columns' |cos| is 0.66
-    before the release, 0.24-0.47 after it). A tie-break, not a test: the difference's paired test is
-    reported (`rival_test["after_release"]`), not required. Returns that comparison, or None when it
-    does not apply (not both accepted, not the same folds, drops apart, no release or no held-back
-    frame after it)."""
+def _after_release(diag, a, b) -> tuple | None:
+    """The after-release comparison of two accepted candidates refitted on the same held-back frames
+    whose held-back drops overlap within their standard errors (`tie_break_after_release`): (winner,
+    loser, {"after_release_from", "winner", "drop", "se", "p"}), or None when it does not apply."""
     from ..diagnose.evidence import release_frame
     from ..diagnose.refit import _same_folds, held_back_test
 
-    acc = {c.effect: c for c in diag.significant if c.effect in pair and c.accepted
-           and getattr(c, "_held", None) is not None}
-    if len(acc) != 2:
-        return None
-    a, b = (acc[e] for e in sorted(pair))
-    if not _same_folds(a._held, b._held):
+    if not (a.accepted and b.accepted and getattr(a, "_held", None) is not None
+            and getattr(b, "_held", None) is not None and _same_folds(a._held, b._held)):
         return None
     if abs(a.held_back_drop - b.held_back_drop) > math.hypot(a.held_back_se or 0.0, b.held_back_se or 0.0):
         return None
@@ -289,16 +285,38 @@ def tie_break_after_release(diag, pair=TIE_PAIR) -> dict | None:
     win, lose = (b, a) if t["drop"] > 0 else (a, b)
     if win is a:                                   # the paired test in the winner's direction
         t = held_back_test(diag, [(hb, ha, m) for ha, hb, m in trip])
-    d = t["drop"]
-    out = {"after_release_from": int(R), "winner": win.effect, "drop": d, "se": t["se"], "p": t["p"]}
+    out = {"after_release_from": int(R), "winner": win.effect, "drop": t["drop"], "se": t["se"], "p": t["p"]}
     win.rival_test = dict(win.rival_test or {}, against=lose.effect, after_release=out)
-    res = diag.results
-    first = res.index(win) < res.index(lose)
     win.note = (f"named before {lose.effect}: the two held-back drops overlap ({win.held_back_drop:.3g} +- "
                 f"{win.held_back_se:.2g} and {lose.held_back_drop:.3g} +- {lose.held_back_se:.2g}); on the held-back "
                 f"frames after the release (frame {R} on, where damping slows every motion and a viscoelastic branch "
-                f"only relaxes the shape) its residual is {d:.3g} +- {t['se']:.2g} lower; " + win.note)
-    if not first:
+                f"only relaxes the shape) its residual is {t['drop']:.3g} +- {t['se']:.2g} lower; " + win.note)
+    return win, lose, out
+
+
+def tie_break_after_release(diag, pair=TIE_PAIR) -> dict | None:
+    """Damping and viscoelasticity both accepted, their held-back drops overlapping within their
+    standard errors (|D_a - D_b| <= sqrt(se_a^2 + se_b^2)): the one whose refitted model leaves the
+    lower residual on the held-back frames **after the release** is named first. After the release no
+    load is held, and the two differ most there: damping slows every motion (the swing's amplitude,
+    the rigid part of it too), a Maxwell branch only relaxes the shape toward rest; while the hand
+    pulls, both change the frames alike (on the tests' tiny bar their projected columns' |cos| is 0.66
+    before the release, 0.24-0.47 after it). A tie-break, not a test: the difference's paired test is
+    reported (`rival_test["after_release"]`), not required. For two selected candidates (both
+    significant); a confusable pair (one the other's rival) is decided in `refit_confusable` by the
+    same comparison where the paired rival test cannot tell them apart. Returns that comparison, or
+    None when it does not apply (not both accepted, not the same folds, drops apart, no release or no
+    held-back frame after it)."""
+    acc = {c.effect: c for c in diag.significant if c.effect in pair and c.accepted}
+    if len(acc) != 2:
+        return None
+    a, b = (acc[e] for e in sorted(pair))
+    got = _after_release(diag, a, b)
+    if got is None:
+        return None
+    win, lose, out = got
+    res = diag.results
+    if res.index(win) > res.index(lose):
         res.remove(win)
         res.insert(res.index(lose), win)
     return out
