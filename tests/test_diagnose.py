@@ -133,22 +133,22 @@ def test_control_scene_with_noise_is_adequate(control):
                                                    "camera:time_offset"}
 
 
-def test_with_refits_a_control_names_nothing_though_a_candidate_passes_the_score_test(control):
-    """Without the 3% size gate (refits confirm: `DiagnoseSettings.confirmed`), the control's
-    `camera:depth_scale` (p at the sign flips' floor: the rendering's soft alpha against the binary
-    masks, ~1.8% of the loss) is significant and goes to the held-back test, which rejects it; the
-    residual is at the rest frame's floor, so the verdict is `adequate` and nothing is named."""
+def test_with_refits_the_size_gate_still_stops_a_rendering_error(control):
+    """With refits confirming (`DiagnoseSettings.confirmed`), the 3% size gate still applies: the
+    control's `camera:depth_scale` (p at the sign flips' floor: the rendering's soft alpha against
+    the binary masks, ~1.8% of the loss) is not significant, so nothing goes to a refit and nothing
+    is named. Without the gate the held-back test rejected it here, but on the H200's foam_bar
+    controls the same kind of systematic error passed it on 5 of 20 (`core.min_drop`)."""
     from physinteract_usd import api
 
     d = api.diagnose(control["stage"], refit=3, refit_iterations=2, progress=False, log=lambda *a: None,
                      write_stage=False, starts=1, candidates="damping,viscoelasticity,camera:depth_scale")
     t = {x["effect"]: x for x in d["tested"]}
     ds_ = t["camera:depth_scale"]
-    assert ds_["significant"] and ds_["relative_drop"] < 0.03          # the old gate would have stopped it
-    assert ds_["held_back_p"] is not None and ds_["accepted"] is False
-    assert ds_["held_back_p"] >= ds_["held_back_level"]
+    assert 0 < ds_["relative_drop"] < 0.03 and not ds_["significant"]
+    assert ds_.get("accepted") is None                                   # never refitted
+    assert d["candidates"] == []
     assert d["verdict"] == "adequate", d["reason"]
-    assert "held-back" in d["reason"]
 
 
 def test_a_refit_on_a_scene_without_the_effect_is_not_accepted(control):
