@@ -265,35 +265,24 @@ def main(argv=None):
     print("|---:|---:|---:|---:|---:|---:|---:|")
     for Pm, n, tf, tb, pf, pb in rows:
         print(f"| {Pm:,} | {n}^3 | {us(tf)} | {us(tb)} | {tb / tf:.1f} | {us(pf)} | {us(pb)} |")
-    if args.zeroing == "both":
-        zrows = []
+    stat = "best" if STAT == "min" else "median"
+    comparisons = (   # (asked, switch, what the two paths are, the columns' names)
+        (args.zeroing == "both", "FUSED_ZERO", "zeroing: memsets (FUSED_ZERO=False) vs fused kernels", None),
+        (args.box == "both", "GRID_BOX", "grid box: the grid kernels over the whole grid (GRID_BOX=False) vs over "
+                                         "the object's box (True)", ("whole grid", "box")),
+        (args.kernels == "both", "FUSED_KERNELS", "transfer kernels: separate (FUSED_KERNELS=False: stress, scatter, "
+                                                  "gather, update) vs fused (p2g_fused, g2p_fused)", ("separate", "fused")),
+    )
+    for asked, switch, what, names in comparisons:
+        if not asked:
+            continue
+        crows = []
         for s in sizes:
             P, n = (int(v) for v in s.split(":"))
-            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps)
-            zrows.append((Pm, n, r))
-        print(f"\nzeroing: memsets (FUSED_ZERO=False) vs fused kernels, alternating rounds, "
-              f"{'best' if STAT == 'min' else 'median'} of {args.reps}; backward = fwd+bwd - forward\n")
-        print(zeroing_table(zrows))
-    if args.box == "both":
-        brows = []
-        for s in sizes:
-            P, n = (int(v) for v in s.split(":"))
-            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, "GRID_BOX")
-            brows.append((Pm, n, r))
-        print(f"\ngrid box: the grid kernels over the whole grid (GRID_BOX=False) vs over the object's box "
-              f"(True), alternating rounds, {'best' if STAT == 'min' else 'median'} of {args.reps}; "
-              "backward = fwd+bwd - forward\n")
-        print(zeroing_table(brows, ("whole grid", "box")))
-    if args.kernels == "both":
-        krows = []
-        for s in sizes:
-            P, n = (int(v) for v in s.split(":"))
-            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, "FUSED_KERNELS")
-            krows.append((Pm, n, r))
-        print(f"\ntransfer kernels: separate (FUSED_KERNELS=False: stress, scatter, gather, update) vs fused "
-              f"(p2g_fused, g2p_fused), alternating rounds, {'best' if STAT == 'min' else 'median'} of {args.reps}; "
-              "backward = fwd+bwd - forward\n")
-        print(zeroing_table(krows, ("separate", "fused")))
+            Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, switch)
+            crows.append((Pm, n, r))
+        print(f"\n{what}, alternating rounds, {stat} of {args.reps}; backward = fwd+bwd - forward\n")
+        print(zeroing_table(crows, names) if names else zeroing_table(crows))
 
 
 if __name__ == "__main__":
