@@ -389,6 +389,29 @@ def guard_rule(uniform_val: list[float], field_val: list[float], added: int, s: 
     return {**r, "keep_field": keep, "sign_p": p, "why": why}
 
 
+class _Stages:
+    """A schedule's stages run one after another: each stage's iterations numbered on from the
+    stages before it (for `on_iteration`), their loss histories joined."""
+
+    def __init__(self, on_iteration):
+        self.on_iteration, self.used, self.history = on_iteration, 0, []
+
+    def run(self, go):
+        base, cb = self.used, self.on_iteration
+        r = go(lambda it, *a: cb(base + it, *a) if cb is not None else None)
+        self.used += len(r.loss_history)
+        self.history.extend(r.loss_history)
+        return r
+
+
+def _stage_budgets(s: FitSettings) -> tuple[int, int, int]:
+    """(all iterations N, the uniform model's, the final polish's) of select's and the guard's budget."""
+    N = max(int(s.iterations), 0)
+    n_final = int(round(s.select_final_share * N)) if N else 0
+    n_uni = max(int(round(s.select_uniform_share * N)), 1) if N else 0
+    return N, n_uni, n_final
+
+
 def fit_guarded(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
                 on_iteration=None, uniform_e: float | None = None, candidates: dict | None = None) -> FitResult:
     """The bumps schedule with a guard (`FitSettings.uniform_guard`, #24): the bumps field (the
@@ -410,18 +433,9 @@ def fit_guarded(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=
         r.model = {**(r.model or {}), "guard": {"why": "no held-back frames (fewer than 6 frames): the field unjudged"}}
         return r
     view = FrameView(prob, train)
-    N = max(int(s.iterations), 0)
-    n_final = int(round(s.select_final_share * N)) if N else 0
-    n_uni = max(int(round(s.select_uniform_share * N)), 1) if N else 0
-    used, histories = [0], []
-
-    def run(go):
-        base = used[0]
-        r_ = go(lambda it, *a: on_iteration(base + it, *a) if on_iteration is not None else None)
-        used[0] += len(r_.loss_history)
-        histories.extend(r_.loss_history)
-        return r_
-
+    N, n_uni, n_final = _stage_budgets(s)
+    stages = _Stages(on_iteration)
+    run = stages.run
     sb = dataclasses.replace(s, confidence_probes=0)
     rb = run(lambda cb: fit_bumps(view, sb, progress=progress, log=log, on_iteration=cb, uniform_e=uniform_e))
     if rb.interrupted:
@@ -454,7 +468,7 @@ def fit_guarded(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=
     sc = dataclasses.replace(s, levels=levels, level_share=(1.0,), iterations=n_final, search_effects=(),
                              trajectory_levels=1, fit_poisson_levels=1 if chosen == "uniform" else s.fit_poisson_levels)
     r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb, start=start_of(r0)))
-    r.loss_history = histories
+    r.loss_history = stages.history
     r.uniform_start = rb.uniform_start
     r.interrupted = r.interrupted or ru.interrupted
     r.settings = {**r.settings, **{k: v for k, v in dataclasses.asdict(s).items() if k not in ("levels", "level_share")},
@@ -1074,19 +1088,9 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     after_release = [c.release_frame + 1 for c in prob.contacts if getattr(c, "release_frame", None) is not None]
     train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
     view = FrameView(prob, train)
-    N = max(int(s.iterations), 0)
-    n_final = int(round(s.select_final_share * N)) if N else 0
-    n_uni = max(int(round(s.select_uniform_share * N)), 1) if N else 0
-    used = [0]
-    histories = []
-
-    def run(go):
-        base = used[0]
-        r = go(lambda it, *a: on_iteration(base + it, *a) if on_iteration is not None else None)
-        used[0] += len(r.loss_history)
-        histories.extend(r.loss_history)
-        return r
-
+    N, n_uni, n_final = _stage_budgets(s)
+    stages = _Stages(on_iteration)
+    run = stages.run
     # 1. the uniform stage
     if uniform_e is not None:   # a search already found it (app: the support sizing)
         uni = {"e": float(uniform_e), "loss": None, "shape": "given", "minima": [], "sweep": {}, "skipped": []}
@@ -1226,7 +1230,7 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
             r0 = r
             r = run(lambda cb: fit_bumps(prob, sc, progress=progress, log=log, on_iteration=cb,
                                          start=field_start(r0) if chosen == "field" else start_of(r0)))
-    r.loss_history = histories
+    r.loss_history = stages.history
     r.uniform_start = uni["e"]
     r.interrupted = r.interrupted or interrupted
     r.settings = {**r.settings,
