@@ -758,6 +758,209 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
         adj_x[p] = adj_x[p] + inv_dx * g_fx
 
+    # ------------------------------------------------------------------ block-local scatters (P2G_MODE "tiled")
+    # The particle -> grid scatter (p2g) and the gather's adjoint (a scatter of the grid velocity's adjoint)
+    # without a global atomic per particle and node: a block of threads takes `chunk` consecutive particles
+    # (particles are in cell order at rest: init's lattice order), adds their 27-node stencils into a tile
+    # of nodes in shared memory (the box of the block's stencils: lower corner the least base, extent the
+    # bases' span + 3 nodes per axis, clipped to `cap` slots; a node outside the clipped box gets its
+    # global atomic directly), then adds each touched node of the tile into the grid with one global
+    # atomic. Launched with wp.launch_tiled(dim=[n_blocks], block_dim=chunk) on CUDA; on the CPU (one
+    # thread per block unless wp.config.enable_cpu_blocks) the same code, each thread looping over its
+    # block's particles (`niter`). Every thread reaches every shared add (`acc[q] += val` syncs the
+    # block): particles past the end add zeros into the spare last slot.
+    TILE_CAP = 1024 if name == "float32" else 512      # shared slots: 32 KB of vec8 (fp32), 12 KB of vec3
+    # a module of their own: a launch with another block_dim builds a variant of the whole module
+    tmodule = module + "_tiled"
+    vec8 = wp.types.vector(length=8, dtype=T)
+
+    @wp.func
+    def tile_slot(n: wp.vec3i, tlo: wp.vec3i, te: wp.vec3i):
+        # the slot of node n in a block's tile box (lower corner tlo, extent te), -1 outside it
+        d = n - tlo
+        if d[0] >= 0 and d[1] >= 0 and d[2] >= 0 and d[0] < te[0] and d[1] < te[1] and d[2] < te[2]:
+            return (d[0] * te[1] + d[1]) * te[2] + d[2]
+        return -1
+
+    @wp.func
+    def block_bases(x: wp.array(dtype=vec3), p0: int, p1: int, niter: int, lane: int, bd: int, lo: vec3,
+                    inv_dx: T, res: wp.vec3i):
+        # this thread's least and greatest base over its particles of the block (p0 .. p1 - 1)
+        blo = wp.vec3i(res[0], res[1], res[2])
+        bhi = wp.vec3i(-1, -1, -1)
+        for it in range(niter):
+            p = p0 + it * bd + lane
+            if p < p1:
+                b = cell_base((x[p] - lo) * inv_dx, res)
+                blo = wp.vec3i(wp.min(blo[0], b[0]), wp.min(blo[1], b[1]), wp.min(blo[2], b[2]))
+                bhi = wp.vec3i(wp.max(bhi[0], b[0]), wp.max(bhi[1], b[1]), wp.max(bhi[2], b[2]))
+        return blo, bhi
+
+    @wp.func
+    def clip_extent(e: wp.vec3i, cap: int):
+        # the tile box's extent within cap slots: z first (the lattice's fastest axis), then y, then x
+        e2 = wp.max(wp.min(e[2], cap), 1)
+        e1 = wp.max(wp.min(e[1], cap / e2), 1)
+        e0 = wp.max(wp.min(e[0], cap / (e1 * e2)), 1)
+        return wp.vec3i(e0, e1, e2)
+
+    @wp.kernel(module=tmodule, enable_backward=False)
+    def p2g_tiled(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
+                  vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
+                  eff: wp.array(dtype=T), flags: int, material: int, dt: T, with_stress: int,
+                  x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), mass: wp.array(dtype=T),
+                  pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i),
+                  chunk: int, cap: int,
+                  A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
+        # p2g_scatter (with_stress: p2g_fused, A computed and stored) accumulated block-locally; the same
+        # per-node values, summed in another order (shared tile first)
+        blk, lane = wp.tid()
+        bd = wp.block_dim()
+        p0 = blk * chunk
+        p1 = wp.min(p0 + chunk, x.shape[0])
+        niter = (chunk + bd - 1) / bd
+        blo, bhi = block_bases(x, p0, p1, niter, lane, bd, lo, inv_dx, res)
+        l0 = wp.tile_min(wp.tile(blo[0]))
+        l1 = wp.tile_min(wp.tile(blo[1]))
+        l2 = wp.tile_min(wp.tile(blo[2]))
+        h0 = wp.tile_max(wp.tile(bhi[0]))
+        h1 = wp.tile_max(wp.tile(bhi[1]))
+        h2 = wp.tile_max(wp.tile(bhi[2]))
+        tlo = wp.vec3i(l0[0], l1[0], l2[0])
+        te = clip_extent(wp.vec3i(h0[0] - l0[0] + 3, h1[0] - l1[0] + 3, h2[0] - l2[0] + 3),
+                         wp.min(cap, TILE_CAP - 1))
+        acc = wp.tile_zeros(shape=TILE_CAP, dtype=vec8, storage="shared")
+        dx = T(1.0) / inv_dx
+        for it in range(niter):
+            p = p0 + it * bd + lane
+            valid = p < p1
+            pc = wp.min(p, p1 - 1)
+            vf = T(0.0)
+            if valid:
+                vf = T(1.0)
+            Ap = mat33()
+            if with_stress != 0:
+                Ap = affine_A(pc, F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt)
+                if valid:
+                    A[pc] = Ap
+            else:
+                Ap = A[pc]
+            m = mass[pc]
+            xp = (x[pc] - lo) * inv_dx
+            base = cell_base(xp, res)
+            if valid and out_of_box(base, box):
+                wp.atomic_add(box_flag, 0, 1)
+            fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+            mv = m * v[pc]
+            pinned, pv = pin_velocity(pc, pin_id, pin_active, pin_pos, frame, fps)
+            pf = T(0.0)
+            if pinned != 0:
+                pf = T(1.0)
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        w = vf * (bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2]))
+                        d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                        mom = w * (mv + Ap * d)
+                        wm = w * m
+                        pm = pf * wm
+                        pmv = pm * pv
+                        s = tile_slot(wp.vec3i(base[0] + i, base[1] + j, base[2] + k), tlo, te)
+                        q = TILE_CAP - 1
+                        val = vec8()
+                        if s >= 0:
+                            q = s
+                            val = vec8(wm, mom[0], mom[1], mom[2], pm, pmv[0], pmv[1], pmv[2])
+                        elif valid:
+                            wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, mom)
+                            wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, wm)
+                            if pinned != 0:
+                                wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, pm)
+                                wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, pmv)
+                        acc[q] += val
+        # one global atomic per touched node (and array) of the tile
+        n_slots = te[0] * te[1] * te[2]
+        for q in range(lane, n_slots, bd):
+            a = acc[q]
+            if a[0] != T(0.0):
+                i = tlo[0] + q / (te[1] * te[2])
+                j = tlo[1] + (q / te[2]) % te[1]
+                k = tlo[2] + q % te[2]
+                wp.atomic_add(gmv, i, j, k, vec3(a[1], a[2], a[3]))
+                wp.atomic_add(gm, i, j, k, a[0])
+                if a[4] != T(0.0):
+                    wp.atomic_add(gpm, i, j, k, a[4])
+                    wp.atomic_add(gpmv, i, j, k, vec3(a[5], a[6], a[7]))
+
+    @wp.kernel(module=tmodule, enable_backward=False)
+    def g2p_gather_adj_tiled(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T,
+                             res: wp.vec3i, adj_vg: wp.array(dtype=vec3), adj_Cg: wp.array(dtype=mat33),
+                             chunk: int, cap: int,
+                             adj_x: wp.array(dtype=vec3), adj_gv: wp.array3d(dtype=vec3)):
+        # g2p_gather_adj with its scatter into adj_gv accumulated block-locally (as p2g_tiled)
+        blk, lane = wp.tid()
+        bd = wp.block_dim()
+        p0 = blk * chunk
+        p1 = wp.min(p0 + chunk, x.shape[0])
+        niter = (chunk + bd - 1) / bd
+        blo, bhi = block_bases(x, p0, p1, niter, lane, bd, lo, inv_dx, res)
+        l0 = wp.tile_min(wp.tile(blo[0]))
+        l1 = wp.tile_min(wp.tile(blo[1]))
+        l2 = wp.tile_min(wp.tile(blo[2]))
+        h0 = wp.tile_max(wp.tile(bhi[0]))
+        h1 = wp.tile_max(wp.tile(bhi[1]))
+        h2 = wp.tile_max(wp.tile(bhi[2]))
+        tlo = wp.vec3i(l0[0], l1[0], l2[0])
+        te = clip_extent(wp.vec3i(h0[0] - l0[0] + 3, h1[0] - l1[0] + 3, h2[0] - l2[0] + 3),
+                         wp.min(cap, TILE_CAP - 1))
+        acc = wp.tile_zeros(shape=TILE_CAP, dtype=vec3, storage="shared")
+        for it in range(niter):
+            p = p0 + it * bd + lane
+            valid = p < p1
+            pc = wp.min(p, p1 - 1)
+            vf = T(0.0)
+            if valid:
+                vf = T(1.0)
+            xp = (x[pc] - lo) * inv_dx
+            base = cell_base(xp, res)
+            fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+            a = adj_vg[pc]
+            Cb = (T(4.0) * inv_dx) * adj_Cg[pc]
+            CbT = wp.transpose(Cb)
+            g_fx = vec3()
+            for i in range(3):
+                for j in range(3):
+                    for k in range(3):
+                        wi = bw(i, fx[0])
+                        wj = bw(j, fx[1])
+                        wk = bw(k, fx[2])
+                        w = wi * wj * wk
+                        gw = vec3(dbw(i, fx[0]) * wj * wk, wi * dbw(j, fx[1]) * wk, wi * wj * dbw(k, fx[2]))
+                        e = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
+                        g = gv[base[0] + i, base[1] + j, base[2] + k]
+                        Ce = Cb * e
+                        contrib = (vf * w) * (a + Ce)
+                        s = tile_slot(wp.vec3i(base[0] + i, base[1] + j, base[2] + k), tlo, te)
+                        q = TILE_CAP - 1
+                        val = vec3()
+                        if s >= 0:
+                            q = s
+                            val = contrib
+                        elif valid:
+                            wp.atomic_add(adj_gv, base[0] + i, base[1] + j, base[2] + k, contrib)
+                        acc[q] += val
+                        g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
+            if valid:
+                adj_x[pc] = adj_x[pc] + inv_dx * g_fx
+        n_slots = te[0] * te[1] * te[2]
+        for q in range(lane, n_slots, bd):
+            a = acc[q]
+            if a[0] != T(0.0) or a[1] != T(0.0) or a[2] != T(0.0):
+                wp.atomic_add(adj_gv, tlo[0] + q / (te[1] * te[2]), tlo[1] + (q / te[2]) % te[1],
+                              tlo[2] + q % te[2], a)
+
     @wp.func
     def update_particle(p: int, x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
                         vgp: vec3, nC: mat33,
@@ -925,6 +1128,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
         p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
         p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj, p2g_fused=p2g_fused, g2p_fused=g2p_fused,
+        p2g_tiled=p2g_tiled, g2p_gather_adj_tiled=g2p_gather_adj_tiled, TILE_CAP=TILE_CAP,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
