@@ -95,6 +95,7 @@ def median_wall(fn, device, reps: int) -> float:
 
 
 STAT = "min"
+P2G_STATS: list[str] = []      # the tiled p2g's atomics counted per comparison (for --json)
 
 
 # the values a comparison's "before" (False) and "after" (True) set `sim.solver.<switch>` to, where not the
@@ -156,7 +157,9 @@ def compare_zeroing(P, n, T, S, device, reps, switch="FUSED_ZERO"):
         (x[-1].sum() + F[-1].sum()).backward()
     sync(device)
     if switch == "P2G_MODE":
-        print("  " + tile_stats_line(m, ros[True].solver), flush=True)
+        line = tile_stats_line(m, ros[True].solver)
+        P2G_STATS.append(line)
+        print("  " + line, flush=True)
     if switch == "GRID_BOX":
         s = ros[True].solver
         print(f"  grid box ({m.n_particles} particles, {n}^3): nodes {s.box_lo} .. {s.box_hi} = {s.box_volume:,} "
@@ -333,7 +336,9 @@ def main(argv=None):
     ap.add_argument("--p2g-blocks", type=int, nargs="*", default=None,
                     help="particles per block of the tiled scatters, one table each (default: "
                          "sim.solver.P2G_BLOCK)")
+    ap.add_argument("--json", default=None, help="also write the tables' numbers here (e.g. $OUT/bench_sim.json)")
     args = ap.parse_args(argv)
+    report = {"device": None, "rows": [], "comparisons": [], "agreement": []}
     global STAT
     STAT = args.stat
     device = "cuda:0" if args.device == "cuda" else args.device
@@ -353,6 +358,7 @@ def main(argv=None):
         pf, pb = run_probe(probe, device.split(":")[0] if device == "cpu" else device, P, n,
                            args.frames * args.substeps)
         rows.append((Pm, n, tf, tb, pf, pb))
+        report["rows"].append({"particles": Pm, "grid": n, "forward_us": tf * 1e6, "fwd_bwd_us": tb * 1e6})
         print(f"  P={Pm} n={n}: fwd {tf * 1e6:.0f} us, fwd+bwd {tb * 1e6:.0f} us per substep", flush=True)
 
     def us(v):
@@ -381,6 +387,7 @@ def main(argv=None):
             P, n = (int(v) for v in s.split(":"))
             for line in check_p2g(P, n, device):
                 print(line, flush=True)
+                report["agreement"].append(line.strip())
     for asked, switch, what, names, *block in comparisons:
         if not asked:
             continue
@@ -391,9 +398,20 @@ def main(argv=None):
             P, n = (int(v) for v in s.split(":"))
             Pm, r = compare_zeroing(P, n, args.frames, args.substeps, device, args.reps, switch)
             crows.append((Pm, n, r))
+            keys = ("wall_forward_us", "wall_fwd_bwd_us", "cpu_forward_us", "cpu_fwd_bwd_us")
+            report["comparisons"].append({"switch": switch, "what": what, "particles": Pm, "grid": n,
+                                          **{f"{names[0] if names else 'before'}": dict(zip(keys, [v * 1e6 for v in r[False]])),
+                                             f"{names[1] if names else 'after'}": dict(zip(keys, [v * 1e6 for v in r[True]]))}})
         solver_mod.P2G_BLOCK = old_block
         print(f"\n{what}, alternating rounds, {stat} of {args.reps}; backward = fwd+bwd - forward\n")
         print(zeroing_table(crows, names) if names else zeroing_table(crows))
+    if args.json:
+        import json
+        report["device"] = device_name(device)
+        report["warp"] = wp.__version__
+        report["p2g_tile_stats"] = P2G_STATS
+        with open(args.json, "w") as fh:
+            json.dump(report, fh, indent=1)
 
 
 if __name__ == "__main__":
