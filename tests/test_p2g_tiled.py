@@ -106,7 +106,7 @@ def test_tiled_scatter_gradient_matches_finite_differences():
     right = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
     left = np.nonzero(pts[:, 0] < pts[:, 0].min() + 1e-9)[0]
     grab = np.repeat(pts[right].mean(0)[None], T + 1, 0)
-    grab[:, 0] += np.linspace(0.0, 0.01, T + 1)
+    grab += np.linspace(0.0, 1.0, T + 1)[:, None] * np.array([0.01, 0.004, -0.003])   # every pinned component
     ctrl = Control([Contact("pointAdherent", indices=right, trajectory=grab),
                     Contact("fixed", indices=left[:3])], n_frames=T)
     g = torch.Generator().manual_seed(3)

@@ -767,8 +767,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     # global atomic directly), then adds each touched node of the tile into the grid with one global
     # atomic. Launched with wp.launch_tiled(dim=[n_blocks], block_dim=chunk) on CUDA; on the CPU (one
     # thread per block unless wp.config.enable_cpu_blocks) the same code, each thread looping over its
-    # block's particles (`niter`). Every thread reaches every shared add (`acc[q] += val` syncs the
-    # block): particles past the end add zeros into the spare last slot.
+    # block's particles (`niter`). Every thread reaches every shared add (wp.tile_scatter_add syncs the
+    # block; a particle past the block's end, or a node outside the tile, passes has_value False).
     TILE_CAP = 1024 if name == "float32" else 512      # shared slots: 32 KB of vec8 (fp32), 12 KB of vec3
     # a module of their own: a launch with another block_dim builds a variant of the whole module
     tmodule = module + "_tiled"
@@ -830,16 +830,13 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         h2 = wp.tile_max(wp.tile(bhi[2]))
         tlo = wp.vec3i(l0[0], l1[0], l2[0])
         te = clip_extent(wp.vec3i(h0[0] - l0[0] + 3, h1[0] - l1[0] + 3, h2[0] - l2[0] + 3),
-                         wp.min(cap, TILE_CAP - 1))
+                         wp.min(cap, TILE_CAP))
         acc = wp.tile_zeros(shape=TILE_CAP, dtype=vec8, storage="shared")
         dx = T(1.0) / inv_dx
         for it in range(niter):
             p = p0 + it * bd + lane
             valid = p < p1
             pc = wp.min(p, p1 - 1)
-            vf = T(0.0)
-            if valid:
-                vf = T(1.0)
             Ap = mat33()
             if with_stress != 0:
                 Ap = affine_A(pc, F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt)
@@ -861,25 +858,22 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             for i in range(3):
                 for j in range(3):
                     for k in range(3):
-                        w = vf * (bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2]))
+                        w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
                         d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
                         mom = w * (mv + Ap * d)
                         wm = w * m
                         pm = pf * wm
                         pmv = pm * pv
                         s = tile_slot(wp.vec3i(base[0] + i, base[1] + j, base[2] + k), tlo, te)
-                        q = TILE_CAP - 1
-                        val = vec8()
-                        if s >= 0:
-                            q = s
-                            val = vec8(wm, mom[0], mom[1], mom[2], pm, pmv[0], pmv[1], pmv[2])
-                        elif valid:
+                        if s < 0 and valid:
                             wp.atomic_add(gmv, base[0] + i, base[1] + j, base[2] + k, mom)
                             wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, wm)
                             if pinned != 0:
                                 wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, pm)
                                 wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, pmv)
-                        acc[q] += val
+                        wp.tile_scatter_add(acc, wp.max(s, 0),
+                                            vec8(wm, mom[0], mom[1], mom[2], pm, pmv[0], pmv[1], pmv[2]),
+                                            s >= 0 and valid)
         # one global atomic per touched node (and array) of the tile
         n_slots = te[0] * te[1] * te[2]
         for q in range(lane, n_slots, bd):
@@ -914,15 +908,12 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         h2 = wp.tile_max(wp.tile(bhi[2]))
         tlo = wp.vec3i(l0[0], l1[0], l2[0])
         te = clip_extent(wp.vec3i(h0[0] - l0[0] + 3, h1[0] - l1[0] + 3, h2[0] - l2[0] + 3),
-                         wp.min(cap, TILE_CAP - 1))
+                         wp.min(cap, TILE_CAP))
         acc = wp.tile_zeros(shape=TILE_CAP, dtype=vec3, storage="shared")
         for it in range(niter):
             p = p0 + it * bd + lane
             valid = p < p1
             pc = wp.min(p, p1 - 1)
-            vf = T(0.0)
-            if valid:
-                vf = T(1.0)
             xp = (x[pc] - lo) * inv_dx
             base = cell_base(xp, res)
             fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
@@ -941,16 +932,11 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         e = vec3(T(float(i)), T(float(j)), T(float(k))) - fx
                         g = gv[base[0] + i, base[1] + j, base[2] + k]
                         Ce = Cb * e
-                        contrib = (vf * w) * (a + Ce)
+                        contrib = w * (a + Ce)
                         s = tile_slot(wp.vec3i(base[0] + i, base[1] + j, base[2] + k), tlo, te)
-                        q = TILE_CAP - 1
-                        val = vec3()
-                        if s >= 0:
-                            q = s
-                            val = contrib
-                        elif valid:
+                        if s < 0 and valid:
                             wp.atomic_add(adj_gv, base[0] + i, base[1] + j, base[2] + k, contrib)
-                        acc[q] += val
+                        wp.tile_scatter_add(acc, wp.max(s, 0), contrib, s >= 0 and valid)
                         g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
             if valid:
                 adj_x[pc] = adj_x[pc] + inv_dx * g_fx

@@ -54,7 +54,7 @@ GRID_BOX: bool | None = None
 P2G_MODE: str | None = None
 # particles per block of the tiled scatters (the CUDA block size; one thread per block on the CPU)
 P2G_BLOCK: int = 128
-# shared slots a block's tile may use (None: kernels' TILE_CAP - 1); a smaller cap clips the boxes (tests)
+# shared slots a block's tile may use (None: kernels.TILE_CAP); a smaller cap clips the boxes (tests)
 P2G_CAP: int | None = None
 
 
@@ -162,7 +162,7 @@ class MPMSolver:
         if self.p2g_mode not in ("atomic", "tiled"):
             raise ValueError(f"sim.solver.P2G_MODE must be 'atomic', 'tiled' or None, not {P2G_MODE!r}")
         self.p2g_block = int(P2G_BLOCK)
-        self.p2g_cap = K.TILE_CAP - 1 if P2G_CAP is None else int(min(P2G_CAP, K.TILE_CAP - 1))
+        self.p2g_cap = K.TILE_CAP if P2G_CAP is None else int(min(P2G_CAP, K.TILE_CAP))
 
     # ------------------------------------------------------------------ the grid box
     @property
