@@ -17,6 +17,7 @@ RANKS = {
     "errors": 0,
     "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1,
     "thickness": 1,  # the thinnest part of a voxelised solid (numpy / scipy)
+    "resolution": 1,  # the MPM's apparent stiffness by cells across a thin part (numpy)
     "scene": 2, "fill": 2, "tetmesh": 2, "batch": 2,
     "capture": 3, "sim": 3,
     "render": 4,
