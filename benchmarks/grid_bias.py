@@ -92,6 +92,90 @@ def analyse(a, scene: str, work: Path, row: dict, tag: str, cells_truth: float) 
     return out
 
 
+def inertia(gt_dir: Path, gt: dict, dx_gt: float, rb: dict, g_fine: int) -> dict:
+    """The truth motion's APIC extra inertia kappa at the truth's, the base fit's and the finer fit's
+    cell, and the E bias it predicts where the motion is inertia-borne: (1 + kappa_fit) / (1 + kappa_truth)."""
+    from physinteract_usd.resolution import apic_extra_inertia
+
+    try:
+        d = np.load(gt_dir / "particles.npz")
+        rest, x = d["rest"], d["positions"]
+        sub = np.random.default_rng(0).choice(len(rest), min(len(rest), 20000), replace=False)
+        # the fit's cell: the domain's longest side (1 + 2 padding) x extent over the grid (as synth sizes it)
+        dx_base = dx_gt / 0.7 * gt["suggested_init"]["grid"] / rb["grid"] if gt["suggested_init"]["grid"] else None
+        dxs = {"truth": dx_gt, "base": dx_base, "fine": dx_base * rb["grid"] / g_fine}
+        kap = {k: float(apic_extra_inertia(rest, x, gt["fps"], v, subset=sub)) for k, v in dxs.items()}
+        out = {f"kappa_{k}": round(v, 4) for k, v in kap.items()}
+        out.update({f"dx_{k}_mm": round(1000 * v, 2) for k, v in dxs.items()})
+        out.update(bias_base=round((1 + kap["base"]) / (1 + kap["truth"]), 4),
+                   bias_fine=round((1 + kap["fine"]) / (1 + kap["truth"]), 4))
+        return out
+    except Exception as exc:  # noqa: BLE001 - a diagnostic column
+        return {"error": f"{type(exc).__name__}: {exc}"}
+
+
+def guard_done(work: Path, tag: str) -> bool:
+    p = work / "guard.jsonl"
+    return p.exists() and any(json.loads(x).get("tag") == tag for x in p.read_text().splitlines() if x.strip())
+
+
+def run_scene(a, scene: str, root: Path) -> list[dict]:
+    """Synth, the base fit, then the base guard beside the finer fit and its guard; the rows. Resumable:
+    suite.py skips a finished fit, a finished guard is not rerun."""
+    table = []
+    base, fine = root / "base", root / "fine"
+    base.mkdir(parents=True, exist_ok=True)
+    fine.mkdir(exist_ok=True)
+    log = root / f"{scene}.log"
+    ts = time.perf_counter()
+    if not a.analyse_only:
+        sh(suite(a, scene, base, a.grid_base, "base"), log)               # synth + init + fit + evaluate
+    rb = last_row(base / "results.jsonl", scene=scene, tag="base")
+    if rb is None or "error" in rb:
+        print(json.dumps({"scene": scene, "error": (rb or {}).get("error", "no row"), "log": str(log)}), flush=True)
+        return table
+    g_fine = int(round(a.factor * rb["grid"]))
+    if not (fine / scene).exists():
+        shutil.copytree(base / scene, fine / scene)                         # the same capture and truth
+    procs = []
+    if not a.no_guard and not a.analyse_only and not guard_done(base, "base"):
+        procs.append(subprocess.Popen(guard(a, scene, base, "base"), stdout=open(root / f"{scene}_guard_base.txt", "a"),
+                                      stderr=subprocess.STDOUT))
+    fine_cmd = " ".join(suite(a, scene, fine, str(g_fine), "fine"))
+    if not a.no_guard and not guard_done(fine, "fine"):
+        fine_cmd += " && " + " ".join(guard(a, scene, fine, "fine"))
+    if not a.analyse_only:
+        procs.append(subprocess.Popen(["bash", "-c", fine_cmd], stdout=open(root / f"{scene}_fine.txt", "a"),
+                                      stderr=subprocess.STDOUT))
+    for p in procs:
+        p.wait()
+    rf = last_row(fine / "results.jsonl", scene=scene, tag="fine") or {}
+    gt = json.loads((base / scene / "gt" / "gt.json").read_text())
+    dx_gt = gt["gt_sim"]["dx"]
+    thin = (rb.get("thinnest_mm") or float("nan")) / 1000
+    cells_b = rb.get("cells_across") or float("nan")
+    rf["cells_across"] = cells_b * g_fine / rb["grid"]
+    cells_truth = thin / dx_gt if thin == thin else float("nan")
+    kap = inertia(base / scene / "gt", gt, dx_gt, rb, g_fine)
+    print(json.dumps({"scene": scene, "apic_inertia": kap}), flush=True)
+    for tag, r, w in (("base", rb, base), ("fine", rf, fine)):
+        if "ma" not in r:
+            print(json.dumps({"scene": scene, "grid_run": tag, "error": r.get("error", "no row")}), flush=True)
+            continue
+        head = {"scene": scene, "model": "default (bumps, all frames)", "grid": r["grid"], "cells": r["cells_across"],
+                "apic_bias": kap.get(f"bias_{tag}"),
+                "ma": r["ma"], "ma_best_uniform": r["ma_best_uniform"], "particles": r["particles"],
+                "fit_s": r["fit_s"], "psnr_masked": r["psnr_masked"]}
+        table.append(head)
+        print(json.dumps(head), flush=True)
+        for o in analyse(a, scene, w, r, tag, cells_truth):
+            o["cells_truth"] = cells_truth
+            table.append(o)
+            print(json.dumps(o), flush=True)
+    print(json.dumps({"scene": scene, "wall_s": round(time.perf_counter() - ts, 1)}), flush=True)
+    return table
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="telephone_cable,hemp_rope")
@@ -102,67 +186,28 @@ def main(argv=None):
     ap.add_argument("--synth-fit-grid", type=int, default=128)
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--no-guard", action="store_true", help="default fits only (no held-back comparison)")
+    ap.add_argument("--analyse-only", action="store_true", help="print the table from --out's finished runs")
     ap.add_argument("--out", default="out/grid_bias")
     a = ap.parse_args(argv)
     root = Path(a.out)
     root.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    table = []
-    for scene in a.scenes.split(","):
-        base, fine = root / "base", root / "fine"
-        base.mkdir(exist_ok=True)
-        fine.mkdir(exist_ok=True)
-        log = root / f"{scene}.log"
-        ts = time.perf_counter()
-        sh(suite(a, scene, base, a.grid_base, "base"), log)               # synth + init + fit + evaluate
-        rb = last_row(base / "results.jsonl", scene=scene, tag="base")
-        if rb is None or "error" in rb:
-            print(json.dumps({"scene": scene, "error": (rb or {}).get("error", "no row"), "log": str(log)}), flush=True)
-            continue
-        g_fine = int(round(a.factor * rb["grid"]))
-        if not (fine / scene).exists():
-            shutil.copytree(base / scene, fine / scene)                     # the same capture and truth
-        procs = []
-        if not a.no_guard:
-            procs.append(subprocess.Popen(guard(a, scene, base, "base"), stdout=open(root / f"{scene}_guard_base.txt", "w"),
-                                          stderr=subprocess.STDOUT))
-        fine_cmd = " ".join(suite(a, scene, fine, str(g_fine), "fine"))
-        if not a.no_guard:
-            fine_cmd += " && " + " ".join(guard(a, scene, fine, "fine"))
-        procs.append(subprocess.Popen(["bash", "-c", fine_cmd], stdout=open(root / f"{scene}_fine.txt", "w"),
-                                      stderr=subprocess.STDOUT))
-        for p in procs:
-            p.wait()
-        rf = last_row(fine / "results.jsonl", scene=scene, tag="fine") or {}
-        gt = json.loads((base / scene / "gt" / "gt.json").read_text())
-        dx_gt = gt["gt_sim"]["dx"]
-        thin = (rb.get("thinnest_mm") or float("nan")) / 1000
-        cells_b = rb.get("cells_across") or float("nan")     # init records it with --grid auto only
-        rf["cells_across"] = cells_b * g_fine / rb["grid"]
-        cells_truth = thin / dx_gt if thin == thin else float("nan")
-        for tag, r, w in (("base", rb, base), ("fine", rf, fine)):
-            if "ma" not in r:
-                print(json.dumps({"scene": scene, "grid_run": tag, "error": r.get("error", "no row")}), flush=True)
-                continue
-            head = {"scene": scene, "model": "default (bumps, all frames)", "grid": r["grid"], "cells": r["cells_across"],
-                    "ma": r["ma"], "ma_best_uniform": r["ma_best_uniform"], "particles": r["particles"],
-                    "fit_s": r["fit_s"], "psnr_masked": r["psnr_masked"]}
-            table.append(head)
-            print(json.dumps(head), flush=True)
-            for o in analyse(a, scene, w, r, tag, cells_truth):
-                o["cells_truth"] = cells_truth
-                table.append(o)
-                print(json.dumps(o), flush=True)
-        print(json.dumps({"scene": scene, "wall_s": round(time.perf_counter() - ts, 1)}), flush=True)
+    from concurrent.futures import ThreadPoolExecutor
+
+    scenes = a.scenes.split(",")
+    with ThreadPoolExecutor(len(scenes)) as ex:          # the scenes side by side (their steps are subprocesses)
+        parts = list(ex.map(lambda sc: run_scene(a, sc, root / sc), scenes))
+    table = [o for part in parts for o in part]
     (root / "grid_bias.json").write_text(json.dumps(table, indent=1))
     f = lambda v, n=3: "-" if v is None else (f"{v:.{n}f}" if isinstance(v, float) else str(v))  # noqa: E731
     print("\n| scene | grid (cells) | model | MA | best 1 E | held-back | median E / truth | within 20% | "
-          "torsion-corrected | bending-corrected |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|")
+          "torsion-corrected | bending-corrected | APIC inertia bias |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for o in table:
         print(f"| {o['scene']} | {o['grid']} ({f(o.get('cells'), 1)}) | {o['model']} | {f(o['ma'])} | "
               f"{f(o.get('ma_best_uniform'))} | {f(o.get('held_back'), 5)} | {f(o.get('median_ratio'))} | "
-              f"{f(o.get('within20'))} | {f(o.get('within20_torsion'))} | {f(o.get('within20_bending'))} |")
+              f"{f(o.get('within20'))} | {f(o.get('within20_torsion'))} | {f(o.get('within20_bending'))} | "
+              f"{f(o.get('apic_bias'))} |")
     print(f"total wall {time.perf_counter() - t0:.0f} s")
 
 

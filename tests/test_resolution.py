@@ -64,3 +64,25 @@ def test_torsion_is_slow_by_the_apic_rotary_inertia_not_soft():
     assert abs(r["E_app"] / R.apparent_stiffness(4, "torsion") - 1) < 0.05, r
     assert abs(r["E_static"] - 1) < 0.05, r
     assert r["E_app"] < 0.86                       # the bias the curve stands for is real
+
+
+def test_apic_extra_inertia_of_a_spin_is_the_twists_and_of_a_translation_zero():
+    """A solid rod of radius r spinning about its axis: kappa = (dx^2 / 4) |grad v|^2 / |v|^2 =
+    (dx^2 / 4) 2 / <rho^2> = dx^2 / r^2, so 1 / (1 + kappa) = r^2 / (r^2 + dx^2): the twist's measured
+    slowness; a rigid translation carries none."""
+    rng = np.random.default_rng(0)
+    r, dx, w, fps = 0.02, 0.01, 2.0, 100.0
+    p = rng.uniform(-1, 1, (12000, 3))
+    p = p[(p[:, 1] ** 2 + p[:, 2] ** 2) <= 1][:4000] * [0.1, r, r]
+    spin, move = [], []
+    for t in np.arange(5) / fps:
+        c, s = np.cos(w * t), np.sin(w * t)
+        spin.append(np.stack([p[:, 0], c * p[:, 1] - s * p[:, 2], s * p[:, 1] + c * p[:, 2]], 1))
+        move.append(p + [0.3 * t, -0.1 * t * t, 0.0])
+    k = float(R.apic_extra_inertia(p, np.array(spin), fps, dx))
+    assert 1 / (1 + k) == pytest.approx(r * r / (r * r + dx * dx), rel=0.03)
+    assert float(R.apic_extra_inertia(p, np.array(move), fps, dx)) < 1e-9
+    k2 = R.apic_extra_inertia(p, np.array(spin), fps, np.array([dx, 2 * dx]), subset=np.arange(0, 4000, 3))
+    assert k2[1] == pytest.approx(4 * k2[0]) and k2[0] == pytest.approx(k, rel=0.05)
+    with pytest.raises(ValueError, match="positions"):
+        R.apic_extra_inertia(p, np.array(spin)[:2], fps, dx)
