@@ -10,6 +10,7 @@ what was named. One JSON line per case (resumable). CPU seconds (process time) b
 
     python benchmarks/diagnose_controls.py --out /tmp/diag_controls --cases control@0..19
     python benchmarks/diagnose_controls.py --out /tmp/diag_pair --cases damping@2,viscoelasticity@2
+    python benchmarks/diagnose_controls.py --out /tmp/diag_floor --cases control@0..5 --floor-rule
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ def cases_of(spec: str) -> list[str]:
     return out
 
 
-def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, folds: int) -> dict:
+def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, folds: int,
+             floor_rule: bool = False) -> dict:
     import shutil
 
     import diagnose_scene as ds
@@ -56,8 +58,8 @@ def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, fo
         hidden = kind
     t0, c0 = time.perf_counter(), time.process_time()
     d = api.diagnose(info["stage"], refit=refit, refit_iterations=iterations, progress=False, log=lambda *a: None,
-                     write_stage=False, starts=starts, refit_folds=folds)
-    row = {"case": case, "hidden": hidden, "verdict": d["verdict"], "reason": d["reason"],
+                     write_stage=False, starts=starts, refit_folds=folds, floor_rule=floor_rule)
+    row = {"case": case, "hidden": hidden, "floor_rule": bool(floor_rule), "verdict": d["verdict"], "reason": d["reason"],
            "named": [c["effect"] for c in d["candidates"]
                      if any(t["effect"] == c["effect"] and t.get("accepted") for t in d["tested"])],
            "significant": [c["effect"] for c in d["candidates"]],
@@ -81,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--refit-iterations", type=int, default=6)
     ap.add_argument("--starts", type=int, default=1)
     ap.add_argument("--refit-folds", type=int, default=2)
+    ap.add_argument("--floor-rule", action="store_true", help="diagnose --floor-rule (issue #22)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -89,7 +92,7 @@ def main(argv=None) -> int:
     for case in cases_of(a.cases):
         if case in done:
             continue
-        r = run_case(case, out / "work", a.refit, a.refit_iterations, a.starts, a.refit_folds)
+        r = run_case(case, out / "work", a.refit, a.refit_iterations, a.starts, a.refit_folds, a.floor_rule)
         with path.open("a") as f:
             f.write(json.dumps(r) + "\n")
         sig = ", ".join(f"{t['effect']} (p {t['p_value']:.2g}, {100 * (t['relative_drop'] or 0):.1f}%"

@@ -346,7 +346,7 @@ START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
-             refit_folds: int | None = None) -> dict:
+             refit_folds: int | None = None, floor_rule: bool = False) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -354,7 +354,9 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     against the best base when one reaches a loss lower by more than the verdict's practical
     threshold (`DiagnoseSettings.min_relative_drop` of the loss), saying so: "a local minimum" when
     another start beats the fit's own field refitted alike, "not converged" when its own does. `trajectory_sigma_px`: the measured hand path's pixel uncertainty
-    (default the fit's, `fit.interaction_check.TRAJ_SIGMA_PX`) that bounds the path's freedom."""
+    (default the fit's, `fit.interaction_check.TRAJ_SIGMA_PX`) that bounds the path's freedom. `floor_rule`:
+    the model of the fit's own error in place of the 3% size gate (`DiagnoseSettings.floor_rule`, opt-in:
+    True or "full", or "match": only the superset's substeps matched to the base's)."""
     import torch
 
     from ..fit.problem import FitProblem
@@ -371,6 +373,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         raise InputError("--refit-folds", f"must be 1 or 2, got {refit_folds!r}")
     if trajectory_sigma_px is not None and not float(trajectory_sigma_px) > 0:
         raise InputError("--trajectory-sigma", f"must be a number of pixels > 0, got {trajectory_sigma_px!r}")
+    if floor_rule not in (False, True, "full", "match"):
+        raise InputError("--floor-rule", f"must be full or match, got {floor_rule!r}")
     cands = parse_candidates(candidates)
     sd = read_scene(stage_path)
     if not sd.reports or sd.current_report is None:
@@ -395,9 +399,14 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=prob.tdtype, device=prob.tdev)
     nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
     base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
-    settings = DiagnoseSettings(candidates=cands, seed=seed, max_pixels=max_pixels, confirmed=int(refit) >= 1)
+    settings = DiagnoseSettings(candidates=cands, seed=seed, max_pixels=max_pixels, confirmed=int(refit) >= 1,
+                                floor_rule=floor_rule)
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
+    if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
+        from ..diagnose.core import match_base_substeps
+
+        match_base_substeps(prob, base, log)
     base, starts_out = _best_start(prob, base, settings, int(starts), int(refit_iterations), log)
     bar = None
     if progress:

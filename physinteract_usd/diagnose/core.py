@@ -111,6 +111,9 @@ class BaseState:
                                         # problem's T0 is the measured path)
 
 
+FLOOR_RULES = (False, True, "full", "match")     # `DiagnoseSettings.floor_rule`'s values
+
+
 @dataclass
 class DiagnoseSettings:
     max_pixels: int = 6000
@@ -133,6 +136,27 @@ class DiagnoseSettings:
                                         # uncertainty (the fit's prior as ridge rows); False: free
     photometric: bool = True            # each frame's colour gain and offset projected out of the residual
                                         # (`ImageResidual.set_photometric`: flicker, exposure)
+    floor_rule: bool | str = False      # the model of the fit's own error in place of the size gate (`diagnose
+                                        # --floor-rule`, docs/diagnose.md "The fit's own error"; issue #22, opt-in
+                                        # until measured on the GPU): True / "full" sets the three below, "match"
+                                        # only the first; either puts the size gate `floor_min_relative_drop` in
+                                        # place of `min_relative_drop`
+    match_substeps: bool = False        # the superset simulator steps as the fitted base did
+                                        # (`match_base_substeps`: its null Maxwell branch takes no CFL allowance)
+    floor_model: bool = False           # the rendering floor's model (`ImageResidual.set_floor`: f(alpha) fitted on the
+                                        # rest frames, one column per frame projected out of every residual)
+    floor_split: bool = False           # the floor's columns per frame: colours and silhouette apart (2) or one
+    discretisation_column: bool = False  # the model's own discretisation error as a base column
+                                        # (`discretisation_column`: the base at 2x its substeps, less the base)
+    floor_min_relative_drop: float = 0.0   # the size gate under the floor rule (a share of the loss)
+
+    def __post_init__(self):
+        if self.floor_rule not in FLOOR_RULES:
+            raise ValueError(f"floor_rule must be one of {FLOOR_RULES}, got {self.floor_rule!r}")
+        if self.floor_rule:
+            self.match_substeps = True
+        if self.floor_rule in (True, "full"):
+            self.floor_model = self.discretisation_column = True
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -310,6 +334,13 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: 
         names.append(f"logE[{int(lab)}]")
         if prior_cols is not None:
             prior_cols.append(np.zeros_like(p0))
+    if s.discretisation_column:
+        col = discretisation_column(run, r0)
+        if col is not None:
+            cols.append(col)
+            names.append("discretisation")
+            if prior_cols is not None:
+                prior_cols.append(np.zeros_like(p0))
     st = prob.scene.settings
     dn = 0.01 if float(b.nu.max()) + 0.01 <= st.poisson_max else -0.01
     cols.append((run.r(nu=b.nu + dn) - r0) / dn)
@@ -341,6 +372,62 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: 
                 if prior_cols is not None:       # the prior is linear in the path: exact
                     prior_cols.append((prior_residual(prob, b, trajs) - p0) / h)
     return np.column_stack(cols), names
+
+
+def match_base_substeps(prob, base: BaseState, log=None) -> dict | None:
+    """Make the superset simulator step as the fitted base model did (`Simulation.match_substeps_to_base`)
+    where the base has no Maxwell branch (viscoelasticity a candidate at its null E_v = 0): the branch's
+    CFL allowance (up to the E bound) otherwise takes ~sqrt(2) x the substeps, and the base simulated
+    there is not the fitted model. On the tests' tiny bar's controls that difference (15 substeps against
+    the fit's and the video's 10: 0.1-2.9 mm) was the whole of `camera:depth_scale`'s 1.7% (p 0.00025 ->
+    0.75-0.93 matched; docs/diagnose.md). Returns {"before", "after"} substeps, or None where nothing
+    changes (idempotent)."""
+    sim = prob.sim
+    if not hasattr(sim, "match_substeps_to_base") or getattr(sim, "viscous_cfl_modulus", None) == 0.0:
+        return None
+    ve = (base.effects or {}).get("viscoelasticity")
+    if ve is None or float(ve.get("modulus", 0.0)) != 0.0:
+        return None                                     # no branch, or a fitted one: the fit stepped with it
+    before = int(sim.substeps)
+    sim.match_substeps_to_base()
+    out = {"before": before, "after": int(sim.substeps)}
+    if log is not None and out["after"] != before:
+        log(f"diagnose: the superset simulator steps as the base did: {before} -> {out['after']} substeps a frame")
+    return out
+
+
+DISCRETISATION_SUBSTEPS = 2.0   # the finer model of `discretisation_column`: this x the base's substeps per frame
+
+
+def discretisation_column(run: _Runner, r0: np.ndarray) -> np.ndarray | None:
+    """The model's own discretisation error as a base column: the residual of the base simulated with
+    `DISCRETISATION_SUBSTEPS` x its substeps per frame (the adaptive substep's stiffness bound raised by
+    that factor squared: dt ~ 1 / sqrt(E)) less the base's. The video is the continuum (a synthetic truth:
+    a finer grid or substep), so the model's error against it lies, to first order, along the change a
+    finer model makes (its amplitude unknown: free, like a base parameter). A candidate that only explains
+    the model's discretisation (on the tests' tiny bar the fit's adaptive 15 substeps against the truth's
+    43, 0.1-2.9 mm; on foam_bar the fit's grid against the truth's finer one) is then not significant.
+    None when the simulator has no adaptive substep or the finer run fails."""
+    sim = run.prob.sim
+    if not getattr(sim, "adaptive", False) or not hasattr(sim, "_use_bound"):
+        return None
+    b0 = sim.e_bound
+    b = run.base
+    eff = {e: dict(p) for e, p in b.effects.items()}
+    try:
+        sim._use_bound(b0 * DISCRETISATION_SUBSTEPS ** 2)
+        with torch.no_grad():
+            x, F = sim.rollout(b.E.to(sim.tdtype), b.nu.to(sim.tdtype), effects=eff, trajectories=None)
+        run.forwards += 1
+        col = run.res(x, F) - r0
+    except SimulationError as exc:
+        run.log(f"discretisation column skipped: {exc}")
+        col = None
+    finally:
+        sim._use_bound(b0)
+    if col is None or not np.any(col):
+        return None
+    return col
 
 
 # ---------------------------------------------------------------------------------------- probes
@@ -688,7 +775,7 @@ def min_drop(s: DiagnoseSettings, L0: float) -> float:
     the H200 (foam_bar, 20 controls, code 0c21985) confirming refits without this gate named
     `camera:depth_scale` (scale ~0.84, ~0.7% of the loss) on 5 of 20 controls; with it, 0 of 13
     controls in the runs before (docs/benchmarks/diagnose_named.md)."""
-    return float(s.min_relative_drop) * float(L0)
+    return float(s.floor_min_relative_drop if s.floor_rule else s.min_relative_drop) * float(L0)
 
 
 def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float,
@@ -824,6 +911,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     t0 = time.perf_counter()
     s = settings or DiagnoseSettings()
     log = log or (lambda *a: None)
+    matched = match_base_substeps(prob, base, log) if s.match_substeps else None
     res = ImageResidual(prob, max_pixels=s.max_pixels)
     run = _Runner(prob, base, res, log)
     x0, F0 = run.xf()
@@ -835,6 +923,14 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         if noise["sigma_silhouette"] is not None:
             log(f"diagnose: noise on {len(noise['rest_frames'])} rest frames: colour {noise['sigma_colour']:.3g}, "
                 f"silhouette {noise['sigma_silhouette']:.3g} -> silhouette weight {noise['silhouette_weight']:.3g}")
+    floor_info = floor_raw = None
+    if s.floor_model:
+        # the rendering's own error, modelled on the rest frames and projected out of every frame
+        # (`ImageResidual.set_floor`); the floor and the loss are then both beyond it
+        floor_raw = _floor(prob, res)
+        floor_info = res.set_floor(x0, F0, rest_frames(prob), split=s.floor_split)
+        log(f"diagnose: the rendering floor modelled on rest frames {floor_info['rest_frames']} "
+            f"({100 * floor_info['rest_share']:.0f}% of their residual)")
     r0 = res(x0, F0)
     L0 = loss(r0)
     tau = correlation_frames(r0.reshape(res.shape))
@@ -865,6 +961,12 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         nb += 1
         prior = {"bounded": True, "sigma_px": prob.traj_sigma_px, "row_scale": sc, "fit_rec_loss": Lrec}
     floor = _floor(prob, res)
+    if floor_info is not None:
+        noise["floor_model"] = dict(floor_info, floor_before=floor_raw)
+    if matched is not None:
+        noise["substeps"] = matched
+    if s.discretisation_column:
+        noise["discretisation_column"] = "discretisation" in names
     results = []
     cands = [c for c in s.candidates if c in CANDIDATES]
     it = progress(cands, "candidates") if progress else cands
@@ -1013,7 +1115,8 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
 
 __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Probe", "diagnose_problem",
            "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "SEPARATES", "separation", "test_candidate", "base_columns", "estimate_of",
-           "realised_gauss_newton", "conclude", "trajectory_check", "prior_residual"]
+           "realised_gauss_newton", "conclude", "trajectory_check", "prior_residual", "match_base_substeps",
+           "discretisation_column"]
 
 
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:

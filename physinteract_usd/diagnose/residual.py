@@ -58,6 +58,7 @@ class ImageResidual:
         self.shape = (len(self.frames),) + tuple(self.target.shape[1:3]) + (4,)
         self.photo = None          # (T, 3, m, q) the photometric nuisance's orthonormal basis per frame / channel
         self.edge = None           # (T, h, w) the silhouette's unit edge column per frame
+        self.floor_cols = None     # (T, h, w, 4, q) the rendering floor's unit columns per frame (`set_floor`)
 
     def set_photometric(self, x, F) -> None:
         """Fix the per-frame nuisance bases (module doc) at the simulated base x, F (all T frames,
@@ -110,6 +111,28 @@ class ImageResidual:
         out.update(sigma_colour=s_rgb, sigma_silhouette=s_sil, silhouette_weight=self.sw, band_pixels=int(band.sum()))
         return out
 
+    def set_floor(self, x, F, rest_frames, bins: int | None = None, split: bool = False) -> dict:
+        """The rendering's own error as a per-frame nuisance (module doc, "Floor"). On the rest frames
+        (`rest_frames` and frame 0, the rest pose: the object and the model still, no physics acts) the
+        residual's mean per channel in bins of the base's rendered alpha is the floor's model f(alpha):
+        whatever the rendering leaves as a function of the alpha it draws (soft alpha against a binary
+        silhouette, the video's clipped noise on one side of the edge, anti-aliasing). Per frame k its
+        column f(alpha_k) (the base's alpha at that frame: the floor moves with the object) is projected
+        out of every residual, one amplitude per frame (`split`: two, the colours and the silhouette
+        apart). Fitted on the rest frames only, so no physics leaks into it; the projector is fixed and
+        linear like the photometric one (a nuisance column per frame in the base, by Frisch-Waugh-Lovell).
+        Returns {"rest_frames", "bins", "pixels" (per bin, bin 0 = the background), "template" (bins x 4),
+        "rest_share" (the share of the rest frames' residual energy the columns take), "split"}."""
+        rest = sorted({0, *[int(k) for k in rest_frames]})
+        self.floor_cols = None
+        with torch.no_grad():
+            A = torch.stack([self.prob.render_frame(k, x[k], F[k])["alpha"][self.rows, self.cols]
+                             for k in range(self.prob.T)]).cpu().numpy().astype(np.float64)     # (T, h, w)
+            R = torch.stack([self.frame(k, x[k], F[k]) for k in rest]).cpu().numpy().astype(np.float64)
+        cols, info = floor_columns(A, R, rest, self.w.cpu().numpy().astype(np.float64), bins=bins, split=split)
+        self.floor_cols = torch.as_tensor(cols, dtype=self.target.dtype, device=self.target.device)
+        return info
+
     def _photometric(self, k: int, rgb: torch.Tensor) -> torch.Tensor:
         if self.photo is None:
             return rgb
@@ -130,7 +153,11 @@ class ImageResidual:
             sil = sil * self.sw
         else:
             sil = torch.zeros_like(rgb[..., 0])
-        return torch.cat([rgb, sil[..., None]], -1)
+        out = torch.cat([rgb, sil[..., None]], -1)
+        if self.floor_cols is not None:
+            Q = self.floor_cols[k]                                                  # (h, w, 4, q)
+            out = out - torch.einsum("hwcq,q->hwc", Q, torch.einsum("hwcq,hwc->q", Q, out))
+        return out
 
     def torch(self, x, F, frames=None) -> torch.Tensor:
         """(n_frames, h, w, 4) residual for the simulated x (T, P, 3), F (T, P, 3, 3)."""
@@ -162,6 +189,60 @@ class ImageResidual:
         lab = (fb[:, None, None] * nr + rb[None, :, None]) * nc + cb[None, None, :]
         lab = np.broadcast_to(lab[..., None], self.shape).ravel()
         return lab.astype(np.int64), int(lab.max()) + 1
+
+
+def floor_columns(alpha: np.ndarray, R_rest: np.ndarray, rest: list, w: np.ndarray | None = None, *,
+                  bins: int | None = None, split: bool = False) -> tuple[np.ndarray, dict]:
+    """The rendering floor's model (`ImageResidual.set_floor`), arrays in: `alpha` (T, h, w) the base's
+    rendered alpha per frame, `R_rest` (len(rest), h, w, 4) the residual on the rest frames `rest`, `w`
+    (T, h, w) the pixels' weights (0: the hand). f(alpha) per channel is the rest residual's mean in
+    `bins` bins of alpha (plus a background bin, alpha <= FLOOR_BACKGROUND; a bin with fewer than
+    FLOOR_MIN_PIXELS pixels gets 0); frame k's column is f(alpha_k) x w_k, unit norm, one per frame
+    (`split`: colours and silhouette apart). Returns ((T, h, w, 4, q) columns, info)."""
+    bins = int(FLOOR_BINS if bins is None else bins)
+    alpha = np.asarray(alpha, np.float64)
+    R = np.asarray(R_rest, np.float64)
+    w = np.ones_like(alpha) if w is None else np.asarray(w, np.float64)
+    lab = 1 + np.clip(np.digitize(alpha, np.linspace(0.0, 1.0, bins + 1)[1:-1]), 0, bins - 1)
+    lab = np.where(alpha <= FLOOR_BACKGROUND, 0, lab)       # bin 0: the background away from the object
+    nb = bins + 1
+    tot, cnt = np.zeros((nb, 4)), np.zeros(nb)
+    for i, k in enumerate(rest):
+        ok = w[k] > 0
+        for c in range(4):
+            tot[:, c] += np.bincount(lab[k][ok], weights=R[i][..., c][ok], minlength=nb)
+        cnt += np.bincount(lab[k][ok], minlength=nb)
+    m = np.where(cnt[:, None] >= FLOOR_MIN_PIXELS, tot / np.maximum(cnt[:, None], 1.0), 0.0)
+    tmpl = m[lab] * w[..., None]                                                      # (T, h, w, 4)
+    groups = [slice(0, 4)] if not split else [slice(0, 3), slice(3, 4)]
+    cols = np.zeros(tmpl.shape + (len(groups),))
+    for q, g in enumerate(groups):
+        part = np.zeros_like(tmpl)
+        part[..., g] = tmpl[..., g]
+        nrm = np.sqrt(np.sum(part ** 2, axis=(1, 2, 3)))[:, None, None, None]
+        cols[..., q] = np.where(nrm > 1e-12, part / np.maximum(nrm, 1e-300), 0.0)
+    e_all = float(np.sum(R ** 2))
+    took = sum(float(np.sum(R[i] * cols[k, ..., q])) ** 2 for i, k in enumerate(rest) for q in range(len(groups)))
+    return cols, {"rest_frames": [int(k) for k in rest], "bins": bins, "pixels": cnt.astype(int).tolist(),
+                  "template": np.round(m, 6).tolist(), "rest_share": took / e_all if e_all > 0 else 0.0,
+                  "split": bool(split)}
+
+
+def project_floor(R: np.ndarray, cols: np.ndarray, frames=None) -> np.ndarray:
+    """R (n_frames, h, w, 4) less its part along the floor's columns of its frames (`cols` (T, h, w, 4, q),
+    `frames` the frame index of each row of R, default 0..n-1): what `ImageResidual.frame` does."""
+    R = np.asarray(R, np.float64)
+    ks = range(len(R)) if frames is None else frames
+    out = R.copy()
+    for i, k in enumerate(ks):
+        Q = cols[k]
+        out[i] -= np.einsum("hwcq,q->hwc", Q, np.einsum("hwcq,hwc->q", Q, R[i]))
+    return out
+
+
+FLOOR_BINS = 8            # bins of the base's rendered alpha in the floor's model f(alpha) (`set_floor`)
+FLOOR_MIN_PIXELS = 5      # a bin with fewer rest-frame pixels gets 0 (its mean would be noise)
+FLOOR_BACKGROUND = 1e-3   # alpha at or below this: the background bin
 
 
 def _edge(alpha: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,256 @@
+"""`diagnose` with and without the floor rule on the suite's foam_bar (issue #22): false alarms on
+controls and power on weak hidden effects, each case's base fit diagnosed twice on the same stage.
+
+Per case (`synth foam_bar --hidden EFFECT --strength S --noise 0.015`, or a control: nothing hidden,
+noise seed K), `init` with the capture's suggested settings, a base `fit` from the true interaction
+(`--contact-from gt`, the user's model: no effects), then `diagnose` once per rule on that one fit:
+- `default`: today's decision (the 3% size gate, `DiagnoseSettings.min_relative_drop`);
+- `floor`: `diagnose --floor-rule` (the superset simulator steps as the fitted model did, the rendering
+  floor fitted on the rest frames and the model's discretisation error projected out, no size gate);
+- `match`: `diagnose --floor-rule match` (only the superset's substeps matched to the fit's, no size gate).
+A `missing_effect` verdict on a control is a false alarm; on an effect case the question is whether the
+hidden effect is named first. One JSON line per case (resumable: done cases are skipped), a table at
+the end (stdout and `--write`), and `$OUT/diagnose_floor_rule.json` when `$OUT` is set.
+**Development data** (the synthetic suite).
+
+GPU (one H200, <= 8 min; the cases run `--jobs` at once after a small warm-up that compiles Warp's
+kernels; a run cut by `--deadline` is resumed by the same command):
+
+    python benchmarks/diagnose_floor_rule.py --device cuda --jobs 16 --controls 20 \\
+        --effects damping,viscoelasticity,plasticity --strengths 0.5,1 --deadline 420 --out /tmp/dfr
+
+CPU smoke test (tiny: one control, 4 frames of fit, no refits):
+
+    python benchmarks/diagnose_floor_rule.py --controls 1 --effects none --iterations 2 --frames 8 \\
+        --refit 0 --out /tmp/dfr_cpu
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+NOISE = 0.015
+RULES = ("default", "floor", "match")
+
+
+def case_list(effects: list[str], strengths: list[float], controls: int, seed0: int) -> list[tuple[str, float, int]]:
+    """(hidden effect or 'none', strength, noise seed): effects and controls interleaved, so that a run
+    cut by its deadline has some of each."""
+    eff = [(e, s, 0) for s in strengths for e in effects if e != "none"]
+    ctl = [("none", 0.0, k) for k in range(seed0, seed0 + controls)]
+    out = []
+    while eff or ctl:
+        if ctl:
+            out.append(ctl.pop(0))
+        if eff:
+            out.append(eff.pop(0))
+        if ctl:
+            out.append(ctl.pop(0))
+    return out
+
+
+def key(scene: str, eff: str, s: float, seed: int) -> str:
+    return f"{scene}_none_s{seed}" if eff == "none" else f"{scene}_{eff}@{s:g}"
+
+
+def summary(d: dict) -> dict:
+    tested = d.get("tested") or []
+    named = [c["effect"] for c in d.get("candidates", [])
+             if any(t["effect"] == c["effect"] and t.get("accepted") for t in tested)]
+    return {"verdict": d.get("verdict"), "reason": d.get("reason"), "named": named,
+            "significant": [c["effect"] for c in d.get("candidates", [])],
+            "loss": d.get("loss"), "floor": d.get("noise_floor"),
+            "substeps": (d.get("noise") or {}).get("substeps"),
+            "floor_rest_share": ((d.get("noise") or {}).get("floor_model") or {}).get("rest_share"),
+            "tested": [{k: t.get(k) for k in ("effect", "marginal_p_value", "p_value", "relative_drop", "significant",
+                                              "accepted", "held_back_drop", "held_back_p", "held_back_level")}
+                       for t in tested]}
+
+
+def one(job) -> dict | None:
+    scene, eff, s, seed, a, t_start = job
+    if a.deadline and time.time() - t_start > a.deadline:
+        return None
+    from physinteract_usd import api
+
+    quiet = lambda *_a, **_k: None  # noqa: E731
+    k = key(scene, eff, s, seed)
+    work = Path(a.out) / "work"
+    cap, stage = work / k, work / f"{k}.usda"
+    row = {"case": k, "scene": scene, "hidden": None if eff == "none" else eff, "strength": s, "seed": seed,
+           "device": a.device}
+    try:
+        t0, c0 = time.perf_counter(), time.process_time()
+        if not (cap / "gt" / "gt.json").exists():
+            api.synth(scene, cap, size=a.size, frames=a.frames, hidden=None if eff == "none" else eff,
+                      strength=s or 1.0, noise=NOISE, seed=seed, device=a.device, force=True, log=quiet,
+                      fit_grid=a.fit_grid)
+        sug = json.loads((cap / "gt" / "gt.json").read_text())["suggested_init"]
+        for suffix in (".usda", ".init.usdc", ".fit.usdc"):
+            (work / f"{k}{suffix}").unlink(missing_ok=True)
+        shutil.rmtree(work / f"{k}.versions", ignore_errors=True)
+        api.init(stage, cap, grid=sug["grid"], padding=sug["padding"], youngs_range=tuple(sug["youngs_range"]),
+                 max_poisson=sug["max_poisson"], density=sug["density"], force=True, log=quiet)
+        api.fit(stage, iterations=a.iterations, contact_from=cap / "gt", device=a.device, progress=False, log=quiet)
+        row["fit_s"] = round(time.perf_counter() - t0, 1)
+        for rule in a.rules:
+            t1 = time.perf_counter()
+            d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
+                             starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule={"default": False, "floor": "full", "match": "match"}[rule])
+            row[rule] = dict(summary(d), seconds=round(time.perf_counter() - t1, 1))
+        row["wall_s"] = round(time.perf_counter() - t0, 1)
+        row["cpu_s"] = round(time.process_time() - c0, 1)
+    except Exception as exc:  # noqa: BLE001 - one case's failure is a row
+        row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+    print(f"{k}: " + ("ERROR " + row["error"] if "error" in row else
+                      "; ".join(f"{r} {row[r]['verdict']} {row[r]['named'] or '-'} ({row[r]['seconds']:.0f} s)"
+                                for r in a.rules if r in row)), flush=True)
+    return row
+
+
+def table(rows: list[dict], rules) -> tuple[str, dict]:
+    out, js = [], {}
+    ctl = [r for r in rows if r.get("hidden") is None and "error" not in r]
+    eff = [r for r in rows if r.get("hidden") is not None and "error" not in r]
+    out.append("| rule | controls: false alarms (missing_effect) | what they named | effect cases: hidden named first "
+               "| hidden named at all |")
+    out.append("|---|---|---|---|---|")
+    for rule in rules:
+        c = [r[rule] for r in ctl if rule in r]
+        fa = [x for x in c if x["verdict"] == "missing_effect"]
+        what = {}
+        for x in fa:
+            for n in x["named"][:1]:
+                what[n] = what.get(n, 0) + 1
+        e = [(r, r[rule]) for r in eff if rule in r]
+        first = sum(1 for r, x in e if x["named"][:1] == [r["hidden"]])
+        anyn = sum(1 for r, x in e if r["hidden"] in x["named"])
+        out.append(f"| {rule} | {len(fa)}/{len(c)} | {', '.join(f'{k} {v}' for k, v in what.items()) or '-'} | "
+                   f"{first}/{len(e)} | {anyn}/{len(e)} |")
+        js[rule] = {"controls": len(c), "false_alarms": len(fa), "named_on_controls": what, "effect_cases": len(e),
+                    "hidden_first": first, "hidden_named": anyn}
+    out.append("")
+    out.append("| case | " + " | ".join(rules) + " |")
+    out.append("|---|" + "---|" * len(rules))
+    for r in sorted(eff, key=lambda r: (r["hidden"], r["strength"])) + ctl:
+        cells = []
+        for rule in rules:
+            x = r.get(rule)
+            if x is None:
+                cells.append("-")
+                continue
+            h = next((t for t in x["tested"] if t["effect"] == (r["hidden"] or "camera:depth_scale")), None)
+            hx = "" if h is None else (f"; {h['effect']}: p {h['marginal_p_value']:.2g}, "
+                                       f"{100 * (h['relative_drop'] or 0):.1f}%"
+                                       + ("" if h.get("held_back_p") is None else f", held-back p {h['held_back_p']:.2g}"))
+            cells.append(f"{x['verdict']}: {', '.join(x['named']) or '-'}{hx}")
+        out.append(f"| {r['case']} | " + " | ".join(cells) + " |")
+    return "\n".join(out), js
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="foam_bar")
+    ap.add_argument("--effects", default="damping,viscoelasticity,plasticity")
+    ap.add_argument("--strengths", default="0.5,1")
+    ap.add_argument("--controls", type=int, default=20)
+    ap.add_argument("--control-seed", type=int, default=0)
+    ap.add_argument("--rules", default=",".join(RULES), help="diagnose each case with these: default, floor, match")
+    ap.add_argument("--size", default="small")
+    ap.add_argument("--frames", type=int, default=14)
+    ap.add_argument("--fit-grid", type=int, default=None)
+    ap.add_argument("--iterations", type=int, default=30)
+    ap.add_argument("--refit", type=int, default=3)
+    ap.add_argument("--diagnose-refit-iterations", type=int, default=8)
+    ap.add_argument("--starts", type=int, default=1)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--deadline", type=float, default=0, help="start no case after this many seconds")
+    ap.add_argument("--out", default="/tmp/diagnose_floor_rule")
+    ap.add_argument("--write", default=None, help="write the table to this markdown file")
+    a = ap.parse_args(argv)
+    a.rules = [r for r in a.rules.split(",") if r]
+    bad = [r for r in a.rules if r not in RULES]
+    if bad:
+        print(f"diagnose_floor_rule.py: error: --rules: unknown {bad[0]!r} (default, floor, match)", file=sys.stderr)
+        return 2
+    out = Path(a.out)
+    (out / "work").mkdir(parents=True, exist_ok=True)
+    a.out = str(out)
+    jl = out / "rows.jsonl"
+    done = {json.loads(x)["case"] for x in jl.read_text().splitlines() if x.strip() and "error" not in json.loads(x)} \
+        if jl.exists() else set()
+    t0 = time.time()
+    todo = [c for c in case_list(a.effects.split(","), [float(v) for v in a.strengths.split(",")], a.controls,
+                                 a.control_seed) if key(a.scene, *c) not in done]
+    print(f"{len(todo)} cases to run ({len(done)} done before)", flush=True)
+    jobs = [(a.scene, e, s, seed, a, t0) for e, s, seed in todo]
+
+    def report(final: bool = False) -> None:
+        rows = {}
+        for x in jl.read_text().splitlines() if jl.exists() else []:
+            if x.strip():
+                r = json.loads(x)
+                rows[r["case"]] = r
+        text, js = table(list(rows.values()), a.rules)
+        if final:
+            print(text)
+        if a.write:
+            Path(a.write).write_text("# diagnose with and without the floor rule\n\n" + text + "\n")
+        if os.environ.get("OUT"):        # after every case: a run cut short still leaves its table
+            Path(os.environ["OUT"], "diagnose_floor_rule.json").write_text(
+                json.dumps({"summary": js, "elapsed_s": round(time.time() - t0, 1), "rows": list(rows.values())},
+                           indent=1, default=float))
+            Path(os.environ["OUT"], "diagnose_floor_rule.md").write_text(text + "\n")
+
+    def append(row):
+        if row is not None:
+            with jl.open("a") as f:
+                f.write(json.dumps(row, default=float) + "\n")
+            report()
+
+    if a.jobs > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+
+        # Warp's kernels compiled once into the on-disk cache before the workers start: the tests' tiny bar,
+        # fitted 1 iteration and diagnosed with and without the rule (seconds, not a case)
+        warm = out / "warm"
+        try:
+            sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+            import diagnose_scene as ds
+
+            from physinteract_usd import api
+
+            info = ds.build(warm, noise=NOISE, seed=0)
+            for fr in (False, "full"):
+                api.diagnose(info["stage"], device=a.device, refit=1, refit_iterations=1, starts=1, progress=False,
+                             log=lambda *_a: None, write_stage=False, floor_rule=fr,
+                             candidates="damping,viscoelasticity,camera:depth_scale")
+        except Exception as exc:  # noqa: BLE001 - the warm-up is an optimisation
+            print(f"warm-up failed ({type(exc).__name__}: {exc}); the first worker compiles", flush=True)
+        print(f"warm-up {time.time() - t0:.0f} s", flush=True)
+        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs))) as pool:
+            for row in pool.imap_unordered(one, jobs):
+                append(row)
+    else:
+        for job in jobs:
+            row = one(job)
+            if row is None:
+                print("deadline: stopping", flush=True)
+                break
+            append(row)
+    report(final=True)
+    print(f"total {time.time() - t0:.0f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
