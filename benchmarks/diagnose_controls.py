@@ -39,7 +39,7 @@ def cases_of(spec: str) -> list[str]:
 
 
 def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, folds: int,
-             floor_rule: bool = False) -> dict:
+             floor_rule: bool | str = False) -> dict:
     import shutil
 
     import diagnose_scene as ds
@@ -59,7 +59,7 @@ def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, fo
     t0, c0 = time.perf_counter(), time.process_time()
     d = api.diagnose(info["stage"], refit=refit, refit_iterations=iterations, progress=False, log=lambda *a: None,
                      write_stage=False, starts=starts, refit_folds=folds, floor_rule=floor_rule)
-    row = {"case": case, "hidden": hidden, "floor_rule": bool(floor_rule), "verdict": d["verdict"], "reason": d["reason"],
+    row = {"case": case, "hidden": hidden, "floor_rule": floor_rule, "verdict": d["verdict"], "reason": d["reason"],
            "named": [c["effect"] for c in d["candidates"]
                      if any(t["effect"] == c["effect"] and t.get("accepted") for t in d["tested"])],
            "significant": [c["effect"] for c in d["candidates"]],
@@ -83,7 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refit-iterations", type=int, default=6)
     ap.add_argument("--starts", type=int, default=1)
     ap.add_argument("--refit-folds", type=int, default=2)
-    ap.add_argument("--floor-rule", action="store_true", help="diagnose --floor-rule (issue #22)")
+    ap.add_argument("--floor-rule", nargs="?", const="full", default=False, choices=("full", "match"),
+                    help="diagnose --floor-rule [full|match] (issue #22)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -146,6 +146,7 @@ class Simulation:
         allowance takes ~sqrt(2) x the substeps, and the base simulated there is not the fitted model (on
         the tests' tiny bar 15 substeps against the fit's 10: 0.1-2.9 mm apart, a systematic residual the
         fit never saw; docs/diagnose.md). The rollouts built so far are dropped."""
+        self.substeps_unmatched = int(self.substeps)
         self.viscous_cfl_modulus = 0.0
         self._rollouts.clear()
         self._batch_rollouts.clear()

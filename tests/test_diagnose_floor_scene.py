@@ -63,7 +63,7 @@ def test_control_depth_scale_is_not_significant_once_matched(control):
     _, prob, base = _problem(control)
     plain = diagnose_problem(prob, base, DiagnoseSettings(candidates=cands, min_relative_drop=0.0))
     _, prob, base = _problem(control)
-    matched = diagnose_problem(prob, base, DiagnoseSettings(candidates=cands, floor_rule="match"))
+    matched = diagnose_problem(prob, base, DiagnoseSettings(candidates=cands, floor_rule="match", confirmed=True))
     p = {c.effect: c for c in plain.results}
     m = {c.effect: c for c in matched.results}
     assert p["camera:depth_scale"].marginal[0] < 0.01 and p["camera:depth_scale"].significant   # the false alarm

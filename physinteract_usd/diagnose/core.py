@@ -148,7 +148,8 @@ class DiagnoseSettings:
     floor_split: bool = False           # the floor's columns per frame: colours and silhouette apart (2) or one
     discretisation_column: bool = False  # the model's own discretisation error as a base column
                                         # (`discretisation_column`: the base at 2x its substeps, less the base)
-    floor_min_relative_drop: float = 0.0   # the size gate under the floor rule (a share of the loss)
+    floor_min_relative_drop: float = 0.0   # the size gate under the floor rule where refits confirm (`confirmed`;
+                                           # with `--refit 0` the rule keeps `min_relative_drop`)
 
     def __post_init__(self):
         if self.floor_rule not in FLOOR_RULES:
@@ -775,7 +776,10 @@ def min_drop(s: DiagnoseSettings, L0: float) -> float:
     the H200 (foam_bar, 20 controls, code 0c21985) confirming refits without this gate named
     `camera:depth_scale` (scale ~0.84, ~0.7% of the loss) on 5 of 20 controls; with it, 0 of 13
     controls in the runs before (docs/benchmarks/diagnose_named.md)."""
-    return float(s.floor_min_relative_drop if s.floor_rule else s.min_relative_drop) * float(L0)
+    # the floor rule drops the gate only where refits confirm (`--refit 0`: nothing confirms, the score test
+    # alone would name; on a foam_bar control fitted 1 iteration it named interaction:contact at 2%)
+    rule = bool(s.floor_rule) and bool(s.confirmed)
+    return float(s.floor_min_relative_drop if rule else s.min_relative_drop) * float(L0)
 
 
 def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float,
@@ -963,8 +967,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     floor = _floor(prob, res)
     if floor_info is not None:
         noise["floor_model"] = dict(floor_info, floor_before=floor_raw)
-    if matched is not None:
-        noise["substeps"] = matched
+    if s.match_substeps:
+        sim = prob.sim
+        noise["substeps"] = matched or {"before": getattr(sim, "substeps_unmatched", None),
+                                        "after": int(sim.substeps)}
     if s.discretisation_column:
         noise["discretisation_column"] = "discretisation" in names
     results = []
