@@ -18,7 +18,10 @@ of a CPU fit's iteration on the demo, docs/benchmarks/cpu.md). A backward whose 
 later forward overwrote replays into them as above.
 
 Each frame's forward and backward is captured once into a graph (CUDA graph on a GPU, Warp's CPU
-graph on the CPU) and replayed on later calls, so the inner loop has no Python work.
+graph on the CPU) and replayed on later calls, so the inner loop has no Python work. With
+`FRAME_GRAPHS` (the default on CUDA) one graph serves every frame of the same *shape*: the frame index
+is a device-side counter the graph advances, and what it indexes goes through fixed windows
+(sim/frame_graphs.py), so a capture issues one frame's launches from Python, not T frames' (issue #26).
 
 Torch entry points: `Rollout(model, control)(E, nu, effects=..., trajectories=...)` (keeps its
 buffers and graphs between calls: use it in a fit loop) and `simulate(model, control, ...)`.
@@ -27,10 +30,12 @@ buffers and graphs between calls: use it in a fit loop) and `simulate(model, con
 from __future__ import annotations
 
 import atexit
+import copy
 import itertools
 import math
 import os
 import sys
+from types import SimpleNamespace
 from typing import Mapping
 
 import numpy as np
@@ -65,6 +70,14 @@ EAGER_FORWARDS = 1
 # forwards so far (the rest shape and the contacts' reach before the first) plus this many cells on
 # each side. A pass whose particles leave the box (every p2g checks) is redone on the whole grid.
 BOX_MARGIN = 4
+# one captured graph per frame shape (sim/frame_graphs.py) instead of one per frame: the forward, the stored
+# forward, the replay and the adjoint each capture one frame's launches (two shapes where only some frames'
+# states are stored) instead of T frames'. True / False force it; None (default): on CUDA devices (where a
+# capture's launches cost what eager ones do); the CPU keeps per-frame graphs (the windows' copies are pure
+# overhead where a graph replays without launch costs). Bitwise the same results (tests/test_frame_graphs.py).
+# PHYSINTERACT_FRAME_GRAPHS=0 / 1 in the environment sets it for a process (the CLI's before / after timing)
+FRAME_GRAPHS: bool | None = (None if os.environ.get("PHYSINTERACT_FRAME_GRAPHS", "") == ""
+                             else os.environ["PHYSINTERACT_FRAME_GRAPHS"] not in ("0", "false", "False"))
 # PHYSINTERACT_SIM_STATS=1 in the environment: at exit, one line per rollout on stderr (its size, the
 # grid box's share of the grid, passes redone, frames whose states were stored, forwards / backwards run)
 _STATS: dict | None = {} if os.environ.get("PHYSINTERACT_SIM_STATS") else None   # rollout no. -> line (no references)
@@ -148,6 +161,11 @@ class Rollout:
         self.grad_x = wp.zeros((self.T + 1, self.P), dtype=K.vec3, device=m.device)
         self.grad_F = wp.zeros((self.T + 1, self.P), dtype=K.mat33, device=m.device)
         self.graphs = bool(graphs)
+        # one graph per frame shape (FRAME_GRAPHS): read when a rollout is built
+        self.frame_graphs = (wp.get_device(m.device).is_cuda if FRAME_GRAPHS is None else bool(FRAME_GRAPHS))
+        self._fw = None                # the frame windows (`_windows`), built at the first capture
+        self._arena = None             # the stored states as (frames, S + 1, P) arrays per field (frame graphs)
+        self._warm_shapes: set = set()
         self._fwd_graphs: dict[int, object] = {}
         self._bwd_graphs: dict[int, object] = {}
         self._warm: set = set()
@@ -285,6 +303,8 @@ class Rollout:
     def _ensure_graphs(self, graphs: dict, fn) -> None:
         """Capture fn(k) for every frame (once). Capturing may execute the work (CPU graphs), so the
         callers reset their accumulators after this and then replay the graphs in order."""
+        if self.graphs and self.frame_graphs:
+            return self._ensure_shape_graphs(graphs)
         if not self.graphs or len(graphs) == self.T:
             return
         try:
@@ -303,10 +323,182 @@ class Rollout:
             graphs.clear()
 
     def _frame(self, graphs: dict, fn, k: int) -> None:
-        if self.graphs:
+        if self.graphs and self.frame_graphs:
+            key = self._shape(graphs, k)[0]
+            if key is not None:
+                wp.capture_launch(graphs[key])
+        elif self.graphs:
             wp.capture_launch(graphs[k])
         else:
             fn(k)
+
+    # ------------------------------------------------------------------ one graph per frame shape
+    def _windows(self) -> SimpleNamespace:
+        """The fixed arrays a frame-shape graph runs on (sim/frame_graphs.py): the frame counter, the
+        contacts' and their adjoints' rows k, k + 1, the status row, and S + 1 states (a stored frame's
+        substep states, or the replay buffer)."""
+        if self._fw is None:
+            from .frame_graphs import get_frame_kernels
+            m, c = self.model, self.ctrl
+            d = m.device
+            K = self.solver.K
+            npin, ncol = c.pin_pos.shape[0], c.col_pos.shape[0]
+            wctrl = copy.copy(c)
+            wctrl.pin_active = wp.zeros((npin, 1), dtype=wp.int32, device=d)
+            wctrl.pin_pos = wp.zeros((npin, 2), dtype=K.vec3, device=d)
+            wctrl.col_active = wp.zeros((ncol, 1), dtype=wp.int32, device=d)
+            wctrl.col_pos = wp.zeros((ncol, 2), dtype=K.vec3, device=d)
+            wadj = copy.copy(self.adj_ctrl)
+            wadj.pin_pos = wp.zeros((npin, 2), dtype=K.vec3, device=d)
+            wadj.col_pos = wp.zeros((ncol, 2), dtype=K.vec3, device=d)
+            states = Checkpoints(m, self.S)
+            self._fw = SimpleNamespace(FK=get_frame_kernels(m.dtype), ctr=wp.zeros(1, dtype=int, device=d),
+                                       ctrl=wctrl, adj=wadj, status=wp.zeros((1, 4), dtype=wp.int32, device=d),
+                                       states=states, st=states.states())
+        return self._fw
+
+    def _shape(self, graphs: dict, k: int):
+        """(key, body) of the graph that runs frame k of this graph set (key None: nothing to run)."""
+        n = len(self._states) if self._states is not None else 0
+        if graphs is self._fwd_graphs:
+            return "forward", self._sf_forward
+        if graphs is self._fwd_store_graphs:
+            return ("forward_stored", self._sf_forward_stored) if k < n else ("forward", self._sf_forward)
+        if graphs is self._replay_graphs:
+            return ("replay", self._sf_replay) if k < n else (None, None)
+        if graphs is self._adj_graphs:
+            return ("adjoint_stored", self._sf_adjoint_stored) if k < n else ("backward", self._sf_backward)
+        return "backward", self._sf_backward
+
+    def _ensure_shape_graphs(self, graphs: dict) -> None:
+        """Capture each frame shape's body once (a frame that has it at the counter). A body is run once
+        before its first capture (module loads, lazily built buffers); running and (on the CPU)
+        capturing execute work, so the callers reset what they accumulate after this."""
+        fw = self._windows()
+        first: dict = {}
+        for k in range(self.T):
+            key, body = self._shape(graphs, k)
+            if key is not None and key not in graphs and key not in first:
+                first[key] = (k, body)
+        try:
+            for key, (k, body) in first.items():
+                if key not in self._warm_shapes:
+                    fw.ctr.fill_(k)
+                    body()
+                    self._warm_shapes.add(key)
+                fw.ctr.fill_(k)
+                with wp.ScopedCapture(device=self.model.device) as cap:
+                    body()
+                graphs[key] = cap.graph
+        except Exception as e:  # noqa: BLE001  (capture unsupported here: fall back to launches)
+            import warnings
+            warnings.warn(f"graph capture failed ({e}); running without graphs", RuntimeWarning, stacklevel=3)
+            self.graphs = False
+            graphs.clear()
+
+    def _rest_prelude(self) -> None:
+        """Frame 0's own work before the frame graphs (eager: a few launches per forward)."""
+        fw = self._windows()
+        a = self._pp[0]
+        self.status.zero_()
+        self.solver.box_flag.zero_()
+        a.set_rest(self.model, self.v0)
+        self.ck.frame(0).assign(a)
+        fw.ctr.zero_()
+
+    def _begin(self, fw, d) -> None:
+        c = self.ctrl
+        wp.launch(fw.FK.frame_begin, 1, [fw.ctr, c.pin_active, c.pin_pos, c.col_active, c.col_pos, self.status],
+                  [fw.ctrl.pin_active, fw.ctrl.pin_pos, fw.ctrl.col_active, fw.ctrl.col_pos, fw.status],
+                  device=d, record_tape=False)
+
+    def _ck_arrays(self):
+        return [self.ck.w[f] for f in SimState.FIELDS]
+
+    @staticmethod
+    def _fields(s: SimState):
+        return [getattr(s, f) for f in SimState.FIELDS]
+
+    def _sf_forward(self) -> None:
+        """`_forward_frame` of the frame at the counter (frames > 0; frame 0's start: `_rest_prelude`)."""
+        fw, sol, d = self._windows(), self.solver, self.model.device
+        a, b = self._pp
+        wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(a), device=d,
+                  record_tape=False)
+        self._begin(fw, d)
+        for s in range(self.S):
+            sol.step(a, b, 0, s, ctrl=fw.ctrl)
+            a, b = b, a
+        sol.check(a, 0, fw.status)
+        wp.launch(fw.FK.state_to_rows, self.P, [fw.ctr, 1] + self._fields(a), self._ck_arrays(), device=d,
+                  record_tape=False)
+        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False)
+
+    def _sf_forward_stored(self) -> None:
+        fw, sol, d = self._windows(), self.solver, self.model.device
+        st = fw.st
+        wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(st[0]), device=d,
+                  record_tape=False)
+        self._begin(fw, d)
+        for s in range(self.S):
+            sol.step(st[s], st[s + 1], 0, s, ctrl=fw.ctrl)
+        sol.check(st[self.S], 0, fw.status)
+        wp.launch(fw.FK.state_to_rows, self.P, [fw.ctr, 1] + self._fields(st[self.S]), self._ck_arrays(), device=d,
+                  record_tape=False)
+        self._window_to_arena(fw, d)
+        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False)
+
+    def _window_to_arena(self, fw, d) -> None:
+        wp.launch(fw.FK.window_to_arena, (self.S + 1, self.P), [fw.ctr] + [fw.states.w[f] for f in SimState.FIELDS],
+                  [self._arena[f] for f in SimState.FIELDS], device=d, record_tape=False)
+
+    def _sf_replay_into_window(self, fw, d) -> None:
+        st = fw.st
+        wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(st[0]), device=d,
+                  record_tape=False)
+        self._begin(fw, d)
+        for s in range(self.S - 1):
+            self.solver.step(st[s], st[s + 1], 0, s, ctrl=fw.ctrl)
+
+    def _sf_replay(self) -> None:
+        """`_replay_frame_stored` of the frame at the counter (a stored frame); the counter stays."""
+        fw, d = self._windows(), self.model.device
+        self._sf_replay_into_window(fw, d)
+        self._window_to_arena(fw, d)
+
+    def _sf_adjoint(self, fw, d) -> None:
+        """`_adjoint_frame` on the window's states for the frame at the counter, which it steps back."""
+        sol = self.solver
+        st = fw.st
+        c, ac = self.ctrl, self.adj_ctrl
+        wp.launch(fw.FK.frame_begin, 1, [fw.ctr, c.pin_active, c.pin_pos, c.col_active, c.col_pos, self.status],
+                  [fw.ctrl.pin_active, fw.ctrl.pin_pos, fw.ctrl.col_active, fw.ctrl.col_pos, fw.status],
+                  device=d, record_tape=False)
+        wp.launch(fw.FK.adj_begin, 1, [fw.ctr, ac.pin_pos, ac.col_pos], [fw.adj.pin_pos, fw.adj.col_pos], device=d,
+                  record_tape=False)
+        carry, other = self._adj
+        wp.launch(fw.FK.add_row_vec3, self.P, [fw.ctr, 1, self.grad_x, carry.x], device=d, record_tape=False)
+        wp.launch(fw.FK.add_row_mat33, self.P, [fw.ctr, 1, self.grad_F, carry.F], device=d, record_tape=False)
+        for s in reversed(range(self.S)):
+            sol.step_adjoint(st[s], st[s + 1], other, carry, 0, s, self.adj_params, fw.adj, ctrl=fw.ctrl,
+                             clear_adj_in=True)
+            carry, other = other, carry
+        if carry is not self._adj[0]:
+            self._adj[0].assign(carry)
+        wp.launch(fw.FK.adj_end, 1, [fw.ctr, -1, fw.adj.pin_pos, fw.adj.col_pos], [ac.pin_pos, ac.col_pos], device=d,
+                  record_tape=False)
+
+    def _sf_adjoint_stored(self) -> None:
+        fw, d = self._windows(), self.model.device
+        wp.launch(fw.FK.arena_to_window, (self.S + 1, self.P), [fw.ctr] + [self._arena[f] for f in SimState.FIELDS],
+                  [fw.states.w[f] for f in SimState.FIELDS], device=d, record_tape=False)
+        self._sf_adjoint(fw, d)
+
+    def _sf_backward(self) -> None:
+        """`_backward_frame` of the frame at the counter: replay into the window, then its adjoints."""
+        fw, d = self._windows(), self.model.device
+        self._sf_replay_into_window(fw, d)
+        self._sf_adjoint(fw, d)
 
     # ------------------------------------------------------------------ warp-level passes
     def _frame_bytes(self) -> int:
@@ -324,8 +516,10 @@ class Rollout:
         return int(max(0, min(STORE_STATES_GPU_FRACTION * dev.total_memory, dev.free_memory - headroom)))
 
     def states_fit(self) -> bool:
-        """Whether every substep's state of every frame fits in the budget (`store_budget`)."""
-        return self.T * self._frame_bytes() <= self.store_budget()
+        """Whether every substep's state of every frame fits in the budget (`store_budget`; with frame
+        graphs beside the window of one frame's states they run on)."""
+        extra = 1 if (self.graphs and self.frame_graphs) else 0
+        return (self.T + extra) * self._frame_bytes() <= self.store_budget()
 
     def frames_to_store(self) -> int:
         """How many frames' substep states a forward for a backward keeps: all when they fit, else as
@@ -343,7 +537,13 @@ class Rollout:
             self._warm.discard(id(g))
             g.clear()
         self._states = None
+        self._arena = None
         self.states_generation += 1
+
+    def _alloc_arena(self, n: int) -> dict:
+        K = self.solver.K
+        types = {"x": K.vec3, "v": K.vec3, "C": K.mat33, "F": K.mat33, "Fv": K.mat33}
+        return {f: wp.zeros((n, self.S + 1, self.P), dtype=t, device=self.model.device) for f, t in types.items()}
 
     def run_forward(self, store: bool = False) -> int | None:
         """Rollout from rest (with self.v0) into self.ck; raises SimulationError if a frame's state
@@ -356,8 +556,14 @@ class Rollout:
             n = self.frames_to_store()
             if n > 0:
                 # one (S + 1, P) array per field and frame, each state a row of them (a paper fit's
-                # ~19k states x 5 fields would otherwise be ~95k allocations)
-                self._states = [Checkpoints(self.model, self.S).states() for _ in range(n)]
+                # ~19k states x 5 fields would otherwise be ~95k allocations); with frame graphs one
+                # (n, S + 1, P) arena per field, whose row k the graph addresses through its counter
+                if self.graphs and self.frame_graphs:
+                    self._arena = self._alloc_arena(n)
+                    self._states = [[SimState(*(self._arena[f][k][s] for f in SimState.FIELDS))
+                                     for s in range(self.S + 1)] for k in range(n)]
+                else:
+                    self._states = [Checkpoints(self.model, self.S).states() for _ in range(n)]
         if store and self._states is not None:
             self.states_generation += 1
             gen = self.states_generation
@@ -369,7 +575,10 @@ class Rollout:
             self._eager_forwards_left -= 1
         else:
             self._ensure_graphs(graphs, fn)
+        shapes = self.graphs and self.frame_graphs and not eager
         for _ in range(2):                     # the second time on the whole grid, if the box was left
+            if shapes:
+                self._rest_prelude()
             for k in range(self.T):
                 stopping.check("forward")          # SIGINT / SIGTERM act within one frame's work
                 if eager:
@@ -404,7 +613,8 @@ class Rollout:
         are while no later forward stored over them (else they are replayed from self.ck)."""
         m = self.model
         self.n_backwards += 1
-        if self._replay is None and (self._states is None or len(self._states) < self.T):
+        shapes = self.graphs and self.frame_graphs
+        if not shapes and self._replay is None and (self._states is None or len(self._states) < self.T):
             self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]
         self.solver._alloc_adj()
         stored = self._states is not None
@@ -415,11 +625,16 @@ class Rollout:
                 self._ensure_graphs(self._replay_graphs, self._replay_frame_stored)
         else:
             self._ensure_graphs(self._bwd_graphs, self._backward_frame)
+        if not self.graphs and self._replay is None and (self._states is None or len(self._states) < self.T):
+            self._replay = [SimState.zeros(self.P, m.dtype, m.device) for _ in range(self.S + 1)]   # capture failed
+        shapes = self.graphs and self.frame_graphs
         self.solver.box_flag.zero_()
         for _ in range(2):                     # the second time on the whole grid, if the box was left
             self.adj_params.zero_()
             self.adj_ctrl.zero_()
             self._adj[0].zero_()
+            if shapes:
+                self._windows().ctr.fill_(self.T - 1)
             for k in reversed(range(self.T)):
                 stopping.check("backward")
                 if not stored:
