@@ -15,7 +15,8 @@
 # Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
 # JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
 # world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test, schedule=select), GRID (init's
-# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), NOFIT (1: generate and
+# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules or model: extract's
+# timing method, world_suite.py --timing; default the code's), NOFIT (1: generate and
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
 set -u
@@ -32,6 +33,7 @@ GRID="${GRID:-}"
 MAX_PARTICLES="${MAX_PARTICLES:-}"
 TRUTH_SWEEP="${TRUTH_SWEEP:-}"
 NOFIT="${NOFIT:-}"
+TIMING="${TIMING:-}"
 PY="${PYTHON:-python3}"
 T_START=$(date +%s)
 mkdir -p "$OUT" "$WORK/rows"
@@ -62,7 +64,7 @@ worker() {
     t1=$(date +%s)
     step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
       --json "$WORK/rows/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
-      ${MAX_PARTICLES:+--max-particles "$MAX_PARTICLES"} || return
+      ${MAX_PARTICLES:+--max-particles "$MAX_PARTICLES"} ${TIMING:+--timing "$TIMING"} || return
     t2=$(date +%s)
     [ -n "$NOFIT" ] && { echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s (no fit)"; return; }
     step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
@@ -72,7 +74,7 @@ worker() {
   grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
 }
 export -f worker step
-export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT
+export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time

@@ -1021,3 +1021,125 @@ def test_a_grasp_is_where_the_object_starts_to_follow_just_after_the_toucher_sta
     assert following_onset(5, coupling(vh, late, 0.35), late, 0.35) == 5
     stiff = 0.1 * vh                          # follows, but never by eps
     assert following_onset(5, coupling(vh, stiff, 0.35), stiff, 0.35) == 5
+
+
+def _pull(T1=24, g=6, r=16, dwell=3, share=0.8, hold=0, off=(0.0, -6.0), seed=0, noise=0.08):
+    """Velocities (frame pairs) of a toucher that comes in, rests `dwell` pairs, pulls smoothly
+    from frame g (the last frame at rest) to r - `hold` and holds still to r, then moves off
+    (`off` px a frame) while the object next to the contact springs back; flow noise `noise` px."""
+    rng = np.random.default_rng(seed)
+    vh = np.zeros((T1, 2))
+    vh[: g - dwell] = [3.0, 1.0]                               # the approach
+    n = r - hold - g
+    s = np.arange(n + 1) / n
+    pos = 3 * s ** 2 - 2 * s ** 3                              # a smooth start and stop
+    vh[g:r - hold, 0] = 30.0 * np.diff(pos)
+    vh[r:] = off
+    vo = share * vh
+    vo[: g - dwell] = 0.0                                      # the object rests while it comes in
+    vo[r:] = [-2.0, 0.5]                                       # let go: it springs back
+    vh += rng.normal(0, noise, vh.shape)
+    vo += rng.normal(0, noise, vo.shape)
+    return vh, vo
+
+
+def test_the_held_window_is_where_the_object_moves_with_the_toucher():
+    """(#23, ninth pass) one likelihood model for every toucher: per frame pair, "the object next to
+    the contact moves with the toucher at its share" against "it moves by itself"; the grasp is
+    where the run of most evidence starts (a toucher coming in or resting on the object is no
+    hold yet), the release the first pair after it in which the toucher moves off unfollowed. The
+    truth's frames are recovered for pulls with and without a rest, a still hold before letting go,
+    any share, and under noise; held to the end is None."""
+    from physinteract_usd.extract.timing import held_window
+
+    near = np.ones(25, bool)
+    for seed in range(5):
+        for dwell, hold, share in [(3, 0, 0.8), (1, 0, 0.4), (3, 4, 0.8), (2, 3, 0.3)]:
+            vh, vo = _pull(dwell=dwell, hold=hold, share=share, seed=seed)
+            g, r, _ = held_window(vh, vo, near)
+            assert abs(g - 6) <= 1 and r == 16, (seed, dwell, hold, share, g, r)
+    # held to the end: the toucher never moves off
+    vh, vo = _pull(r=24)
+    assert held_window(vh, vo, near)[1] is None
+    # nothing follows the toucher: no window
+    vh, vo = _pull()
+    assert held_window(vh, np.zeros_like(vo), near) is None
+
+
+def test_the_held_window_ignores_the_object_moving_by_a_still_toucher_and_a_lag_behind_a_pull():
+    """A still toucher says nothing about the hold (the held ball rolls on under a still hand:
+    released where the hand moves off, pair 16, not where the ball moved alone); an object's flow
+    lagging behind a toucher that carries on pulling is no release (letting go is a motion of the
+    toucher's own); a toucher that leaves the object's image ends the hold there."""
+    from physinteract_usd.extract.timing import held_window
+
+    near = np.ones(25, bool)
+    vh, vo = _pull(hold=4)
+    vo[12:16] = [[2.5, 0.4], [2.0, 0.6], [1.4, 0.5], [1.0, 0.3]]   # rolls on while the hand holds still
+    assert held_window(vh, vo, near)[1] == 16
+    vh, vo = _pull()
+    vo[11:16] *= 0.05                                               # the flow next to it lags the pull
+    assert held_window(vh, vo, near)[1] == 16
+    vh, vo = _pull()
+    vh[16:] = 0.0                                                   # the toucher rests ...
+    vo[16:] = 0.0
+    near[19:] = False                                               # ... and is gone from frame 19
+    assert held_window(vh, vo, near)[1] == 19
+
+
+def test_the_held_window_starts_after_the_toucher_arrives_and_at_the_onset_of_its_motion():
+    """A palm comes down onto a block that is still settling under gravity (its flow next to the
+    palm points the palm's way: it reads as following), rests two pairs on it and presses from
+    frame 13: the pairs before the rest were the approach, and the grasp is 13, not 9. A slow pull
+    whose first pairs are under the noise level (0.15-0.3 px a frame, the object's following not yet
+    visible) starts where its speed ramp starts (at most 3 pairs back), not where the following
+    shows."""
+    from physinteract_usd.extract.timing import held_window
+
+    T1 = 30
+    vh = np.full((T1, 2), np.nan)
+    vo = np.full((T1, 2), np.nan)
+    near = np.zeros(T1 + 1, bool)
+    near[6:] = True
+    vh[6:11] = [[0.0, 7.4], [0.0, 6.4], [0.0, 5.1], [0.0, 3.3], [0.0, 1.1]]     # coming down
+    vo[6:11] = [[0.0, 1.2], [0.0, 0.1], [0.0, 0.8], [0.0, 1.0], [0.0, 0.7]]     # the block settling
+    vh[11:13] = vo[11:13] = [[0.0, 0.02], [0.02, -0.03]]                         # at rest on it
+    vh[13:22] = 0.0
+    vh[13:22, 1] = [0.35, 0.7, 0.95, 1.1, 1.3, 1.5, 1.1, 0.9, 0.4]                # the press
+    vo[13:22] = 0.8 * vh[13:22]
+    vh[22:] = [0.0, -8.0]                                                       # lifted off
+    vo[22:] = [0.0, -0.3]
+    g, r, _ = held_window(vh, vo, near)
+    assert g == 13 and r == 22
+    # the slow pull: 0.15, 0.2, 0.3 px before the object's following shows (pair 17)
+    vh2 = np.zeros((T1, 2))
+    vo2 = np.zeros((T1, 2))
+    vh2[:14] = [0.05, -0.03]
+    vh2[14:25, 0] = [0.15, 0.2, 0.3, 0.8, 1.2, 1.4, 1.4, 1.2, 0.9, 0.6, 0.4]
+    vo2[17:25] = 0.8 * vh2[17:25]
+    vh2[25:] = [0.0, 6.0]
+    vo2[25:] = [-1.0, 0.0]
+    g, r, _ = held_window(vh2, vo2, np.ones(T1 + 1, bool))
+    assert g == 14 and r == 25
+
+
+def test_a_collider_touches_until_it_is_back_out_where_it_first_touched():
+    """A stick presses a block 9 px in and withdraws over four pairs while the block springs back
+    slower (it reads as left behind from the withdrawal's first pair); the stick is back where it
+    first touched at frame 19, then moves off: the release is 19, not the withdrawal's start. A
+    toucher that never comes back (a knocked object) keeps the held window's release; a toucher
+    that leaves the object's image first is released there."""
+    from physinteract_usd.extract.timing import collider_back_out
+
+    T1 = 26
+    vh = np.zeros((T1, 2))
+    vh[8:14, 1] = [-0.5, -0.7, -2.4, -3.0, -1.8, -0.8]        # in: 9.2 px
+    vh[15:19, 1] = [2.0, 3.1, 2.9, 1.4]                        # back out: 9.4 px
+    vh[19:, 0] = 6.0                                           # and away
+    near = np.ones(T1 + 1, bool)
+    assert collider_back_out(8, 15, vh, near) == 19
+    knock = vh.copy()
+    knock[15:] = [4.0, 0.0]                                    # it goes on sideways
+    assert collider_back_out(8, 15, knock, near) == 15
+    near[17:] = False
+    assert collider_back_out(8, 15, vh, near) == 17

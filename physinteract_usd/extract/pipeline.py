@@ -46,7 +46,9 @@ from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts, unpin
-from .timing import apply_overrides, collider_release, collider_start, find_timing, timing_confidence
+from . import timing as _timing
+from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing,
+                     timing_confidence)
 
 
 def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False, hint: Hint | None = None,
@@ -77,16 +79,23 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     hand = track_hand(timing, grasp.uv)
     itype, conf, tsource = classify(an, timing, grasp.uv, hand, evidence, models,           # 5: how
                                     interaction_type, frames)
-    if itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
+    rules = timing_method() == "rules"    # the model reads every toucher alike: no collider rules
+    if rules and itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
         g2 = collider_start(timing, an.eps)
         if g2 != g:   # a collider acts from when the object starts to give
             timing.grasp = g = g2
             evidence["grasp_frame"] = g
             grasp = contact_at_grasp(an, seen, g)
             hand = track_hand(timing, grasp.uv)
-    if itype != "pointAdherent" and evidence.get("timing_source", {}).get("release") != "user":
+    if rules and itype != "pointAdherent" and evidence.get("timing_source", {}).get("release") != "user":
         r2 = collider_release(timing, hand.first_move, an.eps)
         if r2 != timing.release:   # a collider moving on into the object has not let go of it
+            timing.release = r2
+            evidence["release_frame"] = r2
+            hand = track_hand(timing, grasp.uv)
+    if not rules and itype != "pointAdherent" and evidence.get("timing_source", {}).get("release") != "user":
+        r2 = collider_back_out(g, timing.release, timing.hand_velocity, timing.near)
+        if r2 != timing.release:   # a collider touches until it is back out where it first touched
             timing.release = r2
             evidence["release_frame"] = r2
             hand = track_hand(timing, grasp.uv)
@@ -111,6 +120,11 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
                             release_frame=lifted.release, evidence=evidence, notes=notes, frames=frames,
                             object_masks=an.obj, support_motion=motion_p, track_uv=lifted.track_uv,
                             contact_pixels=c3d.pixels, type_confidence=conf)
+
+
+def timing_method() -> str:
+    """"model" (the ninth pass's `timing.held_window`) or "rules" (the eighth pass's cascade)."""
+    return _timing.METHOD
 
 
 def acting_motion(hand, g: int, r: int | None, itype: str) -> float:

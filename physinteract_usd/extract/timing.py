@@ -41,6 +41,8 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     coupled = coupling(vh, vo, an.eps)
     near = seen.touching | (np.array([c is not None for c in seen.centres]) & (seen.hint_uv is not None))
     p0, p1 = contact_period(near)
+    if METHOD == "model":
+        return model_timing(vh, vo, coupled, near, (p0, p1), an.eps, evidence)
     before = motion_before(an, seen.centres, p0)
     own = carried_on(coupled, vo, p0, before, an.eps)
     if own:
@@ -839,3 +841,192 @@ def grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
     g, j, score = best
     end = None if j >= T - 1 else j
     return g, end, score
+
+
+# ------------------------------------------------------------------ the ninth pass: one model (#23)
+# "rules": the passes' cascade (contact_start ... release, the default); "model": the ninth pass's
+# `held_window` (opt-in until a GPU read on fresh dev seeds decides: docs/benchmarks/world.md)
+METHOD = "rules"
+
+
+def held_evidence(vh: np.ndarray, vo: np.ndarray, near: np.ndarray, eps: float = 0.35,
+                  share: float = 0.0) -> np.ndarray:
+    """Per frame pair k -> k+1, the evidence that the toucher acts on the object there, in [-1, 1]:
+    the sign says whether the object next to the contact moves with the toucher (`coupling`: its
+    way within 45 deg, at >= 20% of its speed: the object next to a grasp stretches and lags, a
+    stiff one pushed barely gives) or not; the size is how much the pair can tell, the toucher's
+    speed over the noise: (|vh| - eps) / eps, clipped to [0, 1] (a toucher at the noise level is
+    still, and a still toucher says nothing about a hold: the held object may swing, roll or
+    settle about it; a pair of full weight moves at 2 eps or more). 0 where either is unseen; -1
+    where the pair's first frame shows no toucher at the object (nothing holds it there).
+
+    With the contact's `share` (the part of the toucher's motion the object next to it takes up
+    while they touch, `contact_share_of`), a pair follows only where the object's motion along the
+    toucher's is over half that share: between "it moves with the toucher at its share" and "it
+    stays", whichever is nearer (the sign of the log-likelihood ratio of the two under isotropic
+    flow noise); an object that springs back slower than a toucher moving off the same way keeps a
+    fifth of its speed but not its share."""
+    T1 = len(vh)
+    out = np.zeros(T1)
+    c = coupling(vh, vo, eps)
+    seen = np.isfinite(vh).all(1) & np.isfinite(vo).all(1)
+    a0 = np.where(seen[:, None], vh, 0.0)
+    sh = np.linalg.norm(a0, axis=1)
+    if share > 0:
+        p = (a0 * np.where(seen[:, None], vo, 0.0)).sum(1) / np.maximum(sh ** 2, 1e-12)
+        c = np.where((c > 0) & (p < 0.5 * share) & (sh >= eps), -1, c)
+    w = np.clip((sh - eps) / eps, 0.0, 1.0)
+    out[seen] = (np.where(c > 0, 1.0, -1.0) * w)[seen]
+    out[~np.asarray(near[:T1], bool)] = -1.0
+    return out
+
+
+def held_window(vh: np.ndarray, vo: np.ndarray, near: np.ndarray, eps: float = 0.35):
+    """When the toucher acts: the run of frame pairs [a, b] with the most `held_evidence` (summed;
+    a pair apart inside a long run of following ones is outweighed, a long approach or a lasting
+    parting is not). The grasp is a, the first pair of the run in which the object follows (pairs
+    of no evidence before it, a toucher resting on the object, are not yet its action: the grasp
+    is the last frame before the object moves with it). The release is the first pair after b with
+    evidence against the hold in which the toucher makes a motion of its own (`moves_off`: from
+    rest, faster or turned; letting go is the toucher moving off, and the object falling behind a
+    toucher that carries on its motion is the material stretching or a plain texture's flow), or
+    in which it no longer touches the object: pairs of no evidence after b, a toucher resting,
+    still hold it. None: held to the end. Returns (grasp, release or None, score), or None when no
+    pair shows the object following the toucher."""
+    lk = held_evidence(vh, vo, near, eps)
+    run = best_run(lk)
+    if run is None:
+        return None
+    share = contact_share_of(vh, vo, lk, run)
+    if share > 0:
+        lk = held_evidence(vh, vo, near, eps, share)
+        run = best_run(lk) or run
+    a, b, score = run
+    while a < b and lk[a] <= 0.0:
+        a += 1
+    a = after_arrival(a, b, lk, vh, eps)
+    a = motion_onset(a, vh, eps)
+    near = np.asarray(near, bool)
+    r = next((j for j in range(b + 1, len(lk)) if not near[j] or (lk[j] < 0.0 and moves_off(j, vh, eps, vo))), None)
+    return a, r, score
+
+
+def best_run(lk: np.ndarray):
+    """The run of pairs [a, b] with the largest sum of `lk` (> 0), as (a, b, sum); None if none."""
+    run, acc, start = None, 0.0, 0
+    for k in range(len(lk)):
+        if acc <= 0.0:
+            acc, start = 0.0, k
+        acc += lk[k]
+        if acc > 0 and (run is None or acc > run[2] + 1e-9):
+            run = (start, k, acc)
+    return run
+
+
+def contact_share_of(vh: np.ndarray, vo: np.ndarray, lk: np.ndarray, run) -> float:
+    """The share of the toucher's motion the object next to the contact takes up while they touch:
+    the median, over the run's pairs of full evidence for the hold (the toucher moving at 2 eps or
+    more, the object following), of the object's motion along the toucher's over the toucher's
+    speed; 0 (not measured) with fewer than 3 such pairs."""
+    a, b = run[0], run[1]
+    ks = [k for k in range(a, b + 1) if lk[k] >= 1.0]
+    if len(ks) < 3:
+        return 0.0
+    p = [float(vo[k] @ vh[k]) / float(vh[k] @ vh[k]) for k in ks]
+    return float(np.median(p))
+
+
+def after_arrival(a: int, b: int, lk: np.ndarray, vh: np.ndarray, eps: float = 0.35) -> int:
+    """A toucher arrives at the object and comes to rest there before it acts (a hand closes on
+    the object, a fingertip settles on the surface): where the run [a, b] holds a rest of the
+    toucher (pairs slower than `eps`) with less evidence of the object following before the rest
+    than after it, the pairs before it were the approach (the object settling under gravity, or
+    its flow smeared by the toucher coming in, can read as following), and the action starts at
+    the first pair after the rest with evidence for it. A rest inside the main motion (a pull that
+    turns back) has the larger part of the motion before it and stays in."""
+    sp = np.linalg.norm(vh, axis=1)
+    rest = [k for k in range(a, b + 1) if np.isfinite(sp[k]) and sp[k] < eps]
+    if not rest:
+        return a
+    r0 = rest[0]
+    r1 = r0
+    while r1 + 1 <= b and np.isfinite(sp[r1 + 1]) and sp[r1 + 1] < eps:
+        r1 += 1
+    if r0 > a and float(lk[a:r0].sum()) < float(lk[r1 + 1:b + 1].sum()):
+        return next((k for k in range(r1 + 1, b + 1) if lk[k] > 0.0), a)
+    return a
+
+
+def motion_onset(a: int, vh: np.ndarray, eps: float = 0.35, reach: int = 3) -> int:
+    """The start of the toucher's motion that the object follows from pair a: a motion from rest
+    starts smoothly (its speed grows from zero), so its first pairs are slower than the level at
+    which the object's following can be seen. Going back from a (at most `reach` pairs) while the
+    toucher moves the same way (within 45 deg of its motion at a) and more slowly pair by pair, the
+    onset is the first pair of that ramp; the rest before it (the toucher's noise: no direction, no
+    ramp) stops it. The grasp is that pair's first frame, the last one before the motion."""
+    if not np.isfinite(vh[a]).all():
+        return a
+    sp = np.linalg.norm(vh, axis=1)
+    u = vh[a]
+    k = a
+    while k - 1 >= max(0, a - reach) and np.isfinite(vh[k - 1]).all():
+        nv = float(sp[k - 1])
+        if not (1e-9 < nv < sp[k] and float(vh[k - 1] @ u) >= 0.7 * nv * float(sp[a])):
+            break
+        k -= 1
+    return k
+
+
+def collider_back_out(g: int, r, vh: np.ndarray, near: np.ndarray, share: float = 0.1):
+    """A collider's release (a fingertip, a stick, a palm: it pushes and cannot pull): it touches the
+    object only where it is in at or inside the object's surface, so a press ends where the toucher,
+    withdrawing, is back where it touched it first: the first frame after its deepest point at
+    which its image track from the grasp frame g (the toucher's velocities integrated; a hidden
+    pair counts as still) has come back along the push to within `share` of the push's depth, or
+    where it leaves the object first. The object left behind by a faster withdrawal (it springs
+    back slower than the toucher retreats) is no release before that: the toucher still moves
+    through where the surface was. Returns `r` (the held window's) where the track shows no push
+    (under 1 px) or no return (a knocked object, a toucher that never withdraws)."""
+    T1 = len(vh)
+    if g >= T1:
+        return r
+    v = np.where(np.isfinite(vh).all(1)[:, None], vh, 0.0)
+    track = np.zeros((T1 + 1, 2))
+    track[g + 1:] = np.cumsum(v[g:], axis=0)
+    d = np.linalg.norm(track, axis=1)
+    k_max = int(np.argmax(d[: (r + 1) if r is not None else T1 + 1]))
+    depth = float(d[k_max])
+    if depth < 1.0:
+        return r
+    u = track[k_max] / depth
+    along = track @ u
+    for k in range(k_max + 1, T1 + 1):
+        if k < len(near) and not near[k]:
+            return k
+        if along[k] <= share * depth:
+            return k
+    return r
+
+
+def model_timing(vh, vo, coupled, near, period, eps: float, evidence: dict) -> Timing:
+    """The grasp and release from `held_window` (one likelihood model, the same for every toucher);
+    where no pair shows the object following the toucher, the contact period's first frame and the
+    frame the toucher leaves (a note in `timing_confidence` says the video shows no contact)."""
+    speed = np.linalg.norm(vh, axis=1)
+    hw = held_window(vh, vo, near, eps)
+    if hw is not None:
+        g, r, score = hw
+        share = 0.0
+        cue_g = "the object starts to follow the toucher"
+        cue_r = ("held to the end" if r is None else "the toucher leaves the object" if not near[r]
+                 else "the toucher moves off and the object does not follow")
+    else:
+        g, share, score = period[0], 0.0, 0.0
+        r = next((k for k in range(g + 1, len(near)) if not near[k]), None)
+        cue_g, cue_r = "the toucher reaches the object (the object is never seen to follow it)", \
+            ("held to the end" if r is None else "the toucher leaves the object")
+    evidence["timing_cues"] = {"grasp": cue_g, "release": cue_r, "share": share, "score": round(float(score), 3)}
+    evidence.update({"contact_period": list(period), "coupling": coupled.tolist(),
+                     "hand_velocity_px": np.round(vh, 3).tolist(),
+                     "object_velocity_px": np.round(vo, 3).tolist(), "grasp_frame": g, "release_frame": r})
+    return Timing(vh, vo, coupled, near, period, speed, g, r, share)
