@@ -13,7 +13,20 @@ and the stored-states path) with each kernel's name, for the CUDA default (fused
 kernels, `sim.solver.FUSED_ZERO` / `FUSED_KERNELS`), the CUDA default before it and the CPU default; per
 frame and per call, the rollout's own launches outside the substeps (status checks, adjoint carries,
 input copies; eager, so the first call's buffer allocations are in these counts: a captured graph
-replays only the per-frame ones)."""
+replays only the per-frame ones).
+
+    python benchmarks/count_launches.py --fit                     # the CLI's small fit, launches per phase
+    python benchmarks/count_launches.py --fit --device cuda --grid 24 --iterations 60 --repeats 2 --json OUT/fit.json
+
+`--fit` (issue #26): `init samples/foam_bar --grid G` (as the demo) once, then `fit --contact-from
+samples/foam_bar/gt --iterations N` on a fresh copy of the stage per run, with one captured graph per frame
+(`sim.rollout.FRAME_GRAPHS = False`, the old path) and per frame shape (True) alternating, `--repeats` times
+each, in one process. Per run: the Python-issued Warp launches (`wp.launch`) by phase (the start search, each
+graph set's warm-up + capture, the rest: eager forwards and per-call work), the captures and graph launches,
+wall and process CPU time of the fit and of its start search, the final loss (equal between the paths: bitwise
+on the CPU). On the CPU the CUDA code paths are forced (fused kernels, fused zeroing, the grid box) and the
+graphs are Warp's CPU graphs, so the launch counts are what a CUDA run captures; the CPU's times say nothing
+about a GPU's (2 shared cores: wall clock unreliable)."""
 
 from __future__ import annotations
 
@@ -32,7 +45,17 @@ sys.path.insert(0, str(ROOT / "tests"))
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", choices=["all", "none"], default="all")
+    ap.add_argument("--fit", action="store_true", help="count a small CLI fit's launches per phase (see above)")
+    ap.add_argument("--grid", type=int, default=12, help="--fit: init's grid")
+    ap.add_argument("--iterations", type=int, default=3, help="--fit: fit iterations")
+    ap.add_argument("--device", default="cpu", help="--fit: fit --device")
+    ap.add_argument("--repeats", type=int, default=1, help="--fit: runs per path (alternating old / new)")
+    ap.add_argument("--paths", default="old,new", help="--fit: which paths, in order per repeat (old: per-frame "
+                                                        "graphs, new: per frame shape)")
+    ap.add_argument("--json", default=None, help="--fit: write the runs as JSON here")
     a = ap.parse_args(argv)
+    if a.fit:
+        return fit_counts(a)
 
     import torch
     import warp as wp
@@ -135,6 +158,122 @@ def main(argv=None):
             print(f"- outside the substeps (forward+backward call): {per_frame:g} per frame + {per_call:g} per call: "
                   + ", ".join(f"{k} {v}" for k, v in sorted(c4.get("rollout (outside substeps)", {}).items()))
                   + " (4 frames)")
+    return 0
+
+
+def fit_counts(a) -> int:
+    import json
+    import shutil
+    import tempfile
+    import time
+
+    import warp as wp
+
+    from physinteract_usd import api
+    from physinteract_usd.fit import optimize
+    from physinteract_usd.sim import rollout as rollout_mod
+    from physinteract_usd.sim import solver as solver_mod
+
+    sample = ROOT / "samples" / "foam_bar"
+    if not str(a.device).startswith("cuda"):      # the CUDA code paths on the CPU: what a GPU run captures
+        solver_mod.FUSED_ZERO = solver_mod.FUSED_KERNELS = solver_mod.GRID_BOX = True
+    tmp = Path(tempfile.mkdtemp(prefix="count_launches_"))
+    base = tmp / "init"
+    base.mkdir()
+    api.init(base / "scene.usda", sample, grid=a.grid, padding=0.3)
+
+    stack = ["fit: eager (forwards, per-call work)"]
+    counts: dict = collections.defaultdict(collections.Counter)
+
+    orig_launch, orig_cl = wp.launch, wp.capture_launch
+
+    def launch(*args, **kw):
+        counts[" / ".join(stack)]["launches"] += 1
+        return orig_launch(*args, **kw)
+
+    def capture_launch(*args, **kw):
+        counts[" / ".join(stack)]["graph launches"] += 1
+        return orig_cl(*args, **kw)
+
+    wp.launch, wp.capture_launch = launch, capture_launch
+    R = rollout_mod.Rollout
+    orig_ensure = R._ensure_graphs
+
+    def ensure(self, graphs, fn):
+        name = {id(self._fwd_graphs): "forward", id(self._fwd_store_graphs): "stored forward",
+                id(self._replay_graphs): "replay", id(self._adj_graphs): "adjoint",
+                id(self._bwd_graphs): "backward (replay + adjoint)"}.get(id(graphs), "?")
+        n0 = len(graphs)
+        stack.append(f"capture {name}")
+        try:
+            return orig_ensure(self, graphs, fn)
+        finally:
+            stack.pop()
+            counts[" / ".join(stack + [f"capture {name}"])]["graphs captured"] += len(graphs) - n0
+    R._ensure_graphs = ensure
+    orig_search = optimize.golden_uniform_search
+    search_time = {}
+
+    def search(*args, **kw):
+        stack.append("start search")
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return orig_search(*args, **kw)
+        finally:
+            wp.synchronize()
+            search_time["wall"] = time.perf_counter() - t0
+            search_time["cpu"] = time.process_time() - c0
+            stack.pop()
+    optimize.golden_uniform_search = search
+
+    runs = []
+    for rep in range(a.repeats):
+        for path in [p.strip() for p in a.paths.split(",") if p.strip()]:
+            rollout_mod.FRAME_GRAPHS = {"old": False, "new": True}[path]
+            d = tmp / f"run{rep}_{path}"
+            shutil.copytree(base, d)
+            counts.clear()
+            search_time.clear()
+            wp.synchronize()
+            t0, c0 = time.perf_counter(), time.process_time()
+            out = api.fit(d / "scene.usda", iterations=a.iterations, contact_from=sample / "gt", device=a.device,
+                          progress=False, log=lambda *x, **k: None)
+            wp.synchronize()
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            loss = float(out.result.final_loss)
+            hist = [float(v) for v in out.result.loss_history]
+            runs.append({"path": path, "repeat": rep, "frame_graphs": rollout_mod.FRAME_GRAPHS, "wall_s": wall,
+                         "cpu_s": cpu, "search_wall_s": search_time.get("wall"), "search_cpu_s": search_time.get("cpu"),
+                         "loss": loss, "loss_history": hist,
+                         "phases": {k: dict(v) for k, v in sorted(counts.items())},
+                         "launches": sum(v["launches"] for v in counts.values())})
+            r = runs[-1]
+            print(f"\n## {path} path ({'one graph per frame shape' if r['frame_graphs'] else 'one graph per frame'}), "
+                  f"repeat {rep}: fit {wall:.1f} s wall, {cpu:.1f} s CPU; start search "
+                  f"{r['search_wall_s'] or 0:.1f} s wall; loss {r['loss']!r}; {r['launches']:,} Python-issued launches")
+            print(f"| phase | launches | graphs captured | graph launches |\n|---|---:|---:|---:|")
+            for k, v in r["phases"].items():
+                print(f"| {k} | {v.get('launches', 0):,} | {v.get('graphs captured', 0)} | {v.get('graph launches', 0):,} |")
+    wp.launch, wp.capture_launch = orig_launch, orig_cl
+    R._ensure_graphs = orig_ensure
+    optimize.golden_uniform_search = orig_search
+    by = collections.defaultdict(list)
+    for r in runs:
+        by[r["path"]].append(r)
+    print("\n## summary (median over repeats)")
+    print("| path | fit wall s | fit CPU s | start search wall s | launches | loss |\n|---|---:|---:|---:|---:|---|")
+    for p, rs in by.items():
+        med = lambda k: float(np.median([r[k] or 0.0 for r in rs]))  # noqa: E731
+        print(f"| {p} | {med('wall_s'):.2f} | {med('cpu_s'):.2f} | {med('search_wall_s'):.2f} | "
+              f"{int(med('launches')):,} | {rs[0]['loss']!r} |")
+    losses = {tuple(r["loss_history"]) for r in runs}
+    print(f"loss histories equal across runs (bitwise): {len(losses) == 1}; final losses "
+          f"{sorted({r['loss'] for r in runs})}")
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps({"device": str(wp.get_device(a.device)), "grid": a.grid,
+                                            "iterations": a.iterations, "runs": runs}, indent=1))
+    shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 

@@ -84,6 +84,8 @@ _STATS: dict | None = {} if os.environ.get("PHYSINTERACT_SIM_STATS") else None  
 
 
 _ROLLOUT_NO = itertools.count()
+# frame-shape bodies run once (outside a capture) in this process: `Rollout._warm_key`
+_WARM_SHAPES: set = set()
 
 
 def _print_stats() -> None:
@@ -165,7 +167,6 @@ class Rollout:
         self.frame_graphs = (wp.get_device(m.device).is_cuda if FRAME_GRAPHS is None else bool(FRAME_GRAPHS))
         self._fw = None                # the frame windows (`_windows`), built at the first capture
         self._arena = None             # the stored states as (frames, S + 1, P) arrays per field (frame graphs)
-        self._warm_shapes: set = set()
         self._fwd_graphs: dict[int, object] = {}
         self._bwd_graphs: dict[int, object] = {}
         self._warm: set = set()
@@ -357,6 +358,13 @@ class Rollout:
                                        states=states, st=states.states())
         return self._fw
 
+    def _warm_key(self, key: str) -> tuple:
+        """What a frame-shape body's warm-up run (module loads) holds for: the process, per device, dtype,
+        body and the solver's kernel choices (the bodies allocate nothing: their buffers are built before)."""
+        sol = self.solver
+        return (str(self.model.device), self.model.dtype, key, sol.fused_kernels, sol.fused_zero, sol.grid_box,
+                sol.p2g_mode, int(sol.flags))
+
     def _shape(self, graphs: dict, k: int):
         """(key, body) of the graph that runs frame k of this graph set (key None: nothing to run)."""
         n = len(self._states) if self._states is not None else 0
@@ -382,10 +390,11 @@ class Rollout:
                 first[key] = (k, body)
         try:
             for key, (k, body) in first.items():
-                if key not in self._warm_shapes:
+                wkey = self._warm_key(key)
+                if wkey not in _WARM_SHAPES:
                     fw.ctr.fill_(k)
                     body()
-                    self._warm_shapes.add(key)
+                    _WARM_SHAPES.add(wkey)
                 fw.ctr.fill_(k)
                 with wp.ScopedCapture(device=self.model.device) as cap:
                     body()
@@ -570,7 +579,9 @@ class Rollout:
             graphs, fn = self._fwd_store_graphs, self._forward_frame_stored
         else:
             graphs, fn = self._fwd_graphs, self._forward_frame
-        eager = graphs is self._fwd_graphs and not graphs and self._eager_forwards_left > 0
+        # (with frame graphs a capture costs two frames' launches, not T + 1: no one-off forward runs eagerly)
+        eager = (graphs is self._fwd_graphs and not graphs and self._eager_forwards_left > 0
+                 and not self.frame_graphs)
         if eager:       # EAGER_FORWARDS: a one-off forward does not pay a capture
             self._eager_forwards_left -= 1
         else:
