@@ -41,18 +41,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def clean_frames(gt: dict, frames: np.ndarray) -> np.ndarray | None:
-    """The video less the synth's sensor noise (`synth.generate`: rng(seed + 7).normal(sigma) over
-    all frames at once, then clipped and written as 8-bit): the noise-free truth render to 8-bit
-    rounding (not where the noisy value was clipped). None without noise."""
-    sigma = float((gt.get("noise") or {}).get("sigma") or 0.0)
-    if sigma <= 0:
-        return None
-    rng = np.random.default_rng(int(gt.get("seed", 0)) + 7)
-    n = rng.normal(scale=sigma, size=(int(gt["n_frames"]), *frames.shape[1:]))
-    return np.clip(frames - n[: len(frames)], 0, 1).astype(np.float32)
-
-
 def terms(prob, k, rgb, alpha, weight_only=None) -> dict:
     """The fit's frame-k loss terms of an (H, W, 3) image and (H, W) alpha against the video."""
     import torch
@@ -120,10 +108,18 @@ def loss_curve(a, prob, job, scales, clean, render_with, bg) -> list[dict]:
     e_top = float(np.max(e_gt)) * max(scales)
     from physinteract_usd.fit.select import pinned_substep
 
+    from physinteract_usd.errors import SimulationError
+
     for sc in scales:
-        with torch.no_grad(), pinned_substep(prob, e_top):
-            x, F = prob.simulate(t(e_gt[nn] * sc), t(nu_gt[nn]))
         row = {"scale": sc}
+        try:
+            with torch.no_grad(), pinned_substep(prob, e_top):
+                x, F = prob.simulate(t(e_gt[nn] * sc), t(nu_gt[nn]))
+        except SimulationError as exc:
+            row["error"] = str(exc).split(";")[0]
+            out.append(row)
+            print("curve " + json.dumps(row), flush=True)
+            continue
         for shutter in ("instant", "synth"):
             for target in ("video", "clean"):
                 if target == "clean" and clean is None:
@@ -173,7 +169,7 @@ def main(argv=None):
     from physinteract_usd.app.fit import make_problem, prepare_fit
     from physinteract_usd.fit.problem import FitProblem, Observations
     from physinteract_usd.render import render
-    from physinteract_usd.synth.generate import background_image
+    from physinteract_usd.synth.generate import background_image, noise_free_frames
     from physinteract_usd.synth.gt import read_ground_truth, read_gt_array
 
     t0 = time.process_time()
@@ -184,7 +180,7 @@ def main(argv=None):
     obs = prob.obs
     H, W = obs.frames.shape[1:3]
     true_bg = background_image(W, H, int(gt.get("seed", 0)))
-    clean = clean_frames(gt, obs.frames)
+    clean = noise_free_frames(gt, obs.frames)
     out = Path(a.out) if a.out else None
     rows, info = [], {"stage": a.stage, "gt": a.gt, "noise_sigma": (gt.get("noise") or {}).get("sigma"),
                       "blur_samples": (gt.get("noise") or {}).get("blur_samples"),

@@ -331,6 +331,27 @@ def _render_all(g: Gaussians, binding, xs, Fs, hand: Gaussians, hand_pos, hand_R
     return (np.stack(frames), np.stack(amodal), np.stack(visible), np.stack(hand_masks), np.stack(gpos))
 
 
+# ------------------------------------------------------------------------------ sensor noise
+def sensor_noise(seed: int, sigma: float, shape) -> np.ndarray:
+    """The sensor noise `generate` adds to every frame of a capture (all frames at once, shape
+    (T, H, W, 3)): N(0, sigma) per pixel and channel from a generator seeded with seed + 7."""
+    return np.random.default_rng(int(seed) + 7).normal(scale=float(sigma), size=tuple(shape))
+
+
+def noise_free_frames(info: dict, frames: np.ndarray) -> np.ndarray | None:
+    """A synth capture's frames (T, H, W, 3) in [0, 1] less the sensor noise `generate` added (gt.json
+    `info`: its seed, noise sigma and frame count): the noise-free render to the frames' 8-bit rounding
+    (not where the noisy value was clipped at 0 or 1). None for a capture without noise. What a model
+    that renders the truth exactly scores against the video is the noise's share of a loss
+    (benchmarks/loss_floor.py, docs/benchmarks/fit.md)."""
+    sigma = float((info.get("noise") or {}).get("sigma") or 0.0)
+    if sigma <= 0:
+        return None
+    frames = np.asarray(frames, np.float64)
+    n = sensor_noise(int(info.get("seed", 0)), sigma, (int(info["n_frames"]), *frames.shape[1:]))
+    return np.clip(frames - n[: len(frames)], 0, 1).astype(np.float32)
+
+
 # ------------------------------------------------------------------------------ main entry
 def generate(name: str, out_dir, *, size: str = "small", frames: int | None = None,
              hidden: str | None = None, strength: float = 1.0, noise: float | None = None,
@@ -414,9 +435,8 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
             pos = gt.trajectory.copy()
     bg = background_image(sz.width, sz.height, seed)
     rgb, amodal, visible, hmask, gpos = _render_all(g, binding, x, F, hand, pos, R, cam, bg, blur, device)
-    rng = np.random.default_rng(seed + 7)
     if noise > 0:
-        rgb = np.clip(rgb + rng.normal(scale=noise, size=rgb.shape), 0, 1)
+        rgb = np.clip(rgb + sensor_noise(seed, noise, rgb.shape), 0, 1)
 
     # ---- write the capture folder
     out.mkdir(parents=True, exist_ok=True)
