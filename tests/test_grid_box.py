@@ -149,19 +149,21 @@ def test_solver_simulate_redoes_a_run_that_left_the_box():
     assert out[True]["x"][-1][:, 0].min() > pts[:, 0].max() + dx       # it did move out of the box
 
 
-@pytest.mark.parametrize("box", [False, True], ids=["whole-grid", "box"])
-def test_gpu_grid_stride_loop_on_the_cpu(box):
-    """The GPU's launch over the grid (a grid-stride loop over the box's nodes, `kernels.box_span`
-    contig = 0), run on the CPU: the same positions bit for bit as the CPU's row-per-thread launch and
-    the same gradients to round-off (Warp's generated adjoints add the effect parameters' node terms
-    in another order), also with a thread count smaller than the box (as a graph captured with a
-    smaller box runs)."""
+@pytest.mark.parametrize("margin", [1000, 1], ids=["box-is-whole-grid", "box"])
+def test_gpu_grid_stride_loop_on_the_cpu(margin):
+    """The GPU's launch over the grid box (a grid-stride loop over the box's nodes, `kernels.box_span`
+    contig = 0), run on the CPU, with a box that is the whole grid and with one bounded to the object:
+    the same positions bit for bit as the CPU's whole-grid kernels and the same gradients to round-off
+    (Warp's generated adjoints add the effect parameters' node terms in another order), also with a
+    thread count smaller than the box (as a graph captured with a smaller box runs)."""
     m, ctrl, pts, eff, trajs = _scene()
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(rollout_mod, "BOX_MARGIN", 1)
         ref = _loss_and_grads(_rollout(m, ctrl, False, False, mp), pts, eff, trajs)
+        mp.setattr(rollout_mod, "BOX_MARGIN", margin)
         for nthr in (None, 7):
-            ro = _rollout(m, ctrl, box, False, mp)
+            ro = _rollout(m, ctrl, True, False, mp)
+            assert ro.solver.full_box() == (margin > 100)
             ro.solver.contig = 0
             if nthr is not None:
                 mp.setattr(solver_mod.MPMSolver, "n_grid_threads", property(lambda self: nthr))
@@ -171,3 +173,35 @@ def test_gpu_grid_stride_loop_on_the_cpu(box):
                 for a, b in zip(call_r[1:], call_g[1:]):
                     assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), \
                         float((a - b).abs().max())
+
+
+def test_box_off_runs_the_whole_grid_kernels_without_the_escape_count():
+    """With the box off (the CPU's default) the grid update is the whole grid's kernel (no box decoded or
+    tested per node) and p2g counts no escapes, even with a box array that the particles leave."""
+    from physinteract_usd.sim import GridSpec, SimModel, SimState
+    from sim_helpers import block
+    dx = 0.05
+    pts = block((2, 2, 2), dx / 2, (0.15, 0.2, 0.25))
+    m = SimModel.create(pts, (dx / 2) ** 3, 1000.0, 2e3, 0.3, grid=GridSpec((0, 0, 0), dx, (14, 10, 10)), fps=10,
+                        substeps=4, E_max=1e4, dtype="float64", gravity=(0.0, 0.0, 0.0))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(solver_mod, "GRID_BOX", False)
+        sol = solver_mod.MPMSolver(m)
+        assert sol.grid_kernel is sol.K.grid_update and sol.n_grid_threads == -(-sol.n_nodes // sol.chunk)
+        sol.set_box((1, 2, 3), (6, 7, 8))
+        a, b = SimState.rest(m, v0=(0.6, 0.0, 0.0)), SimState.zeros(m.n_particles, m.dtype, m.device)
+        for s in range(8):
+            sol.step(a, b, 0, s % 4)
+            a, b = b, a
+        assert int(sol.box_flag.numpy()[0]) == 0
+        assert a.x.numpy()[:, 0].min() > pts[:, 0].max() + dx       # it left the box array's nodes
+        mp.setattr(solver_mod, "GRID_BOX", True)
+        sol = solver_mod.MPMSolver(m)
+        assert sol.grid_kernel is sol.K.grid_update_box
+        sol.set_box((1, 2, 3), (6, 7, 8))
+        sol.step(SimState.rest(m, v0=(0.6, 0.0, 0.0)), b, 0, 0)
+        assert int(sol.box_flag.numpy()[0]) == 0
+        a = SimState.rest(m, v0=(0.6, 0.0, 0.0))
+        a.x.assign(a.x.numpy() + np.array([0.2, 0.0, 0.0]))
+        sol.step(a, b, 0, 0)
+        assert int(sol.box_flag.numpy()[0]) > 0                     # the box on: the escape is counted

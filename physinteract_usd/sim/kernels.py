@@ -344,33 +344,38 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     @wp.func
     def box_span(tid: int, nthr: int, contig: int, box: wp.array(dtype=wp.vec3i), res: wp.vec3i):
-        # the nodes q (row-major over the box's extent, decoded by box_node) that thread tid of nthr
-        # visits, as (start, stop, step). contig != 0 (the CPU): one thread per (i, j) row of the whole
-        # grid (nthr = res[0] res[1]), visiting that row's nodes in the box in order, so nodes are
-        # visited (and Warp's generated adjoints accumulate) in the same order whatever the box: the
-        # box is bitwise the whole grid. contig == 0 (a GPU): a grid-stride loop over the box (coalesced;
-        # atomics add in no fixed order there anyway). Either way any nthr covers the box: a graph
-        # captured with one box stays valid when the (device-side) box changes.
-        b0 = box[0]
-        e = box[1]
+        # the indices q that thread tid of nthr visits (decoded by box_node), as (start, stop, step).
+        # contig != 0 (the CPU): a run of ceil(n / nthr) consecutive flat node indices of the whole grid,
+        # the runs of the whole-grid kernels (grid_update), so that nodes are visited (and Warp's
+        # generated adjoints accumulate, in reverse within a run) in the same order whatever the box:
+        # the box is bitwise the whole grid; box_node says which are in the box. contig == 0 (a GPU):
+        # a grid-stride loop over the box's nodes, row-major over its extent (coalesced; atomics add in
+        # no fixed order there anyway). Either way any nthr covers the box: a graph captured with one
+        # box stays valid when the (device-side) box changes.
         if contig != 0:
-            i = tid / res[1] - b0[0]
-            j = tid % res[1] - b0[1]
-            if i >= 0 and i < e[0] and j >= 0 and j < e[1]:
-                start = (i * e[1] + j) * e[2]
-                return start, start + e[2], 1
-            return 0, 0, 1
+            n = res[0] * res[1] * res[2]
+            run = (n + nthr - 1) / nthr
+            start = tid * run
+            return start, wp.min(start + run, n), 1
+        e = box[1]
         return tid, e[0] * e[1] * e[2], nthr
 
     @wp.func
-    def box_node(q: int, box: wp.array(dtype=wp.vec3i), res: wp.vec3i):
-        # node q of the box (row-major over its extent) -> (i, j, k) and its flat index in the grid
+    def box_node(q: int, contig: int, box: wp.array(dtype=wp.vec3i), res: wp.vec3i):
+        # index q of box_span -> node (i, j, k), its flat index in the grid, and whether it is in the box
         b0 = box[0]
         e = box[1]
+        if contig != 0:
+            i = q / (res[1] * res[2])
+            j = (q / res[2]) % res[1]
+            k = q % res[2]
+            inside = (i >= b0[0] and j >= b0[1] and k >= b0[2]
+                      and i < b0[0] + e[0] and j < b0[1] + e[1] and k < b0[2] + e[2])
+            return i, j, k, q, inside
         i = b0[0] + q / (e[1] * e[2])
         j = b0[1] + (q / e[2]) % e[1]
         k = b0[2] + q % e[2]
-        return i, j, k, (i * res[1] + j) * res[2] + k
+        return i, j, k, (i * res[1] + j) * res[2] + k, True
 
     # ------------------------------------------------------------------ contact helpers
     @wp.func
@@ -497,7 +502,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def p2g_scatter(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                     mass: wp.array(dtype=T),
                     pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-                    frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i),
+                    frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                     gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
                     gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
         p = wp.tid()
@@ -505,7 +510,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         dx = T(1.0) / inv_dx
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
-        if out_of_box(base, box):
+        if box_on != 0 and out_of_box(base, box):
             wp.atomic_add(box_flag, 0, 1)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
@@ -528,7 +533,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                   eff: wp.array(dtype=T), flags: int, material: int, dt: T,
                   x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), mass: wp.array(dtype=T),
                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
-                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i),
+                  frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                   A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
                   gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
         # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
@@ -542,7 +547,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         dx = T(1.0) / inv_dx
         xp = (x[p] - lo) * inv_dx
         base = cell_base(xp, res)
-        if out_of_box(base, box):
+        if box_on != 0 and out_of_box(base, box):
             wp.atomic_add(box_flag, 0, 1)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
@@ -687,21 +692,54 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     frame: int, alpha: T, fps: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i), nthr: int,
                     contig: int, m_eps: T, blend_r: T,
                     gv: wp.array(dtype=vec3)):
-        # flat launch of nthr threads over the nodes of the grid box (`box_span`; the whole grid when
-        # the box is): nodes outside the box are neither read nor written. Iterations are independent.
-        start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
-        for q in range(start, stop, step):
-            i, j, k, t = box_node(q, box, res)
+        # the whole grid (the grid box off: the CPU's default), in runs of ceil(n / nthr) consecutive nodes
+        # per thread (the CPU pays per thread; one node per thread on CUDA); a node's index is decoded only
+        # where there is mass. Iterations are independent. box and contig are not read (grid_update_box's
+        # arguments: one argument list for both).
+        n = gm.shape[0]
+        run = (n + nthr - 1) / nthr
+        t0 = wp.tid() * run
+        for t in range(t0, wp.min(t0 + run, n)):
             m = gm[t]
             vel = vec3()
             # nodes that only graze a particle's stencil edge (mass far below a particle's) are
             # left empty: their velocity mv / m has an adjoint ~1/m that overflows to inf * 0 = NaN
             if m > m_eps:
+                i = t / (res[1] * res[2])
+                j = (t / res[2]) % res[1]
+                k = t % res[2]
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                 vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
                                     pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
                                     frame, alpha, fps, blend_r)
             gv[t] = vel
+
+    @wp.kernel(module=module)
+    def grid_update_box(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
+                        gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
+                        eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
+                        pin_gain: T, pin_floor: T, n_col: int, col_shape: wp.array(dtype=int),
+                        col_active: wp.array2d(dtype=int),
+                        col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
+                        col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
+                        frame: int, alpha: T, fps: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i), nthr: int,
+                        contig: int, m_eps: T, blend_r: T,
+                        gv: wp.array(dtype=vec3)):
+        # grid_update over the nodes of the grid box (`box_span`; on the CPU the same runs of the whole
+        # grid as grid_update's, nodes outside the box skipped: bitwise grid_update where the box holds
+        # every node with mass): nodes outside the box are neither read nor written.
+        start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
+        for q in range(start, stop, step):
+            i, j, k, t, inside = box_node(q, contig, box, res)
+            if inside:
+                m = gm[t]
+                vel = vec3()
+                if m > m_eps:
+                    xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
+                    vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
+                                        pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius,
+                                        col_mu, frame, alpha, fps, blend_r)
+                gv[t] = vel
 
     @wp.func
     def gather_particle(p: int, x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T,
@@ -1040,8 +1078,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         # the grid's scatter targets (flat views) over the grid box, nthr threads (`box_span`)
         start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
         for q in range(start, stop, step):
-            i, j, k, t = box_node(q, box, res)
-            clear_scatter_node(t, gm, gmv, gpm, gpmv)
+            i, j, k, t, inside = box_node(q, contig, box, res)
+            if inside:
+                clear_scatter_node(t, gm, gmv, gpm, gpmv)
 
     @wp.kernel(module=module, enable_backward=False)
     def zero_grid_adj(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
@@ -1051,13 +1090,14 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         # the scatter targets and the five grid adjoints of a backward substep, over the grid box
         start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
         for q in range(start, stop, step):
-            i, j, k, t = box_node(q, box, res)
-            clear_scatter_node(t, gm, gmv, gpm, gpmv)
-            a_gm[t] = T(0.0)
-            a_gmv[t] = vec3()
-            a_gpm[t] = T(0.0)
-            a_gpmv[t] = vec3()
-            a_gv[t] = vec3()
+            i, j, k, t, inside = box_node(q, contig, box, res)
+            if inside:
+                clear_scatter_node(t, gm, gmv, gpm, gpmv)
+                a_gm[t] = T(0.0)
+                a_gmv[t] = vec3()
+                a_gpm[t] = T(0.0)
+                a_gpmv[t] = vec3()
+                a_gv[t] = vec3()
 
     @wp.kernel(module=module, enable_backward=False)
     def zero_particle_adj(a_A: wp.array(dtype=mat33), a_vg: wp.array(dtype=vec3), a_Cg: wp.array(dtype=mat33),
@@ -1117,5 +1157,6 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         p2g_tiled=p2g_tiled, g2p_gather_adj_tiled=g2p_gather_adj_tiled, TILE_CAP=TILE_CAP,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
+        grid_update_box=grid_update_box,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
     )

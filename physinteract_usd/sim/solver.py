@@ -149,9 +149,12 @@ class MPMSolver:
         n_nodes = int(np.prod(self.res))
         self.n_nodes = n_nodes
         # the grid box: nodes box_lo .. box_hi - 1 per axis, device-side (box[0] = lower, box[1] =
-        # extent) so that captured graphs stay valid when it changes; every p2g counts the particles
+        # extent) so that captured graphs stay valid when it changes; with the box on every p2g counts the particles
         # whose stencil leaves it into box_flag[0] (the caller checks and redoes the pass on the full grid)
-        self.contig = 1 if wp.get_device(d).is_cpu else 0      # CPU: a thread per (i, j) row (kernels.box_span)
+        self.contig = 1 if wp.get_device(d).is_cpu else 0      # CPU: runs of consecutive nodes (kernels.box_span)
+        # nodes per thread of the grid kernels over the whole grid, and of the box's on the CPU (the CPU
+        # pays per thread, most in the generated adjoints; one node per thread on a GPU)
+        self.chunk = 64 if wp.get_device(d).is_cpu else 1
         self.box = wp.array(np.array([[0, 0, 0], list(self.res)], dtype=np.int32), dtype=wp.vec3i, device=d)
         self.box_flag = wp.zeros(1, dtype=wp.int32, device=d)
         self.box_lo = (0, 0, 0)
@@ -176,8 +179,17 @@ class MPMSolver:
 
     @property
     def n_grid_threads(self) -> int:
-        """Threads of a launch over the box (read at launch / capture; any count covers the box)."""
-        return self.res[0] * self.res[1] if self.contig else self.box_volume
+        """Threads of a launch of the grid kernels (read at launch / capture; any count covers the grid
+        or the box): the box's nodes on a GPU with the box on, else the whole grid in runs of `chunk`."""
+        if self.grid_box and not self.contig:
+            return self.box_volume
+        return (self.n_nodes + self.chunk - 1) // self.chunk
+
+    @property
+    def grid_kernel(self):
+        """The grid update: over the box (kernels.grid_update_box) or, with the box off, over the whole
+        grid without decoding or testing a box per node (kernels.grid_update); bitwise the same."""
+        return self.K.grid_update_box if self.grid_box else self.K.grid_update
 
     def set_box(self, lo=None, hi=None) -> None:
         """Run the grid kernels over nodes lo .. hi - 1 per axis (clipped to the grid; None: the whole
@@ -210,7 +222,7 @@ class MPMSolver:
 
     def _scatter_args(self, s: SimState, frame: int, c: ControlArrays):
         return [s.x, s.v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
-                self.inv_dx, self.res3]     # p2g_scatter: + the box (and box_flag among its outputs)
+                self.inv_dx, self.res3]     # p2g_scatter: + whether the box is on, the box (and box_flag out)
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
@@ -257,13 +269,13 @@ class MPMSolver:
             sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
                                        s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
-                                       self.fps, self.lo, self.inv_dx, self.res3, self.box],
+                                       self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
                       [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
         else:
             wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
-            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [self.box],
+            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [int(self.grid_box), self.box],
                       [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
-        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
+        wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False)
         if gather:
             wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg],
@@ -365,7 +377,7 @@ class MPMSolver:
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
-        wp.launch(K.grid_update, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
+        wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
         # scatter (hand-written adjoint) -> adj x, v, A, pins
         wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
