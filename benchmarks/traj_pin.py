@@ -12,7 +12,7 @@ path. Per scene and mode, the same bumps fit (same settings, iterations, seed) w
 
 Each row: MA (per Gaussian, the design's metric) beside the best single E's, masked PSNR, the
 fit's loss, its path's largest image-plane deviation from the true path (px, and in sigma), and,
-all at one substep (the stiffest model's rung), the reconstruction loss of: the fit with its path,
+all at one substep (the rung of the stage's E range's top), the reconstruction loss of: the fit with its path,
 the fit's E with the true path, the truth's E and nu with the true path.
 
     # one stage (e.g. benchmarks/suite.py made it), in this process:
@@ -91,6 +91,10 @@ def one_stage(stage, gt_dir, a, tag="") -> list[dict]:
     from physinteract_usd.fit.select import frame_losses
     from physinteract_usd.synth.gt import read_gt_array
 
+    if a.cfl is not None:      # the adaptive substep's CFL number (simulation.CFL, default 0.6): smaller, finer steps
+        import physinteract_usd.simulation as simulation
+
+        simulation.CFL = float(a.cfl)
     over = {"schedule": "bumps", **json.loads(a.settings or "{}")}
     job = prepare_fit(stage, iterations=a.iterations, contact_from=gt_dir, device=a.device, warm=False,
                       progress=False, log=lambda m: None, settings_overrides=over)
@@ -98,7 +102,10 @@ def one_stage(stage, gt_dir, a, tag="") -> list[dict]:
     nu_gt = read_gt_array(gt_dir, "poisson_ratio.npy")
     g0 = read_gt_array(gt_dir, "gaussian_positions.npy")[0]
     ma_best, e_best = M.best_uniform_ma(e_gt)
-    rows, results = [], {}
+    # every loss below at one substep: the rung of the stage's E range's top (the stiffest any fit may take)
+    e_top = float(job.scene.settings.youngs_max)
+    frames = None
+    rows, truth, truth_loss = [], None, None
     for mode in a.modes.split(","):
         if mode not in MODES:
             raise SystemExit(f"--modes: unknown mode {mode!r} (one of {', '.join(MODES)})")
@@ -113,30 +120,24 @@ def one_stage(stage, gt_dir, a, tag="") -> list[dict]:
         names = prob.sim.slot_names()
         t_true = [tr.detach().cpu().numpy() for tr in prob.initial_trajectories()]
         t_fit = [np.asarray(r.trajectories[n]) for n in names]
-        fm = r.frame_metrics
-        results[mode] = (prob, r, s)
-        rows.append({"tag": tag, "stage": str(stage), "mode": mode, "iterations": s.iterations,
-                     "particles": int(len(prob.x0)), "ma": M.material_accuracy(r.youngs_gaussian, e_gt),
-                     "ma_best_uniform": ma_best, "e_best_uniform": e_best,
-                     "median_e_fit": float(np.median(r.youngs_gaussian)), "median_e_truth": float(np.median(e_gt)),
-                     "psnr_masked": float(np.nanmean([min(f["psnr_masked"], 100) for f in fm])),
-                     "final_loss": float(r.final_loss), "path": path_deviation(prob, t_fit, t_true),
-                     "cpu_s": round(cpu_s, 1), "wall_s": round(wall_s, 1), "device": a.device})
-    # losses at one substep: the fit with its path, its E with the true path, the truth with the true path
-    prob, r0, s0 = next(iter(results.values()))
-    _, nn = cKDTree(g0).query(np.asarray(prob.x0))
-    truth = dataclasses.replace(r0, youngs=e_gt[nn], poisson=nu_gt[nn], effect_parameters={},
-                                trajectories={n: t.detach().cpu().numpy()
-                                              for n, t in zip(prob.sim.slot_names(), prob.initial_trajectories())})
-    e_top = max([float(np.max(truth.youngs))] + [float(np.max(r.youngs)) for _, r, _ in results.values()])
-    frames = list(range(1, prob.T))
-    truth_loss = float(np.mean(frame_losses(prob, truth, s0, frames, e_top)))
-    for row in rows:
-        p, r, s = results[row["mode"]]
-        own = float(np.mean(frame_losses(p, r, s, frames, e_top)))
+        frames = list(range(1, prob.T))
+        if truth is None:   # the truth's E and nu per particle (its nearest Gaussian's at rest), the true path
+            _, nn = cKDTree(g0).query(np.asarray(prob.x0))
+            truth = dataclasses.replace(r, youngs=e_gt[nn], poisson=nu_gt[nn], effect_parameters={},
+                                        trajectories=dict(zip(names, t_true)))
+            truth_loss = float(np.mean(frame_losses(prob, truth, s, frames, e_top)))
         on_true = dataclasses.replace(r, trajectories=truth.trajectories)
-        row.update(loss_fit=own, loss_fit_e_true_path=float(np.mean(frame_losses(p, on_true, s, frames, e_top))),
-                   loss_truth=truth_loss)
+        fm = r.frame_metrics
+        row = {"tag": tag, "stage": str(stage), "mode": mode, "iterations": s.iterations,
+               "particles": int(len(prob.x0)), "ma": M.material_accuracy(r.youngs_gaussian, e_gt),
+               "ma_best_uniform": ma_best, "e_best_uniform": e_best,
+               "median_e_fit": float(np.median(r.youngs_gaussian)), "median_e_truth": float(np.median(e_gt)),
+               "psnr_masked": float(np.nanmean([min(f["psnr_masked"], 100) for f in fm])),
+               "final_loss": float(r.final_loss), "path": path_deviation(prob, t_fit, t_true),
+               "loss_fit": float(np.mean(frame_losses(prob, r, s, frames, e_top))),
+               "loss_fit_e_true_path": float(np.mean(frame_losses(prob, on_true, s, frames, e_top))),
+               "loss_truth": truth_loss, "cfl": a.cfl, "substeps": int(prob.sim.substeps), "cpu_s": round(cpu_s, 1), "wall_s": round(wall_s, 1), "device": a.device}
+        rows.append(row)
         if a.out:
             with open(a.out, "a") as fh:
                 fh.write(json.dumps(row, default=float) + "\n")
@@ -171,6 +172,8 @@ def main(argv=None):
     ap.add_argument("--modes", default="pinned,prior")
     ap.add_argument("--settings", default=None, help="FitSettings overrides as JSON (e.g. a test's small schedule)")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cfl", type=float, default=None, help="the fit's adaptive substep CFL number (default "
+                    "simulation.CFL, 0.6); rows record it")
     ap.add_argument("--jobs", type=int, default=1, help="scenes at once (one process each)")
     ap.add_argument("--out", default=None, help="JSON lines to append the rows to")
     ap.add_argument("--tag", default="")
@@ -193,7 +196,8 @@ def main(argv=None):
     passthru = ["--iterations", str(a.iterations), "--modes", a.modes, "--device", a.device, "--out", str(out),
                 "--tag", a.tag, "--work", str(work), "--size", a.size] + (["--settings", a.settings] if a.settings else []) \
         + (["--frames", str(a.frames)] if a.frames else []) \
-        + (["--synth-fit-grid", str(a.synth_fit_grid)] if a.synth_fit_grid else []) + (["--grid", a.grid] if a.grid else [])
+        + (["--synth-fit-grid", str(a.synth_fit_grid)] if a.synth_fit_grid else []) + (["--grid", a.grid] if a.grid else []) \
+        + (["--cfl", str(a.cfl)] if a.cfl is not None else [])
     t0 = time.perf_counter()
     pending = a.scenes.split(",")
     while pending or procs:
