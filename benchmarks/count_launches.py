@@ -18,7 +18,7 @@ replays only the per-frame ones).
     python benchmarks/count_launches.py --fit                     # the CLI's small fit, launches per phase
     python benchmarks/count_launches.py --fit --device cuda --grid 24 --iterations 60 --repeats 2 --json OUT/fit.json
 
-`--fit` (issue #26): `init samples/foam_bar --grid G` (as the demo) once, then `fit --contact-from
+`--fit` (issue #26): `init samples/foam_bar --grid G` (the demo's other flags) once, then `fit --contact-from
 samples/foam_bar/gt --iterations N` on a fresh copy of the stage per run, with one captured graph per frame
 (`sim.rollout.FRAME_GRAPHS = False`, the old path) and per frame shape (True) alternating, `--repeats` times
 each, in one process. Per run: the Python-issued Warp launches (`wp.launch`) by phase (the start search, each
@@ -180,7 +180,8 @@ def fit_counts(a) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="count_launches_"))
     base = tmp / "init"
     base.mkdir()
-    api.init(base / "scene.usda", sample, grid=a.grid, padding=0.3)
+    api.init(base / "scene.usda", sample, grid=a.grid, padding=0.3, youngs_range=(1e3, 6e4), max_poisson=0.4,
+             density=150.0, log=lambda *x, **k: None)      # as scripts/demo.sh
 
     stack = ["fit: eager (forwards, per-call work)"]
     counts: dict = collections.defaultdict(collections.Counter)
