@@ -15,7 +15,7 @@
 # Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
 # JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
 # world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test, schedule=select), GRID (init's
-# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules or model: extract's
+# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules, model or hybrid: extract's
 # timing method, world_suite.py --timing; default the code's), NOFIT (1: generate and
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.

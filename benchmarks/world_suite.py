@@ -327,9 +327,9 @@ def main(argv=None):
     ap.add_argument("--grid", default=None, type=grid_arg,
                     help="init's --grid for every capture (e.g. auto) instead of the capture's suggested grid")
     ap.add_argument("--max-particles", type=int, default=None, help="init's --max-particles (a cap on grid auto)")
-    ap.add_argument("--timing", choices=["rules", "model"], default=None,
-                    help="extract's timing: the passes' rules or the ninth pass's model (timing.METHOD; default: "
-                         "the code's)")
+    ap.add_argument("--timing", choices=["rules", "model", "hybrid"], default=None,
+                    help="extract's timing: the passes' rules, the ninth pass's model, or the model's grasp with "
+                         "the rules' release (timing.METHOD; default: the code's)")
     a = ap.parse_args(argv)
     if a.timing:
         from physinteract_usd.extract import timing as _timing

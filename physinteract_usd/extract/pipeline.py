@@ -79,7 +79,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     hand = track_hand(timing, grasp.uv)
     itype, conf, tsource = classify(an, timing, grasp.uv, hand, evidence, models,           # 5: how
                                     interaction_type, frames)
-    rules = timing_method() == "rules"    # the model reads every toucher alike: no collider rules
+    rules = timing_method() != "model"    # the model reads every toucher alike: no collider rules
     if rules and itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
         g2 = collider_start(timing, an.eps)
         if g2 != g:   # a collider acts from when the object starts to give
@@ -123,7 +123,8 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
 
 
 def timing_method() -> str:
-    """"model" (the ninth pass's `timing.held_window`) or "rules" (the eighth pass's cascade)."""
+    """"model" (the ninth pass's `timing.held_window`), "rules" (the passes' cascade) or "hybrid"
+    (the model's grasp, the rules' release)."""
     return _timing.METHOD
 
 

@@ -55,6 +55,12 @@ def find_timing(an: Analysis, seen: ContactSeen, evidence: dict) -> Timing:
     g = past_the_approach(g, coupled, speed, run, an.eps)
     g_hand = g
     g = following_onset(g, coupled, vo, an.eps)
+    if METHOD == "hybrid":
+        # the model's grasp (better on both halves of the ninth pass's dev captures), the rules'
+        # release from it (the model's was worse on the held-out half): untried, for a GPU A/B
+        hw = held_window(vh, vo, near, an.eps)
+        if hw is not None:
+            g = g_hand = hw[0]
     share = 0.0
     if run is not None:
         coupled = part_by_ratio(coupled, vh, vo, run, an.eps)
@@ -845,7 +851,8 @@ def grasp_window(touch: np.ndarray, coupled: np.ndarray, vh: np.ndarray):
 
 # ------------------------------------------------------------------ the ninth pass: one model (#23)
 # "rules": the passes' cascade (contact_start ... release, the default); "model": the ninth pass's
-# `held_window` (opt-in until a GPU read on fresh dev seeds decides: docs/benchmarks/world.md)
+# `held_window` (opt-in until a GPU read on fresh dev seeds decides: docs/benchmarks/world.md);
+# "hybrid": the model's grasp, the rules' release from it (and the rules' collider steps)
 METHOD = "rules"
 
 
