@@ -136,3 +136,33 @@ def test_frame_shape_graphs_issue_fewer_launches():
     assert per_frame > (T + 1) * 2 * S * 4            # two sets (stored forward, adjoint), >= 4 launches a substep
     assert per_shape < per_frame * 2.5 / (T + 1), counts   # ~2 frames' of T + 1
     assert counts[True][1] <= counts[False][1] + 4, counts     # replays: only the per-call work, a prelude
+
+
+def test_frame_shape_graphs_float32():
+    """The production dtype: the windows' kernels built for float32, bitwise the per-frame path."""
+    from physinteract_usd.sim import Contact, Control, GridSpec, SimModel
+    from sim_helpers import block
+    SP, DX, T = 0.025, 0.05, 3
+    pts = block((3, 3, 3), SP, (0.25, 0.12, 0.25))
+    m = SimModel.create(pts, SP ** 3, 1000.0, 2e3, 0.3, grid=GridSpec((0, 0, 0), DX, (10, 10, 10)), fps=20,
+                        substeps=6, E_max=1e4, dtype="float32")
+    side = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
+    grab = np.repeat(pts[side].mean(0)[None], T + 1, 0)
+    grab[:, 0] += np.linspace(0.0, 0.01, T + 1)
+    ctrl = Control([Contact("pointAdherent", indices=side, trajectory=grab, release_frame=2)], n_frames=T)
+    P = len(pts)
+    out = {}
+    with pytest.MonkeyPatch.context() as mp:
+        for fg in (False, True):
+            ro = _ro(m, ctrl, mp, True, fg, gpu_paths=True)
+            res = []
+            for s in (1.0, 0.9):
+                E = torch.full((P,), 2e3 * s, dtype=torch.float32, requires_grad=True)
+                tr = torch.tensor(grab, dtype=torch.float32, requires_grad=True)
+                x, F = ro(E, torch.full((P,), 0.3), trajectories={0: tr})
+                (x.sum() + F.square().sum()).backward()
+                res.append([x.detach().clone(), E.grad.clone(), tr.grad.clone()])
+            out[fg] = res
+            assert ro.graphs
+    _same(out[False], out[True], "float32")
+    assert float(out[True][0][2].abs().max()) > 0
