@@ -53,6 +53,8 @@ def main(argv=None):
     ap.add_argument("--paths", default="old,new", help="--fit: which paths, in order per repeat (old: per-frame "
                                                         "graphs, new: per frame shape)")
     ap.add_argument("--json", default=None, help="--fit: write the runs as JSON here")
+    ap.add_argument("--cpu-paths", action="store_true", help="--fit on the CPU: keep the CPU's own kernel paths "
+                                                             "(memsets, separate kernels, no grid box)")
     a = ap.parse_args(argv)
     if a.fit:
         return fit_counts(a)
@@ -175,7 +177,7 @@ def fit_counts(a) -> int:
     from physinteract_usd.sim import solver as solver_mod
 
     sample = ROOT / "samples" / "foam_bar"
-    if not str(a.device).startswith("cuda"):      # the CUDA code paths on the CPU: what a GPU run captures
+    if not str(a.device).startswith("cuda") and not a.cpu_paths:   # the CUDA code paths on the CPU: a GPU run's launches
         solver_mod.FUSED_ZERO = solver_mod.FUSED_KERNELS = solver_mod.GRID_BOX = True
     tmp = Path(tempfile.mkdtemp(prefix="count_launches_"))
     base = tmp / "init"
