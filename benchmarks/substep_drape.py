@@ -9,7 +9,9 @@ binding against gt/gaussian_positions.npy, in mm).
 
     python benchmarks/substep_drape.py STAGE GT_DIR [--frames 10] [--substeps 0,1205] [--particles fit,truth]
 
-substeps 0 = the fit's adaptive substep (simulation.CFL at the field's rung); N = N a frame, fixed.
+substeps 0 = the fit's adaptive substep (simulation.CFL at the field's rung); N = N a frame, fixed (the
+partial pin / collider blends then act once per substep, as the truth's do). --blend-substeps N: the
+adaptive substep with the blends' rate of N substeps a frame (the rate alone, not the step).
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--substeps", default="0")
     ap.add_argument("--particles", default="fit,truth")
+    ap.add_argument("--blend-substeps", default="0", help="with the adaptive substep: the stage's substeps a frame "
+                    "the partial pin / collider blends take their rate from (model.blend_dt = 1 / (fps N)); 0: the "
+                    "stage's. Comma-separated: each is a run")
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args(argv)
 
@@ -55,7 +60,9 @@ def main(argv=None):
     gpos = read_gt_array(a.gt, "gaussian_positions.npy")
     e_g, nu_g = read_gt_array(a.gt, "youngs_modulus.npy"), read_gt_array(a.gt, "poisson_ratio.npy")
     for which in a.particles.split(","):
-        for sub in (int(v) for v in a.substeps.split(",")):
+        runs = [(int(v), 0) for v in a.substeps.split(",")] + \
+            [(0, int(v)) for v in a.blend_substeps.split(",") if int(v) > 0]
+        for sub, blend in runs:
             sd = job.scene
             if which == "truth":
                 sd = dataclasses.replace(sd, particles_positions=p["rest"], particles_volumes=p["volume"],
@@ -65,8 +72,8 @@ def main(argv=None):
             else:
                 _, nn = cKDTree(gpos[0]).query(np.asarray(sd.particles_positions))
                 E, nu = e_g[nn], nu_g[nn]
-            if sub:
-                sd = dataclasses.replace(sd, settings=dataclasses.replace(sd.settings, substeps=sub))
+            if sub or blend:
+                sd = dataclasses.replace(sd, settings=dataclasses.replace(sd.settings, substeps=sub or blend))
             cs = read_gt_contacts(a.gt, sd.particles_positions, job.scene.n_frames)
             cs = [dataclasses.replace(c, trajectory=None if c.trajectory is None else np.asarray(c.trajectory)[:T])
                   for c in cs]
@@ -81,6 +88,7 @@ def main(argv=None):
                     pts = np.stack([sim.gaussians_at(x[k], F[k])[0].cpu().numpy() for k in range(T)])
                     ref = gpos[:T]
             row = {"particles": which, "substeps": int(sim.substeps), "adaptive": not sub,
+                   "blend_substeps": int(sd.settings.substeps) if not sub else int(sub),
                    "cpu_s": round(time.process_time() - t0, 1),
                    "model_max_mm": [round(1e3 * float(np.linalg.norm(pts[k] - pts[0], axis=1).max()), 1) for k in range(T)],
                    "truth_max_mm": [round(1e3 * float(np.linalg.norm(ref[k] - ref[0], axis=1).max()), 1) for k in range(T)],
