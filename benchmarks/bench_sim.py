@@ -23,14 +23,6 @@ one, wall and host CPU time (`time.process_time`, the measure to trust on a shar
 substep, each timed in alternating rounds so that load changes hit both alike:
 
     python benchmarks/bench_sim.py --device cuda --sizes 2000:32 15000:100 --zeroing both --probe ''
-
-`--p2g both` adds the same before / after table for the block-local scatters (`sim.solver.P2G_MODE`: None,
-a global atomic per particle, stencil node and array; 'tiled': kernels.p2g_tiled and g2p_gather_adj_tiled
-accumulate a block's stencils in shared memory first), one per `--p2g-blocks` size, after an agreement
-check of the two paths on the device (float64 and float32, positions and gradients) and the count of
-global atomics each does at rest (issue #26):
-
-    python benchmarks/bench_sim.py --device cuda --sizes 2000:32 15000:100 --p2g both --p2g-blocks 64 128 256 --probe ''
 """
 
 from __future__ import annotations
@@ -95,21 +87,12 @@ def median_wall(fn, device, reps: int) -> float:
 
 
 STAT = "min"
-P2G_STATS: list[str] = []      # the tiled p2g's atomics counted per comparison (for --json)
-
-
-# the values a comparison's "before" (False) and "after" (True) set `sim.solver.<switch>` to, where not the
-# booleans themselves
-SWITCH_VALUES = {"P2G_MODE": {False: None, True: "tiled"}}
 
 
 def _rollout(m, ctrl, fused: bool | None = None, switch: str = "FUSED_ZERO"):
-    """A rollout with `sim.solver.<switch>` (FUSED_ZERO, FUSED_KERNELS, GRID_BOX, P2G_MODE) = fused (None:
-    the device's default; P2G_MODE: False the atomic scatter, True the tiled one), read when the solver
-    is built."""
+    """A rollout with `sim.solver.<switch>` (FUSED_ZERO, FUSED_KERNELS, GRID_BOX) = fused (None: the
+    device's default), read when the solver is built."""
     old = getattr(solver_mod, switch)
-    if switch in SWITCH_VALUES and fused is not None:
-        fused = SWITCH_VALUES[switch][fused]
     setattr(solver_mod, switch, fused)
     try:
         return Rollout(m, ctrl)
@@ -156,10 +139,6 @@ def compare_zeroing(P, n, T, S, device, reps, switch="FUSED_ZERO"):
         x, F = ro(E)
         (x[-1].sum() + F[-1].sum()).backward()
     sync(device)
-    if switch == "P2G_MODE":
-        line = tile_stats_line(m, ros[True].solver)
-        P2G_STATS.append(line)
-        print("  " + line, flush=True)
     if switch == "GRID_BOX":
         s = ros[True].solver
         print(f"  grid box ({m.n_particles} particles, {n}^3): nodes {s.box_lo} .. {s.box_hi} = {s.box_volume:,} "
@@ -186,79 +165,6 @@ def compare_zeroing(P, n, T, S, device, reps, switch="FUSED_ZERO"):
                 t[(f, j + 2)].append(time.process_time() - c0)
     stat = np.median if STAT == "median" else np.min
     return m.n_particles, {f: [float(stat(t[(f, k)])) / (T * S) for k in range(4)] for f in ros}
-
-
-def tile_counts(x, lo, dx, res, block: int, cap: int, pinned=None):
-    """Global float atomics of one p2g (mass 1 + momentum 3, + 4 for a pinned particle) with the atomic
-    scatter and with the tiled one (blocks of `block` consecutive particles, tiles of `cap` slots: one
-    atomic set per touched node of a block's tile, one per stencil node outside the clipped tile), the
-    share of stencil nodes outside their block's tile, and the mean tile box [slots]; numpy, as
-    kernels.p2g_tiled picks its boxes."""
-    xp = (np.asarray(x, np.float64) - np.asarray(lo)) / dx
-    res = np.asarray(res)
-    base = np.clip(np.floor(xp - 0.5).astype(np.int64), 0, res - 3)
-    P = len(base)
-    per = np.full(P, 4) if pinned is None else np.where(pinned, 8, 4)
-    off = np.stack(np.meshgrid(range(3), range(3), range(3), indexing="ij"), -1).reshape(-1, 3)
-    n_atomic = int(per.sum()) * 27
-    n_tiled, n_out, vols = 0, 0, []
-    for b0 in range(0, P, block):
-        bb = base[b0:b0 + block]
-        blo = bb.min(0)
-        e = bb.max(0) - blo + 3
-        e2 = max(min(e[2], cap), 1)
-        e1 = max(min(e[1], cap // e2), 1)
-        e0 = max(min(e[0], cap // (e1 * e2)), 1)
-        te = np.array([e0, e1, e2])
-        vols.append(int(te.prod()))
-        nodes = (bb[:, None, :] + off[None]) - blo                          # (B, 27, 3) in the tile's frame
-        inside = np.all((nodes >= 0) & (nodes < te), axis=-1)
-        pb = per[b0:b0 + block][:, None]
-        n_out += int((~inside).sum())
-        n_tiled += int((pb * ~inside).sum())
-        slot = (nodes[..., 0] * te[1] + nodes[..., 1]) * te[2] + nodes[..., 2]
-        for w in (4, 8):                                                     # touched slots, pinned ones
-            sel = inside & (pb >= w)
-            n_tiled += 4 * len(np.unique(slot[sel]))
-    return n_atomic, n_tiled, n_out / (27 * P), float(np.mean(vols))
-
-
-def tile_stats_line(m, solver) -> str:
-    lo, dx, res = np.asarray(m.grid.lower), m.grid.dx, m.grid.resolution
-    pinned = solver.ctrl.pin_id.numpy() >= 0
-    a, t, out, vol = tile_counts(m.x0, lo, dx, res, solver.p2g_block, solver.p2g_cap, pinned)
-    return (f"tiled p2g at rest ({m.n_particles} particles, blocks of {solver.p2g_block}, tiles of <= "
-            f"{solver.p2g_cap} slots): global float atomics {a:,} -> {t:,} ({a / max(t, 1):.1f}x fewer), "
-            f"stencil nodes outside their block's tile {out:.1%}, mean tile {vol:.0f} slots")
-
-
-def check_p2g(P, n, device, S=10) -> list[str]:
-    """The tiled scatter against the atomic one on `device`: one frame of S substeps, float64 and float32,
-    positions (relative to the displacement) and dL/dE, dL/dnu (relative to their largest entry)."""
-    out = []
-    for dtype, tol in (("float64", 1e-9), ("float32", 1e-3)):
-        m, ctrl = make_scene(P, n, 1, S, device, dtype)
-        tdev = "cpu" if device == "cpu" else device
-        td = torch.float64 if dtype == "float64" else torch.float32
-        res = {}
-        for f in (False, True):
-            ro = _rollout(m, ctrl, f, "P2G_MODE")
-            E = torch.full((m.n_particles,), 1e4, device=tdev, dtype=td, requires_grad=True)
-            nu = torch.full((m.n_particles,), 0.3, device=tdev, dtype=td, requires_grad=True)
-            x, F = ro(E, nu)
-            g = torch.Generator(device="cpu").manual_seed(0)
-            W = torch.randn(x.shape, generator=g, dtype=torch.float64).to(device=tdev, dtype=td)
-            ((x * W).sum() + F.sum()).backward()
-            res[f] = (x.detach().double().cpu(), E.grad.double().cpu(), nu.grad.double().cpu())
-        (xa, ga, na), (xt, gt, nt) = res[False], res[True]
-        disp = float((xa[-1] - xa[0]).abs().max())
-        ex = float((xa - xt).abs().max()) / max(disp, 1e-300)
-        eg = max(float((ga - gt).abs().max()) / float(ga.abs().max()),
-                 float((na - nt).abs().max()) / float(na.abs().max()))
-        ok = ex < tol and eg < tol and np.isfinite(ex) and np.isfinite(eg)
-        out.append(f"  p2g tiled vs atomic, {m.n_particles} particles {n}^3 {dtype}: positions {ex:.1e} of the "
-                   f"displacement, gradients {eg:.1e} (tolerance {tol:g}): {'PASS' if ok else 'FAIL'}")
-    return out
 
 
 def zeroing_table(rows, names=("memsets", "fused")) -> str:
@@ -329,16 +235,9 @@ def main(argv=None):
     ap.add_argument("--kernels", choices=("fused", "both"), default="fused",
                     help="both: also a before / after table, separate vs fused transfer kernels "
                          "(sim.solver.FUSED_KERNELS: p2g_fused, g2p_fused)")
-    ap.add_argument("--p2g", choices=("default", "both"), default="default",
-                    help="both: also a before / after table, the atomic scatters vs the tiled ones "
-                         "(sim.solver.P2G_MODE = 'tiled': block-local accumulation in shared memory), with an "
-                         "agreement check of the two on the device")
-    ap.add_argument("--p2g-blocks", type=int, nargs="*", default=None,
-                    help="particles per block of the tiled scatters, one table each (default: "
-                         "sim.solver.P2G_BLOCK)")
     ap.add_argument("--json", default=None, help="also write the tables' numbers here (e.g. $OUT/bench_sim.json)")
     args = ap.parse_args(argv)
-    report = {"device": None, "rows": [], "comparisons": [], "agreement": []}
+    report = {"device": None, "rows": [], "comparisons": []}
     global STAT
     STAT = args.stat
     device = "cuda:0" if args.device == "cuda" else args.device
@@ -377,22 +276,9 @@ def main(argv=None):
         (args.kernels == "both", "FUSED_KERNELS", "transfer kernels: separate (FUSED_KERNELS=False: stress, scatter, "
                                                   "gather, update) vs fused (p2g_fused, g2p_fused)", ("separate", "fused")),
     )
-    blocks = args.p2g_blocks or [solver_mod.P2G_BLOCK]
-    if args.p2g == "both":
-        comparisons = comparisons + tuple(
-            (True, "P2G_MODE", f"p2g: atomic scatters (P2G_MODE=None: p2g_fused, g2p_gather_adj) vs tiled "
-                               f"(P2G_MODE='tiled', blocks of {b})", ("atomic", f"tiled/{b}"), b) for b in blocks)
-        print("\nagreement of the tiled scatters with the atomic ones on the device:")
-        for s in sizes[:1]:
-            P, n = (int(v) for v in s.split(":"))
-            for line in check_p2g(P, n, device):
-                print(line, flush=True)
-                report["agreement"].append(line.strip())
-    for asked, switch, what, names, *block in comparisons:
+    for asked, switch, what, names in comparisons:
         if not asked:
             continue
-        old_block = solver_mod.P2G_BLOCK
-        solver_mod.P2G_BLOCK = block[0] if block else old_block
         crows = []
         for s in sizes:
             P, n = (int(v) for v in s.split(":"))
@@ -402,14 +288,12 @@ def main(argv=None):
             report["comparisons"].append({"switch": switch, "what": what, "particles": Pm, "grid": n,
                                           **{f"{names[0] if names else 'before'}": dict(zip(keys, [v * 1e6 for v in r[False]])),
                                              f"{names[1] if names else 'after'}": dict(zip(keys, [v * 1e6 for v in r[True]]))}})
-        solver_mod.P2G_BLOCK = old_block
         print(f"\n{what}, alternating rounds, {stat} of {args.reps}; backward = fwd+bwd - forward\n")
         print(zeroing_table(crows, names) if names else zeroing_table(crows))
     if args.json:
         import json
         report["device"] = device_name(device)
         report["warp"] = wp.__version__
-        report["p2g_tile_stats"] = P2G_STATS
         with open(args.json, "w") as fh:
             json.dump(report, fh, indent=1)
 

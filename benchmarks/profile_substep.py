@@ -211,14 +211,10 @@ def main(argv=None):
                          "after in one run) or the device's default (sim.solver.GRID_BOX = None)")
     ap.add_argument("--zeroing", choices=("both", "fused", "memset"), default="both",
                     help="which way the substep clears its buffers (both: before / after in one run)")
-    ap.add_argument("--p2g", choices=("atomic", "tiled"), default="atomic",
-                    help="the scatters: a global atomic per particle and node (atomic, the default) or block-local "
-                         "in shared memory (tiled: sim.solver.P2G_MODE; on the CPU its launches are not timed)")
     args = ap.parse_args(argv)
-    solver_mod.P2G_MODE = None if args.p2g == "atomic" else "tiled"
     device = "cuda:0" if args.device == "cuda" else args.device
     wp.init()
-    print(f"device: {device_name(device)}; Warp {wp.__version__}; medians of {args.reps}; float32; p2g: {args.p2g}\n")
+    print(f"device: {device_name(device)}; Warp {wp.__version__}; medians of {args.reps}; float32\n")
     zmodes = {"both": (False, True), "fused": (True,), "memset": (False,)}[args.zeroing]
     bmodes = {"default": (None,), "on": (True,), "off": (False,), "both": (False, True)}[args.box]
     for spec in args.sizes:

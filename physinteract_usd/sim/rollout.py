@@ -363,7 +363,7 @@ class Rollout:
         body and the solver's kernel choices (the bodies allocate nothing: their buffers are built before)."""
         sol = self.solver
         return (str(self.model.device), self.model.dtype, key, sol.fused_kernels, sol.fused_zero, sol.grid_box,
-                sol.p2g_mode, int(sol.flags))
+                int(sol.flags))
 
     def _shape(self, graphs: dict, k: int):
         """(key, body) of the graph that runs frame k of this graph set (key None: nothing to run)."""

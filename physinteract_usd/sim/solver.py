@@ -18,11 +18,6 @@ a node of the captured graph).
 ``fused_zero=False`` keeps the memsets (``array.zero_()``): the CPU's default, where a memset is
 faster than a Warp loop over the nodes and there is no launch latency to save (fused: +2-5% CPU
 time per substep, docs/benchmarks/gpu.md). Results are bitwise the same either way.
-
-Scatters: with ``P2G_MODE = "tiled"`` (opt-in, issue #26) the forward's p2g and the backward's scatter of
-the gathered velocity's adjoint accumulate a block of consecutive particles' stencils in shared memory and
-add each touched node into the grid once (kernels.p2g_tiled, g2p_gather_adj_tiled; ~13x fewer global
-atomics at 15k particles); the same values summed in another order (tests/test_p2g_tiled.py).
 """
 
 from __future__ import annotations
@@ -50,17 +45,6 @@ FUSED_KERNELS: bool | None = None
 # the whole grid: True / False force it, None (default) on CUDA devices only (where a 100^3 grid's
 # clear and scan are ~30% of a 15k substep); bitwise the same results (tests/test_grid_box.py)
 GRID_BOX: bool | None = None
-# how new solvers scatter to the grid (p2g) and scatter the gather's adjoint (the backward): "atomic" (None,
-# the default) a global float atomic per particle, stencil node and array (p2g_fused / p2g_scatter,
-# g2p_gather_adj); "tiled": a block of `P2G_BLOCK` consecutive particles accumulates its stencils in a tile
-# of nodes in shared memory, then adds each touched node into the grid with one global atomic
-# (kernels.p2g_tiled, g2p_gather_adj_tiled; issue #26). Opt-in until measured on a GPU. The same values
-# summed in another order: not bitwise, ~1e-15 relative in float64 (tests/test_p2g_tiled.py)
-P2G_MODE: str | None = None
-# particles per block of the tiled scatters (the CUDA block size; one thread per block on the CPU)
-P2G_BLOCK: int = 128
-# shared slots a block's tile may use (None: kernels.TILE_CAP); a smaller cap clips the boxes (tests)
-P2G_CAP: int | None = None
 
 
 class SimParams:
@@ -166,11 +150,6 @@ class MPMSolver:
         self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
         self.fused_kernels = wp.get_device(d).is_cuda if FUSED_KERNELS is None else bool(FUSED_KERNELS)
         self.grid_box = wp.get_device(d).is_cuda if GRID_BOX is None else bool(GRID_BOX)
-        self.p2g_mode = "atomic" if P2G_MODE is None else str(P2G_MODE)
-        if self.p2g_mode not in ("atomic", "tiled"):
-            raise ValueError(f"sim.solver.P2G_MODE must be 'atomic', 'tiled' or None, not {P2G_MODE!r}")
-        self.p2g_block = int(P2G_BLOCK)
-        self.p2g_cap = K.TILE_CAP if P2G_CAP is None else int(min(P2G_CAP, K.TILE_CAP))
 
     # ------------------------------------------------------------------ the grid box
     @property
@@ -253,19 +232,7 @@ class MPMSolver:
         P = s.x.shape[0]
         if clear:
             self._clear_grid()
-        if self.p2g_mode == "tiled":
-            if not self.fused_kernels:
-                wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
-            sa = self._stress_args(s, p)
-            B = self.p2g_block
-            wp.launch_tiled(K.p2g_tiled, dim=[(P + B - 1) // B],
-                            inputs=[sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
-                                    int(self.fused_kernels), s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active,
-                                    c.pin_pos, frame, self.fps, self.lo, self.inv_dx, self.res3, self.box, B,
-                                    self.p2g_cap],
-                            outputs=[self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], block_dim=B,
-                            device=d, record_tape=False)
-        elif self.fused_kernels:
+        if self.fused_kernels:
             sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
                                        s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
@@ -365,15 +332,8 @@ class MPMSolver:
         wp.launch(K.g2p_update, P, self._update_args(s_in, frame, p, c), self._outs(s_out), adj_upd,
                   self._outs(adj_out), adjoint=True, device=d, record_tape=False)
         # gather (hand-written adjoint) -> adj x, adj grid velocity
-        if self.p2g_mode == "tiled":
-            B = self.p2g_block
-            wp.launch_tiled(K.g2p_gather_adj_tiled, dim=[(P + B - 1) // B],
-                            inputs=[s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"], B,
-                                    self.p2g_cap], outputs=[adj_in.x, ag["gv"]], block_dim=B, device=d,
-                            record_tape=False)
-        else:
-            wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
-                      [adj_in.x, ag["gv"]], device=d, record_tape=False)
+        wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
+                  [adj_in.x, ag["gv"]], device=d, record_tape=False)
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
