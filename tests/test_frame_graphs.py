@@ -166,3 +166,19 @@ def test_frame_shape_graphs_float32():
             assert ro.graphs
     _same(out[False], out[True], "float32")
     assert float(out[True][0][2].abs().max()) > 0
+
+
+def test_forward_only_rollout_holds_no_substep_window():
+    """A rollout that is never differentiated (synth's truth, `simulate`) must not hold the window's S + 1
+    substep states: at a fine step they are (S + 1) x P states (107 GB for the suite's balloon truth at
+    grid 128 on the H200, where synth failed to allocate them). A backward then allocates them and its
+    gradients are bitwise the per-frame path's."""
+    m, ctrl, pts, eff, trajs = _scene(T=3)
+    with pytest.MonkeyPatch.context() as mp:
+        ref = _ro(m, ctrl, mp, False, False)
+        r_fwd, r_grads = _no_grad_forwards(ref, pts), _loss_and_grads(ref, pts, eff, trajs)
+        ro = _ro(m, ctrl, mp, True, True)
+        _same(r_fwd, _no_grad_forwards(ro, pts), "forwards")
+        assert ro._fw is not None and ro._fw.states is None and ro._fw.st is None
+        _same(r_grads, _loss_and_grads(ro, pts, eff, trajs), "grads")
+        assert ro._fw.states is not None and len(ro._fw.st) == ro.S + 1

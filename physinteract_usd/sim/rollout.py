@@ -352,11 +352,22 @@ class Rollout:
             wadj = copy.copy(self.adj_ctrl)
             wadj.pin_pos = wp.zeros((npin, 2), dtype=K.vec3, device=d)
             wadj.col_pos = wp.zeros((ncol, 2), dtype=K.vec3, device=d)
-            states = Checkpoints(m, self.S)
+            # the S + 1 substep states are allocated only for the bodies that use them (`_window_states`):
+            # a forward-only rollout (synth, simulate) at a fine step would otherwise hold (S + 1) x P
+            # states it never reads (107 GB for the suite's balloon truth at grid 128)
             self._fw = SimpleNamespace(FK=get_frame_kernels(m.dtype), ctr=wp.zeros(1, dtype=int, device=d),
                                        ctrl=wctrl, adj=wadj, status=wp.zeros((1, 4), dtype=wp.int32, device=d),
-                                       states=states, st=states.states())
+                                       states=None, st=None)
         return self._fw
+
+    def _window_states(self) -> SimpleNamespace:
+        """The window with its S + 1 substep states (allocated on first use, before any capture:
+        `_ensure_shape_graphs` calls it for every body but the plain forward)."""
+        fw = self._windows()
+        if fw.states is None:
+            fw.states = Checkpoints(self.model, self.S)
+            fw.st = fw.states.states()
+        return fw
 
     def _warm_key(self, key: str) -> tuple:
         """What a frame-shape body's warm-up run (module loads) holds for: the process, per device, dtype,
@@ -388,6 +399,8 @@ class Rollout:
             key, body = self._shape(graphs, k)
             if key is not None and key not in graphs and key not in first:
                 first[key] = (k, body)
+        if any(key != "forward" for key in first):
+            self._window_states()
         try:
             for key, (k, body) in first.items():
                 wkey = self._warm_key(key)
@@ -444,7 +457,7 @@ class Rollout:
         wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False)
 
     def _sf_forward_stored(self) -> None:
-        fw, sol, d = self._windows(), self.solver, self.model.device
+        fw, sol, d = self._window_states(), self.solver, self.model.device
         st = fw.st
         wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(st[0]), device=d,
                   record_tape=False)
@@ -471,7 +484,7 @@ class Rollout:
 
     def _sf_replay(self) -> None:
         """`_replay_frame_stored` of the frame at the counter (a stored frame); the counter stays."""
-        fw, d = self._windows(), self.model.device
+        fw, d = self._window_states(), self.model.device
         self._sf_replay_into_window(fw, d)
         self._window_to_arena(fw, d)
 
@@ -498,14 +511,14 @@ class Rollout:
                   record_tape=False)
 
     def _sf_adjoint_stored(self) -> None:
-        fw, d = self._windows(), self.model.device
+        fw, d = self._window_states(), self.model.device
         wp.launch(fw.FK.arena_to_window, (self.S + 1, self.P), [fw.ctr] + [self._arena[f] for f in SimState.FIELDS],
                   [fw.states.w[f] for f in SimState.FIELDS], device=d, record_tape=False)
         self._sf_adjoint(fw, d)
 
     def _sf_backward(self) -> None:
         """`_backward_frame` of the frame at the counter: replay into the window, then its adjoints."""
-        fw, d = self._windows(), self.model.device
+        fw, d = self._window_states(), self.model.device
         self._sf_replay_into_window(fw, d)
         self._sf_adjoint(fw, d)
 
