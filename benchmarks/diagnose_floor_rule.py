@@ -40,7 +40,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 NOISE = 0.015
-RULES = ("default", "floor", "match")
+# rule name -> (api.diagnose's floor_rule, its gate: None = the rule's own, 3% or 0 under a floor rule with refits)
+RULES = {"default": (False, None), "floor": ("full", None), "match": ("match", None),
+         "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01)}
 
 
 def case_list(effects: list[str], strengths: list[float], controls: int, seed0: int) -> list[tuple[str, float, int]]:
@@ -72,8 +74,11 @@ def summary(d: dict) -> dict:
             "loss": d.get("loss"), "floor": d.get("noise_floor"),
             "substeps": (d.get("noise") or {}).get("substeps"),
             "floor_rest_share": ((d.get("noise") or {}).get("floor_model") or {}).get("rest_share"),
-            "tested": [{k: t.get(k) for k in ("effect", "marginal_p_value", "p_value", "relative_drop", "significant",
-                                              "accepted", "held_back_drop", "held_back_p", "held_back_level")}
+            "camera_rest_frames": (d.get("noise") or {}).get("camera_rest_frames"),
+            "tested": [dict({k: t.get(k) for k in ("effect", "marginal_p_value", "p_value", "relative_drop", "significant",
+                                                   "accepted", "held_back_drop", "held_back_p", "held_back_level",
+                                                   "rest_only")},
+                            priced=(t.get("priced") or {}).get("why"))
                        for t in tested]}
 
 
@@ -105,8 +110,9 @@ def one(job) -> dict | None:
         row["fit_s"] = round(time.perf_counter() - t0, 1)
         for rule in a.rules:
             t1 = time.perf_counter()
+            fr, gate = RULES[rule]
             d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
-                             starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule={"default": False, "floor": "full", "match": "match"}[rule])
+                             starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule=fr, gate=gate)
             row[rule] = dict(summary(d), seconds=round(time.perf_counter() - t1, 1))
         row["wall_s"] = round(time.perf_counter() - t0, 1)
         row["cpu_s"] = round(time.process_time() - c0, 1)
@@ -149,7 +155,8 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
             if x is None:
                 cells.append("-")
                 continue
-            h = next((t for t in x["tested"] if t["effect"] == (r["hidden"] or "camera:depth_scale")), None)
+            h = next((t for t in x["tested"] if t["effect"] == (r["hidden"] or (x["named"] or ["camera:depth_scale"])[0])),
+                     None)
             hx = "" if h is None else (f"; {h['effect']}: p {h['marginal_p_value']:.2g}, "
                                        f"{100 * (h['relative_drop'] or 0):.1f}%"
                                        + ("" if h.get("held_back_p") is None else f", held-back p {h['held_back_p']:.2g}"))
@@ -168,7 +175,7 @@ def warm_up(device: str, where: Path) -> None:
         from physinteract_usd import api
 
         info = ds.build(where, noise=NOISE, seed=0)
-        for fr in (False, "full"):
+        for fr in (False, "full", "rest"):
             api.diagnose(info["stage"], device=device, refit=1, refit_iterations=1, starts=1, progress=False,
                          log=lambda *_a: None, write_stage=False, floor_rule=fr,
                          candidates="damping,viscoelasticity,camera:depth_scale")
@@ -183,7 +190,9 @@ def main(argv=None) -> int:
     ap.add_argument("--strengths", default="0.5")
     ap.add_argument("--controls", type=int, default=20)
     ap.add_argument("--control-seed", type=int, default=0)
-    ap.add_argument("--rules", default=",".join(RULES), help="diagnose each case with these: default, floor, match")
+    ap.add_argument("--rules", default="default,floor,match",
+                    help="diagnose each case with these: " + ", ".join(RULES) + " (rest: --floor-rule rest, no gate; "
+                         "rest1: the same with a 1%% gate; gate1: today's rule with a 1%% gate)")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--fit-grid", type=int, default=None)
@@ -200,7 +209,7 @@ def main(argv=None) -> int:
     a.rules = [r for r in a.rules.split(",") if r]
     bad = [r for r in a.rules if r not in RULES]
     if bad:
-        print(f"diagnose_floor_rule.py: error: --rules: unknown {bad[0]!r} (default, floor, match)", file=sys.stderr)
+        print(f"diagnose_floor_rule.py: error: --rules: unknown {bad[0]!r} ({', '.join(RULES)})", file=sys.stderr)
         return 2
     out = Path(a.out)
     (out / "work").mkdir(parents=True, exist_ok=True)

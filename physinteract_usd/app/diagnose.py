@@ -19,7 +19,7 @@ import numpy as np
 
 from .jsonsafe import json_safe
 from ..diagnose import CANDIDATES, PHYSICAL, BaseState, DiagnoseSettings, conclude, describe, diagnose_problem
-from ..diagnose.refit import judge_probe, refit_effect
+from ..diagnose.refit import judge_on_rest, judge_probe, refit_effect
 from ..errors import InputError, SimulationError
 from .adapters import effects_with_fitted, load_observations, read_scene, stage_contacts
 
@@ -160,6 +160,8 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
             if c.effect in PHYSICAL:
                 log(f"refitting with {c.effect} ({iterations} iterations, warm-started)")
                 refit_effect(diag, c, iterations=iterations, log=None, frames=val, null=null)
+            elif c.rest_only:
+                judge_on_rest(diag, c)
             else:
                 judge_probe(diag, c, frames=val)
         groups.append(group)
@@ -346,7 +348,7 @@ START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
-             refit_folds: int | None = None, floor_rule: bool = False) -> dict:
+             refit_folds: int | None = None, floor_rule: bool = False, gate: float | None = None) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -356,7 +358,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     another start beats the fit's own field refitted alike, "not converged" when its own does. `trajectory_sigma_px`: the measured hand path's pixel uncertainty
     (default the fit's, `fit.interaction_check.TRAJ_SIGMA_PX`) that bounds the path's freedom. `floor_rule`:
     the model of the fit's own error in place of the 3% size gate (`DiagnoseSettings.floor_rule`, opt-in:
-    True or "full", or "match": only the superset's substeps matched to the base's)."""
+    True or "full", or "match": only the superset's substeps matched to the base's, or "rest": matched, the
+    camera causes judged on the frames before the first grasp and `heterogeneity` priced as the fit's own
+    model selection). `gate`: the size gate (a share of the loss a significant candidate must predict) in
+    place of the rule's (3%, or 0 under a floor rule where refits confirm)."""
     import torch
 
     from ..fit.problem import FitProblem
@@ -373,8 +378,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         raise InputError("--refit-folds", f"must be 1 or 2, got {refit_folds!r}")
     if trajectory_sigma_px is not None and not float(trajectory_sigma_px) > 0:
         raise InputError("--trajectory-sigma", f"must be a number of pixels > 0, got {trajectory_sigma_px!r}")
-    if floor_rule not in (False, True, "full", "match"):
-        raise InputError("--floor-rule", f"must be full or match, got {floor_rule!r}")
+    if floor_rule not in (False, True, "full", "match", "rest"):
+        raise InputError("--floor-rule", f"must be full, match or rest, got {floor_rule!r}")
+    if gate is not None and (isinstance(gate, bool) or not 0.0 <= float(gate) < 1.0):
+        raise InputError("--gate", f"must be a share of the loss in [0, 1), got {gate!r}")
     cands = parse_candidates(candidates)
     sd = read_scene(stage_path)
     if not sd.reports or sd.current_report is None:
@@ -403,6 +410,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
                                 floor_rule=floor_rule)
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
+    if gate is not None:
+        settings.min_relative_drop = settings.floor_min_relative_drop = float(gate)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 

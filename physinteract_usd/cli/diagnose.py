@@ -30,11 +30,16 @@ def add_parser(sub):
                         "about double the CPU time on the tests' tiny bar (9 -> 19 s a control)")
     s.add_argument("--trajectory-sigma", type=float, default=None, metavar="PX",
                    help="the measured hand path's pixel uncertainty that bounds its freedom (default 2, the fit's)")
-    s.add_argument("--floor-rule", nargs="?", const="full", default=False, choices=("full", "match"),
+    s.add_argument("--floor-rule", nargs="?", const="full", default=False, choices=("full", "match", "rest"),
                    help="model the fit's own error instead of gating on size (opt-in, docs/diagnose.md): the "
                         "superset simulator steps as the fitted model did, the rendering's floor (fitted on the "
                         "rest frames) and the model's discretisation error are projected out, and no 3%% size "
-                        "gate; 'match': only the first of the three, no size gate")
+                        "gate; 'match': only the first of the three, no size gate; 'rest': matched, the camera "
+                        "causes judged on the frames before the first grasp only, heterogeneity priced as the "
+                        "fit's model selection, no size gate")
+    s.add_argument("--gate", type=float, default=None, metavar="SHARE",
+                   help="the size gate: the share of the loss a significant candidate must predict (default 0.03, "
+                        "0 under --floor-rule where refits confirm)")
     s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
@@ -48,7 +53,7 @@ def run(a) -> int:
 
     d = api.diagnose(a.stage, refit=a.refit, refit_iterations=a.refit_iterations, candidates=a.candidates,
                      write_stage=not a.no_stage, device=a.device, starts=a.starts,
-                     trajectory_sigma_px=a.trajectory_sigma, refit_folds=a.refit_folds, floor_rule=a.floor_rule, progress=not a.json and sys.stderr.isatty(),
+                     trajectory_sigma_px=a.trajectory_sigma, refit_folds=a.refit_folds, floor_rule=a.floor_rule, gate=a.gate, progress=not a.json and sys.stderr.isatty(),
                      log=(lambda *m: print(*m, file=sys.stderr)) if a.json else print)
     if a.json:
         print(json.dumps(d, indent=1, allow_nan=False))

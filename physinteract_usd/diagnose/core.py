@@ -111,7 +111,8 @@ class BaseState:
                                         # problem's T0 is the measured path)
 
 
-FLOOR_RULES = (False, True, "full", "match")     # `DiagnoseSettings.floor_rule`'s values
+FLOOR_RULES = (False, True, "full", "match", "rest")     # `DiagnoseSettings.floor_rule`'s values
+CAMERA = ("camera:time_offset", "camera:depth_scale")
 
 
 @dataclass
@@ -150,6 +151,13 @@ class DiagnoseSettings:
                                         # (`discretisation_column`: the base at 2x its substeps, less the base)
     floor_min_relative_drop: float = 0.0   # the size gate under the floor rule where refits confirm (`confirmed`;
                                            # with `--refit 0` the rule keeps `min_relative_drop`)
+    camera_rest: bool = False           # the camera causes judged on the frames before the first grasp only
+                                        # (`rest_rows`: there no physics candidate but gravity acts, so a real
+                                        # depth-scale / time-offset error shows while a floor the probe absorbs on
+                                        # moving frames does not); none in the residual: not testable (#22)
+    heterogeneity_priced: bool = False  # `heterogeneity`'s held-back test also on time blocks (one a frame, no
+                                        # image tiles) with its added freedom priced as `fit.select.select_rule`
+                                        # prices a richer field (`refit.judge_probe`; #22)
 
     def __post_init__(self):
         if self.floor_rule not in FLOOR_RULES:
@@ -158,6 +166,8 @@ class DiagnoseSettings:
             self.match_substeps = True
         if self.floor_rule in (True, "full"):
             self.floor_model = self.discretisation_column = True
+        if self.floor_rule == "rest":
+            self.camera_rest = self.heterogeneity_priced = True
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -207,6 +217,8 @@ class CandidateResult:
     rivals: list = field(default_factory=list)   # the candidates this one explains away
     rival_test: dict | None = None  # a rival's paired held-back test against the selected one it rivals
                                     # ({"against", "drop", "se", "p"}; `refit.compare_rivals`)
+    rest_only: bool = False         # tested on the frames before the first grasp only (`test_on_rows`)
+    priced: dict | None = None      # `heterogeneity` priced as the fit's model selection (`refit.price_heterogeneity`)
 
     def score(self) -> float:
         return float(-math.log10(max(self.p_value, 1e-12)))
@@ -243,7 +255,7 @@ class Diagnosis:
                             "accepted": c.accepted, "held_back_drop": c.held_back_drop,
                             "held_back_se": c.held_back_se, "held_back_p": c.held_back_p,
                             "held_back_level": c.held_back_level,
-                            "rival_test": c.rival_test,
+                            "rival_test": c.rival_test, "rest_only": c.rest_only, "priced": c.priced,
                             "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
                             "collinearity": c.collinearity, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
@@ -782,8 +794,41 @@ def min_drop(s: DiagnoseSettings, L0: float) -> float:
     return float(s.floor_min_relative_drop if rule else s.min_relative_drop) * float(L0)
 
 
+def rest_rows(prob, res: ImageResidual, n: int | None = None) -> np.ndarray:
+    """(n,) bool: the residual's elements on frames before the first grasp (`rest_frames`: no hand, only
+    gravity and the rendering act), padded with False to length `n` (the trajectory prior's rows)."""
+    rk = [k for k in rest_frames(prob) if k in res.frames]
+    m = np.isin(res.frame_of(), rk) if rk else np.zeros(res.n, bool)
+    return np.concatenate([m, np.zeros(max(int(n or 0) - len(m), 0), bool)])
+
+
+def test_on_rows(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarray, blocks: np.ndarray,
+                 s: DiagnoseSettings, rows: np.ndarray, n_img: int) -> CandidateResult:
+    """The projected score test of one candidate on the residual's elements `rows` only (the camera causes
+    under `DiagnoseSettings.camera_rest`: the frames before the first grasp): its residual, its columns, the
+    base's columns and its blocks restricted to them; the base re-adjusted on them alone. The predicted
+    drop is per image element of the whole residual (so shares compare with the other candidates'). The
+    result keeps the full probes (forward selection adds their whole columns to the base)."""
+    idx = np.where(rows[: len(r0)])[0]
+    if not len(idx):
+        cr = CandidateResult(effect, probes)
+        cr.note = "not testable: no frame before the first grasp in the residual (camera causes judged on rest frames)"
+        return cr
+    sub = [dataclasses.replace(p, column=_pad(p.column, len(r0))[idx]) for p in probes]
+    lab, inv = np.unique(np.asarray(blocks)[idx], return_inverse=True)
+    cr = test_candidate(effect, sub, r0[idx], J[idx], inv.astype(np.int64), len(lab), s, len(idx))
+    scale = len(idx) / max(int(n_img), 1)
+    cr.drop *= scale
+    cr.statistic *= scale
+    cr.probes = probes
+    cr.rest_only = True
+    cr.note = (f"judged on the {len(idx)} elements of the frames before the first grasp"
+               + (f"; {cr.note}" if cr.note else ""))
+    return cr
+
+
 def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s: DiagnoseSettings, L0: float,
-                    n_img: int | None = None):
+                    n_img: int | None = None, rows: np.ndarray | None = None):
     """Forward selection: the best significant candidate is taken, its column joins the base, and
     the others are tested again on what it leaves (so a confusable cause that explains the same
     residual is not reported twice). Sorts `results` in place: the selected ones first (in
@@ -816,7 +861,10 @@ def _forward_select(results: list, r0: np.ndarray, J: np.ndarray, blocks, nb, s:
             r = r + (Jc @ a if Jc.size else 0.0) + col * t     # what the model with it leaves (linearised)
         Jc = np.column_stack([Jc, col])
         for c in pool:
-            again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s, n_img)
+            if rows is not None and c.effect in CAMERA:
+                again = test_on_rows(c.effect, c.probes, r, Jc, blocks, s, rows, n_img or len(r))
+            else:
+                again = test_candidate(c.effect, c.probes, r, Jc, blocks, nb, s, n_img)
             c.p_value, c.statistic, c.drop, c.step, c.best = (again.p_value, again.statistic, again.drop, again.step,
                                                                 again.best)
             c.relative_drop = c.drop / L0 if L0 > 0 else 0.0
@@ -972,7 +1020,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         noise["substeps"] = matched or {"before": getattr(sim, "substeps_unmatched", None),
                                         "after": int(sim.substeps)}
     if s.discretisation_column:
-        noise["discretisation_column"] = "discretisation" in names
+        noise["discretisation_column", "rest_rows", "test_on_rows", "CAMERA"] = "discretisation" in names
+    rows = rest_rows(prob, res, len(r0a)) if s.camera_rest else None
+    if rows is not None:
+        noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]
     results = []
     cands = [c for c in s.candidates if c in CANDIDATES]
     it = progress(cands, "candidates") if progress else cands
@@ -982,7 +1033,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         except SimulationError as exc:
             log(f"{eff}: probe failed ({exc})")
             probes = []
-        cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
+        if rows is not None and eff in CAMERA:
+            cr = test_on_rows(eff, probes, r0a, Ja, blocks, s, rows, n_img)
+        else:
+            cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         if eff in ("damping", "viscoelasticity") and cr.best >= 0 and cr.step > 0:
             # the residual is far from linear in c / E_v: one more secant, to the estimate itself
             probes.append(_refined(eff, cr, run, r0))
@@ -996,10 +1050,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
                 cr = test_candidate(eff, probes, r0a, Ja, blocks, nb, s, n_img)
         cr.relative_drop = cr.drop / L0 if L0 > 0 else 0.0
         results.append(cr)
-    _forward_select(results, r0a, Ja, blocks, nb, s, L0, n_img)
+    _forward_select(results, r0a, Ja, blocks, nb, s, L0, n_img, rows)
     for cr in results:
         cr.estimate = estimate_of(cr, prob)
-    ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "r0a": r0a, "run": run,
+    ctx = {"prob": prob, "base": base, "x": x0, "F": F0, "res": res, "r0": r0, "r0a": r0a, "run": run, "rest_rows": rows,
            "prior": prior, "names": names, "blocks": img_blocks, "n_blocks": img_nb, "settings": s,
            "e_bound": e_bound0}
     if evidence is not None:
@@ -1122,7 +1176,7 @@ def realised_gauss_newton(diag: Diagnosis, cr: CandidateResult) -> float | None:
 __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Probe", "diagnose_problem",
            "CANDIDATES", "PHYSICAL", "FIXES", "CONFUSABLE", "SEPARATES", "separation", "test_candidate", "base_columns", "estimate_of",
            "realised_gauss_newton", "conclude", "trajectory_check", "prior_residual", "match_base_substeps",
-           "discretisation_column"]
+           "discretisation_column", "rest_rows", "test_on_rows", "CAMERA"]
 
 
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:

@@ -455,12 +455,90 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
         refs["base"].append(b0[:n])
     cr.realized_loss_drop = real
     _accept(diag, cr, refs, held)
+    s = ctx.get("settings")
+    if cr.effect == "heterogeneity" and getattr(s, "heterogeneity_priced", False):
+        priced = price_heterogeneity(diag, held, refs["base"])
+        cr.priced = priced
+        if cr.accepted and not priced["keep"]:
+            cr.accepted = False
+        cr.held_back_p = max(float(cr.held_back_p), float(priced["p_time"]))
+        cr.note = f"priced: {priced['why']}" + ("; " + cr.note if cr.note else "")
     cr.note = (f"judged on held-back frames ({' and '.join(str(f) for f in fl)}; its amplitude and the base's "
                f"re-adjustment fitted without them): drop {cr.held_back_drop:.3g} +- {cr.held_back_se:.2g}, p = "
                f"{cr.held_back_p:.3g}" + ("" if cr.accepted else ": not accepted") + ("; " + cr.note if cr.note else ""))
 
 
-__all__ = ["refit_effect", "refit_null", "judge_probe", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
+def price_heterogeneity(diag: Diagnosis, held: list, refs: list) -> dict:
+    """`heterogeneity` judged as the fit's own model selection judges a richer field (`fit.select.select_rule`,
+    docs/diagnose.md): over the held-back frames (the folds pooled) the mean per-frame drop of the loss must
+    exceed `FitSettings.select_penalty` x its added coefficients (one: a part's E) x the base's held-back loss,
+    and the candidate must be better on most held-back frames (a sign test); and the paired test on time
+    blocks (one a frame, no image tiles: a wrong field is coherent over the image, so the tiles are not
+    independent evidence of it) at alpha. `held`: per fold (mask, the candidate's residual); `refs`: per fold
+    the base re-adjusted alike. Returns {"keep", "p_time", "select", "why"}."""
+    from ..fit.optimize import FitSettings
+    from ..fit.select import select_rule
+    from . import score as S
+
+    res = diag._ctx["res"]
+    fr = res.frame_of()
+    u, f, a, b, bl = [], [], [], [], []
+    for (m, r1), r0 in zip(held, refs):
+        for k in sorted(set(fr[m].tolist())):
+            mk = m & (fr == k)
+            u.append(float(np.mean(np.square(r0[mk]))))
+            f.append(float(np.mean(np.square(r1[mk]))))
+            a.append(r0[mk])
+            b.append(r1[mk])
+            bl.append(np.full(int(mk.sum()), len(u) - 1, np.int64))
+    if not u:
+        return {"keep": False, "p_time": 1.0, "select": None, "why": "no held-back frame"}
+    sel = select_rule(u, f, 1, FitSettings())
+    st = diag._ctx.get("settings")
+    t = S.paired_drop(np.concatenate(a), np.concatenate(b), np.concatenate(bl), len(u),
+                      n_flips=getattr(st, "n_flips", 4000), seed=getattr(st, "seed", 0))
+    keep = bool(sel["keep_field"] and t["p"] < _alpha(diag) and t["drop"] > 0)
+    why = (f"{sel['why']}; on time blocks ({len(u)} frames) drop {t['drop']:.3g} +- {t['se']:.2g}, p = {t['p']:.3g}"
+           + ("" if keep else ": not kept"))
+    return {"keep": keep, "p_time": float(t["p"]), "select": sel, "why": why}
+
+
+def judge_on_rest(diag: Diagnosis, cr: CandidateResult) -> None:
+    """A camera cause tested on the frames before the first grasp (`DiagnoseSettings.camera_rest`,
+    `core.test_on_rows`): no refit judges it on moving frames (where the rendering's and the discretisation's
+    own errors lean along its probe, docs/diagnose.md); its score test on the rest frames, given the selected
+    candidates, is its held-back evidence (p at alpha, then Holm's correction with the others). The drop and
+    its standard error are the linear step's on those frames (base re-adjusted on them alone), for the record."""
+    from . import score as S
+
+    ctx = diag._ctx
+    rows = ctx.get("rest_rows")
+    r0, J = ctx["r0a"], diag._J
+    if cr.best < 0 or rows is None or not rows.any():
+        cr.accepted = False
+        return
+    idx = np.where(rows[: len(r0)])[0]
+    col = _pad(cr.probes[cr.best].column, len(r0))[idx]
+    rr, Jr = r0[idx], J[idx]
+    a0, *_ = np.linalg.lstsq(Jr, -rr, rcond=None) if Jr.size else (np.zeros(0),)
+    b0 = rr + (Jr @ a0 if Jr.size else 0.0)
+    A = np.column_stack([Jr, col]) if Jr.size else col[:, None]
+    a1, *_ = np.linalg.lstsq(A, -rr, rcond=None)
+    b1 = rr + A @ a1
+    blocks = np.asarray(ctx["blocks"])[idx] if ctx.get("blocks") is not None else np.zeros(len(idx), np.int64)
+    lab, inv = np.unique(blocks, return_inverse=True)
+    t = S.paired_drop(b0, b1, inv.astype(np.int64), len(lab))
+    n = ctx["run"].n_img or len(r0)
+    cr.held_back_drop = float(t["drop"]) * len(idx) / n
+    cr.held_back_se = float(t["se"]) * len(idx) / n
+    cr.held_back_p = float(cr.p_value)
+    cr.accepted = bool(cr.p_value < _alpha(diag) and cr.drop > 0)
+    cr.note = (f"judged on the frames before the first grasp (score test p = {cr.p_value:.3g}; the linear step's "
+               f"drop there {cr.held_back_drop:.3g} +- {cr.held_back_se:.2g})" + ("" if cr.accepted else ": not accepted")
+               + ("; " + cr.note if cr.note else ""))
+
+
+__all__ = ["refit_effect", "refit_null", "judge_probe", "judge_on_rest", "price_heterogeneity", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
            "held_back_test", "warm_start", "residual_at", "rung_for",
            "compare_rivals"]
 
