@@ -12,6 +12,9 @@ binding against gt/gaussian_positions.npy, in mm).
 substeps 0 = the fit's adaptive substep (simulation.CFL at the field's rung); N = N a frame, fixed (the
 partial pin / collider blends then act once per substep, as the truth's do). --blend-substeps N: the
 adaptive substep with the blends' rate of N substeps a frame (the rate alone, not the step).
+--transfer apic,rate:TAU: the product's APIC step, or (forward only, host-side, benchmarks/dt_convergence.py's
+RateTransfer) the same step whose particles keep exp(-dt / TAU) of what the grid could not carry: the
+projection's dissipation as a rate per unit time instead of once per substep (#24's mechanism).
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ def main(argv=None):
     ap.add_argument("--blend-substeps", default="0", help="with the adaptive substep: the stage's substeps a frame "
                     "the partial pin / collider blends take their rate from (model.blend_dt = 1 / (fps N)); 0: the "
                     "stage's. Comma-separated: each is a run")
+    ap.add_argument("--transfer", default="apic", help="comma-separated: apic (the product's) or rate:TAU "
+                    "(dt_convergence.RateTransfer, forward only); each is a run")
     ap.add_argument("--device", default="cpu")
     a = ap.parse_args(argv)
 
@@ -62,7 +67,7 @@ def main(argv=None):
     for which in a.particles.split(","):
         runs = [(int(v), 0) for v in a.substeps.split(",")] + \
             [(0, int(v)) for v in a.blend_substeps.split(",") if int(v) > 0]
-        for sub, blend in runs:
+        for (sub, blend), transfer in [(r, t) for r in runs for t in a.transfer.split(",")]:
             sd = job.scene
             if which == "truth":
                 sd = dataclasses.replace(sd, particles_positions=p["rest"], particles_volumes=p["volume"],
@@ -79,15 +84,34 @@ def main(argv=None):
                   for c in cs]
             sim = build_simulation(sd, cs, T, device=a.device, adaptive_substeps=not sub)
             t0 = time.process_time()
+            vmax = 0.0
             with torch.no_grad():
-                x, F = sim.simulate(torch.as_tensor(E, dtype=sim.tdtype, device=sim.tdev),
-                                    torch.as_tensor(nu, dtype=sim.tdtype, device=sim.tdev))
+                if transfer == "apic":
+                    x, F = sim.simulate(torch.as_tensor(E, dtype=sim.tdtype, device=sim.tdev),
+                                        torch.as_tensor(nu, dtype=sim.tdtype, device=sim.tdev))
+                else:
+                    from dt_convergence import run_solver
+
+                    from physinteract_usd.sim import MPMSolver, SimParams
+                    sim.ensure_stable(float(np.max(E)))
+                    m = sim.model
+                    sol = MPMSolver(m, sim.control, SimParams(m, E, nu))
+                    rec, _ = run_solver(sol, T - 1, transfer, 1, lambda s: (s.x.numpy().copy(), s.F.numpy().copy(),
+                                                                              float(np.linalg.norm(s.v.numpy(), axis=1).max())))
+                    x = torch.as_tensor(np.stack([r[0] for r in rec]), dtype=sim.tdtype)
+                    F = torch.as_tensor(np.stack([r[1] for r in rec]), dtype=sim.tdtype)
+                    vmax = max(r[2] for r in rec)
                 if which == "truth":
                     pts, ref = x.cpu().numpy(), p["positions"][:T]
                 else:
                     pts = np.stack([sim.gaussians_at(x[k], F[k])[0].cpu().numpy() for k in range(T)])
                     ref = gpos[:T]
-            row = {"particles": which, "substeps": int(sim.substeps), "adaptive": not sub,
+            if not vmax:
+                xs = x.cpu().numpy()
+                vmax = float(np.linalg.norm(np.diff(xs, axis=0), axis=2).max() * sim.scene.fps)  # a frame's mean
+            row = {"particles": which, "transfer": transfer, "substeps": int(sim.substeps), "adaptive": not sub,
+                   "particle_speed_max": round(vmax, 3),
+                   "cfl_speed": round(vmax / (sim.scene.fps * sim.substeps) / sim.grid.dx, 4),
                    "blend_substeps": int(sd.settings.substeps) if not sub else int(sub),
                    "cpu_s": round(time.process_time() - t0, 1),
                    "model_max_mm": [round(1e3 * float(np.linalg.norm(pts[k] - pts[0], axis=1).max()), 1) for k in range(T)],
