@@ -17,6 +17,11 @@ then runs the adjoints at once, without the replay (a forward's worth of work pe
 of a CPU fit's iteration on the demo, docs/benchmarks/cpu.md). A backward whose stored states a
 later forward overwrote replays into them as above.
 
+With `TAPE_GRID` (the CPU's default) a stored frame also keeps each substep's grid and gathered /
+affine particle buffers (`MPMSolver.new_tape`, within TAPE_BYTES): its adjoints then read them instead
+of recomputing the substep's grid (p2g, grid update and gather: ~30% of a CPU backward). Bitwise the
+same gradients (tests/test_sim_tape.py).
+
 Each frame's forward and backward is captured once into a graph (CUDA graph on a GPU, Warp's CPU
 graph on the CPU) and replayed on later calls, so the inner loop has no Python work. With
 `FRAME_GRAPHS` (the default on CUDA) one graph serves every frame of the same *shape*: the frame index
@@ -60,6 +65,17 @@ _TORCH_DTYPE = {"float32": torch.float32, "float64": torch.float64}
 STORE_STATES_BYTES: int | None = None
 STORE_STATES_GPU_FRACTION = 0.5
 STORE_STATES_GPU_HEADROOM = 0.1
+# Substep tapes (`MPMSolver.new_tape`): a forward for a backward keeps, for its stored frames, each substep's
+# grid and A / vg / Cg, and the backward reads them instead of recomputing them. None (default): on the CPU
+# (where the recompute is ~30% of the backward, docs/benchmarks/cpu.md) with the grid box and frame graphs
+# off (their defaults there); True / False force it (not with the grid box, frame graphs or fused kernels:
+# those keep the recompute). PHYSINTERACT_TAPE_GRID=0 / 1 in the environment sets it for a process (the A/B timing)
+TAPE_GRID: bool | None = (None if os.environ.get("PHYSINTERACT_TAPE_GRID", "") == ""
+                          else os.environ["PHYSINTERACT_TAPE_GRID"] not in ("0", "false", "False"))
+# what the tapes may take, beside the stored states (STORE_STATES_BYTES): frames 0 .. n - 1 of the stored
+# ones get one, as many as fit (the demo: 1,769 particles, a 9,720-node grid, 13 frames x ~130 substeps of
+# 0.58 MB: ~1 GB). None: 1.5 GiB
+TAPE_BYTES: int | None = None
 # A forward without gradients runs its launches eagerly this many times before its graphs are
 # captured: a rollout at a new rung is often used once (a start-search probe), and capturing T
 # graphs for one replay costs more than launching them (CPU, the sample at grid 12: 3.5 s to
@@ -173,6 +189,7 @@ class Rollout:
         # every substep's state of every frame (a forward for a backward, when they fit), and which
         # forward they hold (`states_generation`: counts the forwards that stored states)
         self._states: list[list[SimState]] | None = None
+        self._tapes: list[list] = []      # substep tapes of stored frames 0 .. len - 1 (TAPE_GRID)
         self.states_generation = 0
         self._fwd_store_graphs: dict[int, object] = {}
         self._eager_forwards_left = EAGER_FORWARDS     # forwards without gradients before capturing
@@ -265,13 +282,18 @@ class Rollout:
             self.ck.frame(0).assign(st[0])
         else:
             st[0].assign(self.ck.frame(k))
+        tape = self._tapes[k] if k < len(self._tapes) else None
         for s in range(self.S):
-            sol.step(st[s], st[s + 1], k, s)
+            sol.step(st[s], st[s + 1], k, s, save=None if tape is None else tape[s])
         sol.check(st[self.S], k, self.status)
         self.ck.frame(k + 1).assign(st[self.S])
 
-    def _replay_into(self, st: list, k: int) -> None:
+    def _replay_into(self, st: list, k: int, tape=None) -> None:
         st[0].assign(self.ck.frame(k))
+        if tape is not None:         # every substep: the last one's grid is read by its adjoint
+            for s in range(self.S):
+                self.solver.step(st[s], st[s + 1], k, s, save=tape[s])
+            return
         for s in range(self.S - 1):  # the last substep's output is never read by the adjoints
             self.solver.step(st[s], st[s + 1], k, s)
 
@@ -281,14 +303,14 @@ class Rollout:
 
     def _replay_frame_stored(self, k: int) -> None:
         if k < len(self._states):       # frames past the stored ones replay in `_adjoint_frame_stored`
-            self._replay_into(self._states[k], k)
+            self._replay_into(self._states[k], k, self._tapes[k] if k < len(self._tapes) else None)
 
     def _adjoint_frame_stored(self, k: int) -> None:
         if k >= len(self._states):
             return self._backward_frame(k)
-        self._adjoint_frame(self._states[k], k)
+        self._adjoint_frame(self._states[k], k, self._tapes[k] if k < len(self._tapes) else None)
 
-    def _adjoint_frame(self, st: list, k: int) -> None:
+    def _adjoint_frame(self, st: list, k: int, tape=None) -> None:
         sol = self.solver
         K = sol.K
         d = self.model.device
@@ -296,7 +318,8 @@ class Rollout:
         wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False)
         wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False)
         for s in reversed(range(self.S)):
-            sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl, clear_adj_in=True)
+            sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl, clear_adj_in=True,
+                             save=None if tape is None else tape[s])
             carry, other = other, carry
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)
@@ -559,8 +582,23 @@ class Rollout:
             self._warm.discard(id(g))
             g.clear()
         self._states = None
+        self._tapes = []
         self._arena = None
         self.states_generation += 1
+
+    def tape_on(self) -> bool:
+        """Whether stored frames keep substep tapes (TAPE_GRID; never with the grid box, frame graphs or the
+        fused kernels, whose forward gathers in the particle update: no vg / Cg to keep)."""
+        if self.solver.grid_box or self.solver.fused_kernels or (self.graphs and self.frame_graphs):
+            return False
+        return wp.get_device(self.model.device).is_cpu if TAPE_GRID is None else bool(TAPE_GRID)
+
+    def frames_to_tape(self, n_stored: int) -> int:
+        """How many of the n_stored frames get a substep tape (TAPE_BYTES)."""
+        if not self.tape_on() or n_stored <= 0:
+            return 0
+        budget = (3 << 29) if TAPE_BYTES is None else int(TAPE_BYTES)
+        return int(max(0, min(n_stored, budget // max(self.solver.tape_bytes(self.S), 1))))
 
     def _alloc_arena(self, n: int) -> dict:
         K = self.solver.K
@@ -586,6 +624,7 @@ class Rollout:
                                      for s in range(self.S + 1)] for k in range(n)]
                 else:
                     self._states = [Checkpoints(self.model, self.S).states() for _ in range(n)]
+                    self._tapes = [self.solver.new_tape(self.S) for _ in range(self.frames_to_tape(n))]
         if store and self._states is not None:
             self.states_generation += 1
             gen = self.states_generation

@@ -18,9 +18,19 @@ a node of the captured graph).
 ``fused_zero=False`` keeps the memsets (``array.zero_()``): the CPU's default, where a memset is
 faster than a Warp loop over the nodes and there is no launch latency to save (fused: +2-5% CPU
 time per substep, docs/benchmarks/gpu.md). Results are bitwise the same either way.
+
+Substep tapes (`new_tape`, the `save` argument of `step` / `step_adjoint`): a forward substep given a
+`SubstepSave` computes its grid and its gathered / affine particle buffers into it instead of the
+solver's own arrays, and an adjoint given the same save reads them from there instead of recomputing
+them (no p2g_stress, p2g_scatter, grid_update forward or g2p_gather in the backward: ~30% of a CPU
+backward substep, docs/benchmarks/cpu.md). Bitwise the same gradients (the same kernels on the same
+inputs; tests/test_sim_tape.py); the rollout decides which frames keep one (sim/rollout.py `TAPE_GRID`).
 """
 
 from __future__ import annotations
+
+from contextlib import contextmanager
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -150,6 +160,8 @@ class MPMSolver:
         self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
         self.fused_kernels = wp.get_device(d).is_cuda if FUSED_KERNELS is None else bool(FUSED_KERNELS)
         self.grid_box = wp.get_device(d).is_cuda if GRID_BOX is None else bool(GRID_BOX)
+        # the solver's own buffers (`_using` swaps a tape's in): a taped adjoint's scratch outputs
+        self._own = {k: getattr(self, k) for k in self._TAPED + ("_flat",)}
 
     # ------------------------------------------------------------------ the grid box
     @property
@@ -193,6 +205,47 @@ class MPMSolver:
 
     def _box_args(self):
         return [self.box, self.n_grid_threads, self.contig, self.res3]
+
+    # ------------------------------------------------------------------ substep tapes
+    # what a substep computes from its input state that its adjoint reads: the grid (mass, momentum,
+    # the pins' mass and momentum, the updated velocity) and the particles' A, vg, Cg
+    _TAPED = ("A", "vg", "Cg", "gm", "gmv", "gpm", "gpmv", "gv")
+
+    def tape_bytes(self, n_substeps: int) -> int:
+        """Bytes of a tape of n_substeps substeps (`new_tape`)."""
+        b = 4 if self.model.dtype == "float32" else 8
+        return int(n_substeps) * b * (21 * self.model.n_particles + 11 * self.n_nodes)
+
+    def new_tape(self, n_substeps: int) -> list:
+        """n_substeps `SubstepSave`s (namespaces of the `_TAPED` arrays and the grid's flat views), rows of
+        one array per field."""
+        K, d = self.K, self.device
+        P = self.model.n_particles
+        types = dict(A=(K.mat33, P), vg=(K.vec3, P), Cg=(K.mat33, P), gm=(K.T, self.res), gmv=(K.vec3, self.res),
+                     gpm=(K.T, self.res), gpmv=(K.vec3, self.res), gv=(K.vec3, self.res))
+        rows = {k: wp.zeros((n_substeps,) + (shape if isinstance(shape, tuple) else (shape,)), dtype=t, device=d)
+                for k, (t, shape) in types.items()}
+        out = []
+        for s in range(n_substeps):
+            sv = SimpleNamespace(**{k: a[s] for k, a in rows.items()})
+            sv._flat = {k: getattr(sv, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
+            out.append(sv)
+        return out
+
+    @contextmanager
+    def _using(self, save):
+        """Run the kernels on a save's arrays (None: the solver's own)."""
+        if save is None:
+            yield
+            return
+        keep = {k: getattr(self, k) for k in self._TAPED + ("_flat",)}
+        for k in self._TAPED + ("_flat",):
+            setattr(self, k, getattr(save, k))
+        try:
+            yield
+        finally:
+            for k, v in keep.items():
+                setattr(self, k, v)
 
     # ------------------------------------------------------------------ argument lists
     def _stress_args(self, s: SimState, p: SimParams):
@@ -259,8 +312,12 @@ class MPMSolver:
             self.gpm.zero_()
             self.gpmv.zero_()
 
-    def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None):
-        """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states."""
+    def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None, save=None):
+        """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states. `save`: a
+        `SubstepSave` that receives the substep's grid and particle buffers (for `step_adjoint`)."""
+        if save is not None:
+            with self._using(save):
+                return self.step(s_in, s_out, frame, substep, params, ctrl)
         p = params or self.params
         c = ctrl or self.ctrl
         if self.fused_kernels:
@@ -290,12 +347,22 @@ class MPMSolver:
 
     def step_adjoint(self, s_in: SimState, s_out: SimState, adj_in: SimState, adj_out: SimState,
                      frame: int, substep: int, adj_params: SimParams, adj_ctrl: ControlAdjoint,
-                     params=None, ctrl=None, clear_adj_in: bool = False):
+                     params=None, ctrl=None, clear_adj_in: bool = False, save=None):
         """Reverse one substep: given adj_out (dL/d s_out), ACCUMULATE dL/d s_in into adj_in and the
         parameter / trajectory gradients into adj_params / adj_ctrl. s_out is only written (it may
-        hold anything). The substep's grid is recomputed from s_in first. ``clear_adj_in``: zero
-        adj_in first (so it receives dL/d s_in itself), in the same launch as the substep's own
+        hold anything). The substep's grid is recomputed from s_in first, or read from ``save`` (the
+        `SubstepSave` its forward `step` filled from this s_in; left as it was). ``clear_adj_in``:
+        zero adj_in first (so it receives dL/d s_in itself), in the same launch as the substep's own
         adjoint buffers."""
+        if save is not None:
+            with self._using(save):
+                return self._step_adjoint(s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl,
+                                          params, ctrl, clear_adj_in, taped=True)
+        return self._step_adjoint(s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, params, ctrl,
+                                  clear_adj_in, taped=False)
+
+    def _step_adjoint(self, s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, params, ctrl,
+                      clear_adj_in, taped):
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
@@ -303,7 +370,19 @@ class MPMSolver:
         ag = self._alloc_adj()
         af = self._adj_flat
         ap = self._adj_part
-        if self.fused_zero or self.grid_box:
+        if taped:
+            # the grid and A, vg, Cg are the save's: only the adjoint buffers are cleared
+            for a in ag.values():
+                a.zero_()
+            if self.fused_zero:
+                wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
+                                                   adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
+            else:
+                if clear_adj_in:
+                    adj_in.zero_()
+                for a in ap.values():
+                    a.zero_()
+        elif self.fused_zero or self.grid_box:
             # the scatter targets and the grid adjoints in one launch over the box, then the grid
             f = self._flat
             wp.launch(K.zero_grid_adj, self.n_grid_threads,
@@ -337,7 +416,9 @@ class MPMSolver:
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
-        wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
+        # (a taped adjoint replays the forward's outputs into scratch: the tape stays as its forward wrote it)
+        gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
+        wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
                   adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
         # scatter (hand-written adjoint) -> adj x, v, A, pins
         wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
@@ -348,7 +429,8 @@ class MPMSolver:
                   [adj_in.F, adj_in.C, adj_params.E, adj_params.nu], device=d, record_tape=False)
         if self.flags & F_VISCO:
             wp.launch(K.p2g_stress_visco, P, [s_in.Fv, self.dev["volume"], p.nu, p.eff, self.inv_dx, self.dt],
-                      [self.A], [adj_in.Fv, None, adj_params.nu, adj_params.eff, 0.0, 0.0], [ap["A"]], adjoint=True,
+                      [self._own["A"] if taped else self.A], [adj_in.Fv, None, adj_params.nu, adj_params.eff, 0.0, 0.0],
+                      [ap["A"]], adjoint=True,
                       device=d, record_tape=False)
 
     # ------------------------------------------------------------------ checks
