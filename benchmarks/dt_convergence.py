@@ -125,12 +125,13 @@ def run_solver(sol, frames: int, transfer: str = "apic", per_frame: int = 1, rec
     return out, time.process_time() - t0
 
 
-def simulate(substeps: int, transfer: str = "apic", frames: int = 20, E=E0, dtype="float64", per_frame: int = 1):
+def simulate(substeps: int, transfer: str = "apic", frames: int = 20, E=E0, dtype="float64", per_frame: int = 1,
+             dx: float = DX):
     """Tip height (m, from rest) at `per_frame` samples a frame; and process CPU seconds."""
     from physinteract_usd.sim import Contact, Control, GridSpec, MPMSolver, SimModel
 
-    X, vol, held = rod()
-    grid = GridSpec.around(X, DX, padding=[0.03, 0.08, 0.03])
+    X, vol, held = rod(dx=dx)
+    grid = GridSpec.around(X, dx, padding=[0.03, 0.08, 0.03])
     ctrl = Control([Contact("fixed", indices=held)], n_frames=frames)
     m = SimModel.create(X, vol, RHO, E, NU, grid=grid, fps=FPS, substeps=substeps, dtype=dtype)
     tip = np.argsort(X[:, 0])[-16:]
@@ -168,15 +169,16 @@ def main(argv=None):
     ap.add_argument("--transfer", default="apic")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--samples", type=int, default=6, help="tip samples a frame (for the period and decay)")
+    ap.add_argument("--dx", type=float, default=DX, help=f"grid cell [m] (default {DX}: 2 cells across the rod)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     sag, f1 = beam()
     print(json.dumps({"beam": {"static_tip_sag_mm": round(1e3 * sag, 3), "f1_hz": round(f1, 3)}}), flush=True)
     for tr in a.transfer.split(","):
         for n in (int(v) for v in a.substeps.split(",")):
-            y, cpu = simulate(n, tr, a.frames, per_frame=a.samples)
+            y, cpu = simulate(n, tr, a.frames, per_frame=a.samples, dx=a.dx)
             an = analyse(y, FPS * a.samples)
-            row = {"transfer": tr, "substeps": n, "dt": 1.0 / (FPS * n), "cpu_s": round(cpu, 1),
+            row = {"transfer": tr, "substeps": n, "dx": a.dx, "particles": len(rod(dx=a.dx)[0]), "dt": 1.0 / (FPS * n), "cpu_s": round(cpu, 1),
                    "tip_mm_per_frame": [round(1e3 * v, 3) for v in y[::a.samples]],
                    "mean_sag_over_beam": round(an["mean_sag_m"] / sag, 4) if "mean_sag_m" in an else None,
                    "f_over_beam": round(1.0 / an["period_s"] / f1, 4) if "period_s" in an else None,
