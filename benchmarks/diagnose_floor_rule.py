@@ -20,6 +20,20 @@ run cut by `timeout` keeps what finished, and the same command with the same `--
     timeout 480 python benchmarks/diagnose_floor_rule.py --device cuda --jobs 23 --controls 20 \\
         --effects damping,viscoelasticity,plasticity --strengths 0.5 --deadline 120 --out /tmp/dfr
 
+The `rest` rule (2026-11-26, 13th: `--floor-rule rest`, camera causes judged on the frames before the first
+grasp, heterogeneity priced as the fit's model selection, no size gate), 20 controls and two effects at 1x and
+2x, with today's default beside it. foam_bar's grasp is at 10% of the clip: at 14 frames (frame 1) no frame
+before it is in the residual (which starts at frame 1), so `--frames 20` (grasp at frame 2: frame 1 is a rest
+frame). One H200, one wave of 24 workers, two or three calls of <= 8 min:
+
+    timeout -k 15 470 python benchmarks/diagnose_floor_rule.py --device cuda --jobs 24 --controls 20 \\
+        --effects damping,viscoelasticity --strengths 1,2 --frames 20 --rules rest,default --out /tmp/dfr2
+    (the same command again, until "total" is printed: each call keeps every finished base fit and diagnosis,
+    work/<case>.fitted.json and work/<case>.<rule>.json, and the next resumes from them)
+
+The table adds each rule's count with a 1% size gate applied after the fact (`+gate1%`: a name whose
+predicted share of the loss is under 1% dropped; forward selection not redone).
+
 CPU smoke test (one control, 6 frames, grid 12, one fit iteration, no refits: ~10 min wall on a loaded
 2-core box; with `--refit 0` every rule keeps the 3% gate):
 
@@ -101,19 +115,29 @@ def one(job) -> dict | None:
                       strength=s or 1.0, noise=NOISE, seed=seed, device=a.device, force=True, log=quiet,
                       fit_grid=a.fit_grid)
         sug = json.loads((cap / "gt" / "gt.json").read_text())["suggested_init"]
-        for suffix in (".usda", ".init.usdc", ".fit.usdc"):
-            (work / f"{k}{suffix}").unlink(missing_ok=True)
-        shutil.rmtree(work / f"{k}.versions", ignore_errors=True)
-        api.init(stage, cap, grid=sug["grid"], padding=sug["padding"], youngs_range=tuple(sug["youngs_range"]),
-                 max_poisson=sug["max_poisson"], density=sug["density"], force=True, log=quiet)
-        api.fit(stage, iterations=a.iterations, contact_from=cap / "gt", device=a.device, progress=False, log=quiet)
-        row["fit_s"] = round(time.perf_counter() - t0, 1)
+        fitted = work / f"{k}.fitted.json"          # a call cut by its timeout keeps the base fit and each rule's
+        if fitted.exists() and stage.exists():       # diagnosis: the next call resumes from them
+            row["fit_s"] = json.loads(fitted.read_text())["fit_s"]
+        else:
+            for suffix in (".usda", ".init.usdc", ".fit.usdc"):
+                (work / f"{k}{suffix}").unlink(missing_ok=True)
+            shutil.rmtree(work / f"{k}.versions", ignore_errors=True)
+            api.init(stage, cap, grid=sug["grid"], padding=sug["padding"], youngs_range=tuple(sug["youngs_range"]),
+                     max_poisson=sug["max_poisson"], density=sug["density"], force=True, log=quiet)
+            api.fit(stage, iterations=a.iterations, contact_from=cap / "gt", device=a.device, progress=False, log=quiet)
+            row["fit_s"] = round(time.perf_counter() - t0, 1)
+            fitted.write_text(json.dumps({"fit_s": row["fit_s"]}))
         for rule in a.rules:
+            part = work / f"{k}.{rule}.json"
+            if part.exists():
+                row[rule] = json.loads(part.read_text())
+                continue
             t1 = time.perf_counter()
             fr, gate = RULES[rule]
             d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
                              starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule=fr, gate=gate)
             row[rule] = dict(summary(d), seconds=round(time.perf_counter() - t1, 1))
+            part.write_text(json.dumps(row[rule], default=float))
         row["wall_s"] = round(time.perf_counter() - t0, 1)
         row["cpu_s"] = round(time.process_time() - c0, 1)
     except Exception as exc:  # noqa: BLE001 - one case's failure is a row
@@ -145,6 +169,19 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
                    f"{first}/{len(e)} | {anyn}/{len(e)} |")
         js[rule] = {"controls": len(c), "false_alarms": len(fa), "named_on_controls": what, "effect_cases": len(e),
                     "hidden_first": first, "hidden_named": anyn}
+
+        def gated(x, g=0.01):            # the names whose predicted share of the loss is >= g (after the fact)
+            rel = {t["effect"]: t.get("relative_drop") or 0.0 for t in x["tested"]}
+            return [n for n in x["named"] if rel.get(n, 0.0) >= g]
+
+        fa1 = [x for x in c if gated(x)]
+        first1 = sum(1 for r, x in e if gated(x)[:1] == [r["hidden"]])
+        any1 = sum(1 for r, x in e if r["hidden"] in gated(x))
+        out.append(f"| {rule} +gate1% | {len(fa1)}/{len(c)} | "
+                   f"{', '.join(sorted({n for x in fa1 for n in gated(x)[:1]})) or '-'} | {first1}/{len(e)} | "
+                   f"{any1}/{len(e)} |")
+        js[rule + "+gate1%"] = {"controls": len(c), "false_alarms": len(fa1), "effect_cases": len(e),
+                                "hidden_first": first1, "hidden_named": any1}
     out.append("")
     out.append("| case | " + " | ".join(rules) + " |")
     out.append("|---|" + "---|" * len(rules))
@@ -206,6 +243,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="/tmp/diagnose_floor_rule")
     ap.add_argument("--write", default=None, help="write the table to this markdown file")
     a = ap.parse_args(argv)
+    import signal
+
+    # `timeout`'s SIGTERM: leave through the pool's context manager, so its workers are terminated with us
+    signal.signal(signal.SIGTERM, lambda *_a: sys.exit(143))
     a.rules = [r for r in a.rules.split(",") if r]
     bad = [r for r in a.rules if r not in RULES]
     if bad:

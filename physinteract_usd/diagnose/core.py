@@ -155,6 +155,9 @@ class DiagnoseSettings:
                                         # (`rest_rows`: there no physics candidate but gravity acts, so a real
                                         # depth-scale / time-offset error shows while a floor the probe absorbs on
                                         # moving frames does not); none in the residual: not testable (#22)
+    depth_scale_in_base: bool = False   # the depth scale (gravity x (1 + eps)) as a base column, calibrated with the
+                                        # base and never a candidate (the alternative to `camera_rest`, measured on
+                                        # the CPU only: docs/benchmarks/diagnose_named.md, 13th; not in the CLI)
     heterogeneity_priced: bool = False  # `heterogeneity`'s held-back test also on time blocks (one a frame, no
                                         # image tiles) with its added freedom priced as `fit.select.select_rule`
                                         # prices a richer field (`refit.judge_probe`; #22)
@@ -354,6 +357,15 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: 
             names.append("discretisation")
             if prior_cols is not None:
                 prior_cols.append(np.zeros_like(p0))
+    if s.depth_scale_in_base:
+        eps = 0.05
+        try:
+            cols.append((run.r(sim=run.sim_for(gravity_scale=1.0 + eps)) - r0) / eps)
+            names.append("depth_scale")
+            if prior_cols is not None:
+                prior_cols.append(np.zeros_like(p0))
+        except (SimulationError, ValueError) as exc:
+            run.log(f"depth-scale base column skipped: {exc}")
     st = prob.scene.settings
     dn = 0.01 if float(b.nu.max()) + 0.01 <= st.poisson_max else -0.01
     cols.append((run.r(nu=b.nu + dn) - r0) / dn)
@@ -1025,7 +1037,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     if rows is not None:
         noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]
     results = []
-    cands = [c for c in s.candidates if c in CANDIDATES]
+    cands = [c for c in s.candidates if c in CANDIDATES and not (c == "camera:depth_scale" and s.depth_scale_in_base)]
     it = progress(cands, "candidates") if progress else cands
     for eff in it:
         try:
