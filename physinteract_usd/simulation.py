@@ -11,6 +11,7 @@ particles. `build_simulation` is the one place that assembles it; the fit (`fit.
 from __future__ import annotations
 
 import os
+import threading
 
 import numpy as np
 import torch
@@ -21,6 +22,13 @@ from .render import GaussianBinding, covariance_from_scales_quats
 from .scene import SceneData, SimSettings
 from .sim import Contact, Control, GridSpec, Rollout, SimModel
 from .sim.cfl import rung
+
+# Independent forwards without gradients (`Simulation.simulate_each`: the confidence's finite differences)
+# on this many threads: Warp's CPU kernels and graph replays run inside ctypes calls, which release the GIL,
+# so a second thread simulates on the second core while the first replays its graphs. None (default): 2 on a
+# CPU device with >= 2 cores, else 1 (one GPU serialises them). PHYSINTERACT_SIM_THREADS=N sets it
+SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.environ.get("PHYSINTERACT_SIM_THREADS") \
+    else None
 
 
 def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories) -> GridSpec:
@@ -125,6 +133,7 @@ class Simulation:
         self.adaptive = bool(adaptive_substeps)
         self._rollouts: dict[float, Rollout] = {}
         self._batch_rollouts: dict = {}          # (rung, copies) -> (Tiled, Rollout)
+        self._twins: dict = {}                   # rung -> eager Rollouts for `simulate_each`'s other threads
         self.e_bound = float(st.youngs_max)
         # the Maxwell branch's modulus the substep is made stable for (None: up to the E bound, which takes
         # ~sqrt(2) x the substeps; `match_substeps_to_base`)
@@ -150,6 +159,7 @@ class Simulation:
         self.viscous_cfl_modulus = 0.0
         self._rollouts.clear()
         self._batch_rollouts.clear()
+        self._twins.clear()
         self._use_bound(self.e_bound)
 
     def bound_for(self, e_max: float) -> float:
@@ -173,6 +183,7 @@ class Simulation:
                 blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0,
                 pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1])
             if len(self._rollouts) >= 3:     # keep a few rungs' buffers and graphs
+                self._twins.pop(next(iter(self._rollouts)), None)
                 self._rollouts.pop(next(iter(self._rollouts)))
             self._rollouts[bound] = Rollout(model, self.control)
         for b, r in self._rollouts.items():   # only the rung in use keeps its substep states (memory)
@@ -227,6 +238,87 @@ class Simulation:
         if self.adaptive:
             self.ensure_stable(float(E.detach().max()))
         return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+
+    def rung_wanted(self, e_max: float) -> float:
+        """The rung `ensure_stable(e_max)` would move to (the current one when it would not move)."""
+        if not self.adaptive:
+            return self.e_bound
+        want = self.bound_for(e_max)
+        if want < self.e_bound and e_max * 1.1 > want:
+            want = self.e_bound
+        return want
+
+    def simulate_each(self, jobs: list, threads: int | None = None) -> list:
+        """Independent simulations without gradients at the current rung: `jobs` a list of (E, nu,
+        trajectories, effects) as `simulate` takes them, each at an E for which `rung_wanted` is the
+        current rung (checked: ValueError). Returns, in order, (x, F) or the SimulationError a job
+        raised. On `threads` (default SIM_THREADS) threads: the calling one on this rollout, the others
+        on eager twins of it (own buffers, no graph capture while they run: the calling thread's forward
+        graphs are captured before they start). Bitwise what `simulate` gives, one job after another
+        (tests/test_sim_threads.py)."""
+        from .errors import SimulationError
+
+        for E, *_ in jobs:
+            if self.rung_wanted(float(torch.as_tensor(E).detach().max())) != self.e_bound:
+                raise ValueError("simulate_each: a job's E needs another rung than the current one")
+        if threads is None:
+            threads = SIM_THREADS
+            if threads is None:
+                threads = 2 if (str(self.device).startswith("cpu") and (os.cpu_count() or 1) >= 2) else 1
+        out: list = [None] * len(jobs)
+        lock = threading.Lock()
+        todo = iter(range(len(jobs)))
+
+        def take():
+            with lock:
+                return next(todo, None)
+
+        def run(ro, i):
+            E, nu, tr, eff = jobs[i]
+            trajs = None if tr is None else {slot: t for (slot, _), t in zip(self.traj_slots, tr)}
+            with torch.no_grad():
+                try:
+                    x, F = ro(torch.as_tensor(E).detach().to(self.tdtype), torch.as_tensor(nu).detach().to(self.tdtype),
+                              effects=eff, trajectories=trajs)
+                    out[i] = (x, F)
+                except SimulationError as e:
+                    out[i] = e
+
+        ro = self.rollout
+        workers: list = []
+        failed: list = []
+
+        def work(twin):
+            try:
+                while (i := take()) is not None:
+                    run(twin, i)
+            except BaseException as e:  # noqa: BLE001  (re-raised in the calling thread)
+                failed.append(e)
+
+        def captured() -> bool:    # no capture of the calling thread's rollout can start while workers run
+            if not ro.graphs:
+                return True
+            if ro.frame_graphs:
+                return "forward" in ro._fwd_graphs
+            return len(ro._fwd_graphs) == ro.T
+
+        try:
+            while (i := take()) is not None:
+                run(ro, i)
+                if not workers and threads > 1 and len(jobs) > 1 and captured():
+                    twins = self._twins.setdefault(self.e_bound, [])
+                    while len(twins) < threads - 1:
+                        twins.append(Rollout(self.model, self.control, graphs=False))
+                    for twin in twins[:threads - 1]:
+                        t = threading.Thread(target=work, args=(twin,), daemon=True)
+                        t.start()
+                        workers.append(t)
+        finally:
+            for t in workers:
+                t.join()
+        if failed:
+            raise failed[0]
+        return out
 
     def simulate_batch(self, E, nu, trajectories=None, effects=None, copies_per_rollout: int | None = None):
         """B rollouts in few: copies of the scene side by side on one grid (`sim.batch`), each with

@@ -717,6 +717,9 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
         reach = (mat.B.abs() * dlog[:, None]).amax(0)                # (K,) d log E / d theta_k at most
     substeps = getattr(prob.sim, "substeps", None)
     diag = torch.zeros_like(theta.detach())
+    par = _gn_diag_fd_threaded(prob, mat, nu, tr, eff, base, reach, diag)
+    if par is not False:
+        return par
     for k in range(int(theta.numel())):
         h = float(min(FD_LOG_E_STEP / max(float(reach[k]), 1e-12), 1.0))
         step = torch.zeros_like(theta.detach())
@@ -738,4 +741,43 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
                 if rm0 is not None:
                     acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
         diag[k] = acc
+    return diag
+
+
+def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, reach, diag):
+    """`_gn_diag_fd`'s simulations as independent jobs on two threads (`Simulation.simulate_each`: the
+    second core), the same values; False where that does not apply (a problem whose simulation is not
+    a Simulation's, or a stepped field that would move the rung: the sequential loop decides those)."""
+    sim = prob.sim
+    if not hasattr(sim, "simulate_each") or "simulate" in vars(prob) or type(prob).simulate is not FitProblem.simulate:
+        return False
+    theta = mat.theta
+    jobs, hs = [], []
+    for k in range(int(theta.numel())):
+        h = float(min(FD_LOG_E_STEP / max(float(reach[k]), 1e-12), 1.0))
+        step = torch.zeros_like(theta.detach())
+        step[k] = h
+        with torch.no_grad():
+            mat.theta = theta.detach() - step
+            try:
+                Ek = mat.youngs()
+            finally:
+                mat.theta = theta
+        if sim.rung_wanted(float(Ek.detach().max())) != sim.e_bound:
+            return False
+        jobs.append((Ek, nu, tr, eff))
+        hs.append(h)
+    stopping.check("backward")   # these forwards are the estimate's work: a stop acts here (as in a backward)
+    sims = sim.simulate_each(jobs)
+    with torch.no_grad():
+        for k, (r_, h) in enumerate(zip(sims, hs)):
+            if isinstance(r_, SimulationError):
+                return None
+            x, F = r_
+            acc = 0.0
+            for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
+                acc += float((((r0.detach() - r) / h).double() ** 2).sum())
+                if rm0 is not None:
+                    acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
+            diag[k] = acc
     return diag
