@@ -16,6 +16,8 @@ Transfers (`--transfer`):
 
     python benchmarks/dt_convergence.py [--substeps 150,300,600,1200,2400] [--transfer apic,rate:0.002]
         [--frames 20] [--out rows.jsonl]
+    # the E a model at one step needs to match a truth at another (least squares on the tip over the frames):
+    python benchmarks/dt_convergence.py --truth 1200 --model 150 --scales 0.8,0.9,1,1.1,1.2,1.4,1.6 [--transfer apic]
 """
 
 from __future__ import annotations
@@ -171,7 +173,31 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=6, help="tip samples a frame (for the period and decay)")
     ap.add_argument("--dx", type=float, default=DX, help=f"grid cell [m] (default {DX}: 2 cells across the rod)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--truth", type=int, default=0, help="with --model: the truth's substeps a frame (E = E0)")
+    ap.add_argument("--model", type=int, default=0, help="with --truth: the model's substeps a frame, E swept")
+    ap.add_argument("--scales", default="0.8,0.9,1,1.1,1.2,1.4,1.6", help="the model's E / E0")
     a = ap.parse_args(argv)
+    if a.truth and a.model:
+        for tr in a.transfer.split(","):
+            yt, _ = simulate(a.truth, tr, a.frames, dx=a.dx)
+            rms = {}
+            for sc in (float(v) for v in a.scales.split(",")):
+                ym, cpu = simulate(a.model, tr, a.frames, E=E0 * sc, dx=a.dx)
+                rms[sc] = float(np.sqrt(np.mean((ym[1:] - yt[1:]) ** 2)))
+            ks = sorted(rms)
+            i = int(np.argmin([rms[k] for k in ks]))
+            best = ks[i]
+            if 0 < i < len(ks) - 1:      # a parabola through the best three (in log E)
+                x = np.log(ks[i - 1:i + 2])
+                c = np.polyfit(x, [rms[k] for k in ks[i - 1:i + 2]], 2)
+                best = float(np.exp(-c[1] / (2 * c[0]))) if c[0] > 0 else best
+            row = {"transfer": tr, "truth_substeps": a.truth, "model_substeps": a.model, "dx": a.dx,
+                   "rms_mm": {str(k): round(1e3 * v, 3) for k, v in rms.items()}, "best_E_over_truth": round(best, 3)}
+            print(json.dumps(row), flush=True)
+            if a.out:
+                with open(a.out, "a") as fh:
+                    fh.write(json.dumps(row) + "\n")
+        return
     sag, f1 = beam()
     print(json.dumps({"beam": {"static_tip_sag_mm": round(1e3 * sag, 3), "f1_hz": round(f1, 3)}}), flush=True)
     for tr in a.transfer.split(","):
