@@ -165,6 +165,11 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
             else:
                 judge_probe(diag, c, frames=val)
         groups.append(group)
+    for c in diag.significant[int(refit):]:
+        # a camera cause tested on the rest frames costs no refit: judged whatever its rank (its drop, on those
+        # frames alone, is small beside the moving frames' candidates and would rarely reach the top N)
+        if c.rest_only and c.accepted is None and int(refit) >= 1:
+            judge_on_rest(diag, c)
     holm(diag)
     for group in groups:
         cr = group[0]
