@@ -106,7 +106,7 @@ def test_no_rest_frame_means_not_testable():
     r0, J, probe, blocks, nb, rows = _case(0, 1.5)
     c = score_on_rows("camera:depth_scale", [Probe("g", probe, 0, {})], r0, J, blocks, DiagnoseSettings(),
                      np.zeros_like(rows), len(r0))
-    assert c.p_value == 1.0 and c.drop == 0.0 and "not testable" in c.note
+    assert c.p_value == 1.0 and c.drop == 0.0 and "not testable" in c.note and c.rest_only
 
 
 def _diag(frames_per_elem):

@@ -823,7 +823,7 @@ def test_on_rows(effect: str, probes: list[Probe], r0: np.ndarray, J: np.ndarray
     result keeps the full probes (forward selection adds their whole columns to the base)."""
     idx = np.where(rows[: len(r0)])[0]
     if not len(idx):
-        cr = CandidateResult(effect, probes)
+        cr = CandidateResult(effect, probes, rest_only=True)
         cr.note = "not testable: no frame before the first grasp in the residual (camera causes judged on rest frames)"
         return cr
     sub = [dataclasses.replace(p, column=_pad(p.column, len(r0))[idx]) for p in probes]
