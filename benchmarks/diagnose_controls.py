@@ -39,7 +39,7 @@ def cases_of(spec: str) -> list[str]:
 
 
 def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, folds: int,
-             floor_rule: bool | str = False) -> dict:
+             floor_rule: bool | str = False, gate: float | None = None) -> dict:
     import shutil
 
     import diagnose_scene as ds
@@ -58,8 +58,8 @@ def run_case(case: str, work: Path, refit: int, iterations: int, starts: int, fo
         hidden = kind
     t0, c0 = time.perf_counter(), time.process_time()
     d = api.diagnose(info["stage"], refit=refit, refit_iterations=iterations, progress=False, log=lambda *a: None,
-                     write_stage=False, starts=starts, refit_folds=folds, floor_rule=floor_rule)
-    row = {"case": case, "hidden": hidden, "floor_rule": floor_rule, "verdict": d["verdict"], "reason": d["reason"],
+                     write_stage=False, starts=starts, refit_folds=folds, floor_rule=floor_rule, gate=gate)
+    row = {"case": case, "hidden": hidden, "floor_rule": floor_rule, "gate": gate, "verdict": d["verdict"], "reason": d["reason"],
            "named": [c["effect"] for c in d["candidates"]
                      if any(t["effect"] == c["effect"] and t.get("accepted") for t in d["tested"])],
            "significant": [c["effect"] for c in d["candidates"]],
@@ -83,8 +83,9 @@ def main(argv=None) -> int:
     ap.add_argument("--refit-iterations", type=int, default=6)
     ap.add_argument("--starts", type=int, default=1)
     ap.add_argument("--refit-folds", type=int, default=2)
-    ap.add_argument("--floor-rule", nargs="?", const="full", default=False, choices=("full", "match"),
-                    help="diagnose --floor-rule [full|match] (issue #22)")
+    ap.add_argument("--floor-rule", nargs="?", const="full", default=False, choices=("full", "match", "rest"),
+                    help="diagnose --floor-rule [full|match|rest] (issue #22)")
+    ap.add_argument("--gate", type=float, default=None, help="diagnose --gate SHARE (the size gate)")
     a = ap.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
     for case in cases_of(a.cases):
         if case in done:
             continue
-        r = run_case(case, out / "work", a.refit, a.refit_iterations, a.starts, a.refit_folds, a.floor_rule)
+        r = run_case(case, out / "work", a.refit, a.refit_iterations, a.starts, a.refit_folds, a.floor_rule, a.gate)
         with path.open("a") as f:
             f.write(json.dumps(r) + "\n")
         sig = ", ".join(f"{t['effect']} (p {t['p_value']:.2g}, {100 * (t['relative_drop'] or 0):.1f}%"
