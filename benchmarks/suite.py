@@ -103,6 +103,8 @@ def one(scene: str, a, work: Path) -> dict:
         fit_cmd = ["fit", str(st), "--iterations", str(a.iterations), "--device", a.device, "--schedule", a.schedule]
         if not a.extracted:
             fit_cmd += ["--contact-from", str(gt_dir)]
+        if a.gauss_newton:
+            fit_cmd += ["--gauss-newton", str(a.gauss_newton)]
         cpu = {}
         rc, t_fit = run(fit_cmd, log, cpu)
         row["fit_s"] = round(t_fit, 1)
@@ -222,6 +224,8 @@ def main(argv=None):
                          "and its captures; the table shows this schedule's)")
     ap.add_argument("--tag", default="", help="a label kept in each row: rows are kept per scene, schedule, grid and "
                     "tag (e.g. the same schedule before / after a change, run with PYTHONPATH at the old code)")
+    ap.add_argument("--gauss-newton", type=int, default=0, metavar="N",
+                    help="fit --gauss-newton N (bumps: Gauss-Newton steps on the finest level; use a --tag)")
     ap.add_argument("--out", default="out/suite")
     ap.add_argument("--write", default=None, help="markdown file to (re)write with the table")
     a = ap.parse_args(argv)

@@ -63,6 +63,10 @@ def add_parser(sub):
                    help="after the fit, mark the particles strained less than F x the median over the clip (and the "
                         "held ones) as unconstrained: confidence 0, E from the material they are attached to (0.1 is "
                         "select.EXPOSURE_FLOOR; default 0: off)")
+    s.add_argument("--gauss-newton", type=int, default=None, metavar="N",
+                   help="bumps schedule: N Gauss-Newton steps on the finest level's bump amplitudes before its Adam "
+                        "iterations (K+2..K+5 forward simulations each, charged to the iteration budget; default 0: "
+                        "off; #24)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -97,6 +101,10 @@ def run(a) -> int:
         if not 0 <= a.unconstrained_floor < 1:
             raise InputError("--unconstrained-floor", f"must be in [0, 1), got {a.unconstrained_floor}")
         over["unconstrained_floor"] = a.unconstrained_floor
+    if a.gauss_newton is not None:
+        if a.gauss_newton < 0:
+            raise InputError("--gauss-newton", f"must be >= 0, got {a.gauss_newton}")
+        over["gn_steps"] = a.gauss_newton
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,

@@ -27,6 +27,8 @@ from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
 from .converge import improved, level_patience, lr_scale, plateaued
+from .gauss_newton import forwards_to_iterations, gauss_newton_step
+from .parts_start import parts_start
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -110,6 +112,13 @@ class FitSettings:
                                         # share of the median (select.EXPOSURE_FLOOR = 0.1) and the held ones are
                                         # "unconstrained": confidence 0, E filled from the constrained material they
                                         # are attached to (select.fill_unconstrained; 0: off). #24
+    gn_steps: int = 0                   # schedule bumps: Gauss-Newton steps on the finest level's bump amplitudes
+                                        # before its Adam iterations, each charged to its budget at the forwards
+                                        # it costs (fit/gauss_newton.py; 0: off). #24, foam_bar: Adam's step cap
+    parts_start: int = 0                # schedule bumps: the finest level starts from the appearance parts' E, found by
+                                        # a simplex of at most this many forward probes from the uniform E (charged
+                                        # to the level's budget; fit/parts_start.py; 0: off). #24, foam_bar
+    gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
     uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
                                         # below the best uniform E's, else the uniform model (select.fit_guarded). #24
 
@@ -140,6 +149,31 @@ class FitResult:
     model: dict = field(default_factory=dict)  # the material model chosen and why (regions, their E and
                                         # intervals, the splits tried with predicted / realised drops)
     effect_parameters: dict = field(default_factory=dict)  # {effect: {parameter: value}} fitted ones
+
+
+def _gn_step(prob, mat, trajs, eff, pairs, pair_w, lam_smooth, log=None) -> dict:
+    """One Gauss-Newton step on the field's coefficients (fit/gauss_newton.py), the path, nu and
+    the effects where they are; the smoothness term as the bumps loop counts it."""
+    n_pairs = max(len(pairs), 1)
+
+    def reg_fn(residuals: bool = False):
+        if not (len(pairs) and mat.K > 1):
+            z = torch.zeros((0,) if residuals else (), dtype=prob.tdtype, device=prob.tdev)
+            return z
+        if not residuals:
+            return lam_smooth * mat.smoothness(pairs, pair_w)
+        le = mat.log_e()
+        if mat.base is not None:
+            le = le - (mat.lo + (mat.hi - mat.lo) * torch.sigmoid(mat.base))
+        return torch.sqrt(lam_smooth * pair_w / n_pairs) * (le[pairs[:, 0]] - le[pairs[:, 1]])
+
+    tr = [t.detach() for t in trajs] if trajs else None
+    reg_traj = 0.0
+    if tr is not None and prob.weights.trajectory > 0:
+        with torch.no_grad():
+            reg_traj = float(prob.trajectory_prior(tr))
+    nu = mat.poisson().detach()
+    return gauss_newton_step(prob, mat, nu, tr, eff, reg_fn, reg_traj, log)
 
 
 def _seed(s):
@@ -304,6 +338,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     history: list[float] = []
     best = {"loss": float("inf")}
     interrupted = False
+    gn_log: list = []
+    parts_log: list = []
 
     def snapshot(loss_value, sim=None):
         best.update(loss=loss_value, sim=sim, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
@@ -338,6 +374,47 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 mat.refine(k, refine_nu=False)
             elif k != mat.K:  # a schedule that starts above one basis function
                 mat.refine(k, refine_nu=False)
+            if s.parts_start > 0 and start is None and li == len(levels) - 1 and mat.K > 1 and n_it > 0:
+                # the appearance parts' E as the finest level's start (fit/parts_start.py; opt-in, #24)
+                def total_now():
+                    with torch.no_grad():
+                        o = prob.loss(mat.youngs(), mat.poisson(), [t.detach() for t in trajs] if trajs else None,
+                                      effects=eff_now())
+                        rg = lam_smooth * mat.smoothness(pairs, pair_w) if len(pairs) and mat.K > 1 else 0.0
+                        return float(o["rec"] + o["reg_traj"] + rg)
+
+                stopping.check("backward")
+                ps = parts_start(prob, mat, s, trajs, eff_now(), total_now, int(s.parts_start), log)
+                charged = min(forwards_to_iterations(ps["forwards"], BACKWARD_PER_FORWARD), n_it) if ps["forwards"] else 0
+                n_it -= charged
+                for _c in range(charged):
+                    history.append(ps.get("loss", best["loss"]) if ps["used"] else ps.get("loss0", best["loss"]))
+                    it += 1
+                    if bar is not None:
+                        bar.update(1)
+                if ps["used"] and ps["loss"] < best["loss"]:
+                    snapshot(ps["loss"])
+                parts_log.append({k: v for k, v in ps.items()} | {"charged": charged})
+            n_gn = int(s.gn_steps) if (li == len(levels) - 1 and mat.K > 1 and mat.K <= s.gn_max_basis) else 0
+            for _ in range(n_gn):
+                # Gauss-Newton on the few bump amplitudes (fit/gauss_newton.py; opt-in, #24): Adam moves a
+                # coefficient ~its learning rate per iteration, a Newton step as far as the curvature says
+                if it >= budget or n_it <= 0:
+                    break
+                stopping.check("backward")   # (its forwards are a step's work, as a backward)
+                step = _gn_step(prob, mat, trajs, eff_now(), pairs, pair_w, lam_smooth, log)
+                charged = min(forwards_to_iterations(step["forwards"], BACKWARD_PER_FORWARD), n_it)
+                n_it -= charged
+                for _c in range(charged):
+                    history.append(step["loss"])
+                    it += 1
+                    if bar is not None:
+                        bar.update(1)
+                if step["loss"] < best["loss"]:
+                    snapshot(step["loss"])
+                gn_log.append({k: v for k, v in step.items() if k != "tried"} | {"level": li + 1, "charged": charged})
+                if not step["accepted"]:
+                    break
             fit_nu = li < s.fit_poisson_levels
             groups = [{"params": [mat.theta], "lr": s.lr_material}]
             if fit_nu:
@@ -442,6 +519,10 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
     if mat.base is not None:
         model["nested"] = True                    # the field was an offset on a fixed base's E
+    if parts_log:
+        model["parts_start"] = parts_log[0]       # the appearance parts' start (FitSettings.parts_start)
+    if gn_log:
+        model["gauss_newton"] = gn_log            # the Gauss-Newton steps (FitSettings.gn_steps)
     if probes:
         model["uniform_probes"] = probes          # the start search's uniform E -> loss
     if start_skipped:

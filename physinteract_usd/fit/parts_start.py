@@ -1,0 +1,76 @@
+"""The bumps schedule's start from parts (opt-in: FitSettings.parts_start; #24, foam_bar).
+
+Why: Adam moves each bump amplitude by about its learning rate per iteration. From the uniform E,
+a two-part object whose parts sit 5x apart (foam_bar: 37.5 / 7.5 kPa) needs the soft part's bumps
+to travel ~1.5 in the field's logit units; the suite's 20-iteration fit gives the finest level 15
+iterations on a cosine from lr 0.1, ~0.8 in all, so it ends halfway down a loss that falls all the
+way to the truth (docs/benchmarks/fit.md, "foam_bar stops short": the loss along the line from the
+fit to the truth falls monotonically, and a fit started at the truth stays there). A Gauss-Newton
+step on the 8 amplitudes did not help: the textured images' residuals are linear over a few pixels
+only, so its quadratic model overshoots (same section).
+
+What: before the finest level, the appearance candidate's parts (`select.part_candidates`: colour
+clusters cut into connected parts, held particles joined to their neighbours) get one log E each by
+a Nelder-Mead simplex from the uniform E (`select.part_refine`, forward passes only, the loss the
+fit minimises; the path, nu and effects held). Their field, projected onto the level's bumps, is
+where the level's Adam starts, if it renders better than the uniform start; else nothing changes.
+An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
+level's iteration budget (a forward and a backward per iteration).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from ..errors import SimulationError
+
+SIMPLEX_STEP = math.log(2.0)   # the first simplex: each part's E x 2 (the parts of a composite differ by ~2-10x)
+
+
+def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
+    """Start the field (`mat`, on the level's basis) from the appearance parts' fitted E when it
+    lowers the total loss. `total_fn()`: the fit's total loss at the current field (a forward).
+    Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
+    from .select import PartProbe, part_candidates, part_refine
+
+    out = {"forwards": 0, "used": False, "parts": 0}
+    cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
+    if not cands:
+        if log:
+            log("parts start: the object's colours make one part; the uniform start stays")
+        return out
+    labels = cands[0]["labels"]
+    m = int(labels.max()) + 1
+    with torch.no_grad():
+        le_now = mat.log_e().detach().cpu().numpy()
+        nu = mat.poisson().detach()
+    tr = [t.detach() for t in trajs] if trajs else None
+    f = PartProbe(prob, list(range(1, prob.T)), labels, nu, tr, eff, batch=s.select_sweep_batch)
+    start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
+    r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, max(int(probes), m + 2), step=SIMPLEX_STEP)
+    out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]))
+    theta0 = mat.theta.detach().clone()
+    try:
+        loss0 = float(total_fn())
+        mat.set_values(np.exp(np.asarray(r["log_e"]))[labels])
+        loss1 = float(total_fn())
+    except SimulationError:
+        loss0, loss1 = float("nan"), float("inf")
+    out["forwards"] += 2
+    out.update(loss0=loss0, loss=loss1)
+    if loss1 < loss0:
+        out["used"] = True
+    else:
+        with torch.no_grad():
+            mat.theta = theta0.clone().requires_grad_(True)
+    if log:
+        es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
+        log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes); on the bumps "
+            f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}")
+    return out
+
+
+__all__ = ["parts_start", "SIMPLEX_STEP"]
