@@ -25,8 +25,10 @@ from .sim.cfl import rung
 
 # Independent forwards without gradients (`Simulation.simulate_each`: the confidence's finite differences)
 # on this many threads: Warp's CPU kernels and graph replays run inside ctypes calls, which release the GIL,
-# so a second thread simulates on the second core while the first replays its graphs. None (default): 2 on a
-# CPU device with >= 2 cores, else 1 (one GPU serialises them). PHYSINTERACT_SIM_THREADS=N sets it
+# so a second thread can simulate on the second core while the first replays its graphs. Bitwise the same
+# results either way. Default 1 (opt-in): on the shared 2-core VM two threads measured slower, not faster (the
+# confidence's forwards 16.9 -> 19.9 s wall, +10% CPU, load 4-6; docs/benchmarks/cpu.md session 13); the idle
+# machine's re-time decides (benchmarks/cpu_confidence_threads.py). PHYSINTERACT_SIM_THREADS=N sets it
 SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.environ.get("PHYSINTERACT_SIM_THREADS") \
     else None
 
@@ -262,9 +264,7 @@ class Simulation:
             if self.rung_wanted(float(torch.as_tensor(E).detach().max())) != self.e_bound:
                 raise ValueError("simulate_each: a job's E needs another rung than the current one")
         if threads is None:
-            threads = SIM_THREADS
-            if threads is None:
-                threads = 2 if (str(self.device).startswith("cpu") and (os.cpu_count() or 1) >= 2) else 1
+            threads = 1 if SIM_THREADS is None else int(SIM_THREADS)
         out: list = [None] * len(jobs)
         lock = threading.Lock()
         todo = iter(range(len(jobs)))
