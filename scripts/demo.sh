@@ -9,7 +9,7 @@ SAMPLE=samples/foam_bar   # regenerate with: physinteract-usd synth foam_bar sam
 OUT=out/demo
 mkdir -p "$OUT"
 rm -rf "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/scene.versions "$OUT"/scene.extract
-# the capture's README.txt suggests grid 24: ~4 minutes on 2 CPU cores, MA 0.93 (docs/benchmarks/cpu.md;
+# the capture's README.txt suggests grid 24: ~3 minutes on 2 CPU cores, MA 0.93 (docs/benchmarks/cpu.md;
 # grid 20 before the CPU changes: half grid 24's time, MA 0.84; docs/benchmarks/fit.md)
 physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 0.3 \
   --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
