@@ -24,11 +24,13 @@ The `rest` rule (2026-11-26, 13th: `--floor-rule rest`, camera causes judged on 
 grasp, heterogeneity priced as the fit's model selection, no size gate), 20 controls and two effects at 1x and
 2x, with today's default beside it. foam_bar's grasp is at 10% of the clip: at 14 frames (frame 1) no frame
 before it is in the residual (which starts at frame 1), so `--frames 16` (grasp at round(0.1 x 15) = frame 2:
-frame 1 is a rest frame). One H200, one wave of 24 workers; at the 12th run's rate (12 workers: base fit
-~150 s, a rule's diagnosis ~100 s at 14 frames) expect ~700-900 s in all: two calls of <= 8 min:
+frame 1 is a rest frame). Rules in the order they matter (a cut run has the first for the most cases):
+`rest` (no gate; with a 1% gate after the fact), `gate1` (today's rule with a 1% gate: a gate cannot be lowered
+after the fact), `default`. One H200, one wave of 24 workers; at the 12th run's rate (12 workers: base fit
+~150 s, a rule's diagnosis ~100 s at 14 frames) expect ~1000-1300 s in all: three calls of <= 8 min:
 
     timeout -k 15 470 python benchmarks/diagnose_floor_rule.py --device cuda --jobs 24 --controls 20 \\
-        --effects damping,viscoelasticity --strengths 1,2 --frames 16 --rules rest,default --out out/dfr2
+        --effects damping,viscoelasticity --strengths 1,2 --frames 16 --rules rest,gate1,default --out out/dfr2
     (the same command again, until "total" is printed: each call keeps every finished base fit and diagnosis,
     work/<case>.fitted.json and work/<case>.<rule>.json under out/ (ignored by git, kept on the device machine
     between calls), and the next resumes from them; the table and JSON land in $OUT after every case)
