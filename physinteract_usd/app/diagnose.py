@@ -415,13 +415,13 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
                                 floor_rule=floor_rule)
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
-    if gate is not None:
-        settings.min_relative_drop = settings.floor_min_relative_drop = float(gate)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 
         match_base_substeps(prob, base, log)
     base, starts_out = _best_start(prob, base, settings, int(starts), int(refit_iterations), log)
+    if gate is not None:      # after the base starts: their "local minimum" threshold stays the 3% one
+        settings.min_relative_drop = settings.floor_min_relative_drop = float(gate)
     bar = None
     if progress:
         from tqdm import tqdm
