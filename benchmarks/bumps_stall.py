@@ -70,6 +70,7 @@ def main(argv=None):
     from physinteract_usd.app.fit import make_problem, prepare_fit
     from physinteract_usd.fit.material import MaterialField, neighbour_pairs, pair_weights
     from physinteract_usd.fit.optimize import fit_bumps, gaussian_weights
+    from physinteract_usd.fit.parts_start import parts_start_hook
     from physinteract_usd.fit.select import pinned_substep
     from physinteract_usd.synth.gt import read_gt_array
 
@@ -143,7 +144,8 @@ def main(argv=None):
         hist = []
         t0 = time.process_time()
         r = fit_bumps(prob, s, progress=False, log=lambda m: print("  log:", m, flush=True), start=start,
-                      on_iteration=lambda it, lv, mat, trajs: hist.append(lv))
+                      on_iteration=lambda it, lv, mat, trajs: hist.append(lv),
+                      before_finest=parts_start_hook(s.parts_start) if s.parts_start > 0 and start is None else None)
         cpu = time.process_time() - t0
         trajs = [r.trajectories[n] for n in names]
         d = row(name, r.youngs, r.poisson, trajs, cpu_s=round(cpu, 1), history=[round(v, 6) for v in hist],

@@ -11,6 +11,7 @@ particles the video does not constrain marked and filled from their neighbours).
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
+from .parts_start import parts_start_hook
 from .problem import FitProblem, LossWeights, Observations
 from .select import fill_unconstrained, fit_guarded, fit_select
 
@@ -32,6 +33,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
         r = fit_guarded(prob, s, **kw)
     else:
+        if s.schedule == "bumps" and int(getattr(s, "parts_start", 0) or 0) > 0 and kw.get("start") is None:
+            kw = {**kw, "before_finest": parts_start_hook(int(s.parts_start))}   # opt-in (#24, foam_bar)
         r = SCHEDULES[s.schedule](prob, s, **kw)
     if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
         # what the video does not constrain (#24; not on a stop's zero-iteration last pass)

@@ -31,6 +31,7 @@ import math
 import torch
 
 from ..errors import SimulationError
+from .substep import pinned_substep
 
 FD_STEP = 0.1           # log E moved by each finite-difference column where its bump acts most
 L1_FLOOR = 0.02         # IRLS: residuals below this count as this (an 8-bit image's ~5 levels)
@@ -61,8 +62,6 @@ def gauss_newton_step(prob, mat, nu, trajs, eff, reg_fn, reg_traj: float = 0.0, 
     """One damped Gauss-Newton step on `mat.theta` (module doc), every simulation of it at one
     substep: the rung of the stiffest field a try may reach (the adaptive substep's rung, and the
     loss with it, would otherwise move between the base and the tries by more than a step gains)."""
-    from .select import pinned_substep
-
     with torch.no_grad():
         e_top = float(mat.youngs().max()) * math.exp(TRUST_LOG_E)
     e_top = min(e_top, math.exp(mat.hi))

@@ -28,7 +28,6 @@ from ..devices import device_name
 from ..errors import SimulationError
 from .converge import improved, level_patience, lr_scale, plateaued
 from .gauss_newton import forwards_to_iterations, gauss_newton_step
-from .parts_start import parts_start
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
@@ -115,7 +114,7 @@ class FitSettings:
     gn_steps: int = 0                   # schedule bumps: Gauss-Newton steps on the finest level's bump amplitudes
                                         # before its Adam iterations, each charged to its budget at the forwards
                                         # it costs (fit/gauss_newton.py; 0: off). #24, foam_bar: Adam's step cap
-    parts_start: int = 0                # schedule bumps: the finest level starts from the appearance parts' E, found by
+    parts_start: int = 0                # schedule bumps (through fit.fit): the finest level starts from the appearance parts' E, found by
                                         # a simplex of at most this many forward probes from the uniform E (charged
                                         # to the level's budget; fit/parts_start.py; 0: off). #24, foam_bar
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
@@ -272,8 +271,12 @@ def select_supports(make_problem, contacts: list, x0: np.ndarray, spacing: float
 
 
 def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress: bool = True, log=None,
-              start: dict | None = None, on_iteration=None, uniform_e: float | None = None) -> FitResult:
-    """Run the fit. `start` (resume): {"youngs", "poisson", "trajectories"} to start from; with
+              start: dict | None = None, on_iteration=None, uniform_e: float | None = None,
+              before_finest=None) -> FitResult:
+    """Run the fit. `before_finest(prob, mat, settings, trajs, effects, total_fn, log)`: a hook that may
+    move the field before the finest level's optimiser starts (fit/parts_start.py: `fit` passes it
+    when `settings.parts_start` > 0), returning {"forwards", "used", "loss0", "loss"}; its forward
+    simulations are charged to that level's budget. `start` (resume): {"youngs", "poisson", "trajectories"} to start from; with
     "base_youngs" too, the field is nested on that per-particle E (`MaterialField.set_base`: the
     simpler model's E held fixed, the bumps fit an offset that starts at what "youngs" adds to it,
     zero when they are the same), as the select schedule's field step does.
@@ -374,8 +377,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 mat.refine(k, refine_nu=False)
             elif k != mat.K:  # a schedule that starts above one basis function
                 mat.refine(k, refine_nu=False)
-            if s.parts_start > 0 and start is None and li == len(levels) - 1 and mat.K > 1 and n_it > 0:
-                # the appearance parts' E as the finest level's start (fit/parts_start.py; opt-in, #24)
+            if before_finest is not None and start is None and li == len(levels) - 1 and mat.K > 1 and n_it > 0:
+                # e.g. the appearance parts' E as the finest level's start (fit/parts_start.py; opt-in, #24)
                 def total_now():
                     with torch.no_grad():
                         o = prob.loss(mat.youngs(), mat.poisson(), [t.detach() for t in trajs] if trajs else None,
@@ -384,7 +387,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                         return float(o["rec"] + o["reg_traj"] + rg)
 
                 stopping.check("backward")
-                ps = parts_start(prob, mat, s, trajs, eff_now(), total_now, int(s.parts_start), log)
+                ps = before_finest(prob, mat, s, trajs, eff_now(), total_now, log)
                 charged = min(forwards_to_iterations(ps["forwards"], BACKWARD_PER_FORWARD), n_it) if ps["forwards"] else 0
                 n_it -= charged
                 for _c in range(charged):

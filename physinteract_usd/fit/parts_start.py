@@ -73,4 +73,11 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     return out
 
 
-__all__ = ["parts_start", "SIMPLEX_STEP"]
+def parts_start_hook(probes: int):
+    """`fit_bumps(before_finest=...)`: the parts start with at most `probes` probes."""
+    def hook(prob, mat, s, trajs, eff, total_fn, log=None):
+        return parts_start(prob, mat, s, trajs, eff, total_fn, probes, log)
+    return hook
+
+
+__all__ = ["parts_start", "parts_start_hook", "SIMPLEX_STEP"]

@@ -62,6 +62,7 @@ import torch
 
 from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values
+from .substep import pinned_substep  # noqa: F401  (re-exported: select.pinned_substep)
 from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
@@ -889,35 +890,6 @@ def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames, e_bound
         except SimulationError:
             return [float("inf")] * len(frames)
         return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]
-
-
-class pinned_substep:
-    """Within it, the simulator's adaptive substep is the one for a field whose largest E is
-    `e_bound` (its rung; None: unchanged), whatever E is simulated. Models compared on held-back
-    frames are simulated at one substep: the adaptive substep depends on the largest E and, through
-    its hysteresis, on what was simulated before, and a different time step changes the loss (on
-    hemp_rope, grid 32, by about 2% between two rungs: as much as the candidates differ)."""
-
-    def __init__(self, prob, e_bound: float | None):
-        self.sim = getattr(prob, "sim", None)
-        self.e_bound = e_bound
-
-    def __enter__(self):
-        sim = self.sim
-        self.was = None
-        if self.e_bound is None or sim is None or not getattr(sim, "adaptive", False):
-            return self
-        self.was = sim.adaptive
-        want = sim.bound_for(float(self.e_bound))
-        if want != sim.e_bound:
-            sim._use_bound(want)
-        sim.adaptive = False
-        return self
-
-    def __exit__(self, *exc):
-        if self.was is not None:
-            self.sim.adaptive = self.was
-        return False
 
 
 def select_rule(uniform_val: list[float], field_val: list[float], added: int, s: FitSettings) -> dict:
