@@ -291,6 +291,39 @@ def test_a_floor_from_the_underside_not_its_deepest_trough():
     assert resting_base(bar, h, [top]) is None
 
 
+def test_a_floor_under_two_still_corners_not_an_arch_on_its_piers():
+    """resting_base with still regions at two places (#23, dev_0144): a block on a floor pressed
+    from above, still at two corners of its bottom (3 spacings tall, 5 wide: flat), rests on the
+    floor (its underside joins them on the floor's plane); an arch whose two feet are still is held
+    at its feet (its underside leaves the plane between them); a strap sagging between two still
+    ends is held (its ends are not its lowest points)."""
+    from physinteract_usd.extract.supports import one_underside, resting_base
+
+    h = 0.01
+    block = _lattice((-0.1, 0.0, -0.06), (0.1, 0.12, 0.06), h)
+    x, y, z = block.T
+    c1 = np.flatnonzero((x <= -0.05 + 1e-9) & (y <= 0.03 + 1e-9) & (z <= -0.01 + 1e-9))
+    c2 = np.flatnonzero((x >= 0.05 - 1e-9) & (y <= 0.03 + 1e-9) & (z >= 0.01 - 1e-9))
+    f = resting_base(block, h, [c1, c2])
+    assert f is not None and abs(f["height"] + 0.5 * h) < 1e-9
+    # an arch: two 4 cm feet, a deck 6 cm above the floor between them
+    feet = _lattice((-0.1, 0.0, -0.02), (-0.06, 0.08, 0.02), h)
+    arch = np.concatenate([feet, feet + [0.16, 0.0, 0.0], _lattice((-0.05, 0.06, -0.02), (0.05, 0.08, 0.02), h)])
+    ax, ay = arch[:, 0], arch[:, 1]
+    left = np.flatnonzero((ax <= -0.06 + 1e-9) & (ay <= 0.02 + 1e-9))
+    right = np.flatnonzero((ax >= 0.06 - 1e-9) & (ay <= 0.02 + 1e-9))
+    assert resting_base(arch, h, [left, right]) is None
+    base = ay <= ay.min() + 1.5 * h
+    assert not one_underside(arch, h, base, [left, right])
+    assert one_underside(block, h, block[:, 1] <= 1.5 * h, [c1, c2])
+    # a strap sagging 3 cm between two still ends
+    s = np.linspace(-0.1, 0.1, 21)
+    strap = np.concatenate([np.stack([s, 0.03 * (s / 0.1) ** 2 + dy, np.full_like(s, dz)], 1)
+                            for dy in (0.0, h) for dz in (-h, 0.0, h)])
+    ends = [np.flatnonzero(strap[:, 0] <= -0.08 + 1e-9), np.flatnonzero(strap[:, 0] >= 0.08 - 1e-9)]
+    assert resting_base(strap, h, ends) is None
+
+
 def test_a_still_hand_coloured_prop_is_not_the_hand():
     """A post the object hangs on, as brown as skin and touching the object, never moves: it is
     background, not the toucher, though the hand passes next to it (a guard: this toy passed before

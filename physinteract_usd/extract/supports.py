@@ -216,9 +216,9 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     (b) every still region found (`sets`, specks aside) touches the floor (holds 3 base particles
     or more) and is flat, as a contact patch is (its height at most max(1.5 spacings, `flat` x its
     width): the still foot of a leg or a stem, or a clamped end as thick as it is wide, is held);
-    still regions at two places or more (the moved part between them) are held there: a strap on
-    its anchors, a toy on its feet (a video cannot tell them from a strap lying on a table lifted in
-    the middle: the prior is that a resting object stays still in one place);
+    still regions at two places or more are held there unless the object's underside joins them
+    on the floor's plane (`one_underside`: a block pressed on a floor is still at two corners of its
+    bottom); a strap on its anchors or a toy on its feet, off the plane between them, stays held;
     (c) the contact is not pushed below it (`lowest_contact_y`, the lowest point of the toucher's
     T0, more than a spacing under the base: something holds the object above the ground).
     With no still region at all, (a) and (c) decide (the whole object moved: it slid or tipped on
@@ -235,14 +235,16 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     base = y <= ylow + 1.5 * h
     big = max((len(s_) for s_ in sets), default=0)
     real = [np.asarray(s_, np.int64) for s_ in sets if len(s_) >= max(4, 0.05 * big)]   # specks aside
-    if len(real) > 1:
-        return None         # still at two places with the moved part between: held there (anchors, feet)
+    if len(real) > 1 and not one_underside(x0, h, base, real):
+        return None         # still at two places with the object off the floor between: held there (anchors)
     for s_ in real:
         if base[s_].sum() < 3:
             return None
-        height = float(np.ptp(y[s_]))
-        width = float(max(np.ptp(x0[s_, 0]), np.ptp(x0[s_, 2])))
-        if height > max(1.5 * h, flat * width):
+        # in whole spacings: the particles sit on a lattice, so a patch 3 spacings tall and 5 wide
+        # is flat at 0.6 exactly (rounding decided dev_0144's corner either way)
+        height = round(float(np.ptp(y[s_])) / h)
+        width = round(float(max(np.ptp(x0[s_, 0]), np.ptp(x0[s_, 2]))) / h)
+        if height > max(1.5, flat * width):
             return None
     com = x0.mean(0)
     pts = x0[base][:, [0, 2]]
@@ -260,6 +262,30 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
         return None
     return {"height": float(ymin - 0.5 * h), "friction": 0.5, "base_particles": int(base.sum()),
             "stance_margin_m": inside, "com_height_m": lift}
+
+
+def one_underside(x0: np.ndarray, h: float, base: np.ndarray, regions: list) -> bool:
+    """Whether still `regions` at two places or more are contacts of one floor: each holds base
+    particles (the lowest plane, `base`) and the object's underside joins them along that plane
+    (the base particles, linked within 1.8 spacings, form one piece through every region). An
+    object on a floor lies on it between its contacts; one held at two places (a strap on its
+    anchors, a bridge on its piers) hangs off the plane between them, or sags below its anchors, so
+    its lowest points are not at the anchors at all (#23: dev_0144, a block pressed on a floor,
+    still at two corners of its bottom, was given two supports)."""
+    ids = np.flatnonzero(base)
+    if len(ids) < 3:
+        return False
+    lab = np.full(len(x0), -1)
+    for k, comp in enumerate(components(x0[ids], 1.8 * h, ids)):
+        lab[comp] = k
+    pieces = set()
+    for s_ in regions:
+        on = lab[np.asarray(s_, np.int64)]
+        on = on[on >= 0]
+        if len(on) < 3:
+            return False
+        pieces.add(int(np.bincount(on).argmax()))
+    return len(pieces) == 1
 
 
 def support_core(x0: np.ndarray, ids: np.ndarray, motion: np.ndarray, limit: float, h: float,
