@@ -961,6 +961,117 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         out[p, 4] = wp.ddot(kirchhoff(F[p], mu, lam, 0), W[p])
         out[p, 5] = wp.ddot(kirchhoff(F[p], mu, lam, 1), W[p])
 
+    # ------------------------------------------------------------------ rate transfer (SimModel.transfer_tau)
+    # The particle keeps f = exp(-dt / tau) of the velocity the grid could not carry:
+    # v_p <- v_apic + f (v_p - v_old(x_p)), v_old the substep's grid velocity before its forces (p2g of the
+    # stress-free momentum m v + m C d, divided by the node's mass), for particles no pin drives. Launched
+    # only when tau > 0 (the solver's `rate_f`); tau off leaves the substep's launches as they were.
+    @wp.kernel(module=module, enable_backward=False)
+    def p2g_scatter_old(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
+                        mass: wp.array(dtype=T), lo: vec3, inv_dx: T, res: wp.vec3i, gmo: wp.array3d(dtype=vec3)):
+        p = wp.tid()
+        m = mass[p]
+        dx = T(1.0) / inv_dx
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        mv = m * v[p]
+        mC = m * C[p]
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    w = bw(i, fx[0]) * bw(j, fx[1]) * bw(k, fx[2])
+                    d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    wp.atomic_add(gmo, base[0] + i, base[1] + j, base[2] + k, w * (mv + mC * d))
+
+    @wp.kernel(module=module, enable_backward=False)
+    def p2g_scatter_old_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
+                            mass: wp.array(dtype=T), lo: vec3, inv_dx: T, res: wp.vec3i,
+                            adj_gmo: wp.array3d(dtype=vec3),
+                            adj_x: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), adj_C: wp.array(dtype=mat33)):
+        # hand-written adjoint of p2g_scatter_old: accumulates into adj_x, adj_v, adj_C
+        p = wp.tid()
+        m = mass[p]
+        dx = T(1.0) / inv_dx
+        xp = (x[p] - lo) * inv_dx
+        base = cell_base(xp, res)
+        fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
+        mv = m * v[p]
+        mC = m * C[p]
+        mCT = wp.transpose(mC)
+        g_v = vec3()
+        g_C = mat33()
+        g_fx = vec3()
+        for i in range(3):
+            for j in range(3):
+                for k in range(3):
+                    wi = bw(i, fx[0])
+                    wj = bw(j, fx[1])
+                    wk = bw(k, fx[2])
+                    w = wi * wj * wk
+                    gw = vec3(dbw(i, fx[0]) * wj * wk, wi * dbw(j, fx[1]) * wk, wi * wj * dbw(k, fx[2]))
+                    d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
+                    a = adj_gmo[base[0] + i, base[1] + j, base[2] + k]
+                    g_v = g_v + (w * m) * a
+                    g_C = g_C + (w * m) * wp.outer(a, d)
+                    g_fx = g_fx - (dx * w) * (mCT * a) + wp.dot(a, mv + mC * d) * gw
+        adj_v[p] = adj_v[p] + g_v
+        adj_C[p] = adj_C[p] + g_C
+        adj_x[p] = adj_x[p] + inv_dx * g_fx
+
+    @wp.kernel(module=module, enable_backward=False)
+    def grid_old(gm: wp.array(dtype=T), gmo: wp.array(dtype=vec3), m_eps: T, gvo: wp.array(dtype=vec3)):
+        # the grid's velocity before the substep's forces (flat views; empty nodes as grid_update's)
+        t = wp.tid()
+        m = gm[t]
+        if m > m_eps:
+            gvo[t] = gmo[t] / m
+        else:
+            gvo[t] = vec3()
+
+    @wp.kernel(module=module, enable_backward=False)
+    def grid_old_adj(gm: wp.array(dtype=T), gmo: wp.array(dtype=vec3), m_eps: T, adj_gvo: wp.array(dtype=vec3),
+                     adj_gm: wp.array(dtype=T), adj_gmo: wp.array(dtype=vec3)):
+        t = wp.tid()
+        m = gm[t]
+        if m > m_eps:
+            a = adj_gvo[t]
+            adj_gmo[t] = adj_gmo[t] + a / m
+            adj_gm[t] = adj_gm[t] - wp.dot(a, gmo[t]) / (m * m)
+
+    @wp.kernel(module=module, enable_backward=False)
+    def zero_vec3(a: wp.array(dtype=vec3)):
+        # a launch, not a memset: captured into the CPU's graphs too
+        a[wp.tid()] = vec3()
+
+    @wp.func
+    def rate_free(p: int, pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), frame: int):
+        # whether no pin drives particle p in frame ``frame`` (pin_velocity's rule)
+        cid = pin_id[p]
+        if cid >= 0:
+            if pin_active[cid, frame] != 0:
+                return 0
+        return 1
+
+    @wp.kernel(module=module, enable_backward=False)
+    def rate_update(v: wp.array(dtype=vec3), vgo: wp.array(dtype=vec3), pin_id: wp.array(dtype=int),
+                    pin_active: wp.array2d(dtype=int), frame: int, f: T, v1: wp.array(dtype=vec3)):
+        # in place on the substep's output velocity (after g2p_update / g2p_fused); x1 is not changed
+        # (the particle moves with the grid's velocity, as APIC's)
+        p = wp.tid()
+        if rate_free(p, pin_id, pin_active, frame) != 0:
+            v1[p] = v1[p] + f * (v[p] - vgo[p])
+
+    @wp.kernel(module=module, enable_backward=False)
+    def rate_update_adj(pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), frame: int, f: T,
+                        adj_v1: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), adj_vgo: wp.array(dtype=vec3)):
+        # adjoint of rate_update (adj_v1 passes through unchanged to g2p_update's adjoint)
+        p = wp.tid()
+        if rate_free(p, pin_id, pin_active, frame) != 0:
+            a = f * adj_v1[p]
+            adj_v[p] = adj_v[p] + a
+            adj_vgo[p] = adj_vgo[p] - a
+
     return SimpleNamespace(
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
         p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
@@ -968,5 +1079,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
         grid_update_box=grid_update_box,
+        p2g_scatter_old=p2g_scatter_old, p2g_scatter_old_adj=p2g_scatter_old_adj, grid_old=grid_old,
+        grid_old_adj=grid_old_adj, rate_update=rate_update, rate_update_adj=rate_update_adj,
+        zero_vec3=zero_vec3,
         add_vec3=add_vec3, add_mat33=add_mat33, set_rest=set_rest, eval_matfuncs=eval_matfuncs,
     )

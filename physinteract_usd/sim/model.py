@@ -94,6 +94,9 @@ class SimModel:
     blend_dt: float = 0.0               # partial pin / collider blends act at their weight once per this
                                         # time [s] (a rate, whatever the substep); 0: once per substep
     pin_floor: float = 0.0              # nodes with a pinned share below this are free (see pin_gain)
+    transfer_tau: float = 0.0           # the rate transfer's time constant [s] (docs/sim.md): free particles keep
+                                        # exp(-dt / tau) of the velocity the grid could not carry each substep, so the
+                                        # transfer's dissipation is a rate per second; 0: APIC (today's, bit for bit)
     _dev: dict = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ construction
@@ -104,7 +107,7 @@ class SimModel:
                cfl: float = 0.4, max_speed: float = 0.0, gravity=(0.0, -9.81, 0.0),
                effects: Effects | dict | None = None, dtype: str = "float32", device: str = "cpu",
                contact_band: float | None = None, pin_gain: float = 4.0, blend_dt: float = 0.0,
-               pin_floor: float = 0.0) -> "SimModel":
+               pin_floor: float = 0.0, transfer_tau: float | None = 0.0) -> "SimModel":
         x0 = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         P = x0.shape[0]
         if P == 0:
@@ -127,6 +130,9 @@ class SimModel:
         for eff, vals in effects.params.items():
             for p, v in vals.items():
                 validate_values(eff, p, v)
+        tau_t = float(transfer_tau or 0.0)
+        if not (np.isfinite(tau_t) and tau_t >= 0.0):
+            raise ValueError(f"transfer_tau must be >= 0 s (0: APIC), not {transfer_tau!r}")
         E_max = float(Ea.max() if E_max is None else E_max)
         if Ea.max() > E_max * (1 + 1e-6):
             raise ValueError(f"default E up to {Ea.max():g} Pa exceeds E_max = {E_max:g} Pa")
@@ -142,7 +148,7 @@ class SimModel:
                 fps=float(fps), substeps=int(substeps), gravity=tuple(float(g) for g in gravity),
                 effects=effects, dtype=dtype, device=str(wp.get_device(device)), E_max=E_max, nu_max=nu_max,
                 contact_band=band, pin_gain=float(pin_gain), blend_dt=float(blend_dt),
-                pin_floor=float(pin_floor))
+                pin_floor=float(pin_floor), transfer_tau=tau_t)
         lo, hi = grid.valid_lower, grid.valid_upper
         if np.any(x0 < lo) or np.any(x0 >= hi):
             raise ValueError(f"particles at rest lie outside the grid's valid box [{lo}, {hi}); "

@@ -160,6 +160,22 @@ class MPMSolver:
         self.fused_zero = wp.get_device(d).is_cuda if FUSED_ZERO is None else bool(FUSED_ZERO)
         self.fused_kernels = wp.get_device(d).is_cuda if FUSED_KERNELS is None else bool(FUSED_KERNELS)
         self.grid_box = wp.get_device(d).is_cuda if GRID_BOX is None else bool(GRID_BOX)
+        # the rate transfer (SimModel.transfer_tau > 0): f = exp(-dt / tau) and the grid's pre-force momentum /
+        # velocity and its gather at the particles (recomputed in the adjoint from the substep's input state and
+        # its grid mass, also from a tape's: tapes do not keep them); 0: APIC, none of it launched
+        tau_t = float(getattr(model, "transfer_tau", 0.0) or 0.0)
+        self.rate_f = float(np.exp(-self.dt / tau_t)) if tau_t > 0 else 0.0
+        if self.rate_f > 0:
+            self.gmo = wp.zeros(self.res, dtype=K.vec3, device=d)
+            self.gvo = wp.zeros(self.res, dtype=K.vec3, device=d)
+            self.vgo = wp.zeros(P, dtype=K.vec3, device=d)
+            self.Cgo = wp.zeros(P, dtype=K.mat33, device=d)    # gathered, not used
+            # their adjoints (allocated here, not in a graph capture)
+            self._rate_adj = dict(gmo=wp.zeros(self.res, dtype=K.vec3, device=d),
+                                  gvo=wp.zeros(self.res, dtype=K.vec3, device=d),
+                                  vgo=wp.zeros(P, dtype=K.vec3, device=d), Cgo=wp.zeros(P, dtype=K.mat33, device=d))
+            self._rate_flat = dict(gmo=self.gmo.flatten(), gvo=self.gvo.flatten(),
+                                   a_gmo=self._rate_adj["gmo"].flatten(), a_gvo=self._rate_adj["gvo"].flatten())
         # the solver's own buffers (`_using` swaps a tape's in): a taped adjoint's scratch outputs
         self._own = {k: getattr(self, k) for k in self._TAPED + ("_flat",)}
 
@@ -326,10 +342,31 @@ class MPMSolver:
             wp.launch(self.K.g2p_fused, s_in.x.shape[0], [s_in.x, self.gv, self.lo, self.inv_dx, self.res3,
                                                           ua[1], ua[2]] + ua[5:], self._outs(s_out),
                       device=self.device, record_tape=False)
-            return
-        self.grid(s_in, frame, substep, p, c)
-        wp.launch(self.K.g2p_update, s_in.x.shape[0], self._update_args(s_in, frame, p, c), self._outs(s_out),
-                  device=self.device, record_tape=False)
+        else:
+            self.grid(s_in, frame, substep, p, c)
+            wp.launch(self.K.g2p_update, s_in.x.shape[0], self._update_args(s_in, frame, p, c), self._outs(s_out),
+                      device=self.device, record_tape=False)
+        if self.rate_f > 0:
+            self._rate_step(s_in, s_out, frame, c)
+
+    # ------------------------------------------------------------------ rate transfer
+    def _rate_old(self, s: SimState):
+        """The grid's velocity before the substep's forces (p2g of m v + m C d over the grid's mass, which
+        `grid` has scattered) gathered at the particles: self.vgo."""
+        K, d = self.K, self.device
+        P = s.x.shape[0]
+        wp.launch(K.zero_vec3, self.n_nodes, [self._rate_flat["gmo"]], device=d, record_tape=False)
+        wp.launch(K.p2g_scatter_old, P, [s.x, s.v, s.C, self.dev["mass"], self.lo, self.inv_dx, self.res3],
+                  [self.gmo], device=d, record_tape=False)
+        wp.launch(K.grid_old, self.n_nodes, [self._flat["gm"], self._rate_flat["gmo"], self.m_eps],
+                  [self._rate_flat["gvo"]], device=d, record_tape=False)
+        wp.launch(K.g2p_gather, P, [s.x, self.gvo, self.lo, self.inv_dx, self.res3], [self.vgo, self.Cgo],
+                  device=d, record_tape=False)
+
+    def _rate_step(self, s_in: SimState, s_out: SimState, frame: int, c: ControlArrays):
+        self._rate_old(s_in)
+        wp.launch(self.K.rate_update, s_in.x.shape[0], [s_in.v, self.vgo, c.pin_id, c.pin_active, frame, self.rate_f],
+                  [s_out.v], device=self.device, record_tape=False)
 
     # ------------------------------------------------------------------ adjoint
     def _alloc_adj(self):
@@ -405,6 +442,25 @@ class MPMSolver:
                 a.zero_()
             for a in ap.values():
                 a.zero_()
+        if self.rate_f > 0:
+            # the rate transfer's grid (from s_in and the grid's mass), then its update's adjoint first (it ran last)
+            self._rate_old(s_in)
+            ra = self._rate_adj
+            rf = self._rate_flat
+            for a in (rf["a_gmo"], rf["a_gvo"]):
+                wp.launch(K.zero_vec3, self.n_nodes, [a], device=d, record_tape=False)
+            wp.launch(K.zero_vec3, P, [ra["vgo"]], device=d, record_tape=False)
+            wp.launch(K.rate_update_adj, P, [c.pin_id, c.pin_active, frame, self.rate_f, adj_out.v],
+                      [adj_in.v, ra["vgo"]], device=d, record_tape=False)
+            # gather of the old grid velocity -> adj x, adj old grid velocity (its C part unused: zero adjoint)
+            wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gvo, self.lo, self.inv_dx, self.res3, ra["vgo"], ra["Cgo"]],
+                      [adj_in.x, ra["gvo"]], device=d, record_tape=False)
+            # old velocity = momentum / mass -> adj old momentum, adj grid mass (before p2g_scatter_adj reads it)
+            wp.launch(K.grid_old_adj, self.n_nodes, [self._flat["gm"], rf["gmo"], self.m_eps, rf["a_gvo"]],
+                      [af["gm"], rf["a_gmo"]], device=d, record_tape=False)
+            wp.launch(K.p2g_scatter_old_adj, P, [s_in.x, s_in.v, s_in.C, self.dev["mass"], self.lo, self.inv_dx,
+                                                 self.res3, ra["gmo"]],
+                      [adj_in.x, adj_in.v, adj_in.C], device=d, record_tape=False)
         # particle update (Warp autodiff): -> adj x, F, Fv, vg, Cg, E, nu, effects, pins
         adj_upd = [adj_in.x, adj_in.F, adj_in.Fv, ap["vg"], ap["Cg"], adj_params.E, adj_params.nu, adj_params.eff, 0,
                    None, None, adj_ctrl.pin_pos, 0, 0.0, 0.0]
