@@ -14,7 +14,7 @@ Transfers (`--transfer`):
               substep's grid velocity before stress and gravity (p2g of m v + m C d). Forward only, an
               experiment: not in the kernels.
 
-    python benchmarks/dt_convergence.py [--substeps 150,300,600,1200,2400] [--transfer apic,rate:0.002]
+    python benchmarks/dt_convergence.py [--substeps 150,300,600,1200,2400] [--transfer apic,rate:0.002,kernel:0.01]
         [--frames 20] [--out rows.jsonl]
     # the E a model at one step needs to match a truth at another (least squares on the tip over the frames):
     python benchmarks/dt_convergence.py --truth 1200 --model 150 --scales 0.8,0.9,1,1.1,1.2,1.4,1.6 [--transfer apic]
@@ -99,11 +99,17 @@ class RateTransfer:
 
 
 def tau_of(transfer: str) -> float:
-    if transfer == "apic":
+    """The host-side prototype's tau (0: none; `kernel:TAU` is the product's SimModel.transfer_tau instead)."""
+    if transfer == "apic" or transfer.startswith("kernel:"):
         return 0.0
     if transfer.startswith("rate:"):
         return float(transfer.split(":")[1])
-    raise ValueError(f"--transfer {transfer!r}: apic or rate:TAU")
+    raise ValueError(f"--transfer {transfer!r}: apic, rate:TAU (host-side prototype) or kernel:TAU (the product's)")
+
+
+def kernel_tau(transfer: str) -> float:
+    """SimModel.transfer_tau for `kernel:TAU` (the rate transfer in the kernels), else 0."""
+    return float(transfer.split(":")[1]) if transfer.startswith("kernel:") else 0.0
 
 
 def run_solver(sol, frames: int, transfer: str = "apic", per_frame: int = 1, record=None):
@@ -135,7 +141,8 @@ def simulate(substeps: int, transfer: str = "apic", frames: int = 20, E=E0, dtyp
     X, vol, held = rod(dx=dx)
     grid = GridSpec.around(X, dx, padding=[0.03, 0.08, 0.03])
     ctrl = Control([Contact("fixed", indices=held)], n_frames=frames)
-    m = SimModel.create(X, vol, RHO, E, NU, grid=grid, fps=FPS, substeps=substeps, dtype=dtype)
+    m = SimModel.create(X, vol, RHO, E, NU, grid=grid, fps=FPS, substeps=substeps, dtype=dtype,
+                        transfer_tau=kernel_tau(transfer))
     tip = np.argsort(X[:, 0])[-16:]
     y0 = X[tip, 1].mean()
     ys, cpu = run_solver(MPMSolver(m, ctrl), frames, transfer, per_frame,
