@@ -1176,3 +1176,32 @@ def test_a_collider_touches_until_it_is_back_out_where_it_first_touched():
     assert collider_back_out(8, 15, knock, near) == 15
     near[17:] = False
     assert collider_back_out(8, 15, vh, near) == 17
+
+
+def test_the_grasp_at_the_foot_of_the_toucher_s_speed_ramp():
+    """timing.ramp_start (#23, tenth pass): a hand at rest on the object (tracker noise 0.03 px a
+    frame, random directions) starts to pull at frame 4 with a constant acceleration (0.2 px per
+    frame^2), so its speed per pair is 0.1, 0.3, 0.5, ... from pair 4: an onset seen at the noise
+    level 0.35 (pair 6) is 2 frames late; the ramp's foot gives frame 4, the truth. A grasp whose
+    pair is at rest, or a toucher not seen before it, stays."""
+    from physinteract_usd.extract.timing import Timing, ramp_start
+
+    rng = np.random.default_rng(3)
+    T = 14
+    x = np.array([0.0 if t <= 4 else 0.5 * 0.2 * (t - 4) ** 2 for t in range(T)])
+    vh = np.zeros((T - 1, 2))
+    vh[:, 0] = np.diff(x)
+    ang = rng.uniform(0, 2 * np.pi, T - 1)
+    vh += 0.03 * np.stack([np.cos(ang), np.sin(ang)], 1)
+    vh[0] = [3.0, 0.0]                         # the arrival
+    sp = np.linalg.norm(vh, axis=1)
+    near = np.ones(T - 1, bool)
+    tm = Timing(vh, np.zeros_like(vh), np.zeros(T - 1), near, (0, T - 1), sp, 6, None, 0.0)
+    assert sp[6] > 0.35 and sp[5] < 0.35
+    assert ramp_start(tm, 0.35) == 4
+    tm.grasp = 3                               # a grasp at rest stays
+    assert ramp_start(tm, 0.35) == 3
+    near2 = near.copy()
+    near2[:6] = False                          # the toucher not seen at the object before pair 6
+    tm2 = Timing(vh, np.zeros_like(vh), np.zeros(T - 1), near2, (6, T - 1), sp, 6, None, 0.0)
+    assert ramp_start(tm2, 0.35) == 6

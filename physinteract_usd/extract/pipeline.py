@@ -47,7 +47,7 @@ from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
 from .supports import support_contacts, unpin
 from . import timing as _timing
-from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing,
+from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing, ramp_start,
                      timing_confidence)
 
 
@@ -83,6 +83,14 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     if rules and itype != "pointAdherent" and evidence.get("timing_source", {}).get("grasp") != "user":
         g2 = collider_start(timing, an.eps)
         if g2 != g:   # a collider acts from when the object starts to give
+            timing.grasp = g = g2
+            evidence["grasp_frame"] = g
+            grasp = contact_at_grasp(an, seen, g)
+            hand = track_hand(timing, grasp.uv)
+    if rules and evidence.get("timing_source", {}).get("grasp") != "user":
+        g2 = ramp_start(timing, an.eps)
+        if g2 != g:   # the toucher began to act at the foot of its speed ramp (a motion from rest)
+            evidence["grasp_ramp"] = [g, g2]
             timing.grasp = g = g2
             evidence["grasp_frame"] = g
             grasp = contact_at_grasp(an, seen, g)

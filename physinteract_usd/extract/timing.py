@@ -269,6 +269,26 @@ def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
     return g
 
 
+def ramp_start(timing: Timing, eps: float = 0.35, rest: float = 0.25) -> int:
+    """The grasp moved back to where the toucher's motion leaves its rest (#23, tenth pass): a
+    motion from rest starts smoothly (a hand's speed grows from zero, it cannot jump), so where the
+    grasp's pair is already moving (its toucher faster than the noise `eps`) the toucher began to
+    act earlier, at the foot of its speed ramp, below the level at which the object's following or
+    the onset can be seen. Going back from the grasp's pair while the toucher touches the object
+    and moves more slowly pair by pair, the foot is the first pair at rest (at most `rest` x eps:
+    the trackers' noise on a still hand, 0.01-0.1 px a frame on the world suite's captures; the
+    walk never wanders on into the rest's noise) or the slowest pair; the grasp is the frame after
+    it, the first frame of the first moving pair. A grasp at rest, or a toucher not seen, stays."""
+    g, sp, near = timing.grasp, timing.speed, timing.near
+    if g is None or g >= len(sp) or not np.isfinite(sp[g]) or sp[g] <= eps:
+        return g
+    k = g
+    while (k - 1 >= 0 and np.isfinite(sp[k - 1]) and near[k - 1] and sp[k - 1] < sp[k]
+           and sp[k] > rest * eps):
+        k -= 1
+    return k + 1 if k < g else g
+
+
 def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
     """A collider's release (a fingertip, a sphere, a palm pushes; it cannot pull): a pair in which
     it moves on into the object (within 60 deg of its push `push_uv`, the first main motion in the
