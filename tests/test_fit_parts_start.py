@@ -1,7 +1,8 @@
 """The bumps schedule's opt-in levers for a fit that stops short (#24, foam_bar): the start from the
 appearance parts (fit/parts_start.py) and the Gauss-Newton step (fit/gauss_newton.py), on the
 two-part bar of tests/test_fit_select.py (left half 10x stiffer than the right, two colours; frames
-rendered by the package's own model: the truth's loss is the floor)."""
+rendered by the package's own model: the truth's loss is the floor). Slow: the 12-frame bar and
+its probes, ~77 CPU s for both on the shared 2-core VM (2026-11-26)."""
 
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ def _total(prob, mat):
         return float(prob.loss(mat.youngs(), mat.poisson(), prob.initial_trajectories())["rec"])
 
 
+@pytest.mark.slow
 def test_parts_start_finds_the_stiff_half_from_the_uniform_e(bar):
     """From the best uniform E (the schedule's start search; truth 1e5 / 1e4), 30 forward probes
     over the two colour parts: the field the bumps start from renders better than the uniform one
@@ -74,6 +76,7 @@ def test_parts_start_finds_the_stiff_half_from_the_uniform_e(bar):
     assert out["forwards"] <= 30 + 2
 
 
+@pytest.mark.slow
 def test_gauss_newton_step_never_raises_the_loss(bar):
     """A Gauss-Newton step keeps the coefficients where they were unless its try lowered the total
     loss (on this bar's tiny textured images its quadratic model overshoots: docs/benchmarks/fit.md),
