@@ -9,8 +9,9 @@ overrides) and scored: MA (per Gaussian, as `evaluate`), the fit's final loss, i
 time. Rows are appended to --out (JSON lines) as they finish, so a run stopped by a time limit keeps
 what it did; the table is printed at the end (and by --table-only).
 
-Variants (name=overrides): gn3 = {"gn_steps": 3}, parts20 = {"parts_start": 20}, lr03 = {"lr_material": 0.3}
-(--variants picks; a variant may be given inline as name:key=value,key=value).
+Variants (name=overrides): parts20 / parts40 = {"parts_start": 20 / 40}, lr03 = {"lr_material": 0.3},
+gn3 = {"gn_steps": 3} (--variants picks, default parts20,parts40,lr03; a variant may be given inline as
+name:key=value,key=value).
 
     python benchmarks/stall_suite.py --scenes foam_bar,hemp_rope,balloon_dog,toy_rope --device cuda \
         --size small --frames 14 --synth-fit-grid 128 --grid auto --iterations 20 --work /tmp/ss \
@@ -31,7 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-VARIANTS = {"gn3": {"gn_steps": 3}, "parts20": {"parts_start": 20}, "lr03": {"lr_material": 0.3}}
+VARIANTS = {"gn3": {"gn_steps": 3}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
+            "lr03": {"lr_material": 0.3}}
 
 
 def parse_variant(v: str) -> tuple[str, dict]:
@@ -137,7 +139,7 @@ def table(path: str) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default="foam_bar,hemp_rope,balloon_dog,toy_rope")
-    ap.add_argument("--variants", default="parts20,lr03,gn3")
+    ap.add_argument("--variants", default="parts20,parts40,lr03")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
