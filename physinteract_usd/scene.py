@@ -31,6 +31,7 @@ class SimSettings:
     density: float = 1000.0
     gravity: tuple = (0.0, -9.81, 0.0)
     constitutive_model: str = "fixedCorotated"
+    transfer_tau: float = 0.0         # the rate transfer's time constant [s] (SimModel.transfer_tau); 0: APIC
 
     def to_dict(self) -> dict:
         return {"domain_min": list(map(float, self.domain_min)), "domain_max": list(map(float, self.domain_max)),
@@ -39,7 +40,8 @@ class SimSettings:
                 "youngs_min": self.youngs_min, "youngs_max": self.youngs_max,
                 "poisson_default": self.poisson_default, "poisson_max": self.poisson_max,
                 "density": self.density,
-                "gravity": list(self.gravity), "constitutive_model": self.constitutive_model}
+                "gravity": list(self.gravity), "constitutive_model": self.constitutive_model,
+                "transfer_tau": self.transfer_tau}
 
 
 @dataclass

@@ -183,7 +183,7 @@ class Simulation:
                 effects=self.effects, dtype=self.dtype, device=self.device,
                 # the contacts' partial blends keep the rate they have at the stage's substep
                 blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0,
-                pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1])
+                pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1], transfer_tau=st.transfer_tau)
             if len(self._rollouts) >= 3:     # keep a few rungs' buffers and graphs
                 self._twins.pop(next(iter(self._rollouts)), None)
                 self._rollouts.pop(next(iter(self._rollouts)))

@@ -198,16 +198,20 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
          youngs_range=DEFAULT_E_RANGE, poisson=0.3, density=1000.0,
          constitutive_model="fixedCorotated", max_poisson=MAX_POISSON, spacing=None, force=False,
          discard_fits=False, yes=True, max_grid=MAX_AUTO_GRID, max_particles=MAX_AUTO_PARTICLES,
-         log=print) -> LayerPaths:
+         transfer_tau=0.0, log=print) -> LayerPaths:
     """Build a stage from a capture. Returns the LayerPaths written. `grid`: cells along the
     longest side, or "auto" (CELLS_ACROSS cells across the thinnest part, within `max_grid` cells
     and about `max_particles` particles); `log` gets one line saying which grid and why. `force`:
     replace the generated layers of an existing stage (the root layer is kept); `discard_fits`: and
-    its fit versions; `yes`: go on even when a frame would need more than budget.MAX_SUBSTEPS substeps."""
+    its fit versions; `yes`: go on even when a frame would need more than budget.MAX_SUBSTEPS substeps.
+    `transfer_tau` [s]: the simulation's rate transfer (docs/sim.md; 0: APIC, the default)."""
     stage_path = Path(stage_path)
     auto = check_grid(grid, max_grid, max_particles)
     check_target(stage_path, force, discard_fits)
     check_youngs_range(youngs_range)
+    transfer_tau = float(transfer_tau or 0.0)
+    if not (np.isfinite(transfer_tau) and transfer_tau >= 0):
+        raise InputError("--transfer-tau", f"must be >= 0 seconds (0: APIC), got {transfer_tau:g}")
     cap = read_capture(capture_dir, object=object, video=video, camera=camera, masks=masks, fps=fps,
                        masks_amodal=masks_amodal)
     g = cap.object.gaussians
@@ -231,6 +235,7 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
     settings, parts, choice = plan_grid(fill, settings_for, points, grid if not auto else AUTO, padding, max_grid,
                                         max_particles, splat_floor(g, cap.object.mesh))
     log(choice.message)
+    settings.transfer_tau = transfer_tau
     budget.check_substeps(settings.substeps, len(parts), int(np.prod(settings.grid_resolution)), cap.n_frames,
                           flag="--youngs-range", yes=yes,
                           detail=f" (largest E {settings.youngs_max:g} Pa on a {settings.cell_size * 1000:.3g} mm grid "

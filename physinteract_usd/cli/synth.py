@@ -30,6 +30,9 @@ def add_parser(sub):
                    help="the init grid the capture suggests (default 24 small, 100 paper); the ground truth is "
                         "simulated on a cell 0.7x (small) or 0.85x (paper) that grid's, so a larger N makes a "
                         "finer truth, e.g. to compare `init --grid auto` against a truth finer than its grid")
+    s.add_argument("--transfer-tau", type=float, default=0.0, metavar="SECONDS",
+                   help="simulate the ground truth with the rate transfer at this time constant (docs/sim.md; "
+                        "default 0: APIC, whose dissipation grows with the substeps)")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
     return s
@@ -49,10 +52,12 @@ def run(a) -> int:
             raise InputError("synth", "give --random SEED OUT_DIR or --validation SEED OUT_DIR")
         split, seed = ("dev", a.random) if a.random is not None else ("validation", a.validation)
         api.synth(None, a.name, frames=a.frames, random=seed, split=split, device=a.device, force=a.force,
-                  size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur, fit_grid=a.fit_grid)
+                  size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur, fit_grid=a.fit_grid,
+                  transfer_tau=a.transfer_tau)
         return 0
     if not a.name or not a.out_dir:
         raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
-              noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid)
+              noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid,
+              transfer_tau=a.transfer_tau)
     return 0

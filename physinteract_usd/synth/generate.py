@@ -224,7 +224,8 @@ class GroundTruth:
     def model(self, effects=None):
         return self.SimModel.create(self.x0, self.spacing ** 3, self.spec.density, self.E, self.nu,
                                     grid=self.grid, fps=self.size.fps, substeps=self.substeps,
-                                    E_max=float(self.E.max()), effects=effects or {}, device=self.device)
+                                    E_max=float(self.E.max()), effects=effects or {}, device=self.device,
+                                    transfer_tau=getattr(self, "transfer_tau", 0.0))
 
     def run(self, effects=None):
         """Rollout -> x (T, P, 3), F (T, P, 3, 3) numpy (frame 0 = rest)."""
@@ -356,10 +357,11 @@ def noise_free_frames(info: dict, frames: np.ndarray) -> np.ndarray | None:
 def generate(name: str, out_dir, *, size: str = "small", frames: int | None = None,
              hidden: str | None = None, strength: float = 1.0, noise: float | None = None,
              blur: int | None = None, seed: int = 0, device: str = "cpu", force: bool = False,
-             log=print, fit_grid: int | None = None) -> dict:
+             log=print, fit_grid: int | None = None, transfer_tau: float = 0.0) -> dict:
     """Write the capture folder of scene `name` into `out_dir`. Returns gt.json's content.
     `fit_grid`: the init grid the capture suggests, instead of the size's (the ground truth is
-    simulated on a cell gt_ratio x that grid's: a finer fit grid makes a finer truth)."""
+    simulated on a cell gt_ratio x that grid's: a finer fit grid makes a finer truth). `transfer_tau` [s]: the
+    truth's simulation with the rate transfer (SimModel.transfer_tau; 0: APIC, the default)."""
     if name not in SCENES:
         raise InputError(name, "unknown scene; `physinteract-usd synth --list` lists them")
     if size not in SIZES:
@@ -379,6 +381,9 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         if int(fit_grid) != fit_grid or fit_grid < 8:
             raise InputError("--fit-grid", f"must be a whole number of cells, at least 8, got {fit_grid}")
         sz = dataclasses.replace(sz, fit_grid=int(fit_grid))
+    transfer_tau = float(transfer_tau or 0.0)
+    if not (math.isfinite(transfer_tau) and transfer_tau >= 0):
+        raise InputError("--transfer-tau", f"must be >= 0 seconds (0: APIC), got {transfer_tau:g}")
     T = int(frames or sz.frames)
     if T < 3:
         raise InputError("--frames", "needs at least 3 frames")
@@ -388,6 +393,7 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
     t0 = time.perf_counter()
 
     gt = GroundTruth(spec, sz, T, device=device)
+    gt.transfer_tau = transfer_tau
     log(f"{name}: {len(gt.x0)} ground-truth particles (spacing {gt.spacing * 1000:.1f} mm), "
         f"{gt.substeps} substeps/frame, E {gt.E.min():.3g}..{gt.E.max():.3g} Pa")
     g, gpart = surface_gaussians(spec, gt.shape, sz.gaussians, seed)
@@ -468,10 +474,10 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         "masks": "visible",
         "gt_sim": {"particles": int(len(gt.x0)), "spacing": gt.spacing, "dx": gt.grid.dx,
                    "substeps_per_frame": gt.substeps, "dt": 1.0 / (sz.fps * gt.substeps),
-                   "fit_dt_suggested": gt.fit_dt},
+                   "fit_dt_suggested": gt.fit_dt, "transfer_tau": transfer_tau},
         "suggested_init": {"grid": sz.fit_grid, "padding": sz.fit_padding,
                            "youngs_range": list(sz.fit_youngs), "max_poisson": sz.fit_poisson_max,
-                           "density": spec.density},
+                           "density": spec.density, **({"transfer_tau": transfer_tau} if transfer_tau else {})},
         "generation_seconds": time.perf_counter() - t0,
     }
     write_ground_truth(out, info, e_g, nu_g, gpos,
@@ -482,7 +488,8 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         f"Synthetic capture '{name}' ({spec.paper_name}): {spec.description}.\n"
         f"Ground truth in gt/ (never read by init, extract or fit).\n\nSuggested:\n"
         f"  physinteract-usd init scene.usda --capture {out.name} --grid {sz.fit_grid} --padding {sz.fit_padding} "
-        f"--youngs-range {ys[0]:g},{ys[1]:g} --max-poisson {sz.fit_poisson_max:g} --density {spec.density:g}\n")
+        f"--youngs-range {ys[0]:g},{ys[1]:g} --max-poisson {sz.fit_poisson_max:g} --density {spec.density:g}"
+        f"{f' --transfer-tau {transfer_tau:g}' if transfer_tau else ''}\n")
     from .preview import contact_sheet
 
     contact_sheet(out, rgb, visible, hmask, cam, gt, out / "preview.png")

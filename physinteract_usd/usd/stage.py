@@ -211,6 +211,7 @@ def write_init_stage(path, capture, particles, settings: SimSettings, *, force: 
     sa("cellSize", float(settings.cell_size))
     sa("particleSpacing", float(settings.particle_spacing))
     sa("substeps", int(settings.substeps))
+    sa("transferTau", float(settings.transfer_tau))
     sa("youngsModulusMin", float(settings.youngs_min))
     sa("youngsModulusMax", float(settings.youngs_max))
     sa("poissonRatioDefault", float(settings.poisson_default))
@@ -348,7 +349,8 @@ def read_stage(path) -> SceneData:
         poisson_default=float(ga("poissonRatioDefault")), poisson_max=float(ga("poissonRatioMax")),
         density=float(pprim.GetAttribute("physinteract:density").Get()),
         gravity=tuple(float(x) for x in ga("gravity")),
-        constitutive_model=str(pprim.GetAttribute("physinteract:constitutiveModel").Get()))
+        constitutive_model=str(pprim.GetAttribute("physinteract:constitutiveModel").Get()),
+        transfer_tau=float(ga("transferTau") or 0.0))
     effects = {}
     for name, api in EFFECT_APIS.items():
         if scene.HasAPI(api):

@@ -96,6 +96,7 @@ def check_scene_prim(scene: Usd.Prim, root: str) -> None:
     check_scalar(a("cellSize"), root, lo=0, lo_open=True)
     check_scalar(a("particleSpacing"), root, lo=0, lo_open=True)
     check_scalar(a("substeps"), root, lo=1)
+    check_scalar(a("transferTau"), root, lo=0)
     lo = check_scalar(a("domainMin"), root)
     hi = check_scalar(a("domainMax"), root)
     if not (np.asarray(hi) > np.asarray(lo)).all():
