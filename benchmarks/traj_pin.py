@@ -51,13 +51,15 @@ def make_stage(scene: str, a, work: Path) -> tuple[Path, Path]:
         cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
         cmd += ["--frames", str(a.frames)] if a.frames else []
         cmd += ["--fit-grid", str(a.synth_fit_grid)] if a.synth_fit_grid else []
+        cmd += ["--transfer-tau", str(a.transfer_tau)] if a.transfer_tau else []
         if run(cmd):
             raise RuntimeError(f"{scene}: synth failed (see {work / scene}.log)")
     if not st.exists():
         sug = json.loads((cap / "gt" / "gt.json").read_text())["suggested_init"]
         if run(["init", str(st), "--capture", str(cap), "--grid", str(a.grid or sug["grid"]), "--padding",
                 str(sug["padding"]), "--youngs-range", ",".join(str(v) for v in sug["youngs_range"]),
-                "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"]), "--yes"]):
+                "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"]), "--yes"]
+               + (["--transfer-tau", str(a.transfer_tau)] if a.transfer_tau else [])):
             raise RuntimeError(f"{scene}: init failed (see {work / scene}.log)")
     return st, cap / "gt"
 
@@ -136,7 +138,7 @@ def one_stage(stage, gt_dir, a, tag="") -> list[dict]:
                "final_loss": float(r.final_loss), "path": path_deviation(prob, t_fit, t_true),
                "loss_fit": float(np.mean(frame_losses(prob, r, s, frames, e_top))),
                "loss_fit_e_true_path": float(np.mean(frame_losses(prob, on_true, s, frames, e_top))),
-               "loss_truth": truth_loss, "cfl": a.cfl, "substeps": int(prob.sim.substeps), "cpu_s": round(cpu_s, 1), "wall_s": round(wall_s, 1), "device": a.device}
+               "loss_truth": truth_loss, "cfl": a.cfl, "transfer_tau": float(prob.sim.model.transfer_tau), "substeps": int(prob.sim.substeps), "cpu_s": round(cpu_s, 1), "wall_s": round(wall_s, 1), "device": a.device}
         rows.append(row)
         if a.out:
             with open(a.out, "a") as fh:
@@ -177,6 +179,9 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=1, help="scenes at once (one process each)")
     ap.add_argument("--out", default=None, help="JSON lines to append the rows to")
     ap.add_argument("--tag", default="")
+    ap.add_argument("--transfer-tau", type=float, default=0.0,
+                    help="synth and init --transfer-tau (the truth and the fit with the rate transfer; #24): use a "
+                         "separate --work, the captures differ")
     a = ap.parse_args(argv)
     if a.stage:
         if not a.gt:
@@ -197,7 +202,8 @@ def main(argv=None):
                 "--tag", a.tag, "--work", str(work), "--size", a.size] + (["--settings", a.settings] if a.settings else []) \
         + (["--frames", str(a.frames)] if a.frames else []) \
         + (["--synth-fit-grid", str(a.synth_fit_grid)] if a.synth_fit_grid else []) + (["--grid", a.grid] if a.grid else []) \
-        + (["--cfl", str(a.cfl)] if a.cfl is not None else [])
+        + (["--cfl", str(a.cfl)] if a.cfl is not None else []) \
+        + (["--transfer-tau", str(a.transfer_tau)] if a.transfer_tau else [])
     t0 = time.perf_counter()
     pending = a.scenes.split(",")
     while pending or procs:
