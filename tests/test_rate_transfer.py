@@ -5,7 +5,8 @@ rate per second instead of a share per substep.
 - Off (tau 0, the default) it is APIC: nothing extra is launched (the other sim tests are today's results).
 - Gradients with it on against central finite differences in float64 (E, nu, effects, trajectories, the initial
   velocity), as tests/test_sim_gradients.py.
-- The substep tapes, the fused kernels, fused zeroing and the grid box give bitwise the plain path's results.
+- The substep tapes, the fused kernels, fused zeroing, the grid box and captured graphs give bitwise the plain
+  (eager) path's results.
 - Known answer (benchmarks/dt_convergence.py's cantilever): with APIC the ringing's decay per period doubles
   when the substeps double; with the rate transfer it nearly stops depending on them, and the first frequency
   stays the Euler-Bernoulli beam's."""
@@ -82,10 +83,10 @@ def test_rate_transfer_gradients_match_finite_differences():
     assert rel_err(an, fd) < TOL and abs(fd) > 1e-9, (an, fd)
 
 
-def _grads(m, ctrl, pts, traj, mp, **flags):
+def _grads(m, ctrl, pts, traj, mp, graphs=True, **flags):
     for k, v in flags.items():
         mp.setattr(solver_mod if k in ("FUSED_KERNELS", "FUSED_ZERO", "GRID_BOX") else rollout_mod, k, v)
-    ro = Rollout(m, ctrl)
+    ro = Rollout(m, ctrl, graphs=graphs)
     E = torch.linspace(2e3, 4e3, len(pts), dtype=torch.float64).requires_grad_(True)
     tr = torch.tensor(traj, dtype=torch.float64, requires_grad=True)
     x, F = ro(E, trajectories={0: tr})
@@ -96,7 +97,14 @@ def _grads(m, ctrl, pts, traj, mp, **flags):
 def test_tapes_fused_kernels_and_grid_box_are_bitwise_the_plain_path():
     m, ctrl, pts, eff, traj = _pull_scene(TAU, substeps=8)
     with pytest.MonkeyPatch.context() as mp:
-        ref = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=False, FUSED_KERNELS=False, FUSED_ZERO=False, GRID_BOX=False)
+        ref = _grads(m, ctrl, pts, traj, mp, graphs=False, TAPE_GRID=False, FUSED_KERNELS=False, FUSED_ZERO=False,
+                     GRID_BOX=False)
+    # captured graphs: their first backward executes while it captures, over the stored substep states, then
+    # replays over them; the adjoint must leave each state as its forward wrote it (rate term included)
+    with pytest.MonkeyPatch.context() as mp:
+        graphs = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=False, FUSED_KERNELS=False, FUSED_ZERO=False, GRID_BOX=False)
+    for a, b in zip(ref, graphs):
+        assert torch.equal(a, b)
     with pytest.MonkeyPatch.context() as mp:
         tape = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=True, FUSED_KERNELS=False, FUSED_ZERO=False, GRID_BOX=False)
     with pytest.MonkeyPatch.context() as mp:

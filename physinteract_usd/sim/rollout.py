@@ -179,10 +179,6 @@ class Rollout:
         self.grad_x = wp.zeros((self.T + 1, self.P), dtype=K.vec3, device=m.device)
         self.grad_F = wp.zeros((self.T + 1, self.P), dtype=K.mat33, device=m.device)
         self.graphs = bool(graphs)
-        if self.solver.rate_f > 0 and wp.get_device(m.device).is_cpu:
-            # the rate transfer (SimModel.transfer_tau) on the CPU launches eagerly: with Warp's CPU graphs its
-            # backward came out ~1e-4 relative off the eager one (cause not found yet; forwards bitwise), #24
-            self.graphs = False
         # one graph per frame shape (FRAME_GRAPHS): read when a rollout is built
         self.frame_graphs = (wp.get_device(m.device).is_cuda if FRAME_GRAPHS is None else bool(FRAME_GRAPHS))
         self._fw = None                # the frame windows (`_windows`), built at the first capture

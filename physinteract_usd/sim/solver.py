@@ -466,6 +466,11 @@ class MPMSolver:
                    None, None, adj_ctrl.pin_pos, 0, 0.0, 0.0]
         wp.launch(K.g2p_update, P, self._update_args(s_in, frame, p, c), self._outs(s_out), adj_upd,
                   self._outs(adj_out), adjoint=True, device=d, record_tape=False)
+        if self.rate_f > 0:
+            # the generated adjoint rewrote s_out from its forward (APIC's v): put the rate term back, so that s_out
+            # holds what the forward wrote (a rollout's stored states are read again after an adjoint ran over them)
+            wp.launch(K.rate_update, P, [s_in.v, self.vgo, c.pin_id, c.pin_active, frame, self.rate_f], [s_out.v],
+                      device=d, record_tape=False)
         # gather (hand-written adjoint) -> adj x, adj grid velocity
         wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
                   [adj_in.x, ag["gv"]], device=d, record_tape=False)
