@@ -105,6 +105,12 @@ def test_tapes_fused_kernels_and_grid_box_are_bitwise_the_plain_path():
         graphs = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=False, FUSED_KERNELS=False, FUSED_ZERO=False, GRID_BOX=False)
     for a, b in zip(ref, graphs):
         assert torch.equal(a, b)
+    # one graph per frame shape (CUDA's default, sim/frame_graphs.py) with the GPU's kernel paths, on the CPU
+    with pytest.MonkeyPatch.context() as mp:
+        fg = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=False, FRAME_GRAPHS=True, FUSED_KERNELS=True, FUSED_ZERO=True,
+                    GRID_BOX=True)
+    for a, b in zip(ref, fg):
+        assert torch.equal(a, b)
     with pytest.MonkeyPatch.context() as mp:
         tape = _grads(m, ctrl, pts, traj, mp, TAPE_GRID=True, FUSED_KERNELS=False, FUSED_ZERO=False, GRID_BOX=False)
     with pytest.MonkeyPatch.context() as mp:
