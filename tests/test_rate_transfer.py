@@ -166,3 +166,19 @@ def test_cantilever_decay_no_longer_grows_with_the_substeps(bench):
     # every substep); relative to its own small size it is x1.5-1.65 (20 / 12 frames) against APIC's x2.07
     assert b["log_decrement"] - a["log_decrement"] < 0.2 * apic["log_decrement"]
     assert b["log_decrement"] < 1.8 * a["log_decrement"]
+
+
+def test_tiled_copies_keep_it():
+    """sim/batch.py's tiled model (fit --starts, batched probes) carries transfer_tau: B copies = B rollouts."""
+    from physinteract_usd.sim.batch import tile
+
+    m, ctrl, pts, eff, traj = _pull_scene(TAU, substeps=8)
+    tl = tile(m, ctrl, 2)
+    assert tl.model.transfer_tau == TAU
+    P = m.n_particles
+    Es = [torch.full((P,), v, dtype=torch.float64) for v in (2e3, 4e3)]
+    with torch.no_grad():
+        ref = [Rollout(m, ctrl)(E)[0] for E in Es]
+        xb = tl.split(Rollout(tl.model, tl.control)(tl.stack(torch.stack(Es)))[0])
+    for b in range(2):
+        assert torch.allclose(xb[b], ref[b], atol=1e-9, rtol=0)
