@@ -388,10 +388,13 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
 
                 stopping.check("backward")
                 ps = before_finest(prob, mat, s, trajs, eff_now(), total_now, log)
-                charged = min(forwards_to_iterations(ps["forwards"], BACKWARD_PER_FORWARD), n_it) if ps["forwards"] else 0
+                # charged to the budget only when taken: a start not taken leaves the fit exactly the old one
+                # (its probes' time is extra, recorded in the model's "parts_start")
+                charged = (min(forwards_to_iterations(ps["forwards"], BACKWARD_PER_FORWARD), n_it)
+                           if ps["forwards"] and ps["used"] else 0)
                 n_it -= charged
                 for _c in range(charged):
-                    history.append(ps.get("loss", best["loss"]) if ps["used"] else ps.get("loss0", best["loss"]))
+                    history.append(ps["loss"])
                     it += 1
                     if bar is not None:
                         bar.update(1)
