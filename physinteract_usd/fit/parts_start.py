@@ -17,7 +17,8 @@ where the level's Adam starts, if it renders better than the uniform start by at
 parts' own field gained (KEEP_SHARE); else nothing changes.
 An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
 level's iteration budget (a forward and a backward per iteration) when the start is taken; one not
-taken leaves the fit exactly as without it, its probes' time extra.
+taken leaves the fit exactly as without it (the field and the adaptive substep's rung restored), its probes'
+time extra.
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     from .select import PartProbe, part_candidates, part_refine
 
     out = {"forwards": 0, "used": False, "parts": 0}
+    sim = getattr(prob, "sim", None)
+    bound0 = getattr(sim, "e_bound", None)     # the adaptive substep's rung before the probes (restored if not taken)
     cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
     if not cands:
         if log:
@@ -73,6 +76,10 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     else:
         with torch.no_grad():
             mat.theta = theta0.clone().requires_grad_(True)
+        # the probes simulated stiffer fields, and the substep's hysteresis may keep their rung: leave the simulator
+        # as it was, or the fit goes on at another step (the H200's hemp_rope: a start not taken, MA 0.801 -> 0.485)
+        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
+            sim._use_bound(bound0)
     if log:
         es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
         log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes); on the bumps "
