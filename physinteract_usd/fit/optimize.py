@@ -792,6 +792,16 @@ def _weighted_residuals(prob: FitProblem, x, F) -> list:
     return res
 
 
+def _fd_column_sq(prob: FitProblem, base, x, F, h: float) -> float:
+    """|J_k|^2 from one stepped simulation (x, F): the weighted residuals' change from `base` over h."""
+    acc = 0.0
+    for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
+        acc += float((((r0.detach() - r) / h).double() ** 2).sum())
+        if rm0 is not None:
+            acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
+    return acc
+
+
 def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torch.Tensor | None:
     """diag(J^T J) from one-sided finite differences of the weighted residuals `base` (at the
     current coefficients): coefficient k stepped down by h_k, h_k such that log E moves by
@@ -822,12 +832,7 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
                 mat.theta = theta
             if getattr(prob.sim, "substeps", None) != substeps:
                 return None
-            acc = 0.0
-            for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
-                acc += float((((r0.detach() - r) / h).double() ** 2).sum())
-                if rm0 is not None:
-                    acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
-        diag[k] = acc
+        diag[k] = _fd_column_sq(prob, base, x, F, h)
     return diag
 
 
@@ -861,10 +866,5 @@ def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base
             if isinstance(r_, SimulationError):
                 return None
             x, F = r_
-            acc = 0.0
-            for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
-                acc += float((((r0.detach() - r) / h).double() ** 2).sum())
-                if rm0 is not None:
-                    acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
-            diag[k] = acc
+            diag[k] = _fd_column_sq(prob, base, x, F, h)
     return diag

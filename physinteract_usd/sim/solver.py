@@ -398,6 +398,19 @@ class MPMSolver:
         return self._step_adjoint(s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, params, ctrl,
                                   clear_adj_in, taped=False)
 
+    def _zero_particle_adj(self, P: int, adj_in: SimState, clear_adj_in: bool) -> None:
+        """Zero the substep's per-particle adjoint buffers (A, vg, Cg), and adj_in with them when asked
+        (one launch with fused zeroing)."""
+        ap = self._adj_part
+        if self.fused_zero:
+            wp.launch(self.K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
+                                                    adj_in.C, adj_in.F, adj_in.Fv], device=self.device, record_tape=False)
+            return
+        if clear_adj_in:
+            adj_in.zero_()
+        for a in ap.values():
+            a.zero_()
+
     def _step_adjoint(self, s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, params, ctrl,
                       clear_adj_in, taped):
         K, d = self.K, self.device
@@ -411,14 +424,7 @@ class MPMSolver:
             # the grid and A, vg, Cg are the save's: only the adjoint buffers are cleared
             for a in ag.values():
                 a.zero_()
-            if self.fused_zero:
-                wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
-                                                   adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
-            else:
-                if clear_adj_in:
-                    adj_in.zero_()
-                for a in ap.values():
-                    a.zero_()
+            self._zero_particle_adj(P, adj_in, clear_adj_in)
         elif self.fused_zero or self.grid_box:
             # the scatter targets and the grid adjoints in one launch over the box, then the grid
             f = self._flat
@@ -426,14 +432,7 @@ class MPMSolver:
                       self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"],
                                           af["gpmv"], af["gv"]], device=d, record_tape=False)
             self.grid(s_in, frame, substep, p, c, clear=False)
-            if self.fused_zero:
-                wp.launch(K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
-                                                   adj_in.C, adj_in.F, adj_in.Fv], device=d, record_tape=False)
-            else:
-                if clear_adj_in:
-                    adj_in.zero_()
-                for a in ap.values():
-                    a.zero_()
+            self._zero_particle_adj(P, adj_in, clear_adj_in)
         else:
             if clear_adj_in:
                 adj_in.zero_()
