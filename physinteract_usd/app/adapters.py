@@ -88,6 +88,14 @@ def stage_effects(sd: SceneData) -> dict:
     return {name: {k: v for k, v in params.items() if k != "fit"} for name, params in sd.effects.items()}
 
 
+def nuisance_effects(rep: dict | None) -> set:
+    """The effects a fit version fitted as nuisances, not the user's: a damping `fit --nuisance-damping`
+    switched on for that fit (`FitSettings.nuisance_damping` is recorded True only when it did, #24)."""
+    if not rep or not (rep.get("settings") or {}).get("nuisance_damping"):
+        return set()
+    return {"damping"} & set(rep.get("effects") or [])
+
+
 def effects_with_fitted(sd: SceneData) -> dict:
     """The stage's effects with the values its current fit version found for them."""
     effects = stage_effects(sd)

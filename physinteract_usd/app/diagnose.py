@@ -21,7 +21,7 @@ from .jsonsafe import json_safe
 from ..diagnose import CANDIDATES, PHYSICAL, BaseState, DiagnoseSettings, conclude, describe, diagnose_problem
 from ..diagnose.refit import judge_on_rest, judge_probe, refit_effect
 from ..errors import InputError, SimulationError
-from .adapters import effects_with_fitted, load_observations, read_scene, stage_contacts
+from .adapters import effects_with_fitted, load_observations, nuisance_effects, read_scene, stage_contacts
 
 
 def superset_effects(sd, present: dict) -> dict:
@@ -428,8 +428,15 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
 
         bar = lambda it, desc: tqdm(it, desc=desc, unit="candidate", leave=False, dynamic_ncols=True)  # noqa: E731
     diag = diagnose_problem(prob, base, settings, log=log, progress=bar, evidence=describe)
+    nuisance = nuisance_effects(sd.current_report)
     for e in skipped:
-        diag.notes.append(f"{e} is already in the model (fitted): not a candidate")
+        if e in nuisance:
+            c = (sd.current_report.get("effect_parameters") or {}).get(e, {}).get("coefficient")
+            diag.notes.append(f"{e} was fitted with E as a nuisance (fit --nuisance-damping, c {c:.3g} 1/s): it is in "
+                              "the base model, not a candidate; refit without --nuisance-damping to test it, or "
+                              f"`effects add {e}` to keep it as the model's")
+        else:
+            diag.notes.append(f"{e} is already in the model (fitted): not a candidate")
     diag.base_starts = starts_out
     if starts_out.get("note"):
         diag.notes.insert(0, starts_out["note"])

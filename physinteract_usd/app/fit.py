@@ -37,7 +37,8 @@ from ..usd.fit_io import write_fit_layer
 from ..usd.layout import LayerPaths
 from ..usd.versions import read_version_start
 from . import budget
-from .adapters import load_observations, read_scene, stage_contacts, stage_effects, true_contacts, true_hand_masks
+from .adapters import (load_observations, nuisance_effects, read_scene, stage_contacts, stage_effects, true_contacts,
+                       true_hand_masks)
 from .fit_checkpoint import FitTracker, fingerprint, load_checkpoint, remove_checkpoint
 
 DEFAULT_ITERATIONS = 60
@@ -145,6 +146,8 @@ def warm_start(stage_path, sd: SceneData) -> tuple[dict, str, tuple, tuple] | No
     if rep is None or rep.get("status") == "interrupted":
         return None
     had, now = set(rep.get("effects") or []), set(sd.effects)
+    nuisance = nuisance_effects(rep)
+    had -= nuisance       # a damping fitted as a nuisance (fit --nuisance-damping) is not one the user switched on
     if had == now:
         return None
     if rep.get("snapshot"):
@@ -153,7 +156,7 @@ def warm_start(stage_path, sd: SceneData) -> tuple[dict, str, tuple, tuple] | No
         start = {"youngs": sd.youngs_modulus, "poisson": sd.poisson_ratio,
                  "trajectories": {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}}
     prev = rep.get("effect_parameters") or {}
-    start["effects"] = {e: dict(prev[e]) for e in now & had if e in prev}
+    start["effects"] = {e: dict(prev[e]) for e in (now & had) | (now & nuisance) if e in prev}
     added = tuple(e for e in EFFECT_NAMES if e in now - had)
     removed = tuple(e for e in EFFECT_NAMES if e in had - now)
     return start, f"v{rep['version']}", added, removed
@@ -196,11 +199,22 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     default_its = WARM_ITERATIONS if warm_from is not None else DEFAULT_ITERATIONS
     fit_effects = tuple(e for e, p in sd.effects.items() if p.get("fit", True))
     # the start of an effect is searched when it is new: every fitted one on a fresh fit, the added ones on a warm start
-    search = tuple(e for e in (warm_from[2] if warm_from is not None else fit_effects) if e in fit_effects)
+    search = tuple(e for e in (warm_from[2] if warm_from is not None else fit_effects) if e in fit_effects
+                   and not (warm_from is not None and e in warm_from[0].get("effects", {})))   # a nuisance's c: kept
     settings = FitSettings(iterations=iterations or default_its, joint=joint, seed=seed, fit_effects=fit_effects,
                            search_effects=() if resume else search)
     if settings_overrides:
         settings = dataclasses.replace(settings, **settings_overrides)
+    effects = stage_effects(sd)
+    if "damping" in effects:      # the user's damping: fitted as theirs (the flag adds nothing, recorded False)
+        settings.nuisance_damping = False
+    if settings.nuisance_damping:
+        # a global damping fitted with E as a nuisance (#24): on for this fit only, its start searched; the
+        # stage's effects are not touched (the report lists it: warm_start does not count it as the user's)
+        effects["damping"] = {"coefficient": 0.0}
+        settings.fit_effects = tuple(settings.fit_effects) + ("damping",)
+        if not resume:
+            settings.search_effects = tuple(settings.search_effects) + ("damping",)
     if starts > 1 and settings.schedule != "bumps":
         raise InputError("--starts", f"runs the bumps schedule's fit from several starts; the {settings.schedule} "
                          "schedule searches its own starts")
@@ -251,7 +265,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     if starts > 1 and start is not None:
         log(f"--starts {starts}: a {'resumed' if resume else 'warm-started'} fit goes on from one field; one start")
         starts = 1
-    return FitJob(stage_path, sd, obs, list(contacts), stage_effects(sd), settings, device, start, source,
+    return FitJob(stage_path, sd, obs, list(contacts), effects, settings, device, start, source,
                   resumed_from, history, starts=int(starts))
 
 

@@ -71,6 +71,10 @@ def add_parser(sub):
                    help="bumps schedule: start the finest level from the colour parts' E, found by a simplex of at "
                         "most N forward probes from the uniform E (charged to the iteration budget; default 0: off; "
                         "20 took foam_bar's MA 0.21 -> 0.94 on the CPU; #24)")
+    s.add_argument("--nuisance-damping", action="store_true",
+                   help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "
+                        "dissipation the video has and the model lacks goes into c, not E; recorded in the version's "
+                        "settings, the stage's effects untouched; diagnose then does not test damping (opt-in; #24)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     return s
 
@@ -113,6 +117,8 @@ def run(a) -> int:
         if a.parts_start < 0:
             raise InputError("--parts-start", f"must be >= 0, got {a.parts_start}")
         over["parts_start"] = a.parts_start
+    if a.nuisance_damping:
+        over["nuisance_damping"] = True
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,

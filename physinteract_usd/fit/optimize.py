@@ -120,6 +120,10 @@ class FitSettings:
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
     uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
                                         # below the best uniform E's, else the uniform model (select.fit_guarded). #24
+    nuisance_damping: bool = False      # fit a global `damping` c jointly with E though the stage has no damping effect
+                                        # (app.fit.prepare_fit switches it on, its start searched): the numerical
+                                        # dissipation the truth or the video has and the fit lacks goes into c instead
+                                        # of E (#24; docs/benchmarks/fit.md "A fitted damping as a nuisance"). Opt-in
 
 
 @dataclass
