@@ -9,7 +9,7 @@ overrides) and scored: MA (per Gaussian, as `evaluate`), the fit's final loss, i
 time. Rows are appended to --out (JSON lines) as they finish, so a run stopped by a time limit keeps
 what it did; the table is printed at the end (and by --table-only).
 
-Variants (name=overrides): parts20 / parts40 = {"parts_start": 20 / 40}, lr03 = {"lr_material": 0.3},
+Variants (name=overrides): damp = {"nuisance_damping": True} (a global damping fitted with E, #24), parts20 / parts40 = {"parts_start": 20 / 40}, lr03 = {"lr_material": 0.3},
 gn3 = {"gn_steps": 3} (--variants picks, default parts20,parts40,lr03; a variant may be given inline as
 name:key=value,key=value).
 
@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-VARIANTS = {"gn3": {"gn_steps": 3}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
+VARIANTS = {"damp": {"nuisance_damping": True}, "gn3": {"gn_steps": 3}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
             "lr03": {"lr_material": 0.3}}
 
 
@@ -101,6 +101,7 @@ def variant_worker(a) -> None:
         e_gt = np.asarray(read_gt_array(gt, "youngs_modulus.npy"), np.float64)
         row.update(ma=M.material_accuracy(np.asarray(r.youngs_gaussian, np.float64), e_gt),
                    final_loss=r.final_loss, median_e=float(np.median(r.youngs)),
+                   median_e_truth=float(np.median(e_gt)), effect_parameters=r.effect_parameters,
                    levers={k: r.model.get(k) for k in ("parts_start", "gauss_newton") if r.model.get(k)})
     except Exception as exc:  # noqa: BLE001  (a row says what failed; the other variants go on)
         row["error"] = f"{type(exc).__name__}: {exc}"
