@@ -6,7 +6,9 @@ numerical one) goes into c rather than into E.
   searched; d loss / d log c through that job's problem matches central finite differences in float64.
 - Known answer: the bar's video damped with c = 8/s after the release; a fresh fit with the flag (the
   stage has no effect, 16 iterations; CPU: c 1.03x, E 0.98x) recovers c and E within 10%; the version records the setting; a refit without the
-  flag is not taken for `effects remove damping`, and `effects add damping` starts from the fitted c.
+  flag is not taken for `effects remove damping`, and `effects add damping` starts from the fitted c;
+  `diagnose` keeps the fitted c in its base model and says why damping is not a candidate (testing "more
+  damping" at c's own optimum would score ~0: the fit's gradient in c is zero there).
 """
 
 from __future__ import annotations
@@ -85,6 +87,11 @@ def test_a_fresh_fit_recovers_the_damping_and_e_and_the_stage_keeps_its_effects(
     assert "damping" not in sd.effects
     rep = sd.current_report
     assert rep["settings"]["nuisance_damping"] is True and "damping" in rep["effects"]
+    # diagnose: the nuisance damping is in the base model at its fitted c, not a candidate, and says so
+    diag = api.diagnose(stage, progress=False, log=lambda *a: None, refit=0, starts=1, candidates="damping,plasticity",
+                        write_stage=False)
+    assert all(cand["effect"] != "damping" for cand in diag.get("candidates", []))
+    assert any("fitted with E as a nuisance" in n and "--nuisance-damping" in n for n in diag["notes"]), diag["notes"]
     # without the flag, the next fit is not a warm start after "-damping" (the user never switched it on)
     from physinteract_usd.app.fit import prepare_fit
 
