@@ -18,6 +18,7 @@ Transfers (`--transfer`):
         [--frames 20] [--out rows.jsonl]
     # the E a model at one step needs to match a truth at another (least squares on the tip over the frames):
     python benchmarks/dt_convergence.py --truth 1200 --model 150 --scales 0.8,0.9,1,1.1,1.2,1.4,1.6 [--transfer apic]
+        [--damping 0,2,4,6,8,10]     # ... and E jointly with the model's global damping c (#24)
 """
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ def run_solver(sol, frames: int, transfer: str = "apic", per_frame: int = 1, rec
 
 
 def simulate(substeps: int, transfer: str = "apic", frames: int = 20, E=E0, dtype="float64", per_frame: int = 1,
-             dx: float = DX):
+             dx: float = DX, damping: float = 0.0):
     """Tip height (m, from rest) at `per_frame` samples a frame; and process CPU seconds."""
     from physinteract_usd.sim import Contact, Control, GridSpec, MPMSolver, SimModel
 
@@ -142,7 +143,8 @@ def simulate(substeps: int, transfer: str = "apic", frames: int = 20, E=E0, dtyp
     grid = GridSpec.around(X, dx, padding=[0.03, 0.08, 0.03])
     ctrl = Control([Contact("fixed", indices=held)], n_frames=frames)
     m = SimModel.create(X, vol, RHO, E, NU, grid=grid, fps=FPS, substeps=substeps, dtype=dtype,
-                        transfer_tau=kernel_tau(transfer))
+                        transfer_tau=kernel_tau(transfer),
+                        effects={"damping": {"coefficient": float(damping)}} if damping > 0 else None)
     tip = np.argsort(X[:, 0])[-16:]
     y0 = X[tip, 1].mean()
     ys, cpu = run_solver(MPMSolver(m, ctrl), frames, transfer, per_frame,
@@ -183,6 +185,8 @@ def main(argv=None):
     ap.add_argument("--truth", type=int, default=0, help="with --model: the truth's substeps a frame (E = E0)")
     ap.add_argument("--model", type=int, default=0, help="with --truth: the model's substeps a frame, E swept")
     ap.add_argument("--scales", default="0.8,0.9,1,1.1,1.2,1.4,1.6", help="the model's E / E0")
+    ap.add_argument("--damping", default="", help="with --truth/--model: also scan the model's global damping c "
+                    "(1/s; the `damping` effect) jointly with --scales, e.g. 0,2,4,6,8,10 (#24)")
     a = ap.parse_args(argv)
     if a.truth and a.model:
         for tr in a.transfer.split(","):
@@ -200,6 +204,15 @@ def main(argv=None):
                 best = float(np.exp(-c[1] / (2 * c[0]))) if c[0] > 0 else best
             row = {"transfer": tr, "truth_substeps": a.truth, "model_substeps": a.model, "dx": a.dx,
                    "rms_mm": {str(k): round(1e3 * v, 3) for k, v in rms.items()}, "best_E_over_truth": round(best, 3)}
+            if a.damping:     # the model with a global damping c too: the joint least squares over E x c (#24)
+                grid = {}
+                for cc in (float(v) for v in a.damping.split(",")):
+                    for sc in (float(v) for v in a.scales.split(",")):
+                        ym, _ = simulate(a.model, tr, a.frames, E=E0 * sc, dx=a.dx, damping=cc)
+                        grid[(sc, cc)] = float(np.sqrt(np.mean((ym[1:] - yt[1:]) ** 2)))
+                (bs, bc), brms = min(grid.items(), key=lambda kv: kv[1])
+                row["joint"] = {"E_over_truth": bs, "c": bc, "rms_mm": round(1e3 * brms, 3),
+                                "rms_mm_grid": {f"{k[0]},{k[1]}": round(1e3 * v, 3) for k, v in grid.items()}}
             print(json.dumps(row), flush=True)
             if a.out:
                 with open(a.out, "a") as fh:
