@@ -96,6 +96,7 @@ def test_a_tiny_world_capture_is_complete(world):
     frac = (p / g["gt_sim"]["spacing"]) % 1.0
     assert np.std(frac) > 0.2
     assert not (cap / "VALIDATION_SPLIT").exists()
+    assert not (cap / ".synth-writing").exists()   # the generator's writing marker is gone once it finished
 
 
 def test_validation_captures_carry_the_marker(tmp_path):

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from physinteract_usd.synth import SCENES, generate, list_scenes
+from physinteract_usd.synth.outdir import WRITING
 
 SMALL_FRAMES = 3          # frames per scene in the fast tests (rest frame + 2 simulated)
 PROJECTION_MIN_SHARE = 0.98
@@ -88,6 +89,7 @@ def check_capture_folder(out: Path, name: str, n_frames: int) -> dict:
     for sub in ("frames", "masks", "gt/hand_masks", "gt/amodal_masks"):
         files = sorted((out / sub).glob("*.png"))
         assert [p.name for p in files] == [f"{k:06d}.png" for k in range(n_frames)], f"{name}: {sub}"
+    assert not (out / WRITING).exists(), f"{name}: the generator's writing marker left behind"
     info = json.loads((out / "gt" / "gt.json").read_text())
     assert info["scene"] == name and info["n_frames"] == n_frames
     tr = json.loads((out / "transforms.json").read_text())
@@ -225,7 +227,12 @@ def test_hidden_effect_recorded_and_visible(small, tmp_path):
 
 def test_same_seed_same_frames(small, tmp_path):
     out, _, _ = small["tow_rope"]
-    generate("tow_rope", tmp_path / "again", size="small", frames=SMALL_FRAMES, log=lambda *a: None)
+    # a generator stopped while writing left a marked, half-written folder: --force replaces it
+    (tmp_path / "again" / "frames").mkdir(parents=True)
+    (tmp_path / "again" / "frames" / "000000.png").write_bytes(b"half")
+    (tmp_path / "again" / WRITING).write_text("")
+    generate("tow_rope", tmp_path / "again", size="small", frames=SMALL_FRAMES, force=True, log=lambda *a: None)
+    assert not (tmp_path / "again" / WRITING).exists()
     for sub in ("frames", "masks"):
         for k in range(SMALL_FRAMES):
             a = cv2.imread(str(out / sub / f"{k:06d}.png"), cv2.IMREAD_UNCHANGED)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..frames import write_image, write_mask
 from ..gaussians import Gaussians, write_ply
+from . import outdir
 from .gt import write_ground_truth
 from .geometry import Capsule, Ellipsoid, Shape
 from .scenes import SCENES, SceneSpec, pattern_color
@@ -370,12 +370,7 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
     if hidden is not None and hidden not in EFFECT_SEARCH:
         raise InputError(hidden, "unknown effect (damping, plasticity, ground, viscoelasticity)")
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise InputError(out, "exists and is not empty (use --force to replace it)")
-        if not (out / "gt" / "gt.json").exists():
-            raise InputError(out, "is not a synth capture folder: refusing to replace it")
-        shutil.rmtree(out)
+    outdir.make_room(out, force)
     sz = SIZES[size]
     if fit_grid is not None:
         if int(fit_grid) != fit_grid or fit_grid < 8:
@@ -445,7 +440,7 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         rgb = np.clip(rgb + sensor_noise(seed, noise, rgb.shape), 0, 1)
 
     # ---- write the capture folder
-    out.mkdir(parents=True, exist_ok=True)
+    outdir.begin(out)
     write_ply(g, out / "object.ply")
     for sub in ("frames", "masks"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -493,5 +488,6 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
     from .preview import contact_sheet
 
     contact_sheet(out, rgb, visible, hmask, cam, gt, out / "preview.png")
+    outdir.finish(out)
     log(f"wrote {out} ({T} frames {sz.width}x{sz.height}, {len(g)} Gaussians) in {time.perf_counter() - t0:.1f} s")
     return info

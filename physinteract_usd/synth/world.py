@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 from pathlib import Path
 
@@ -45,6 +44,7 @@ from ..errors import InputError
 from ..frames import write_image, write_mask, write_video
 from ..gaussians import Gaussians, write_ply
 from .geometry import Box, Capsule, Ellipsoid, Shape, Torus, Tube
+from . import outdir
 from .gt import write_ground_truth
 from .scenes import pattern_color
 from .splits import SPLITS, mark_validation, seed_sequence
@@ -928,12 +928,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     if split not in SPLITS:
         raise InputError("--split", f"must be one of {', '.join(SPLITS)}")
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise InputError(out, "exists and is not empty (use --force to replace it)")
-        if not (out / "gt" / "gt.json").exists():
-            raise InputError(out, "is not a synth capture folder: refusing to replace it")
-        shutil.rmtree(out)
+    outdir.make_room(out, force)
     t0 = time.perf_counter()
     w = draw_world(seed, split, overrides)
     world = World(w, device=device)
@@ -980,7 +975,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     rgb = np.clip(rgb, 0, 1).astype(np.float32)
 
     # ---- write the capture folder
-    out.mkdir(parents=True, exist_ok=True)
+    outdir.begin(out)
     write_ply(g, out / "object.ply")
     enc = w["encoding"]
     if enc == "mp4":
@@ -1060,6 +1055,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     _preview(out, rgb, visible, hmask, cam, world)
     info["generation_seconds"] = time.perf_counter() - t0
     (out / "gt" / "gt.json").write_text(json.dumps(info, indent=1))
+    outdir.finish(out)
     log(f"wrote {out} in {info['generation_seconds']:.1f} s")
     return info
 
