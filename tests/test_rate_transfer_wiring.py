@@ -60,3 +60,20 @@ def test_synth_passes_it_to_the_truth(tmp_path):
     assert gt.model().transfer_tau == 0.0
     gt.transfer_tau = 0.01
     assert gt.model().transfer_tau == pytest.approx(0.01)
+
+
+def test_info_shows_the_tau_when_set(tmp_path, capsys):
+    """`info` prints the transfer tau (text and JSON) when the stage sets it, and says nothing of it for APIC."""
+    cap = make_capture(tmp_path / "cap")
+    for name, extra in (("a.usda", []), ("b.usda", ["--transfer-tau", "0.02"])):
+        code, out, err = run(["init", tmp_path / name, "--capture", cap, "--grid", "12"] + extra, capsys)
+        assert code == 0, err
+    code, out, err = run(["info", tmp_path / "b.usda", "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)["simulation"]["transfer_tau_s"] == pytest.approx(0.02)
+    code, out, err = run(["info", tmp_path / "b.usda"], capsys)
+    assert code == 0 and "rate transfer tau 20 ms" in out, out
+    code, out, err = run(["info", tmp_path / "a.usda", "--json"], capsys)
+    assert json.loads(out)["simulation"]["transfer_tau_s"] == 0.0
+    code, out, err = run(["info", tmp_path / "a.usda"], capsys)
+    assert code == 0 and "rate transfer" not in out, out

@@ -33,6 +33,8 @@ def info(stage_path) -> dict:
                        "domain": [sd.settings.domain_min.round(4).tolist(), sd.settings.domain_max.round(4).tolist()],
                        "substeps_per_frame": sd.settings.substeps,
                        "youngs_range_pa": [sd.settings.youngs_min, sd.settings.youngs_max],
+                       # the rate transfer's time constant (physinteract:transferTau, SimModel.transfer_tau); 0: APIC
+                       "transfer_tau_s": float(getattr(sd.settings, "transfer_tau", 0.0) or 0.0),
                        "grid_choice": read_grid_choice(sd.path)},
         "effects": sd.effects,
         "contacts": [{"name": c.name, "type": c.type, "particles": int(len(c.indices)),
