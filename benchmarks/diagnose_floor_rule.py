@@ -22,18 +22,24 @@ run cut by `timeout` keeps what finished, and the same command with the same `--
 
 The `rest` rule (2026-11-26, 13th: `--floor-rule rest`, camera causes judged on the frames before the first
 grasp, heterogeneity priced as the fit's model selection, no size gate), 20 controls and two effects at 1x and
-2x, with today's default beside it. foam_bar's grasp is at 10% of the clip: at 14 frames (frame 1) no frame
-before it is in the residual (which starts at frame 1), so `--frames 16` (grasp at round(0.1 x 15) = frame 2:
-frame 1 is a rest frame). Rules in the order they matter (a cut run has the first for the most cases):
-`rest` (no gate; with a 1% gate after the fact), `gate1` (today's rule with a 1% gate: a gate cannot be lowered
-after the fact), `default`. One H200, one wave of 24 workers; at the 12th run's rate (12 workers: base fit
-~150 s, a rule's diagnosis ~100 s at 14 frames) expect ~1000-1300 s in all: three calls of <= 8 min:
+2x, with today's rule at a 1% gate (`gate1`) beside it. foam_bar's grasp is at 10% of the clip: at 14 frames
+(frame 1) no frame before it is in the residual (which starts at frame 1), so `--frames 16` (grasp at frame 2:
+frame 1 is a rest frame). Rules in the order they matter (a cut run has the first for the most cases): `rest`
+(no gate; with a 1% gate after the fact), `gate1`; `default` on the 4 effect cases only (`--effect-only-rules`:
+its foam_bar controls were measured in the 12th run, 0/10, and the decision needs its power on the same effect
+cases). The run is bound by the host's 16 CPU cores, not the GPU (12th run: each worker 1.2-1.4 CPU s per wall s),
+so each worker keeps torch to one thread. Estimate (12th run's rows x 16/14 frames: a base fit ~230 CPU s, a
+rule's diagnosis ~150 CPU s): 24 x (230 + 2 x 150) + 4 x 150 = ~13,300 CPU s / 16 cores = 670-830 s, in two
+calls of the same command on the same warm machine (the second resumes from every kept base fit and diagnosis,
+work/<case>.fitted.json and work/<case>.<rule>.json under out/, and stops at "total"):
 
-    timeout -k 15 470 python benchmarks/diagnose_floor_rule.py --device cuda --jobs 24 --controls 20 \\
-        --effects damping,viscoelasticity --strengths 1,2 --frames 16 --rules rest,gate1,default --out out/dfr2
-    (the same command again, until "total" is printed: each call keeps every finished base fit and diagnosis,
-    work/<case>.fitted.json and work/<case>.<rule>.json under out/ (ignored by git, kept on the device machine
-    between calls), and the next resumes from them; the table and JSON land in $OUT after every case)
+    timeout -k 15 540 python benchmarks/diagnose_floor_rule.py --device cuda --jobs 24 --controls 20 \
+        --effects damping,viscoelasticity --strengths 1,2 --frames 16 --rules rest,gate1 \
+        --effect-only-rules default --out out/dfr3
+    (the same command again, at once, while the machine is warm; the table and JSON land in $OUT after every case)
+
+A later call may add `--rules rest,gate1,default` to run `default` on the controls too (a case is done when its
+row has every rule asked for; only the missing rules run).
 
 The table adds each rule's count with a 1% size gate applied after the fact (`+gate1%`: a name whose
 predicted share of the loss is under 1% dropped; forward selection not redone).
@@ -100,10 +106,18 @@ def summary(d: dict) -> dict:
                        for t in tested]}
 
 
+def rules_for(a, eff: str) -> list[str]:
+    """The rules a case is diagnosed with: `--effect-only-rules` on the effect cases only (after the others)."""
+    return list(a.rules) + ([r for r in a.effect_only_rules if r not in a.rules] if eff != "none" else [])
+
+
 def one(job) -> dict | None:
     scene, eff, s, seed, a, t_start = job
     if a.deadline and time.time() - t_start > a.deadline:
         return None
+    if a.jobs > 1:        # one intra-op thread per worker: the 12th run's workers (12 on 16 cores) used 1.2-1.4 CPU s
+        import torch      # per wall second; 24 workers with torch's default threads each would oversubscribe the host,
+        torch.set_num_threads(1)   # whose cores, not the GPU, bound the run
     from physinteract_usd import api
 
     quiet = lambda *_a, **_k: None  # noqa: E731
@@ -131,7 +145,7 @@ def one(job) -> dict | None:
             api.fit(stage, iterations=a.iterations, contact_from=cap / "gt", device=a.device, progress=False, log=quiet)
             row["fit_s"] = round(time.perf_counter() - t0, 1)
             fitted.write_text(json.dumps({"fit_s": row["fit_s"]}))
-        for rule in a.rules:
+        for rule in rules_for(a, eff):
             part = work / f"{k}.{rule}.json"
             if part.exists():
                 row[rule] = json.loads(part.read_text())
@@ -148,7 +162,7 @@ def one(job) -> dict | None:
         row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
     print(f"{k}: " + ("ERROR " + row["error"] if "error" in row else
                       "; ".join(f"{r} {row[r]['verdict']} {row[r]['named'] or '-'} ({row[r]['seconds']:.0f} s)"
-                                for r in a.rules if r in row)), flush=True)
+                                for r in rules_for(a, eff) if r in row)), flush=True)
     return row
 
 
@@ -234,6 +248,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rules", default="default,floor,match",
                     help="diagnose each case with these: " + ", ".join(RULES) + " (rest: --floor-rule rest, no gate; "
                          "rest1: the same with a 1%% gate; gate1: today's rule with a 1%% gate)")
+    ap.add_argument("--effect-only-rules", default="",
+                    help="rules run on the effect cases only (e.g. default: its controls measured before), after --rules")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--fit-grid", type=int, default=None)
@@ -252,7 +268,8 @@ def main(argv=None) -> int:
     # `timeout`'s SIGTERM: leave through the pool's context manager, so its workers are terminated with us
     signal.signal(signal.SIGTERM, lambda *_a: sys.exit(143))
     a.rules = [r for r in a.rules.split(",") if r]
-    bad = [r for r in a.rules if r not in RULES]
+    a.effect_only_rules = [r for r in a.effect_only_rules.split(",") if r]
+    bad = [r for r in a.rules + a.effect_only_rules if r not in RULES]
     if bad:
         print(f"diagnose_floor_rule.py: error: --rules: unknown {bad[0]!r} ({', '.join(RULES)})", file=sys.stderr)
         return 2
@@ -260,7 +277,10 @@ def main(argv=None) -> int:
     (out / "work").mkdir(parents=True, exist_ok=True)
     a.out = str(out)
     jl = out / "rows.jsonl"
-    done = {json.loads(x)["case"] for x in jl.read_text().splitlines() if x.strip() and "error" not in json.loads(x)} \
+    # a case is done when its row has every rule asked for now: a later call with more rules (the split run)
+    # diagnoses only the missing ones, on the base fit and the rules' diagnoses kept under work/
+    done = {r["case"] for r in map(json.loads, filter(str.strip, jl.read_text().splitlines()))
+            if "error" not in r and all(rule in r for rule in rules_for(a, "none" if r.get("hidden") is None else "x"))} \
         if jl.exists() else set()
     t0 = time.time()
     todo = [c for c in case_list(a.effects.split(","), [float(v) for v in a.strengths.split(",")], a.controls,
@@ -274,7 +294,7 @@ def main(argv=None) -> int:
             if x.strip():
                 r = json.loads(x)
                 rows[r["case"]] = r
-        text, js = table(list(rows.values()), a.rules)
+        text, js = table(list(rows.values()), a.rules + [r for r in a.effect_only_rules if r not in a.rules])
         if final:
             print(text)
         if a.write:
