@@ -291,6 +291,28 @@ def test_a_floor_from_the_underside_not_its_deepest_trough():
     assert resting_base(bar, h, [top]) is None
 
 
+def test_a_bar_on_a_floor_pushed_sideways_by_a_big_fingertip_rests_one_pushed_up_is_held():
+    """lowest_toucher_y + resting_base (#23, dev_0184): a bar 3 cm tall lying on a floor, pushed
+    sideways at mid-height by a round pusher of radius 2 cm (its bottom 1 cm under the bar's base,
+    its centre above it), rests on the floor; the same pusher with its centre 2.5 cm under the base
+    pushes the bar up (held, no floor); an adherent grasp below the base holds it too."""
+    from physinteract_usd.extract.supports import lowest_toucher_y, resting_base
+
+    h = 0.01
+    bar = _lattice((-0.15, 0.0, -0.015), (0.15, 0.03, 0.015), h)
+    end = np.flatnonzero(bar[:, 0] >= 0.09)               # the far end stays still, flat on the floor
+    side = np.array([[0.0, 0.015, 0.04], [0.02, 0.012, 0.04], [0.04, 0.01, 0.04]])
+    low = lowest_toucher_y(side, 0.02, "pointNonAdherent", float(bar[:, 1].min()))
+    assert abs(low - 0.01) < 1e-12
+    assert resting_base(bar, h, [end], low) is not None
+    # the old reading (its bottom, centre - radius = -0.01 m, a spacing under the base) called it held
+    assert resting_base(bar, h, [end], 0.01 - 0.02 - 1e-6) is None
+    under = side - np.array([0.0, 0.035, 0.0])             # centre 2.5 cm under the base: pushes it up
+    low = lowest_toucher_y(under, 0.02, "pointNonAdherent", float(bar[:, 1].min()))
+    assert abs(low - (-0.025 - 0.02)) < 1e-12 and resting_base(bar, h, [end], low) is None
+    assert abs(lowest_toucher_y(under, 0.02, "pointAdherent", 0.0) - (-0.025)) < 1e-12
+
+
 def test_a_floor_under_two_still_corners_not_an_arch_on_its_piers():
     """resting_base with still regions at two places (#23, dev_0144): a block on a floor pressed
     from above, still at two corners of its bottom (3 spacings tall, 5 wide: flat), rests on the

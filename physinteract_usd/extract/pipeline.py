@@ -116,7 +116,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     low = None
     if lifted.contact.trajectory is not None:
         tr = np.asarray(lifted.contact.trajectory)
-        low = float(tr[:, 1].min() - (lifted.contact.radius if itype == "pointNonAdherent" else 0.0))
+        low = lowest_toucher_y(tr, lifted.contact.radius, itype, float(an.x0[:, 1].min()))
     supports, motion_p = support_contacts(an, hint, held, acting_motion(hand, g, lifted.release, itype),  # 8: supports
                                           lifted.push_dir, evidence, notes, lowest_contact_y=low)
     contact = lifted.contact

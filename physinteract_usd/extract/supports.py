@@ -205,6 +205,20 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     return sets, motion, ev
 
 
+def lowest_toucher_y(trajectory, radius: float, itype: str, base_y: float) -> float:
+    """The lowest height at which the toucher acts on the object (resting_base's (c)): its
+    trajectory's lowest point, less a pusher's radius only when its centre goes below the object's
+    base `base_y` (it acts on the underside, holding the object up). A round collider pushing a thin
+    object sideways reaches below its base with its radius (a radius more than half the object's
+    height) while it pushes along the floor, not up (#23: dev_0184, a bar 2.8 cm tall on a floor
+    pushed sideways by a 2.1 cm fingertip whose centre stayed 0.6 cm above the base, was given a
+    support)."""
+    low = float(np.asarray(trajectory)[:, 1].min())
+    if itype == "pointNonAdherent" and low < base_y:
+        low -= float(radius)
+    return low
+
+
 def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float | None = None,
                  tip_margin: float = 0.15, flat: float = 0.6):
     """Whether the object rests on a floor (a dict: the floor's height, the base's particles) or
