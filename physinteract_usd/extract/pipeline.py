@@ -45,7 +45,7 @@ from .interaction_type import classify
 from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
-from .supports import support_contacts, unpin
+from .supports import lowest_toucher_y, support_contacts, unpin
 from . import timing as _timing
 from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing, ramp_start,
                      timing_confidence)
