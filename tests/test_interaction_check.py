@@ -122,3 +122,36 @@ def test_a_path_within_its_uncertainty_or_moved_only_in_depth_is_not_suspect():
     deep[:, 0] *= 0.97                        # ... keeping every pixel where it was
     out = check_trajectory(measured, deep, cams, grasp=0, release=None)
     assert not out["suspect"] and out["max_px"] < 0.5 and abs(out["depth_mm"] + 30.0) < 1.0
+
+
+def test_a_release_frame_two_late_is_confirmed_by_the_model_one_earlier_and_the_true_one_is_not(tmp_path):
+    """The timing check's counterfactual (`shifted_losses`): the tests' bar released at frame 2, fitted
+    once with its true release and once told frame 4: with the wrong frame, the fitted model released a
+    frame earlier explains the video better by far more than CONFIRM_DROP; with the true frame, neither
+    neighbour does."""
+    import json
+
+    import fit_scene as fs
+
+    from physinteract_usd.app.fit import prepare_fit, run_fit
+    from physinteract_usd.fit.interaction_check import CONFIRM_DROP, shifted_losses
+
+    sc = fs.build(tmp_path / "base", n_frames=6, release=2)
+    drops = {}
+    for name, rel in (("true", 2), ("late", 4)):
+        stage = fs.copy_scene(sc["root"], tmp_path / name)
+        gt = stage.parent / "gt"
+        g = json.loads((gt / "gt.json").read_text())
+        g["interaction"]["release_frame"] = rel
+        (gt / "gt.json").write_text(json.dumps(g))
+        job = prepare_fit(stage, iterations=2, contact_from=gt, joint=False, log=lambda *a: None,
+                          settings_overrides={**fs.SMOKE_SETTINGS, "confidence_probes": 0})
+        res = run_fit(job, progress=False, log=lambda *a: None)
+        c = [c for c in job.contacts if c.type != "fixed"][0]
+        assert c.release_frame == rel
+        ls = shifted_losses(job.problem, res, c, "release_frame")
+        assert set(ls) == {-1, 0, 1}
+        drops[name] = max((ls[0] - ls[d]) / ls[0] for d in (-1, 1))
+        if name == "late":
+            assert ls[-1] < ls[0] * (1 - CONFIRM_DROP), ls
+    assert drops["true"] < CONFIRM_DROP, drops
