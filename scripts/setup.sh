@@ -13,6 +13,13 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   python -m pip install -q --upgrade pip
   python -m pip install -q "torch==2.13.0"
   python -m pip install -q -e ".[test]"
+  # after an install, import them all once (this also checks that the install works)
+  python -c "import physinteract_usd, warp, torch; print('installed: torch', torch.__version__, '| warp', warp.__version__)"
   touch "$stamp"
 fi
-python -c "import physinteract_usd, warp, torch; print('physinteract-usd ready: torch', torch.__version__, '| warp', warp.__version__)"
+# set up already: check that the packages are there without importing them (importing torch and warp
+# costs ~2.5 s of CPU, a share of the demo's 3 minutes: #26)
+python -c "import importlib.metadata as md, importlib.util as u
+missing = [m for m in ('physinteract_usd', 'warp', 'torch') if u.find_spec(m) is None]
+assert not missing, f'.venv lacks {missing}: remove .venv/.physinteract-setup and run scripts/setup.sh again'
+print('physinteract-usd ready: torch', md.version('torch'), '| warp', md.version('warp-lang'))"

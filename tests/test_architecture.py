@@ -18,6 +18,7 @@ RANKS = {
     "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1,
     "thickness": 1,  # the thinnest part of a voxelised solid (numpy / scipy)
     "resolution": 1,  # the MPM's apparent stiffness by cells across a thin part (numpy)
+    "fit_summary": 1,  # what a fit said about E, in short (pure Python: `info` reads it without torch, #26)
     "scene": 2, "fill": 2, "tetmesh": 2, "batch": 2,
     "capture": 3, "sim": 3,
     "render": 4,

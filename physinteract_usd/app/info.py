@@ -59,8 +59,8 @@ def info(stage_path) -> dict:
                                        "low_share": float(np.mean(c < 0.5))}
     cur = [r for r in sd.reports if r.get("current")] or sd.reports[-1:]
     if cur and cur[-1].get("material_model") is not None:
-        # what the current version's fit said about E (fit/select.identifiability, as `fit` printed it)
-        from ..fit.select import identifiability, model_summary
+        # what the current version's fit said about E (fit_summary.identifiability, as `fit` printed it; no torch)
+        from ..fit_summary import identifiability, model_summary
 
         conf = d["material"].get("confidence", {}).get("mean")
         d["material"]["identifiability"] = identifiability(model_summary(cur[-1]["material_model"]), conf,

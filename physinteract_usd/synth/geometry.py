@@ -9,7 +9,22 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import trimesh
+
+
+class _LazyTrimesh:
+    """trimesh, imported on first use: `evaluate` reads the ground truth through this package and
+    needs no meshes; importing trimesh costs ~1 s of CPU per process (#26)."""
+
+    def __getattr__(self, name):
+        import trimesh
+        import trimesh.creation  # noqa: F401  (the submodules used here)
+        import trimesh.sample  # noqa: F401
+        import trimesh.util  # noqa: F401
+
+        return getattr(trimesh, name)
+
+
+trimesh = _LazyTrimesh()
 
 
 def _rot_to(axis) -> np.ndarray:
