@@ -9,7 +9,10 @@ class pinned_substep:
     `e_bound` (its rung; None: unchanged), whatever E is simulated. Models compared on held-back
     frames are simulated at one substep: the adaptive substep depends on the largest E and, through
     its hysteresis, on what was simulated before, and a different time step changes the loss (on
-    hemp_rope, grid 32, by about 2% between two rungs: as much as the candidates differ)."""
+    hemp_rope, grid 32, by about 2% between two rungs: as much as the candidates differ).
+    On exit the rung it found is restored as well as the adaptivity: a probe must not change the
+    main fit's later substep (the hysteresis would otherwise keep a stiffer probe's rung; #26, as
+    fit/parts_start.py's restore for the H200's hemp_rope MA 0.80 -> 0.49)."""
 
     def __init__(self, prob, e_bound: float | None):
         self.sim = getattr(prob, "sim", None)
@@ -21,6 +24,7 @@ class pinned_substep:
         if self.e_bound is None or sim is None or not getattr(sim, "adaptive", False):
             return self
         self.was = sim.adaptive
+        self.bound0 = sim.e_bound
         want = sim.bound_for(float(self.e_bound))
         if want != sim.e_bound:
             sim._use_bound(want)
@@ -30,4 +34,6 @@ class pinned_substep:
     def __exit__(self, *exc):
         if self.was is not None:
             self.sim.adaptive = self.was
+            if self.sim.e_bound != self.bound0:
+                self.sim._use_bound(self.bound0)
         return False
