@@ -612,11 +612,16 @@ class World:
                               torch.tensor(self.nu, dtype=torch.float32, device=dev))
                 return x.cpu().double().numpy(), F.cpu().double().numpy()
             except SimulationError as exc:
-                if attempt == 3 or (attempt == 2 and "left the grid" not in str(exc)):
+                # a state still non-finite after two halvings of the step is no step problem: a soft, light
+                # object swinging down past the grid's floor goes non-finite at the boundary before the
+                # left-the-grid check sees it (dev_0190: a 2.9 kPa, 20 kg/m^3 clamped bar, frame 3 at 447, 894
+                # and 1788 substeps; it hangs 12 cm lower, fine at 447 in the wide grid): the fourth run takes the
+                # wide grid too (#23; only reached where the run raised before, so no capture that generated changes)
+                if attempt == 3:
                     raise
                 if "left the grid" in str(exc):
                     pad *= 2.0
-                else:
+                elif attempt < 2:
                     self.substeps *= 2
 
     def cost(self) -> float:
