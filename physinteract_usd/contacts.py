@@ -122,3 +122,25 @@ def check_disjoint(contacts, where: str = "contacts") -> None:
                 raise ValueError(f"{where}: '{held[i]}' and '{c.name}' hold the same particles (each particle "
                                  "follows one contact)")
             held[i] = c.name
+
+
+def held_elsewhere(contacts, skip) -> np.ndarray:
+    """The particle indices every contact but `skip` holds."""
+    idx = [np.asarray(c.indices, np.int64) for c in contacts if c is not skip and len(c.indices)]
+    return np.concatenate(idx) if idx else np.zeros(0, np.int64)
+
+
+def moved_contact(c: ContactSet, off, x0: np.ndarray, contacts) -> ContactSet:
+    """Contact `c` moved by `off` (3,) on the object: its held particles the nearest free ones to the
+    old ones moved, its trajectory and contact point with them (a collider: its trajectory moved)."""
+    from scipy.spatial import cKDTree
+
+    off = np.asarray(off, float)
+    tr = None if c.trajectory is None else np.asarray(c.trajectory) + off
+    if c.type == "pointAdherent" and len(c.indices):
+        free = np.setdiff1d(np.arange(len(x0)), held_elsewhere(contacts, c))
+        _, nn = cKDTree(x0[free]).query(x0[np.asarray(c.indices)] + off)
+        idx = np.unique(free[np.atleast_1d(nn)])
+        return replace(c, indices=idx.astype(np.int64), trajectory=tr,
+                       contact_point=None if c.contact_point is None else np.asarray(c.contact_point) + off)
+    return replace(c, trajectory=tr)

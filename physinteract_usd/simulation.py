@@ -230,6 +230,17 @@ class Simulation:
                 held[np.asarray(c.indices, np.int64)] = True
         return held
 
+    def forward_twin(self, contacts=None, scene: SceneData | None = None) -> "Simulation":
+        """A simulation like this one (effects, device, dtype, frames) under other `contacts` or another
+        `scene`, for one-off forward passes (probes, counterfactuals): its frame graphs off, since
+        capturing them would cost another forward."""
+        sim = Simulation(self.scene if scene is None else scene, self.contacts if contacts is None else contacts,
+                         self.T, effects=self.effects, device=self.device, dtype=self.dtype,
+                         adaptive_substeps=self.adaptive)
+        for ro in sim._rollouts.values():
+            ro.graphs = False
+        return sim
+
     def simulate(self, E, nu, trajectories=None, effects=None):
         """x (T, P, 3), F (T, P, 3, 3) for E, nu (P,) and optionally the slots' trajectories and
         the effects' parameters (tensors: differentiable)."""

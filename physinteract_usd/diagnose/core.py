@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from ..errors import SimulationError
+from ..contacts import held_elsewhere, moved_contact
 from ..simulation import build_simulation
 from . import score as S
 from .residual import ImageResidual, correlation_frames, loss
@@ -292,11 +293,7 @@ class _Runner:
             st = dataclasses.replace(scene.settings, gravity=tuple(float(g) * gravity_scale
                                                                    for g in scene.settings.gravity))
             scene = dataclasses.replace(scene, settings=st)
-        sim = build_simulation(scene, self.prob.contacts if contacts is None else contacts, self.prob.T,
-                               effects=self.prob.sim.effects, device=self.prob.device, dtype=self.prob.sim.dtype)
-        for ro in sim._rollouts.values():   # one forward: capturing its frames' graphs would cost another
-            ro.graphs = False
-        return sim
+        return self.prob.sim.forward_twin(contacts, scene)
 
     def xf(self, E=None, nu=None, effects=None, trajs=None, sim=None):
         b = self.base
@@ -539,7 +536,7 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
                 off = np.zeros(3)
                 off[ax] = sgn * d
                 cs = list(prob.contacts)
-                cs[i] = _moved(c, off, prob.x0, prob.contacts)
+                cs[i] = moved_contact(c, off, prob.x0, prob.contacts)
                 col = _sim_r(run, cs, log)
                 if col is not None:
                     out.append(Probe(f"{c.name}.{'xyz'[ax]}{'+-'[sgn < 0]}{d:.3g}", col - r0, +1,
@@ -652,27 +649,6 @@ def _time_shift(a: torch.Tensor, dt: float) -> torch.Tensor:
     return out
 
 
-def _held_elsewhere(contacts, skip) -> np.ndarray:
-    idx = [np.asarray(c.indices, np.int64) for c in contacts if c is not skip and len(c.indices)]
-    return np.concatenate(idx) if idx else np.zeros(0, np.int64)
-
-
-def _moved(c, off: np.ndarray, x0: np.ndarray, contacts):
-    """The contact moved by `off` on the object: its held particles the nearest to the old ones
-    moved (a collider: its trajectory moved)."""
-    from scipy.spatial import cKDTree
-
-    tr = None if c.trajectory is None else np.asarray(c.trajectory) + off
-    if c.type == "pointAdherent" and len(c.indices):
-        other = set(_held_elsewhere(contacts, c).tolist())
-        free = np.array([i for i in range(len(x0)) if i not in other])
-        _, nn = cKDTree(x0[free]).query(x0[np.asarray(c.indices)] + off)
-        idx = np.unique(free[np.atleast_1d(nn)])
-        return dataclasses.replace(c, indices=idx.astype(np.int64), trajectory=tr,
-                                   contact_point=None if c.contact_point is None else np.asarray(c.contact_point) + off)
-    return dataclasses.replace(c, trajectory=tr)
-
-
 def _resized(c, way: str, x0: np.ndarray, contacts, spacing: float):
     """The contact one particle layer larger ("more") or smaller ("less"); a collider's radius
     x1.3 / x0.75. None when nothing changes."""
@@ -687,7 +663,7 @@ def _resized(c, way: str, x0: np.ndarray, contacts, spacing: float):
     nb = tree.query_ball_point(x0[g], 1.05 * spacing)
     if way == "more":
         near = np.unique(np.concatenate([np.asarray(n, np.int64) for n in nb]))
-        other = _held_elsewhere(contacts, c)
+        other = held_elsewhere(contacts, c)
         new = np.setdiff1d(near, other)
         idx = np.union1d(g, new)
     else:

@@ -185,17 +185,13 @@ def variant_losses(prob, result, variants: dict) -> dict:
     import torch
 
     from ..errors import SimulationError
-    from ..simulation import build_simulation
 
     E, nu, tr, names, eff = _fitted_inputs(prob, result)
     out = {}
     for key, (cs, offsets) in variants.items():
         trk = None if tr is None else [t + torch.as_tensor(np.asarray(offsets.get(n, np.zeros(3))), dtype=t.dtype,
                                                             device=t.device) for n, t in zip(names, tr)]
-        sim = build_simulation(prob.scene, cs, prob.T, effects=prob.sim.effects, device=prob.device,
-                               dtype=prob.sim.dtype)
-        for ro in getattr(sim, "_rollouts", {}).values():   # one forward each: no graph capture
-            ro.graphs = False
+        sim = prob.sim.forward_twin(cs)
         try:
             with torch.no_grad():
                 x, F = sim.simulate(E, nu, trk, effects=eff)
@@ -227,36 +223,19 @@ def shifted_losses(prob, result, c, what: str, shifts=(-1, 1)) -> dict:
 
 def moved_losses(prob, result, c, steps: float = 2.0) -> dict:
     """`variant_losses` with contact `c` moved on the object by `steps` particle spacings along the first
-    frame's camera right and up (the held particles the nearest to the old ones moved, the hand's path
-    with them): {"0": the loss as fitted, "right+" / "right-" / "up+" / "up-": theirs}."""
-    import dataclasses
-
-    from scipy.spatial import cKDTree
+    frame's camera right and up (`contacts.moved_contact`: the held particles, the hand's path with them):
+    {"0": the loss as fitted, "right+" / "right-" / "up+" / "up-": theirs}."""
+    from ..contacts import moved_contact
 
     x0 = np.asarray(prob.x0.detach().cpu().numpy() if hasattr(prob.x0, "detach") else prob.x0, float)
-    cam = prob.cameras[0]
-    R = np.asarray(cam.world_to_camera(np.eye(3)) - cam.world_to_camera(np.zeros((1, 3))), float)
+    w2c = prob.cameras[0].w2c_cv()[:3, :3]              # rows: the camera's axes in world coordinates
     d = steps * float(prob.scene.settings.particle_spacing)
-    other = np.concatenate([np.asarray(x.indices, np.int64) for x in prob.contacts
-                            if x.name != c.name and len(x.indices)] or [np.zeros(0, np.int64)])
-    free = np.setdiff1d(np.arange(len(x0)), other)
-    tree = cKDTree(x0[free])
     variants = {"0": (list(prob.contacts), {})}
-    for lab, axis in (("right", 0), ("up", 1)):
-        v = R[:, axis] / max(np.linalg.norm(R[:, axis]), 1e-12)   # the camera axis in world coordinates
-        if lab == "up":
-            v = -v                                                    # image rows grow downwards
+    for lab, axis in (("right", w2c[0]), ("up", -w2c[1])):   # OpenCV's y points down the image
+        v = axis / max(np.linalg.norm(axis), 1e-12)
         for sgn in (1, -1):
             off = sgn * d * v
-            if c.type == "pointAdherent" and len(c.indices):
-                _, nn = tree.query(x0[np.asarray(c.indices)] + off)
-                idx = np.unique(free[np.atleast_1d(nn)]).astype(np.int64)
-                nc = dataclasses.replace(c, indices=idx, contact_point=None if c.contact_point is None
-                                         else np.asarray(c.contact_point) + off)
-            else:
-                nc = c
-            tr = None if c.trajectory is None else np.asarray(c.trajectory) + off
-            nc = dataclasses.replace(nc, trajectory=tr)
+            nc = moved_contact(c, off, x0, prob.contacts)
             variants[f"{lab}{'+' if sgn > 0 else '-'}"] = (
                 [nc if x.name == c.name else x for x in prob.contacts], {c.name: off})
     return variant_losses(prob, result, variants)
