@@ -117,7 +117,8 @@ def one(job) -> dict | None:
         return None
     if a.jobs > 1:        # one intra-op thread per worker: the 12th run's workers (12 on 16 cores) used 1.2-1.4 CPU s
         import torch      # per wall second; 24 workers with torch's default threads each would oversubscribe the host,
-        torch.set_num_threads(1)   # whose cores, not the GPU, bound the run
+        torch.set_num_threads(int(os.environ.get("WORKER_THREADS", "1")))   # whose cores, not the GPU, bound the
+        # run (WORKER_THREADS: more where the host has cores to spare, e.g. 2 for 24 workers on 64 cores)
     from physinteract_usd import api
 
     quiet = lambda *_a, **_k: None  # noqa: E731
@@ -220,6 +221,20 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
     return "\n".join(out), js
 
 
+def spread_gpus() -> None:
+    """A pool worker's GPU on a host of several (`NGPUS` > 1): worker k sees only GPU k mod NGPUS, set before
+    Warp or torch start CUDA in it. The run is bound by the host's cores; on a machine of 4 GPUs and 64 cores the
+    workers are spread so no GPU serialises a quarter of the host's kernels alone. `GPU_LIST` (e.g. "1,2,3")
+    names the GPUs to spread over instead (GPU 0 left to a timed run beside)."""
+    gpus = [g for g in os.environ.get("GPU_LIST", "").split(",") if g] or \
+        [str(g) for g in range(int(os.environ.get("NGPUS", "1") or 1))]
+    if len(gpus) > 1 or os.environ.get("GPU_LIST"):
+        import multiprocessing as mp
+
+        k = (mp.current_process()._identity or (1,))[0] - 1
+        os.environ["CUDA_VISIBLE_DEVICES"] = gpus[k % len(gpus)]
+
+
 def warm_up(device: str, where: Path) -> None:
     """Warp's kernels compiled once into the on-disk cache before the workers start: the tests' tiny bar
     diagnosed with and without the rule, one refit of one iteration (seconds on a GPU, not a case)."""
@@ -316,7 +331,7 @@ def main(argv=None) -> int:
 
         warm_up(a.device, out / "warm")
         print(f"warm-up {time.time() - t0:.0f} s", flush=True)
-        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs))) as pool:
+        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs)), initializer=spread_gpus) as pool:
             for row in pool.imap_unordered(one, jobs):
                 append(row)
     else:

@@ -58,6 +58,8 @@ step() {  # step SECONDS_GRACE cmd...: run cmd until END (SIGTERM, then SIGKILL 
 worker() {
   local s=$1 n t0 t1 t2
   n=$(printf '%s_%04d' "$SPLIT" "$s")
+  # on a host of several GPUs (NGPUS > 1) seed s runs on GPU s mod NGPUS
+  [ "${NGPUS:-1}" -gt 1 ] && export CUDA_VISIBLE_DEVICES=$(( s % NGPUS ))
   {
     t0=$(date +%s)
     step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" || return
@@ -74,7 +76,7 @@ worker() {
   grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
 }
 export -f worker step
-export SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
+export NGPUS SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time
