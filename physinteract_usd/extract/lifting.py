@@ -91,6 +91,14 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
     base = scene.camera.at(g).unproject(c2[None], np.array([z_c]))[0]
     for k in range(T):
         traj[k] = c3 + (scene.camera.at(k).unproject(track[k][None], np.array([depth[k]]))[0] - base)
+    # the simulation's domain bounds every lifted path (scene_bounds)
+    bounds = scene_bounds(scene)
+    if itype == "pointAdherent":
+        kept = keep_on_ray_in_box(scene.camera, traj, bounds)
+        moved = np.linalg.norm(kept - traj, axis=1)
+        if moved.max() > 0:
+            evidence["lift_kept_in_domain"] = {"frames": int((moved > 0).sum()), "max_m": round(float(moved.max()), 4)}
+        traj = kept
     users = hint is not None and (not hint.is_empty or hint.has_timing)
     contact = ContactSet(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
                          release_frame=r, trajectory=traj, contact_point=c3,
@@ -104,11 +112,17 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
         outward = outward_normal(an, c3, idx)
         lateral = unit(traj[first_main] - traj[g])
         target = -outward
+        fallbacks = ()
         if itype == "surfaceNonAdherent":
             gdir = unit(np.asarray(scene.settings.gravity, float))
             if np.linalg.norm(gdir) > 0 and np.dot(target, gdir) > np.cos(np.radians(40)):
                 target = gdir  # a palm pressing down: along gravity
-        push3 = push_direction(lateral, c3, rest_g.camera, target) if motion > 1.0 else unit(target)
+            elif np.linalg.norm(gdir) > 0:
+                # the image refuses "into the surface" (the normal at an edge is a blend of two
+                # faces): a palm then presses the object toward what holds it up, down
+                fallbacks = (gdir,)
+        push3 = (push_direction(lateral, c3, rest_g.camera, target, *fallbacks) if motion > 1.0
+                 else unit(target))
         evidence.update({"outward_normal": outward.tolist(), "push_direction": push3.tolist()})
         if itype == "pointNonAdherent":
             radius = finger_radius(an, g, c2)
@@ -129,7 +143,7 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
             # the plane starts touching the object (no particle on its far side)
             s_min = float(np.min((an.x0 - c3) @ normal))
             start = c3 + normal * (s_min - 0.5 * an.spacing)
-        contact.trajectory = lift_along(scene.camera, start, track, push3, g)
+        contact.trajectory = lift_along(scene.camera, start, track, push3, g, bounds)
         contact.contact_point = c3
         # a collider acts wherever its trajectory puts it: on the stage it is active throughout
         # (the extraction's grasp and release, when it touches, are in the result and evidence)
@@ -145,6 +159,14 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
 
 
 # ------------------------------------------------------------------------------ pieces
+def scene_bounds(scene) -> tuple | None:
+    """The box every lifted path stays in: the simulation's domain (None without one)."""
+    st = getattr(scene, "settings", None)
+    if st is None or getattr(st, "domain_min", None) is None:
+        return None
+    return np.asarray(st.domain_min, float), np.asarray(st.domain_max, float)
+
+
 def hand_scale(an: Analysis, g: int, end: int, track: np.ndarray, max_step: float = 0.1) -> np.ndarray:
     """Cumulative apparent scale of the hand from frame g (1 up to g, held after `end`): per frame
     pair a similarity transform fitted (least median of squares) to the forward flow on the hand
@@ -174,39 +196,115 @@ def hand_scale(an: Analysis, g: int, end: int, track: np.ndarray, max_step: floa
     return S
 
 
-def push_direction(lateral: np.ndarray, c3: np.ndarray, cam, target: np.ndarray) -> np.ndarray:
-    """The 3D push direction: the image says only its component across the view ray (`lateral`);
-    take the direction in the plane of `lateral` and the ray that is closest to `target` (into
-    the surface, or gravity for a palm), as long as it moves the image the observed way."""
+def push_direction(lateral: np.ndarray, c3: np.ndarray, cam, target: np.ndarray, *fallbacks) -> np.ndarray:
+    """The 3D push direction: the image says only its component across the view ray (`lateral`,
+    a direction at constant camera depth that moves the image the observed way); take the
+    direction in the plane of `lateral` and the ray that is closest to `target` (into the surface,
+    or gravity for a palm), as long as it moves the image the observed way, else `lateral`.
+    "The observed way" is read in the image (the projection's derivative along the direction),
+    not in 3D: a direction with a component along `lateral` but a larger one away from the camera
+    moves the image toward its vanishing point, which may be the other way (dev_0181: a palm's
+    press down the image lifted along a direction whose vanishing point was above it: the lift
+    then went up while the palm pressed, and 12 m under the floor when it withdrew). `fallbacks`:
+    further targets tried in turn where `target` fails that test."""
     ray = unit(c3 - cam.position)
     r2 = unit(ray - np.dot(ray, lateral) * lateral)
-    t = np.dot(target, lateral) * lateral + np.dot(target, r2) * r2
-    if np.dot(t, lateral) <= 0 or np.linalg.norm(t) < 1e-9:
-        return lateral
-    return unit(t)
+    seen = image_rate(cam, c3, lateral)
+    for tg in (target, *fallbacks):
+        t = np.dot(tg, lateral) * lateral + np.dot(tg, r2) * r2
+        if np.linalg.norm(t) > 1e-9 and float(image_rate(cam, c3, t) @ seen) > 0:
+            return unit(t)
+    return lateral
 
 
-def lift_along(camera, start: np.ndarray, track: np.ndarray, direction: np.ndarray, g: int) -> np.ndarray:
+def image_rate(cam, p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(2,) px per metre: the derivative of p + s d's projection at s = 0 (pinhole, exact)."""
+    x, y, z = cam.world_to_camera(np.asarray(p, float)[None])[0]
+    R = cam.w2c_cv()[:3, :3]
+    dx, dy, dz = R @ np.asarray(d, float)
+    return np.array([cam.fx * (dx * z - x * dz) / z ** 2, cam.fy * (dy * z - y * dz) / z ** 2])
+
+
+def lift_along(camera, start: np.ndarray, track: np.ndarray, direction: np.ndarray, g: int,
+               bounds: tuple | None = None) -> np.ndarray:
     """Positions start + s_k direction whose projections follow the 2D track's displacement from
-    frame g (s_k by Gauss-Newton on the reprojection; s = 0 up to g)."""
+    frame g (s = 0 up to g), s_k in closed form: the line's image is a straight line through the
+    start's projection, uv(s) = uv(0) + s / (1 + B s) * J (J: the image rate along the direction,
+    B: the depth's relative rate), so the goal's position w along it gives s = w / (1 - B w).
+    A goal at or beyond the line's vanishing point (1 - B w <= 0) is reached by no point of the
+    line, however far: s is then as far as `bounds` allow that way. `bounds` (lo, hi): the box the
+    path stays in (the simulation's domain: a toucher outside it acts on nothing, and a path that
+    leaves the scene by metres is a lift that failed, never a motion); s is clipped to the
+    segment of the line inside it (without bounds, an unreachable goal holds the last s)."""
     T = len(track)
+    direction = np.asarray(direction, float)
     out = np.tile(start, (T, 1)).astype(np.float64)
-    uv0, _ = camera.at(g).project(start[None])
-    s = 0.0
-    for k in range(T):
-        if k <= g:
-            continue
+    s_lo, s_hi = segment_in_box(start, direction, bounds)
+    s_prev = 0.0
+    for k in range(g + 1, T):
         cam = camera.at(k)
-        goal = uv0[0] + (track[k] - track[g])
-        for _ in range(6):
-            p = start + s * direction
-            uv, _ = cam.project(p[None])
-            eps = 1e-4
-            uv2, _ = cam.project((p + eps * direction)[None])
-            J = (uv2[0] - uv[0]) / eps
-            jj = float(J @ J)
-            if jj < 1e-12:
-                break
-            s -= float(J @ (uv[0] - goal)) / jj
+        uv0 = cam.project(np.asarray(start, float)[None])[0][0]
+        goal = camera.at(g).project(np.asarray(start, float)[None])[0][0] + (track[k] - track[g])
+        J = image_rate(cam, start, direction)
+        jj = float(J @ J)
+        if jj < 1e-12:
+            continue   # the direction is the view ray: the image says nothing of s
+        w = float((goal - uv0) @ J) / jj
+        z0 = float(cam.world_to_camera(np.asarray(start, float)[None])[0, 2])
+        B = float((cam.w2c_cv()[:3, :3] @ direction)[2]) / z0
+        den = 1.0 - B * w
+        s = w / den if den > 1e-9 else (np.inf if w > 0 else -np.inf)
+        s = float(np.clip(s, s_lo, s_hi))
+        if not np.isfinite(s):
+            s = s_prev   # unbounded and unreachable: held where it last was
         out[k] = start + s * direction
+        s_prev = s
     return out
+
+
+def segment_in_box(p: np.ndarray, d: np.ndarray, bounds: tuple | None) -> tuple[float, float]:
+    """The range of s for which p + s d lies in the box `bounds` = (lo, hi), grown to hold p (the
+    whole line without bounds)."""
+    if bounds is None:
+        return -np.inf, np.inf
+    p = np.asarray(p, float)
+    lo, hi = (np.minimum(np.asarray(bounds[0], float), p), np.maximum(np.asarray(bounds[1], float), p))
+    a, b = -np.inf, np.inf
+    for i in range(3):
+        if abs(d[i]) > 1e-12:
+            t1, t2 = (lo[i] - p[i]) / d[i], (hi[i] - p[i]) / d[i]
+            a, b = max(a, min(t1, t2)), min(b, max(t1, t2))
+    return a, b
+
+
+def keep_on_ray_in_box(camera, traj: np.ndarray, bounds: tuple | None) -> np.ndarray:
+    """Each point of a path kept in the box `bounds` along its own view ray (its image unchanged,
+    only its depth): to the nearest depth at which the ray is inside the box, or, where the ray
+    misses the box, to the box's point nearest to it. A held contact lifted at a depth from the
+    hand's apparent scale goes where that scale's drift puts it; the simulation's domain is where
+    the object can be (a grasp outside it would pull the particles off the grid)."""
+    if bounds is None:
+        return traj
+    lo, hi = (np.asarray(b, float) for b in bounds)
+    out = np.array(traj, dtype=np.float64)
+    for k in range(len(out)):
+        p = out[k]
+        if np.all(p >= lo) and np.all(p <= hi):
+            continue
+        o = camera.at(k).position
+        a2, b2 = _ray_box(o, p - o, lo, hi)
+        out[k] = o + float(np.clip(1.0, a2, b2)) * (p - o) if a2 <= b2 else np.clip(p, lo, hi)
+    return out
+
+
+def _ray_box(o, d, lo, hi) -> tuple[float, float]:
+    """The range of t (> 0) for which o + t d lies in the box (empty: a > b)."""
+    a, b = 1e-9, np.inf
+    for i in range(3):
+        if abs(d[i]) < 1e-12:
+            if o[i] < lo[i] or o[i] > hi[i]:
+                return 1.0, 0.0
+            continue
+        t1, t2 = (lo[i] - o[i]) / d[i], (hi[i] - o[i]) / d[i]
+        a, b = max(a, min(t1, t2)), min(b, max(t1, t2))
+    return a, b
