@@ -61,7 +61,7 @@ def one_scene(scene: str, a) -> None:
     if a.grid:
         cmd += ["--grid", a.grid]
     t = time.perf_counter()
-    subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=gpu_env(scene, a))
     res = work / scene / "results.jsonl"
     rows = [json.loads(x) for x in res.read_text().splitlines()] if res.exists() else []
     rows = [r for r in rows if r.get("scene") == scene and r.get("tag") == "old"]
@@ -77,7 +77,21 @@ def one_scene(scene: str, a) -> None:
     for v in a.variants.split(","):
         cmd = [sys.executable, __file__, "--variant-worker", v, "--scene", scene, "--work", str(work), "--device",
                a.device, "--iterations", str(a.iterations), "--out", a.out]
-        subprocess.run(cmd, stdout=sys.stdout, stderr=open(work / f"{scene}.{v.split(':')[0]}.log", "w"))
+        subprocess.run(cmd, stdout=sys.stdout, stderr=open(work / f"{scene}.{v.split(':')[0]}.log", "w"),
+                       env=gpu_env(scene, a))
+
+
+def gpu_env(scene: str, a) -> dict:
+    """The environment of a scene's processes: on a host of several GPUs (`NGPUS` > 1) the i-th scene of
+    --scenes runs on GPU (i + `GPU_OFFSET`) mod NGPUS, so scenes fitted at once do not queue on one GPU."""
+    import os
+
+    env = dict(os.environ)
+    n = int(env.get("NGPUS", "1") or 1)
+    if n > 1:
+        i = a.scenes.split(",").index(scene) + int(env.get("GPU_OFFSET", "0") or 0)
+        env["CUDA_VISIBLE_DEVICES"] = str(i % n)
+    return env
 
 
 def variant_worker(a) -> None:
