@@ -18,6 +18,9 @@
 # --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules, model or hybrid: extract's
 # timing method, world_suite.py --timing; default the code's), NOFIT (1: generate and
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
+# TRUE_CONTACTS (1: world_fit.py --true-contacts: the fit from the truth's interaction and floor, the material
+# alone), MIN_E_TRUE (world_fit.py --min-e-true: fit only captures whose true median E is at least this, e.g. 1e5),
+# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
 set -u
 SPLIT="${1:?split: dev or validation}"
@@ -70,13 +73,14 @@ worker() {
     t2=$(date +%s)
     [ -n "$NOFIT" ] && { echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s (no fit)"; return; }
     step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
-      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS" ${TRUTH_SWEEP:+--truth-sweep}
+      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS" ${TRUTH_SWEEP:+--truth-sweep} ${TRUE_CONTACTS:+--true-contacts} \
+      ${MIN_E_TRUE:+--min-e-true "$MIN_E_TRUE"}
     echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s, fit $(( $(date +%s) - t2 )) s"
   } > "$WORK/rows/$n.log" 2>&1
   grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
 }
 export -f worker step
-export NGPUS SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
+export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time
