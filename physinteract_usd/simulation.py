@@ -252,6 +252,20 @@ class Simulation:
             self.ensure_stable(float(E.detach().max()))
         return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
 
+    def simulate_from(self, start: int, states: dict, E, nu, trajectories=None, effects=None):
+        """`simulate` without gradients, frames 0 .. `start` taken from `states` (`rollout.checkpoints()`
+        after a forward of a simulation whose model and inputs are this one's and whose contacts agree
+        with these before frame `start`: a grasp or release frame moved to >= start; `Rollout.
+        forward_from`). The caller checks that the model is the same (`substeps`, `grid`, rung)."""
+        trajs = None
+        if trajectories is not None:
+            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
+        E = torch.as_tensor(E)
+        if self.adaptive:
+            self.ensure_stable(float(E.detach().max()))
+        return self.rollout.forward_from(start, states, E.to(self.tdtype), nu.to(self.tdtype), effects=effects,
+                                         trajectories=trajs)
+
     def rung_wanted(self, e_max: float) -> float:
         """The rung `ensure_stable(e_max)` would move to (the current one when it would not move)."""
         if not self.adaptive:

@@ -5,6 +5,7 @@ a residual spread evenly over frames and pixels is not."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from physinteract_usd.fit.interaction_check import check_interaction
 
@@ -154,6 +155,15 @@ def test_a_release_frame_two_late_is_confirmed_by_the_model_one_earlier_and_the_
         drops[name] = max((ls[0] - ls[d]) / ls[0] for d in (-1, 1))
         if name == "late":
             assert ls[-1] < ls[0] * (1 - CONFIRM_DROP), ls
+            # the same losses with the shifts' frames simulated from the fitted model's checkpoint only (frames
+            # 3.. and 4.. of 5) and the variants on two threads (#26)
+            from physinteract_usd import simulation as simulation_mod
+            from physinteract_usd.fit.interaction_check import Counterfactuals
+            cf = Counterfactuals(job.problem, res)
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(simulation_mod, "SIM_THREADS", 2)
+                assert shifted_losses(job.problem, res, c, "release_frame", cf=cf) == ls
+            assert cf.frames_simulated == 5 + 2 + 1, cf.frames_simulated
     assert drops["true"] < CONFIRM_DROP, drops
 
 

@@ -227,3 +227,35 @@ def test_a_forward_without_gradients_captures_its_graphs_at_its_second_use():
         assert len(ro._fwd_graphs) == (0 if i == 0 else 3), i
         assert torch.equal(x, xr) and torch.equal(F, Fr)
     assert not ro._fwd_store_graphs and ro.graphs
+
+
+def test_a_forward_from_another_forwards_frame_is_the_whole_forward_bitwise():
+    """`Rollout.forward_from` (the interaction check's release / grasp counterfactuals): a control whose
+    release moved from frame 3 to 2 or 4 agrees with the first one's before frame 2 or 3, so frames from there
+    on, started from the first forward's checkpoint, give the whole forward bitwise (every effect's state on:
+    the Maxwell branch's Fv); started a frame too late, they do not."""
+    eff = {"damping": {"coefficient": 1.0}, "viscoelasticity": {"modulus": 2e3, "relaxationTime": 0.05}}
+    m, ctrl, pts, traj = _scene(effects=eff, T=6)
+    idx = np.arange(len(pts) - 6, len(pts))
+
+    def control(release):
+        return Control([Contact("pointAdherent", indices=idx, trajectory=traj, release_frame=release),
+                        Contact("fixed", indices=np.arange(3))], n_frames=6)
+
+    E = torch.linspace(2e3, 4e3, len(pts), dtype=torch.float64)
+    base = Rollout(m, control(3), graphs=False)
+    with torch.no_grad():
+        base(E, effects=eff)
+    states = base.checkpoints()
+    for release, start in ((2, 2), (4, 3)):
+        whole = Rollout(m, control(release), graphs=False)
+        with torch.no_grad():
+            xw, Fw = whole(E, effects=eff)
+        part = Rollout(m, control(release), graphs=False)
+        x, F = part.forward_from(start, states, E, effects=eff)
+        assert torch.equal(x, xw) and torch.equal(F, Fw), release
+        assert not torch.equal(xw, states["x"].view_as(xw))          # the release changed the motion
+        late = Rollout(m, control(release), graphs=False).forward_from(start + 1, states, E, effects=eff)[0]
+        assert not torch.equal(late, xw), release
+    with pytest.raises(ValueError):
+        base.run_forward(store=True, start=2)

@@ -178,67 +178,170 @@ def _fitted_inputs(prob, result):
     return t(result.youngs), t(result.poisson), tr, names, eff or None
 
 
-def variant_losses(prob, result, variants: dict) -> dict:
+class Counterfactuals:
+    """The fitted model (its E, nu, hand paths and effects) re-simulated under other contacts, forward
+    passes only, for `confirm`'s suspects. The model as fitted is simulated once and shared: its loss is
+    every suspect's reference, and its per-frame states let a variant that agrees with it before frame
+    `start` (a grasp or release frame moved, never earlier than `start`) simulate frames start.. only
+    (`Simulation.simulate_from`: bitwise the whole forward). With `simulation.SIM_THREADS` >= 2 the
+    variants' forwards run on that many threads (each its own eager twin; Warp's CPU launches release the
+    GIL), the losses after them in the calling thread: the same values in any case."""
+
+    def __init__(self, prob, result):
+        self.prob = prob
+        self.E, self.nu, self.tr, self.names, self.eff = _fitted_inputs(prob, result)
+        self._base = None                     # (loss, twin, per-frame states or None)
+        self.frames_simulated = 0             # frames simulated over the calls (what the windows save)
+
+    def _trajs(self, offsets: dict):
+        import torch
+
+        if self.tr is None:
+            return None
+        return [t + torch.as_tensor(np.asarray(offsets.get(n, np.zeros(3))), dtype=t.dtype, device=t.device)
+                for n, t in zip(self.names, self.tr)]
+
+    def _loss(self, x, F, trk) -> float:
+        import torch
+
+        with torch.no_grad():
+            return float(self.prob.loss(self.E, self.nu, trk, effects=self.eff, simulated=(x, F))["rec"])
+
+    def base(self) -> float:
+        """The loss of the model as fitted (simulated once)."""
+        if self._base is None:
+            import torch
+
+            from ..errors import SimulationError
+
+            sim = self.prob.sim.forward_twin(list(self.prob.contacts))
+            trk = self._trajs({})
+            try:
+                with torch.no_grad():
+                    x, F = sim.simulate(self.E, self.nu, trk, effects=self.eff)
+                self.frames_simulated += self.prob.T - 1
+                self._base = (self._loss(x, F, trk), sim, sim.rollout.checkpoints())
+            except SimulationError:
+                self._base = (float("inf"), sim, None)
+        return self._base[0]
+
+    def losses(self, variants: dict) -> dict:
+        """`variants` {key: (contacts, {slot name: path offset (3,)}, start)}: start the first frame whose
+        step may differ from the model as fitted (0: any). Returns {key: loss} (the reconstruction loss over
+        frames 1.., the fit's own measure; inf where the simulation failed)."""
+        import threading
+
+        import torch
+
+        from .. import simulation as simulation_mod
+        from ..errors import SimulationError
+
+        self.base()
+        _, bsim, states = self._base
+        jobs = []
+        for key, (cs, offsets, start) in variants.items():
+            sim = self.prob.sim.forward_twin(cs)
+            trk = self._trajs(offsets)
+            if sim.adaptive:
+                sim.ensure_stable(float(self.E.max()))      # here, not in a worker: it may build a rollout
+            same = (states is not None and sim.e_bound == bsim.e_bound and sim.substeps == bsim.substeps
+                    and sim.grid == bsim.grid)
+            jobs.append([key, sim, trk, int(start) if same and int(start) > 0 else 0, None])
+        self.frames_simulated += sum(self.prob.T - 1 - j[3] for j in jobs)
+
+        def run(job):
+            key, sim, trk, k0, _ = job
+            try:
+                with torch.no_grad():
+                    job[4] = sim.simulate_from(k0, states, self.E, self.nu, trk, effects=self.eff) if k0 else \
+                        sim.simulate(self.E, self.nu, trk, effects=self.eff)
+            except SimulationError as e:
+                job[4] = e
+
+        n = max(1, min(int(simulation_mod.SIM_THREADS or 1), len(jobs)))
+        if n == 1:
+            for job in jobs:
+                run(job)
+        else:
+            todo, lock, failed = iter(jobs), threading.Lock(), []
+
+            def work():
+                try:
+                    while True:
+                        with lock:
+                            job = next(todo, None)
+                        if job is None:
+                            return
+                        run(job)
+                except BaseException as e:  # noqa: BLE001  (re-raised in the calling thread)
+                    failed.append(e)
+
+            workers = [threading.Thread(target=work, daemon=True) for _ in range(n - 1)]
+            for t in workers:
+                t.start()
+            work()
+            for t in workers:
+                t.join()
+            if failed:
+                raise failed[0]
+        out = {}
+        for key, _, trk, _, r in jobs:
+            out[key] = float("inf") if isinstance(r, SimulationError) else self._loss(*r, trk)
+        return out
+
+
+def variant_losses(prob, result, variants: dict, cf: Counterfactuals | None = None) -> dict:
     """The fitted model (its E, nu, hand paths and effects) re-simulated with other contacts, forward
-    passes only: `variants` {key: (contacts, {slot name: path offset (3,)})}; returns {key: loss} (the
-    reconstruction loss over frames 1.., the fit's own measure; inf where the simulation failed)."""
-    import torch
-
-    from ..errors import SimulationError
-
-    E, nu, tr, names, eff = _fitted_inputs(prob, result)
-    out = {}
-    for key, (cs, offsets) in variants.items():
-        trk = None if tr is None else [t + torch.as_tensor(np.asarray(offsets.get(n, np.zeros(3))), dtype=t.dtype,
-                                                            device=t.device) for n, t in zip(names, tr)]
-        sim = prob.sim.forward_twin(cs)
-        try:
-            with torch.no_grad():
-                x, F = sim.simulate(E, nu, trk, effects=eff)
-                out[key] = float(prob.loss(E, nu, trk, effects=eff, simulated=(x, F))["rec"])
-        except SimulationError:
-            out[key] = float("inf")
-    return out
+    passes only: `variants` {key: (contacts, {slot name: path offset (3,)}[, start])} (`Counterfactuals.
+    losses`); returns {key: loss} (the reconstruction loss over frames 1.., the fit's own measure; inf where
+    the simulation failed)."""
+    cf = Counterfactuals(prob, result) if cf is None else cf
+    return cf.losses({k: (v[0], v[1], v[2] if len(v) > 2 else 0) for k, v in variants.items()})
 
 
-def shifted_losses(prob, result, c, what: str, shifts=(-1, 1)) -> dict:
+def shifted_losses(prob, result, c, what: str, shifts=(-1, 1), cf: Counterfactuals | None = None) -> dict:
     """`variant_losses` with contact `c`'s `what` ("grasp_frame" or "release_frame") moved by each of
     `shifts` frames: {0: the loss as fitted, shift: its loss}; shifts that leave the clip or cross the other
-    frame are left out."""
+    frame are left out. A shift changes nothing before the earlier of the two frames: only the frames from
+    there on are simulated (`Counterfactuals`)."""
     import dataclasses
 
     T = prob.T
+    cf = Counterfactuals(prob, result) if cf is None else cf
+    if getattr(c, what) is None:
+        return {}
     variants = {}
-    for d in (0, *shifts):
-        if getattr(c, what) is None:
-            continue
-        v = int(getattr(c, what)) + d
+    k0 = int(getattr(c, what))
+    for d in shifts:
+        v = k0 + d
         if what == "grasp_frame" and not (0 <= v < (T - 1 if c.release_frame is None else int(c.release_frame))):
             continue
         if what == "release_frame" and not (int(c.grasp_frame) < v <= T - 1):
             continue
-        variants[d] = ([dataclasses.replace(x, **{what: v}) if x.name == c.name else x for x in prob.contacts], {})
-    return variant_losses(prob, result, variants)
+        variants[d] = ([dataclasses.replace(x, **{what: v}) if x.name == c.name else x for x in prob.contacts], {},
+                       max(min(k0, v), 0))
+    return {0: cf.base(), **cf.losses(variants)}
 
 
-def moved_losses(prob, result, c, steps: float = 2.0) -> dict:
+def moved_losses(prob, result, c, steps: float = 2.0, cf: Counterfactuals | None = None) -> dict:
     """`variant_losses` with contact `c` moved on the object by `steps` particle spacings along the first
     frame's camera right and up (`contacts.moved_contact`: the held particles, the hand's path with them):
     {"0": the loss as fitted, "right+" / "right-" / "up+" / "up-": theirs}."""
     from ..contacts import moved_contact
 
+    cf = Counterfactuals(prob, result) if cf is None else cf
     x0 = np.asarray(prob.x0.detach().cpu().numpy() if hasattr(prob.x0, "detach") else prob.x0, float)
     w2c = prob.cameras[0].w2c_cv()[:3, :3]              # rows: the camera's axes in world coordinates
     d = steps * float(prob.scene.settings.particle_spacing)
-    variants = {"0": (list(prob.contacts), {})}
+    variants = {}
     for lab, axis in (("right", w2c[0]), ("up", -w2c[1])):   # OpenCV's y points down the image
         v = axis / max(np.linalg.norm(axis), 1e-12)
         for sgn in (1, -1):
             off = sgn * d * v
             nc = moved_contact(c, off, x0, prob.contacts)
             variants[f"{lab}{'+' if sgn > 0 else '-'}"] = (
-                [nc if x.name == c.name else x for x in prob.contacts], {c.name: off})
-    return variant_losses(prob, result, variants)
+                [nc if x.name == c.name else x for x in prob.contacts], {c.name: off}, 0)
+    return {"0": cf.base(), **cf.losses(variants)}
 
 
 def confirm(prob, result, c, out: dict) -> None:
@@ -250,14 +353,15 @@ def confirm(prob, result, c, out: dict) -> None:
     out["confirm"]."""
     checks = {}
     keep_s, keep_n = [], []
+    cf = Counterfactuals(prob, result)       # the model as fitted simulated once for every suspect
     for sus, note in zip(out["suspect"], out["notes"]):
         if sus not in ("grasp", "release", "contact"):
             keep_s.append(sus)
             keep_n.append(note)
             continue
         try:
-            ls = moved_losses(prob, result, c) if sus == "contact" else \
-                shifted_losses(prob, result, c, f"{sus}_frame")
+            ls = moved_losses(prob, result, c, cf=cf) if sus == "contact" else \
+                shifted_losses(prob, result, c, f"{sus}_frame", cf=cf)
         except Exception as exc:  # noqa: BLE001 - a check never costs the fit; unconfirmed, it is kept as it was
             checks[sus] = {"error": f"{type(exc).__name__}: {exc}"}
             keep_s.append(sus)

@@ -605,11 +605,18 @@ class Rollout:
         types = {"x": K.vec3, "v": K.vec3, "C": K.mat33, "F": K.mat33, "Fv": K.mat33}
         return {f: wp.zeros((n, self.S + 1, self.P), dtype=t, device=self.model.device) for f, t in types.items()}
 
-    def run_forward(self, store: bool = False) -> int | None:
+    def run_forward(self, store: bool = False, start: int = 0) -> int | None:
         """Rollout from rest (with self.v0) into self.ck; raises SimulationError if a frame's state
         is non-finite or left the domain (one host sync, after the last frame). `store`: keep every
         substep's state for `run_backward` (when they fit); returns the stored states' generation
-        (None: not stored)."""
+        (None: not stored). `start` > 0: frames 0 .. start of self.ck are already there (another
+        forward's, of this model and a control that agrees with this one's before frame `start`:
+        `forward_from`); only frames start .. T - 1 are simulated, eagerly, without stored states."""
+        start = int(start)
+        if start:
+            if store or not 0 < start < self.T:
+                raise ValueError(f"run_forward: start {start} needs 0 < start < {self.T} and no stored states")
+            return self._run_forward_from(start)
         gen = None
         self.n_forwards += 1
         if store and self._states is None:
@@ -657,6 +664,52 @@ class Rollout:
             self._update_box()
         self._record_stats()
         return gen
+
+    def _run_forward_from(self, start: int) -> None:
+        """`run_forward(start=...)`: frames start .. T - 1 launched eagerly (a one-off forward; no graph
+        is captured or replayed: with frame-shape graphs the frame counter would start at 0)."""
+        self.n_forwards += 1
+        sol = self.solver
+        for _ in range(2):                     # the second time on the whole grid, if the box was left
+            self.status.zero_()
+            sol.box_flag.zero_()
+            for k in range(start, self.T):
+                stopping.check("forward")
+                self._forward_frame(k)
+            if not self._left_box():
+                break
+        self.solver.raise_on_status(self.status)
+        if self.solver.grid_box:
+            self._update_box()
+        self._record_stats()
+
+    def checkpoints(self) -> dict:
+        """Copies of the last forward's per-frame states {"x", "v", "C", "F", "Fv"}: (T + 1, P, ...)
+        tensors, what `forward_from` starts from."""
+        _warp_sync(self.model)
+        return {k: _wclone(t) for k, t in self.ck.t.items()}
+
+    def forward_from(self, start: int, states: dict, E=None, nu=None, effects: Mapping | None = None,
+                     trajectories=None, v0=None):
+        """x (T+1, P, 3), F (T+1, P, 3, 3) without gradients of the rollout whose frames 0 .. `start`
+        are `states` (`checkpoints()` of a forward of this model under a control that agrees with this
+        one's before frame `start`: the same inputs, contacts that differ only from frame `start`, e.g.
+        a grasp or release frame moved to >= start); frames start .. T - 1 are simulated. Bitwise the
+        whole forward's frames when that holds (tests/test_sim_rollout.py); `start` 0: `__call__`."""
+        if int(start) <= 0:
+            with torch.no_grad():
+                return self(E, nu, effects=effects, trajectories=trajectories, v0=v0)
+        with torch.no_grad():
+            args = self._inputs(E, nu, effects, trajectories, v0)
+            _torch_sync(self.model)
+            self._load_inputs(*args)
+            rows = int(start) + 1
+            for k, t in self.ck.t.items():
+                _wcopy(t[:rows], states[k][:rows])
+            self.run_forward(start=int(start))
+            _warp_sync(self.model)
+            x, F = _wclone(self.ck.t["x"]), _wclone(self.ck.t["F"])
+        return x.view(self.T + 1, self.P, 3), F.view(self.T + 1, self.P, 3, 3)
 
     def _record_stats(self) -> None:
         if _STATS is None:
@@ -718,6 +771,10 @@ class Rollout:
 
     # ------------------------------------------------------------------ torch
     def __call__(self, E=None, nu=None, effects: Mapping | None = None, trajectories=None, v0=None):
+        return _SimulateFn.apply(self, *self._inputs(E, nu, effects, trajectories, v0))
+
+    def _inputs(self, E, nu, effects, trajectories, v0):
+        """The call's inputs as the torch op takes them (E, nu, eff, pin_pos, col_pos, v0), checked."""
         m = self.model
         td = _TORCH_DTYPE[m.dtype]
         dev = _torch_device(m)
@@ -762,7 +819,7 @@ class Rollout:
             raise SimulationError(
                 f"nu up to {float(lim[2]):.4g} exceeds nu_max = {m.nu_max:.4g}, where the substep was chosen (CFL)",
                 frame=0, advice="clamp nu in the fit, or build the model with a larger nu_max")
-        return _SimulateFn.apply(self, E.contiguous(), nu.contiguous(), eff, pin_pos, col_pos, v0.contiguous())
+        return E.contiguous(), nu.contiguous(), eff, pin_pos, col_pos, v0.contiguous()
 
     def _effect_vector(self, effects, td, dev) -> torch.Tensor:
         m = self.model
