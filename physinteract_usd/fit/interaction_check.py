@@ -326,7 +326,8 @@ def shifted_losses(prob, result, c, what: str, shifts=(-1, 1), cf: Counterfactua
 def moved_losses(prob, result, c, steps: float = 2.0, cf: Counterfactuals | None = None) -> dict:
     """`variant_losses` with contact `c` moved on the object by `steps` particle spacings along the first
     frame's camera right and up (`contacts.moved_contact`: the held particles, the hand's path with them):
-    {"0": the loss as fitted, "right+" / "right-" / "up+" / "up-": theirs}."""
+    {"0": the loss as fitted, "right+" / "right-" / "up+" / "up-": theirs}. The contact acts from its grasp
+    frame: the frames before it are the model as fitted's (`Counterfactuals`)."""
     from ..contacts import moved_contact
 
     cf = Counterfactuals(prob, result) if cf is None else cf
@@ -340,7 +341,7 @@ def moved_losses(prob, result, c, steps: float = 2.0, cf: Counterfactuals | None
             off = sgn * d * v
             nc = moved_contact(c, off, x0, prob.contacts)
             variants[f"{lab}{'+' if sgn > 0 else '-'}"] = (
-                [nc if x.name == c.name else x for x in prob.contacts], {c.name: off}, 0)
+                [nc if x.name == c.name else x for x in prob.contacts], {c.name: off}, max(int(c.grasp_frame), 0))
     return {"0": cf.base(), **cf.losses(variants)}
 
 
