@@ -1227,3 +1227,27 @@ def test_the_grasp_at_the_foot_of_the_toucher_s_speed_ramp():
     near2[:6] = False                          # the toucher not seen at the object before pair 6
     tm2 = Timing(vh, np.zeros_like(vh), np.zeros(T - 1), near2, (6, T - 1), sp, 6, None, 0.0)
     assert ramp_start(tm2, 0.35) == 6
+
+
+def test_a_still_speck_off_the_floor_holds_nothing_up_a_hook_region_does():
+    """resting_base (#23: dev_0204, 0206, 0218): a block on a floor still at one corner of its
+    bottom and at a 4-particle speck on its top (the tracking's noise, a hand passing by) rests on
+    the floor: a hold of 4 particles of 3549 (0.017 of V^(2/3)) cannot carry its weight; a hook's
+    region on its top of 30 particles (0.13, as the world suite's held objects read, 0.11-0.8)
+    holds it, with or without the still corner; a speck alone leaves (a) and (c) to decide."""
+    from physinteract_usd.extract.supports import resting_base
+
+    h = 0.01
+    block = _lattice((-0.1, 0.0, -0.06), (0.1, 0.12, 0.06), h)
+    x, y, z = block.T
+    corner = np.flatnonzero((x <= -0.07 + 1e-9) & (y <= 0.01 + 1e-9) & (z <= -0.03 + 1e-9))
+    top = np.flatnonzero(y >= 0.12 - 1e-9)
+    speck = top[np.argsort(np.linalg.norm(block[top] - [0.05, 0.12, 0.03], axis=1))[:4]]
+    hook = top[np.argsort(np.linalg.norm(block[top] - [0.0, 0.12, 0.0], axis=1))[:30]]
+    assert resting_base(block, h, [corner]) is not None
+    assert resting_base(block, h, [corner, speck]) is not None
+    assert resting_base(block, h, [speck]) is not None
+    assert resting_base(block, h, [corner, hook]) is None
+    assert resting_base(block, h, [hook]) is None
+    # the share is the lever: at 0 every region counts, as before
+    assert resting_base(block, h, [corner, speck], hold_share=0.0) is None

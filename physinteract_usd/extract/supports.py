@@ -220,7 +220,7 @@ def lowest_toucher_y(trajectory, radius: float, itype: str, base_y: float) -> fl
 
 
 def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float | None = None,
-                 tip_margin: float = 0.15, flat: float = 0.6):
+                 tip_margin: float = 0.15, flat: float = 0.6, hold_share: float = 0.06):
     """Whether the object rests on a floor (a dict: the floor's height, the base's particles) or
     not (None). A floor holds an object from below, by friction: it rests there when
     (a) it can stand on its base (the particles within 1.5 spacings of its lowest point, the 1st
@@ -236,7 +236,19 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     (c) the contact is not pushed below it (`lowest_contact_y`, the lowest point of the toucher's
     T0, more than a spacing under the base: something holds the object above the ground).
     With no still region at all, (a) and (c) decide (the whole object moved: it slid or tipped on
-    something that does not hold it)."""
+    something that does not hold it).
+    A still region smaller than `hold_share` of the object's size (its area n h^2 under
+    hold_share x V^(2/3), V = P h^3) holds nothing up, wherever it is: a hold
+    carries the object's weight through the material at it, at a stress of the weight over its
+    area, V^(1/3) / (hold_share x L) times the stress the weight puts on the object's own
+    cross-sections (L: its length); an object that keeps its shape under its own weight (strain
+    rho g L / E up to ~0.15, the suite's softest) would stretch off a hold of a few particles by
+    more than its own size (~2.5x at 0.06) rather than hang still from it. Such a speck reads
+    still for other reasons (tracking noise, a hand passing next to it: dev_0204, 0206, 0218, a
+    4-8 particle speck of 1500-5500 at 0.018-0.045 of V^(2/3)), or, on the base, is a small patch
+    of where it touches the floor (dev_0206: 14 particles, 0.045, 2 spacings tall); the holds of
+    held objects on the world suite read 0.11-0.8 (seeds 140-164). It is left out of the floor's
+    test (b), not of the supports when the object is held."""
     from scipy.spatial import ConvexHull, QhullError
 
     y = x0[:, 1]
@@ -249,6 +261,8 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     base = y <= ylow + 1.5 * h
     big = max((len(s_) for s_ in sets), default=0)
     real = [np.asarray(s_, np.int64) for s_ in sets if len(s_) >= max(4, 0.05 * big)]   # specks aside
+    size = hold_share * len(x0) ** (2.0 / 3.0)         # in particles: hold_share x V^(2/3) / h^2
+    real = [s_ for s_ in real if len(s_) >= size]      # too small to hold it up
     if len(real) > 1 and not one_underside(x0, h, base, real):
         return None         # still at two places with the object off the floor between: held there (anchors)
     for s_ in real:
