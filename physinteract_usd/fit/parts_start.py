@@ -29,11 +29,23 @@ import numpy as np
 import torch
 
 from ..errors import SimulationError
+from .substep import kept_rung
 
 KEEP_SHARE = 0.5   # the bumps must keep this share of the parts' gain: where their projection loses most of it
                    # (balloon_dog at grid 16 on the CPU: 4 parts 0.0301 -> 0.0142, on 8 bumps 0.0298), the basis
                    # cannot hold the parts and the start is a distorted one (it cost that fit MA 0.54 -> 0.24)
 SIMPLEX_STEP = math.log(2.0)   # the first simplex: each part's E x 2 (the parts of a composite differ by ~2-10x)
+PROBES_PER_DIM = 3             # the simplex's probes: at most this many per vertex of an m-part simplex (3 (m + 1):
+                               # 9 for two parts, 12 for three), and never more than the fit's cap (`probes`)
+STALL_TOL = 0.005              # ... and it stops once its last 2 (m + 1) probes (two simplexes' worth) brought no
+                               # new best this much (relative) below the best before them: the fit's plateau_tol on
+                               # probes. m + 1 cut a narrow valley's descent at 75% of its gain (a simplex contracts
+                               # for a few probes before it turns: tests/test_parts_start_restore.py)
+
+
+def probe_budget(parts: int, cap: int) -> int:
+    """The simplex's probe budget for `parts` parts under the fit's cap (`FitSettings.parts_start`)."""
+    return max(min(int(cap), PROBES_PER_DIM * (int(parts) + 1)), int(parts) + 2)
 
 
 def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
@@ -58,8 +70,11 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     tr = [t.detach() for t in trajs] if trajs else None
     f = PartProbe(prob, list(range(1, prob.T)), labels, nu, tr, eff, batch=s.select_sweep_batch)
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
-    r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, max(int(probes), m + 2), step=SIMPLEX_STEP)
-    out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]))
+    with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
+        r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, probe_budget(m, probes), step=SIMPLEX_STEP,
+                        stall=(2 * (m + 1), STALL_TOL), two_sided=True)
+    out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
+               stalled=bool(r.get("stalled", False)))
     theta0 = mat.theta.detach().clone()
     try:
         loss0 = float(total_fn())
@@ -71,7 +86,10 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     out.update(loss0=loss0, loss=loss1)
     gain_parts = f(start) - float(r["loss"])          # what the parts' own field gained (reconstruction)
     out["parts_gain"] = gain_parts
-    if loss1 < loss0 and (loss0 - loss1) >= KEEP_SHARE * gain_parts:
+    # a simplex that found nothing (gain within the plateau tolerance: the H200's toy_rope, tow_rope and basketball
+    # all ended at their start, 0.00000) gives no start, though the bumps' projection of the uniform E may render a
+    # hair better: "taken", it was charged 6 of the level's iterations for nothing (basketball MA 0.294 -> 0.290)
+    if gain_parts > STALL_TOL * abs(f(start)) and loss1 < loss0 and (loss0 - loss1) >= KEEP_SHARE * gain_parts:
         out["used"] = True
     else:
         with torch.no_grad():
@@ -82,7 +100,8 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
             sim._use_bound(bound0)
     if log:
         es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-        log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes); on the bumps "
+        log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes"
+            f"{', stalled' if out['stalled'] else ''}); on the bumps "
             f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
             f" (the parts' own gain {gain_parts:.5f})")
     return out
@@ -95,4 +114,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "SIMPLEX_STEP"]
+__all__ = ["parts_start", "parts_start_hook", "probe_budget", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

@@ -29,6 +29,7 @@ from ..render.losses import reconstruction_loss, reconstruction_loss_batch
 from ..scene import SceneData
 from ..simulation import build_simulation
 from .interaction_check import TRAJ_SIGMA_PX
+from .substep import kept_rung
 
 # `FitProblem.loss` renders its frames in few batched passes (`FitProblem.frames_rec`: one rasterizer
 # pass and one loss call for all frames, instead of one of each per frame): None (default) on CUDA,
@@ -304,8 +305,9 @@ class FitProblem:
         that went unstable or left its box gets inf. All copies take the substep of the largest E
         among them: a soft copy's loss may differ from its own rollout's (a finer time step) by the
         time discretisation; group the probes by stiffness where that matters, or where the copies
-        are many and large (then the batch costs about the sum of its copies, at the finest step)."""
-        with torch.no_grad():
+        are many and large (then the batch costs about the sum of its copies, at the finest step).
+        Probes: the adaptive substep's rung is restored on return (`substep.kept_rung`)."""
+        with torch.no_grad(), kept_rung(self):   # probes: the substep's rung is left as it was found
             x, F, bad = self.sim.simulate_batch(E, nu, trajectories, effects)
             ks = range(1, self.T) if frames is None else frames
             out = np.full(len(x), np.inf)

@@ -62,7 +62,7 @@ import torch
 
 from ..errors import SimulationError
 from .effect_params import effect_parameters, effect_values, fitted_values
-from .substep import pinned_substep  # noqa: F401  (re-exported: select.pinned_substep)
+from .substep import kept_rung, pinned_substep  # noqa: F401  (re-exported: select.pinned_substep)
 from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
 from .problem import FitProblem
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
@@ -547,7 +547,7 @@ class PartProbe:
         key = tuple(round(float(v), 10) for v in le)
         if key not in self.cache:
             try:
-                with torch.no_grad():
+                with torch.no_grad(), kept_rung(self.prob):   # a probe leaves the substep's rung as it found it
                     v = float(self.prob.loss(self._E(key), self.nu, self.trajs, self.effects, frames=self.frames)["rec"])
             except SimulationError:
                 v = float("inf")
@@ -616,14 +616,23 @@ def part_sweep(f: PartProbe, start: np.ndarray, grid: np.ndarray, s: FitSettings
     return {"log_e": cur, "loss": best, "lines": lines}
 
 
+class _Stalled(Exception):
+    """part_refine's simplex stopped: its best probe did not improve for a while (`stall`)."""
+
+
 def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: int, step: float = math.log(1.25),
-                xtol: float = math.log(1.02)) -> dict:
+                xtol: float = math.log(1.02), stall: tuple | None = None, two_sided: bool = False) -> dict:
     """All parts' log E together by a Nelder-Mead simplex (scipy; forward passes only) from the
     coordinate sweep's best `log_e`, a first simplex `step` wide along each part, within [lo, hi],
     at most `evals` probes. The parts' loss is a narrow valley that runs across the axes (a softer
     part at the hand and a stiffer one at the clamp move the tip alike), where a search along one
     part at a time stalls on the valley's floor short of its minimum; a simplex turns along it.
-    Returns {"log_e", "loss", "probes"} (the start if nothing better was found)."""
+    `two_sided`: the first simplex's vertex along a part whose +`step` probe renders no better than the start is
+    taken at -`step` instead, when that one is better (an extra probe): from the uniform E one part must soften and
+    another stiffen, and a first simplex all on the stiff side spends its probes finding the way down (the demo's
+    two parts, 2026-11-27: no gain in 7 probes). `stall` = (k, tol): the simplex also stops once its last k probes brought no new best more than tol
+    (relative) below the best before them (the fit's plateau rule on the probes; None: off).
+    Returns {"log_e", "loss", "probes", "stalled"} (the start if nothing better was found)."""
     from scipy.optimize import minimize
 
     x0 = np.clip(np.asarray(log_e, np.float64), lo, hi)
@@ -634,10 +643,34 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
         return out
     simplex = np.vstack([x0] + [np.clip(x0 + step * np.eye(n)[j] * (1 if x0[j] + step <= hi else -1), lo, hi)
                                 for j in range(n)])
+    if two_sided:
+        for j in range(n):
+            if f(simplex[j + 1]) >= start:
+                other = np.clip(2 * x0 - simplex[j + 1], lo, hi)
+                if not np.allclose(other, x0) and f(other) < start:
+                    simplex[j + 1] = other
     before = len(f.cache)
-    r = minimize(lambda v: f(np.clip(v, lo, hi)), x0, method="Nelder-Mead", bounds=[(lo, hi)] * n,
-                 options={"initial_simplex": simplex, "xatol": xtol, "fatol": 1e-4 * abs(start), "maxfev": int(evals)})
-    x = np.clip(np.asarray(r.x, np.float64), lo, hi)
+    seen: list = []          # (loss, log E) of each probe, in order
+
+    def g(v):
+        x = np.clip(v, lo, hi)
+        val = f(x)
+        seen.append((val, x.copy()))
+        if stall is not None and len(seen) > int(stall[0]):
+            k, tol = int(stall[0]), float(stall[1])
+            prior = min(u for u, _ in seen[:-k])
+            if math.isfinite(prior) and not any(u < prior - tol * abs(prior) for u, _ in seen[-k:]):
+                raise _Stalled
+        return val
+
+    try:
+        r = minimize(g, x0, method="Nelder-Mead", bounds=[(lo, hi)] * n,
+                     options={"initial_simplex": simplex, "xatol": xtol, "fatol": 1e-4 * abs(start),
+                              "maxfev": int(evals)})
+        x = np.clip(np.asarray(r.x, np.float64), lo, hi)
+    except _Stalled:
+        out["stalled"] = True
+        x = min(seen, key=lambda p: p[0])[1]
     v = f(x)
     out["probes"] = len(f.cache) - before
     if v < start:
