@@ -220,10 +220,15 @@ class Counterfactuals:
                 with torch.no_grad():
                     x, F = sim.simulate(self.E, self.nu, trk, effects=self.eff)
                 self.frames_simulated += self.prob.T - 1
-                self._base = (self._loss(x, F, trk), sim, sim.rollout.checkpoints())
+                self._base = (self._loss(x, F, trk), self._model(sim), sim.rollout.checkpoints())
             except SimulationError:
-                self._base = (float("inf"), sim, None)
+                self._base = (float("inf"), None, None)
         return self._base[0]
+
+    @staticmethod
+    def _model(sim) -> tuple:
+        """What must match for a variant to start from the model as fitted's states: rung, substep, grid."""
+        return sim.e_bound, sim.substeps, sim.grid
 
     def losses(self, variants: dict) -> dict:
         """`variants` {key: (contacts, {slot name: path offset (3,)}, start)}: start the first frame whose
@@ -237,17 +242,16 @@ class Counterfactuals:
         from ..errors import SimulationError
 
         self.base()
-        _, bsim, states = self._base
-        jobs = []
-        for key, (cs, offsets, start) in variants.items():
+        _, model, states = self._base
+
+        def prepare(key, cs, offsets, start):
             sim = self.prob.sim.forward_twin(cs)
-            trk = self._trajs(offsets)
             if sim.adaptive:
                 sim.ensure_stable(float(self.E.max()))      # here, not in a worker: it may build a rollout
-            same = (states is not None and sim.e_bound == bsim.e_bound and sim.substeps == bsim.substeps
-                    and sim.grid == bsim.grid)
-            jobs.append([key, sim, trk, int(start) if same and int(start) > 0 else 0, None])
-        self.frames_simulated += sum(self.prob.T - 1 - j[3] for j in jobs)
+            same = states is not None and self._model(sim) == model
+            k0 = int(start) if same and int(start) > 0 else 0
+            self.frames_simulated += self.prob.T - 1 - k0
+            return [key, sim, self._trajs(offsets), k0, None]
 
         def run(job):
             key, sim, trk, k0, _ = job
@@ -257,37 +261,44 @@ class Counterfactuals:
                         sim.simulate(self.E, self.nu, trk, effects=self.eff)
             except SimulationError as e:
                 job[4] = e
+            job[1] = None                                   # the twin's buffers go with it
 
-        n = max(1, min(int(simulation_mod.SIM_THREADS or 1), len(jobs)))
-        if n == 1:
-            for job in jobs:
-                run(job)
-        else:
-            todo, lock, failed = iter(jobs), threading.Lock(), []
+        def loss(job) -> float:
+            r = job[4]
+            job[4] = None
+            return float("inf") if isinstance(r, SimulationError) else self._loss(*r, job[2])
 
-            def work():
-                try:
-                    while True:
-                        with lock:
-                            job = next(todo, None)
-                        if job is None:
-                            return
-                        run(job)
-                except BaseException as e:  # noqa: BLE001  (re-raised in the calling thread)
-                    failed.append(e)
-
-            workers = [threading.Thread(target=work, daemon=True) for _ in range(n - 1)]
-            for t in workers:
-                t.start()
-            work()
-            for t in workers:
-                t.join()
-            if failed:
-                raise failed[0]
+        n = max(1, min(int(simulation_mod.SIM_THREADS or 1), len(variants)))
         out = {}
-        for key, _, trk, _, r in jobs:
-            out[key] = float("inf") if isinstance(r, SimulationError) else self._loss(*r, trk)
-        return out
+        if n == 1:          # one twin at a time (a paper-size twin's buffers are GBs)
+            for key, v in variants.items():
+                job = prepare(key, *v)
+                run(job)
+                out[key] = loss(job)
+            return out
+        jobs = [prepare(key, *v) for key, v in variants.items()]
+        todo, lock, failed = iter(jobs), threading.Lock(), []
+
+        def work():
+            try:
+                while True:
+                    with lock:
+                        job = next(todo, None)
+                    if job is None:
+                        return
+                    run(job)
+            except BaseException as e:  # noqa: BLE001  (re-raised in the calling thread)
+                failed.append(e)
+
+        workers = [threading.Thread(target=work, daemon=True) for _ in range(n - 1)]
+        for t in workers:
+            t.start()
+        work()
+        for t in workers:
+            t.join()
+        if failed:
+            raise failed[0]
+        return {job[0]: loss(job) for job in jobs}
 
 
 def variant_losses(prob, result, variants: dict, cf: Counterfactuals | None = None) -> dict:
