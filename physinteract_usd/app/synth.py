@@ -10,7 +10,7 @@ from ..synth import generate, list_scenes
 
 def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0, noise=None, blur=None, seed=0,
           device="cpu", force=False, log=print, random=None, split="dev", overrides=None, fit_grid=None,
-          transfer_tau=0.0) -> dict:
+          transfer_tau=0.0, calibrate="particles") -> dict:
     """Write the capture folder `out_dir` (object.ply, frames/ or video.mp4, masks/, transforms.json,
     gt/); returns the ground truth's summary (gt/gt.json).
 
@@ -18,7 +18,8 @@ def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0
     on; its folders carry the split's marker, docs/benchmarks/world.md), everything drawn from the
     split's random stream; `frames` and `overrides` (drawn values by name) replace drawn values.
     `fit_grid` (named scenes): the init grid suggested instead of the size's; the truth's grid follows.
-    `transfer_tau` (named scenes) [s]: the truth simulated with the rate transfer (docs/sim.md; 0: APIC)."""
+    `transfer_tau` (named scenes) [s]: the truth simulated with the rate transfer (docs/sim.md; 0: APIC).
+    `calibrate` (named scenes, `hidden`): "particles" (default) or "frames", what `strength` measures (docs/synth.md)."""
     if random is not None:
         from ..synth.world import generate_world
 
@@ -26,7 +27,7 @@ def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0
             raise InputError("synth", "give either a scene name or --random / --validation SEED, not both")
         for flag, v in (("--size", size != "small"), ("--hidden", hidden is not None), ("--noise", noise is not None),
                         ("--blur", blur is not None), ("--fit-grid", fit_grid is not None),
-                        ("--transfer-tau", bool(transfer_tau))):
+                        ("--transfer-tau", bool(transfer_tau)), ("--calibrate", calibrate != "particles")):
             if v:
                 raise InputError(flag, "world captures draw it themselves (not with --random / --validation)")
         ov = dict(overrides or {})
@@ -37,7 +38,7 @@ def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0
         return generate_world(int(random), out_dir, split=split, overrides=ov, device=device, force=force, log=log)
     return generate(name, out_dir, size=size, frames=frames, hidden=hidden, strength=strength, noise=noise,
                     blur=blur, seed=seed, device=device, force=force, log=log, fit_grid=fit_grid,
-                    transfer_tau=transfer_tau)
+                    transfer_tau=transfer_tau, calibrate=calibrate)
 
 
 def synth_scenes() -> list:

@@ -22,7 +22,12 @@ def add_parser(sub):
     s.add_argument("--hidden", choices=["damping", "plasticity", "ground", "viscoelasticity"],
                    help="switch on an effect the model will not be told about")
     s.add_argument("--strength", type=float, default=1.0,
-                   help="hidden effect strength, in multiples of the 0.5 px noise level (default 1)")
+                   help="hidden effect strength (default 1): with --calibrate particles, multiples of the 0.5 px "
+                        "noise level; with --calibrate frames, the frames' mean squared change over the noise variance")
+    s.add_argument("--calibrate", choices=["particles", "frames"], default="particles",
+                   help="how --strength sets the hidden effect: particles (default; RMS projected particle "
+                        "displacement = strength x 0.5 px) or frames (the noise-free frames change by strength x "
+                        "sigma^2, sigma the --noise or 0.015: at 1 adding the effect halves the loss, issue #22)")
     s.add_argument("--noise", type=float, help="sensor noise sigma (default 0; 0.015 for real stand-ins)")
     s.add_argument("--blur", type=int, help="motion-blur samples per frame (default 1; 3 for real stand-ins)")
     s.add_argument("--seed", type=int, default=0)
@@ -53,11 +58,11 @@ def run(a) -> int:
         split, seed = ("dev", a.random) if a.random is not None else ("validation", a.validation)
         api.synth(None, a.name, frames=a.frames, random=seed, split=split, device=a.device, force=a.force,
                   size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur, fit_grid=a.fit_grid,
-                  transfer_tau=a.transfer_tau)
+                  transfer_tau=a.transfer_tau, calibrate=a.calibrate)
         return 0
     if not a.name or not a.out_dir:
         raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
               noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid,
-              transfer_tau=a.transfer_tau)
+              transfer_tau=a.transfer_tau, calibrate=a.calibrate)
     return 0

@@ -287,6 +287,81 @@ def calibrate_effect(gt: GroundTruth, cam: Camera, effect: str, strength: float,
     return best
 
 
+CALIBRATIONS = ("particles", "frames")
+SIGMA_REF = 0.015   # the frame calibration's noise level for a noise-free capture (the suite's 0.015)
+
+
+def frame_change(a: np.ndarray, b: np.ndarray, hand_a: np.ndarray | None = None, hand_b: np.ndarray | None = None,
+                 mask: np.ndarray | None = None) -> float:
+    """D^2: the mean squared change between two noise-free renders (T, H, W, 3) over frames 1.. (frame 0 is
+    the rest pose, the same in both), every channel, the pixels the hand covers in neither (the loss leaves
+    them out); `mask` (T, H, W) bool: only those pixels (e.g. the object's silhouette in either)."""
+    d2 = np.mean((np.asarray(a[1:], np.float64) - np.asarray(b[1:], np.float64)) ** 2, axis=-1)
+    keep = np.ones(d2.shape, bool)
+    for h in (hand_a, hand_b):
+        if h is not None:
+            keep &= ~np.asarray(h[1:], bool)
+    if mask is not None:
+        keep &= np.asarray(mask[1:], bool)
+    return float(d2[keep].mean()) if keep.any() else 0.0
+
+
+def calibrate_frames(gt: GroundTruth, render_frames, effect: str, strength: float, base_x: np.ndarray,
+                     base_rgb: np.ndarray, base_hand: np.ndarray, sigma_ref: float, iters: int = 12,
+                     tol: float = 0.03, log=print) -> tuple[dict, float, dict]:
+    """Find the effect parameter whose rendered frames change by D^2 = strength x sigma_ref^2 (issue #22's
+    strength 1: adding the effect halves a loss of noise variance sigma_ref^2). `render_frames(x, F)` ->
+    (rgb, hand masks), noise-free. Bisection on the particle calibration's bracket (geometric where it is
+    log-scaled), then, once the target is bracketed, regula falsi (Illinois) on log D^2; stops within `tol`
+    (relative) of the target or after `iters` simulations. Returns (params, D^2 / sigma_ref^2, trace)."""
+    target = float(strength)
+    name, lo, hi, logscale, increasing = EFFECT_SEARCH[effect]
+    extra = {}
+    if effect == "ground":
+        ymin = min(base_x[..., 1].min(), gt.x0[:, 1].min())
+        lo, hi = ymin - 0.02 * gt.extent, ymin + 0.25 * gt.extent
+        extra = {"friction": 0.6}
+    if effect == "viscoelasticity":
+        extra = {"relaxationTime": 0.15}
+    u = (lambda v: math.log(v)) if logscale else (lambda v: v)          # noqa: E731
+    uinv = (lambda w: math.exp(w)) if logscale else (lambda w: w)       # noqa: E731
+    ulo, uhi = u(lo), u(hi)
+    weak, strong, side = None, None, None   # (u, log ratio) of the nearest points below / above the target
+    best, trace = None, []
+    for _ in range(iters):
+        if weak is not None and strong is not None:
+            (u0, f0), (u1, f1) = weak, strong
+            w = u0 - f0 * (u1 - u0) / (f1 - f0) if f1 != f0 else 0.5 * (u0 + u1)
+            w = min(max(w, min(u0, u1) + 0.02 * abs(u1 - u0)), max(u0, u1) - 0.02 * abs(u1 - u0))
+        else:
+            w = 0.5 * (ulo + uhi)
+        mid = uinv(w)
+        params = {name: mid, **extra}
+        x, F = gt.run({effect: params})
+        rgb, hand = render_frames(x, F)
+        ratio = frame_change(rgb, base_rgb, hand, base_hand) / sigma_ref ** 2
+        trace.append((float(mid), float(ratio)))
+        log(f"  {effect} {name}={mid:.4g}: D^2 = {ratio:.3f} x sigma^2 (target {target:.3f})")
+        if best is None or abs(math.log(max(ratio, 1e-12) / target)) < abs(math.log(max(best[1], 1e-12) / target)):
+            best = (params, ratio)
+        if abs(ratio / target - 1.0) <= tol:
+            break
+        f = math.log(max(ratio, 1e-12) / target)
+        if f > 0:                      # too strong
+            if side == "strong" and weak is not None:
+                weak = (weak[0], 0.5 * weak[1])         # Illinois: the end kept twice counts half
+            strong, side = (w, f), "strong"
+        else:
+            if side == "weak" and strong is not None:
+                strong = (strong[0], 0.5 * strong[1])
+            weak, side = (w, f), "weak"
+        if (f > 0) == increasing:
+            uhi = w
+        else:
+            ulo = w
+    return best[0], best[1], {"trace": trace}
+
+
 # ------------------------------------------------------------------------------ render
 def _render_all(g: Gaussians, binding, xs, Fs, hand: Gaussians, hand_pos, hand_R, cam: Camera,
                 bg: np.ndarray, blur: int, device: str):
@@ -353,57 +428,11 @@ def noise_free_frames(info: dict, frames: np.ndarray) -> np.ndarray | None:
     return np.clip(frames - n[: len(frames)], 0, 1).astype(np.float32)
 
 
-# ------------------------------------------------------------------------------ main entry
-def generate(name: str, out_dir, *, size: str = "small", frames: int | None = None,
-             hidden: str | None = None, strength: float = 1.0, noise: float | None = None,
-             blur: int | None = None, seed: int = 0, device: str = "cpu", force: bool = False,
-             log=print, fit_grid: int | None = None, transfer_tau: float = 0.0) -> dict:
-    """Write the capture folder of scene `name` into `out_dir`. Returns gt.json's content.
-    `fit_grid`: the init grid the capture suggests, instead of the size's (the ground truth is
-    simulated on a cell gt_ratio x that grid's: a finer fit grid makes a finer truth). `transfer_tau` [s]: the
-    truth's simulation with the rate transfer (SimModel.transfer_tau; 0: APIC, the default)."""
-    if name not in SCENES:
-        raise InputError(name, "unknown scene; `physinteract-usd synth --list` lists them")
-    if size not in SIZES:
-        raise InputError(size, "size must be small or paper")
-    spec = SCENES[name]
-    if hidden is not None and hidden not in EFFECT_SEARCH:
-        raise InputError(hidden, "unknown effect (damping, plasticity, ground, viscoelasticity)")
-    out = Path(out_dir)
-    outdir.make_room(out, force)
-    sz = SIZES[size]
-    if fit_grid is not None:
-        if int(fit_grid) != fit_grid or fit_grid < 8:
-            raise InputError("--fit-grid", f"must be a whole number of cells, at least 8, got {fit_grid}")
-        sz = dataclasses.replace(sz, fit_grid=int(fit_grid))
-    transfer_tau = float(transfer_tau or 0.0)
-    if not (math.isfinite(transfer_tau) and transfer_tau >= 0):
-        raise InputError("--transfer-tau", f"must be >= 0 seconds (0: APIC), got {transfer_tau:g}")
-    T = int(frames or sz.frames)
-    if T < 3:
-        raise InputError("--frames", "needs at least 3 frames")
-    real = spec.origin == "real"
-    noise = (0.015 if real else 0.0) if noise is None else float(noise)
-    blur = (3 if real else 1) if blur is None else int(blur)
-    t0 = time.perf_counter()
-
-    gt = GroundTruth(spec, sz, T, device=device)
-    gt.transfer_tau = transfer_tau
-    log(f"{name}: {len(gt.x0)} ground-truth particles (spacing {gt.spacing * 1000:.1f} mm), "
-        f"{gt.substeps} substeps/frame, E {gt.E.min():.3g}..{gt.E.max():.3g} Pa")
-    g, gpart = surface_gaussians(spec, gt.shape, sz.gaussians, seed)
-    cam = frame_camera(spec, gt, sz)
-
-    base_x, base_F = gt.run()
-    effect_info = None
-    x, F = base_x, base_F
-    if hidden is not None:
-        log(f"calibrating hidden {hidden} to {strength:g} x {NOISE_PX} px")
-        params, px = calibrate_effect(gt, cam, hidden, strength, base_x, log=log)
-        x, F = gt.run({hidden: params})
-        effect_info = {"name": hidden, "parameters": params, "strength": strength,
-                       "noise_px": NOISE_PX, "effect_px": px}
-
+def _scene_renderer(spec: SceneSpec, gt: GroundTruth, sz: Size, size: str, g: Gaussians, cam: Camera,
+                    blur: int, seed: int, device: str):
+    """The capture's noise-free frames of a ground-truth motion: render(x, F) -> (rgb, amodal, visible, hand
+    masks, Gaussian positions), the object's Gaussians bound to the truth's particles, the hand proxy along
+    the interaction, the static background."""
     from ..render import GaussianBinding
 
     binding = GaussianBinding.knn(g.means, gt.x0, k=4, dtype=torch.float32, device=device)
@@ -435,7 +464,96 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         if spec.interaction == "pointNonAdherent":
             pos = gt.trajectory.copy()
     bg = background_image(sz.width, sz.height, seed)
-    rgb, amodal, visible, hmask, gpos = _render_all(g, binding, x, F, hand, pos, R, cam, bg, blur, device)
+
+    def render_motion(x, F):
+        return _render_all(g, binding, x, F, hand, pos, R, cam, bg, blur, device)
+
+    return render_motion
+
+
+# ------------------------------------------------------------------------------ main entry
+def generate(name: str, out_dir, *, size: str = "small", frames: int | None = None,
+             hidden: str | None = None, strength: float = 1.0, noise: float | None = None,
+             blur: int | None = None, seed: int = 0, device: str = "cpu", force: bool = False,
+             log=print, fit_grid: int | None = None, transfer_tau: float = 0.0,
+             calibrate: str = "particles") -> dict:
+    """Write the capture folder of scene `name` into `out_dir`. Returns gt.json's content.
+    `calibrate`: how a hidden effect's `strength` is set (issue #22): "particles" (the default, every capture
+    made before it unchanged): the parameter whose RMS projected particle displacement is strength x NOISE_PX;
+    "frames": the parameter whose noise-free frames change by D^2 = strength x sigma^2 (mean squared over
+    frames 1.. and the pixels the hand leaves; sigma the capture's noise, SIGMA_REF when noise-free): at
+    strength 1 adding the effect halves a fit's loss, the issue's definition.
+    `fit_grid`: the init grid the capture suggests, instead of the size's (the ground truth is
+    simulated on a cell gt_ratio x that grid's: a finer fit grid makes a finer truth). `transfer_tau` [s]: the
+    truth's simulation with the rate transfer (SimModel.transfer_tau; 0: APIC, the default)."""
+    if name not in SCENES:
+        raise InputError(name, "unknown scene; `physinteract-usd synth --list` lists them")
+    if size not in SIZES:
+        raise InputError(size, "size must be small or paper")
+    spec = SCENES[name]
+    if hidden is not None and hidden not in EFFECT_SEARCH:
+        raise InputError(hidden, "unknown effect (damping, plasticity, ground, viscoelasticity)")
+    if calibrate not in CALIBRATIONS:
+        raise InputError("--calibrate", f"must be particles or frames, got {calibrate!r}")
+    if hidden is not None and not (math.isfinite(float(strength)) and float(strength) > 0):
+        raise InputError("--strength", f"must be a positive number, got {strength}")
+    out = Path(out_dir)
+    outdir.make_room(out, force)
+    sz = SIZES[size]
+    if fit_grid is not None:
+        if int(fit_grid) != fit_grid or fit_grid < 8:
+            raise InputError("--fit-grid", f"must be a whole number of cells, at least 8, got {fit_grid}")
+        sz = dataclasses.replace(sz, fit_grid=int(fit_grid))
+    transfer_tau = float(transfer_tau or 0.0)
+    if not (math.isfinite(transfer_tau) and transfer_tau >= 0):
+        raise InputError("--transfer-tau", f"must be >= 0 seconds (0: APIC), got {transfer_tau:g}")
+    T = int(frames or sz.frames)
+    if T < 3:
+        raise InputError("--frames", "needs at least 3 frames")
+    real = spec.origin == "real"
+    noise = (0.015 if real else 0.0) if noise is None else float(noise)
+    blur = (3 if real else 1) if blur is None else int(blur)
+    t0 = time.perf_counter()
+
+    gt = GroundTruth(spec, sz, T, device=device)
+    gt.transfer_tau = transfer_tau
+    log(f"{name}: {len(gt.x0)} ground-truth particles (spacing {gt.spacing * 1000:.1f} mm), "
+        f"{gt.substeps} substeps/frame, E {gt.E.min():.3g}..{gt.E.max():.3g} Pa")
+    g, gpart = surface_gaussians(spec, gt.shape, sz.gaussians, seed)
+    cam = frame_camera(spec, gt, sz)
+
+    render_motion = _scene_renderer(spec, gt, sz, size, g, cam, blur, seed, device)
+    base_x, base_F = gt.run()
+    effect_info = None
+    x, F = base_x, base_F
+    if hidden is not None and calibrate == "particles":
+        log(f"calibrating hidden {hidden} to {strength:g} x {NOISE_PX} px")
+        params, px = calibrate_effect(gt, cam, hidden, strength, base_x, log=log)
+        x, F = gt.run({hidden: params})
+        effect_info = {"name": hidden, "parameters": params, "strength": strength,
+                       "noise_px": NOISE_PX, "effect_px": px}
+    elif hidden is not None:
+        sigma_ref = noise if noise > 0 else SIGMA_REF
+        log(f"calibrating hidden {hidden} to frames changed by {strength:g} x sigma^2 (sigma {sigma_ref:g})")
+        base = render_motion(base_x, base_F)
+
+        def frames_of(xe, Fe):
+            out = render_motion(xe, Fe)
+            return out[0], out[3]
+
+        params, ratio, info_c = calibrate_frames(gt, frames_of, hidden, strength, base_x, base[0], base[3],
+                                                 sigma_ref, log=log)
+        reached = abs(ratio / strength - 1.0) <= 0.1
+        if not reached:
+            log(f"warning: {hidden} changes the frames by at most {ratio:.3g} x sigma^2 within its search range "
+                f"(target {strength:g}): the capture's effect is weaker or stronger than asked")
+        x, F = gt.run({hidden: params})
+        sub = np.arange(0, base_x.shape[1], max(1, base_x.shape[1] // 400))
+        effect_info = {"name": hidden, "parameters": params, "strength": strength, "calibration": "frames",
+                       "sigma_ref": sigma_ref, "frames_d2_over_sigma2": ratio, "calibration_reached": reached,
+                       "noise_px": NOISE_PX, "effect_px": _pixel_effect(cam, x[:, sub], base_x[:, sub]),
+                       "calibration_trace": info_c["trace"]}
+    rgb, amodal, visible, hmask, gpos = render_motion(x, F)
     if noise > 0:
         rgb = np.clip(rgb + sensor_noise(seed, noise, rgb.shape), 0, 1)
 
