@@ -259,3 +259,18 @@ def test_a_forward_from_another_forwards_frame_is_the_whole_forward_bitwise():
         assert not torch.equal(late, xw), release
     with pytest.raises(ValueError):
         base.run_forward(store=True, start=2)
+
+
+def test_a_forward_from_on_frame_shape_graphs_is_the_whole_forward(monkeypatch):
+    """With frame-shape graphs (CUDA's default; forced here) `forward_from` ignores the states and runs the
+    whole forward: the same frames whatever states it is given."""
+    monkeypatch.setattr(rollout_mod, "FRAME_GRAPHS", True)
+    m, ctrl, pts, traj = _scene(T=3)
+    E = torch.full((len(pts),), 3e3, dtype=torch.float64)
+    ro = Rollout(m, ctrl)
+    ref = Rollout(m, ctrl, graphs=False)
+    with torch.no_grad():
+        xr, Fr = ref(E)
+    junk = {k: torch.zeros_like(t) for k, t in ref.checkpoints().items()}
+    x, F = ro.forward_from(2, junk, E)
+    assert torch.equal(x, xr) and torch.equal(F, Fr)

@@ -695,8 +695,9 @@ class Rollout:
         are `states` (`checkpoints()` of a forward of this model under a control that agrees with this
         one's before frame `start`: the same inputs, contacts that differ only from frame `start`, e.g.
         a grasp or release frame moved to >= start); frames start .. T - 1 are simulated. Bitwise the
-        whole forward's frames when that holds (tests/test_sim_rollout.py); `start` 0: `__call__`."""
-        if int(start) <= 0:
+        whole forward's frames when that holds (tests/test_sim_rollout.py); `start` 0, or a rollout on frame-shape
+        graphs (CUDA's default, whose counter starts at frame 0): the whole forward, `__call__`."""
+        if int(start) <= 0 or (self.graphs and self.frame_graphs):
             with torch.no_grad():
                 return self(E, nu, effects=effects, trajectories=trajectories, v0=v0)
         with torch.no_grad():
