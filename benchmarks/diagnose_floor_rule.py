@@ -85,8 +85,12 @@ def case_list(effects: list[str], strengths: list[float], controls: int, seed0: 
     return out
 
 
-def key(scene: str, eff: str, s: float, seed: int) -> str:
-    return f"{scene}_none_s{seed}" if eff == "none" else f"{scene}_{eff}@{s:g}"
+def key(scene: str, eff: str, s: float, seed: int, calibrate: str = "particles") -> str:
+    """A case's name (its capture and fits under work/): a frame-calibrated effect case is another capture
+    (`_frames`); a control hides nothing, so it is the same under either calibration."""
+    if eff == "none":
+        return f"{scene}_none_s{seed}"
+    return f"{scene}_{eff}@{s:g}" + ("_frames" if calibrate == "frames" else "")
 
 
 def summary(d: dict) -> dict:
@@ -122,18 +126,23 @@ def one(job) -> dict | None:
     from physinteract_usd import api
 
     quiet = lambda *_a, **_k: None  # noqa: E731
-    k = key(scene, eff, s, seed)
+    k = key(scene, eff, s, seed, a.calibrate)
     work = Path(a.out) / "work"
     cap, stage = work / k, work / f"{k}.usda"
     row = {"case": k, "scene": scene, "hidden": None if eff == "none" else eff, "strength": s, "seed": seed,
-           "device": a.device}
+           "device": a.device, "calibrate": None if eff == "none" else a.calibrate}
     try:
         t0, c0 = time.perf_counter(), time.process_time()
         if not (cap / "gt" / "gt.json").exists():
             api.synth(scene, cap, size=a.size, frames=a.frames, hidden=None if eff == "none" else eff,
                       strength=s or 1.0, noise=NOISE, seed=seed, device=a.device, force=True, log=quiet,
-                      fit_grid=a.fit_grid)
-        sug = json.loads((cap / "gt" / "gt.json").read_text())["suggested_init"]
+                      fit_grid=a.fit_grid, calibrate=a.calibrate)
+        gtj = json.loads((cap / "gt" / "gt.json").read_text())
+        sug = gtj["suggested_init"]
+        he = gtj.get("hidden_effect") or {}
+        if he:       # what the hidden effect is and what it does: its parameters, particle px, frames' D^2 / sigma^2
+            row["hidden_effect"] = {k: he.get(k) for k in ("parameters", "effect_px", "frames_d2_over_sigma2",
+                                                          "calibration_reached")}
         fitted = work / f"{k}.fitted.json"          # a call cut by its timeout keeps the base fit and each rule's
         if fitted.exists() and stage.exists():       # diagnosis: the next call resumes from them
             row["fit_s"] = json.loads(fitted.read_text())["fit_s"]
@@ -268,6 +277,10 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--fit-grid", type=int, default=None)
+    ap.add_argument("--calibrate", choices=["particles", "frames"], default="particles",
+                    help="synth --calibrate: the hidden effect's strength in projected particle px (default) or as "
+                         "the frames' change over the noise variance (issue #22's 1x: the loss halved); the effect "
+                         "cases' names get _frames, the controls are shared")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--refit", type=int, default=3)
     ap.add_argument("--diagnose-refit-iterations", type=int, default=8)
@@ -299,7 +312,7 @@ def main(argv=None) -> int:
         if jl.exists() else set()
     t0 = time.time()
     todo = [c for c in case_list(a.effects.split(","), [float(v) for v in a.strengths.split(",")], a.controls,
-                                 a.control_seed) if key(a.scene, *c) not in done]
+                                 a.control_seed) if key(a.scene, *c, a.calibrate) not in done]
     print(f"{len(todo)} cases to run ({len(done)} done before)", flush=True)
     jobs = [(a.scene, e, s, seed, a, t0) for e, s, seed in todo]
 

@@ -65,8 +65,10 @@ def cases(scenes: list[str], effects: list[str] | None, strengths: list[float], 
     return out
 
 
-def key(sc: str, eff: str, s: float, seed: int = 0) -> str:
-    return f"{sc}_{eff}" + ("" if eff == "none" else f"@{s:g}") + (f"#{seed}" if seed else "")
+def key(sc: str, eff: str, s: float, seed: int = 0, calibrate: str = "particles") -> str:
+    """A case's name; a frame-calibrated effect case (`synth --calibrate frames`) is another capture (`_frames`)."""
+    return (f"{sc}_{eff}" + ("" if eff == "none" else f"@{s:g}") + (f"#{seed}" if seed else "")
+            + ("_frames" if calibrate == "frames" and eff != "none" else ""))
 
 
 def scored(stage: Path, gt: Path, device: str) -> dict:
@@ -75,16 +77,18 @@ def scored(stage: Path, gt: Path, device: str) -> dict:
 
 
 def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
-    k = key(sc, eff, s, seed)
+    k = key(sc, eff, s, seed, a.calibrate)
     cap, stage = work / k, work / f"{k}.usda"
     row = {"case": k, "scene": sc, "hidden": eff, "strength": s, "seed": seed, "device": a.device,
+           "calibrate": None if eff == "none" else a.calibrate,
            "iterations": a.iterations, "frames": a.frames, "fit_grid": a.fit_grid,
            "diagnose_refit_iterations": a.diagnose_refit_iterations, "refit_folds": a.refit_folds}
     quiet = lambda *_a, **_k: None  # noqa: E731
     t0, c0 = time.perf_counter(), time.process_time()
     if not (cap / "gt" / "gt.json").exists():
         api.synth(sc, cap, size=a.size, frames=a.frames, hidden=None if eff == "none" else eff, strength=s or 1.0,
-                  noise=NOISE, seed=seed, device=a.device, force=True, log=quiet, fit_grid=a.fit_grid)
+                  noise=NOISE, seed=seed, device=a.device, force=True, log=quiet, fit_grid=a.fit_grid,
+                  calibrate=a.calibrate)
     row["synth_s"] = round(time.perf_counter() - t0, 1)
     gtj = json.loads((cap / "gt" / "gt.json").read_text())
     sug = gtj["suggested_init"]
@@ -286,7 +290,7 @@ def _worker(job):
     try:
         return one(sc, eff, s, a, Path(a.out), log, seed)
     except Exception as exc:  # noqa: BLE001 - one case's failure is a row
-        row = {"case": key(sc, eff, s, seed), "scene": sc, "hidden": eff, "strength": s, "seed": seed,
+        row = {"case": key(sc, eff, s, seed, a.calibrate), "scene": sc, "hidden": eff, "strength": s, "seed": seed,
                "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"}
         log(f"{row['case']}: {row['error']}")
         return row
@@ -325,6 +329,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=14)
     ap.add_argument("--fit-grid", type=int, default=None,
                     help="synth --fit-grid: the init grid the capture suggests (the truth's grid follows it)")
+    ap.add_argument("--calibrate", choices=["particles", "frames"], default="particles",
+                    help="synth --calibrate: the hidden effect's strength in projected particle px (default) or as "
+                         "the frames' change over the noise variance (issue #22's 1x); effect cases get _frames")
     ap.add_argument("--grid", default=None, help="init grid (default: the capture's suggestion), a number or auto")
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--refit-iterations", type=int, default=20, help="the fit after `effects add`")
@@ -361,7 +368,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     todo = [c for c in cases(a.scenes.split(","), a.effects.split(",") if a.effects else None,
                              [float(v) for v in a.strengths.split(",")], a.controls, a.control_seed)
-            if key(*c) not in done]
+            if key(*c, calibrate=a.calibrate) not in done]
     print(f"{len(todo)} cases to run ({len(done)} done before)", flush=True)
     jobs = [(sc, eff, s, seed, a, t0) for sc, eff, s, seed in todo]
     if a.jobs > 1 and len(jobs) > 1:
