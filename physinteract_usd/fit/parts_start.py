@@ -14,7 +14,11 @@ clusters cut into connected parts, held particles joined to their neighbours) ge
 a Nelder-Mead simplex from the uniform E (`select.part_refine`, forward passes only, the loss the
 fit minimises; the path, nu and effects held). Their field, projected onto the level's bumps, is
 where the level's Adam starts, if it renders better than the uniform start by at least half what the
-parts' own field gained (KEEP_SHARE); else nothing changes.
+parts' own field gained (KEEP_SHARE) and the simplex found anything at all; else nothing changes.
+The simplex is cheap on the CPU (#24, 2026-11-27): at most 3 (m + 1) probes for m parts (`probe_budget`; 9 for
+two, under the fit's cap), its first vertices two-sided (a part whose x2 renders worse is tried at x0.5: from
+the uniform E one part softens and another stiffens), stopped when its last 2 (m + 1) probes bring no new best
+(STALL_TOL); every probe under `substep.kept_rung` (the adaptive substep's rung left as found).
 An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
 level's iteration budget (a forward and a backward per iteration) when the start is taken; one not
 taken leaves the fit exactly as without it (the field and the adaptive substep's rung restored), its probes'
