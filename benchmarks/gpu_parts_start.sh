@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# #24: the cheaper parts start (fit/parts_start.py at 5378eef: probes 3 (m + 1) for m parts, two-sided first simplex,
-# stall stop, no start where the simplex found nothing, every probe under substep.kept_rung) against the default bumps
+# #24: the cheaper parts start (fit/parts_start.py since 5378eef: probes 3 (m + 1) for m parts, two-sided first simplex,
+# stall stop after m + 1 probes without a new best, no start where the simplex found nothing, every probe under
+# substep.kept_rung) against the default bumps
 # fit on the 12 suite scenes, as the H200 rows of docs/benchmarks/gpu/session_2026-11-27/stall_suite_*.jsonl were run
 # (development data: small size, 14 frames, 20 iterations, true contacts, grid auto; the truth at --synth-fit-grid 128
 # for foam_bar, balloon_dog, hemp_rope, toy_rope, telephone_cable, tow_rope, at the suite's usual cell for the others).

