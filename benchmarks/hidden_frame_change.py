@@ -87,6 +87,7 @@ def main(argv=None) -> int:
                 fp, ratio, info = G.calibrate_frames(gt, lambda x, F: (lambda o: (o[0], o[3]))(render(x, F)), eff, s,
                                                      base_x, b[0], b[3], a.sigma, log=quiet)
                 row["frames"] = dict(params=fp, calibrated_ratio=ratio, simulations=len(info["trace"]),
+                                     trace=info["trace"],
                                      **measure(eff, fp))
             row["cpu_s"] = round(time.process_time() - c1, 1)
             rows.append(row)
@@ -95,7 +96,8 @@ def main(argv=None) -> int:
                     f"mask {p['d2_mask']:7.2f} ({_fmt(p['params'])})")
             if "frames" in row:
                 f = row["frames"]
-                line += f" | frames: D^2/s^2 {f['d2_frame']:.2f} ({f['simulations']} sims), {f['px']:.3f} px ({_fmt(f['params'])})"
+                line += (f" | frames: D^2/s^2 {f['d2_frame']:.2f} ({f['simulations']} sims), {f['px']:.3f} px "
+                         f"({_fmt(f['params'])})")
             print(line + f"  [{row['cpu_s']} CPU s]", flush=True)
             if a.out:
                 Path(a.out).write_text(json.dumps({"args": vars(a), "rows": rows}, indent=1, default=float))

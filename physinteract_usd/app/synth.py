@@ -19,7 +19,8 @@ def synth(name, out_dir, *, size="small", frames=None, hidden=None, strength=1.0
     split's random stream; `frames` and `overrides` (drawn values by name) replace drawn values.
     `fit_grid` (named scenes): the init grid suggested instead of the size's; the truth's grid follows.
     `transfer_tau` (named scenes) [s]: the truth simulated with the rate transfer (docs/sim.md; 0: APIC).
-    `calibrate` (named scenes, `hidden`): "particles" (default) or "frames", what `strength` measures (docs/synth.md)."""
+    `calibrate` (named scenes, `hidden`): "particles" (default) or "frames", what `strength` measures
+    (docs/synth.md)."""
     if random is not None:
         from ..synth.world import generate_world
 
