@@ -307,3 +307,39 @@ def test_a_refit_starts_at_the_base_field_and_a_refit_that_can_only_help_is_not_
     RF.refit_effect(d, cr, iterations=3, frames=folds, null=null)
     assert cr.accepted, cr.note
     assert "2 folds" in cr.note and cr.held_back_drop > 0
+
+
+
+def test_ground_probes_reach_below_the_lowest_point(control):
+    """A ground plane acts on the grid's nodes, so it stops particles up to `ground_reach` (1.5 cells + half
+    the contact band) above it: a plane that far below the lowest point still changes the motion, one
+    beyond it does not. The ground candidate's probes must cover that range (issue #22: on foam_bar the
+    synth's hidden plane sat 0.12 reach below the base fit's lowest point, every probe was at or above it,
+    the candidate gained nothing and damping was named instead)."""
+    import torch
+
+    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
+    from physinteract_usd.diagnose.core import ground_reach
+
+    prob, base = _problem(control)
+    reach = ground_reach(prob)
+    assert reach == pytest.approx(1.5 * prob.grid.dx + 0.5 * prob.model.contact_band)
+    held = prob.held_particles()
+
+    def run(eff):
+        with torch.no_grad():
+            x, _ = prob.sim.simulate(base.E, base.nu, None, effects=eff)
+        return x.cpu().numpy()
+
+    x = run({})
+    free = x[:, ~held, 1]
+    low = float(x[..., 1].min())
+    lowest_free = float(free.min())
+    near = run({"ground": {"height": lowest_free - 0.5 * reach, "friction": 0.6}})
+    far = run({"ground": {"height": low - 1.2 * reach, "friction": 0.6}})
+    assert np.abs(near - x).max() > 1e-4          # half its reach below every particle, it still acts
+    assert np.abs(far - x).max() < 1e-9           # beyond its reach, nothing
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("ground",)))
+    hs = sorted(p.meta["height"] for p in d.results[0].probes)
+    assert hs[0] < low - 0.5 * reach and hs[0] >= low - reach    # probes below the lowest point, within reach
+    assert hs[-1] > low

@@ -9,7 +9,7 @@ candidate effect is present at its null value:
 2. per candidate, one or a few probe columns: the smooth effects (damping c, viscoelastic E_v at
    two relaxation times) by a finite difference at their null; the threshold effects (plasticity,
    ground) by a small grid of forward simulations (yield stress at quantiles of the fitted
-   stress; the ground plane between the lowest point the model reaches and its rest); the
+   stress; the ground plane from its reach below the lowest point the model reaches to its rest); the
    non-physical causes by changing what they change (grasp / release frame +-1, the contact
    moved along x, y, z, the grasp and the supports one particle layer larger or smaller, a
    fractional time shift of the rendered sequence, gravity rescaled = a depth-scale error);
@@ -464,6 +464,14 @@ def _hencky_stress_peak(F: np.ndarray, E: np.ndarray, nu: np.ndarray) -> np.ndar
     return tau.max(0)
 
 
+def ground_reach(prob) -> float:
+    """How far below a particle a ground plane still acts on it [m]: the quadratic kernel's 1.5 cells
+    plus half the contact band the plane's node weight is smoothed over."""
+    dx = float(prob.grid.dx)
+    band = float(getattr(getattr(prob, "model", None), "contact_band", dx))
+    return 1.5 * dx + 0.5 * band
+
+
 def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSettings, log) -> list[Probe]:
     prob, b = run.prob, run.base
     T = prob.T
@@ -497,7 +505,13 @@ def probes_for(effect: str, run: _Runner, r0: np.ndarray, x0, F0, s: DiagnoseSet
         y = x0[..., 1].min(1).values.cpu().numpy()        # the lowest particle per frame
         rest, low = float(y[0]), float(y.min())
         sp = prob.scene.settings.particle_spacing
-        hs = [low + q * (rest - low) for q in (0.25, 0.5, 0.75)] if rest - low > 0.5 * sp else [rest - 0.25 * sp]
+        # a plane acts on the grid's nodes (those within half the contact band above it), and a particle
+        # feels the nodes up to 1.5 cells below it: a plane up to `reach` below the lowest point the
+        # model reaches already stops it, which is where a hidden ground sits when the video's lowest
+        # points stop short of the model's (issue #22: every probe at or above the lowest point missed it)
+        reach = ground_reach(prob)
+        hs = [low - f * reach for f in (0.75, 0.5, 0.25)]
+        hs.append(low + 0.5 * (rest - low) if rest - low > 0.5 * sp else rest - 0.25 * sp)
         for h in hs:
             col = run.r(effects={"ground": {"height": h}}) - r0
             out.append(Probe(f"h={h:.4g}", col, +1, {"height": h}))
