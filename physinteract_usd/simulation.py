@@ -244,25 +244,25 @@ class Simulation:
     def simulate(self, E, nu, trajectories=None, effects=None):
         """x (T, P, 3), F (T, P, 3, 3) for E, nu (P,) and optionally the slots' trajectories and
         the effects' parameters (tensors: differentiable)."""
+        E, trajs = self._inputs(E, trajectories)
+        return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+
+    def _inputs(self, E, trajectories):
+        """E as a tensor (the adaptive substep moved to its stable rung) and the slots' trajectories by slot."""
         trajs = None
         if trajectories is not None:
             trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
         E = torch.as_tensor(E)
         if self.adaptive:
             self.ensure_stable(float(E.detach().max()))
-        return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+        return E, trajs
 
     def simulate_from(self, start: int, states: dict, E, nu, trajectories=None, effects=None):
         """`simulate` without gradients, frames 0 .. `start` taken from `states` (`rollout.checkpoints()`
         after a forward of a simulation whose model and inputs are this one's and whose contacts agree
         with these before frame `start`: a grasp or release frame moved to >= start; `Rollout.
         forward_from`). The caller checks that the model is the same (`substeps`, `grid`, rung)."""
-        trajs = None
-        if trajectories is not None:
-            trajs = {slot: tr for (slot, _), tr in zip(self.traj_slots, trajectories)}
-        E = torch.as_tensor(E)
-        if self.adaptive:
-            self.ensure_stable(float(E.detach().max()))
+        E, trajs = self._inputs(E, trajectories)
         return self.rollout.forward_from(start, states, E.to(self.tdtype), nu.to(self.tdtype), effects=effects,
                                          trajectories=trajs)
 

@@ -257,10 +257,9 @@ def _pixel_effect(cam: Camera, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((ua - ub) ** 2, axis=1))))
 
 
-def calibrate_effect(gt: GroundTruth, cam: Camera, effect: str, strength: float, base_x: np.ndarray,
-                     iters: int = 7, log=print) -> tuple[dict, float]:
-    """Find the effect parameter whose pixel effect is strength x NOISE_PX (bisection)."""
-    target = strength * NOISE_PX
+def effect_search(gt: GroundTruth, effect: str, base_x: np.ndarray) -> tuple:
+    """Both calibrations' search: (parameter name, low, high, log-scaled, stronger with the value, the effect's
+    other parameters held fixed). The ground's bracket is in heights about the lowest point the base motion reaches."""
     name, lo, hi, logscale, increasing = EFFECT_SEARCH[effect]
     extra = {}
     if effect == "ground":
@@ -269,6 +268,14 @@ def calibrate_effect(gt: GroundTruth, cam: Camera, effect: str, strength: float,
         extra = {"friction": 0.6}
     if effect == "viscoelasticity":
         extra = {"relaxationTime": 0.15}
+    return name, lo, hi, logscale, increasing, extra
+
+
+def calibrate_effect(gt: GroundTruth, cam: Camera, effect: str, strength: float, base_x: np.ndarray,
+                     iters: int = 7, log=print) -> tuple[dict, float]:
+    """Find the effect parameter whose pixel effect is strength x NOISE_PX (bisection)."""
+    target = strength * NOISE_PX
+    name, lo, hi, logscale, increasing, extra = effect_search(gt, effect, base_x)
     sub = np.arange(0, base_x.shape[1], max(1, base_x.shape[1] // 400))
     best = None
     for _ in range(iters):
@@ -315,14 +322,7 @@ def calibrate_frames(gt: GroundTruth, render_frames, effect: str, strength: floa
     log-scaled), then, once the target is bracketed, regula falsi (Illinois) on log D^2; stops within `tol`
     (relative) of the target or after `iters` simulations. Returns (params, D^2 / sigma_ref^2, trace)."""
     target = float(strength)
-    name, lo, hi, logscale, increasing = EFFECT_SEARCH[effect]
-    extra = {}
-    if effect == "ground":
-        ymin = min(base_x[..., 1].min(), gt.x0[:, 1].min())
-        lo, hi = ymin - 0.02 * gt.extent, ymin + 0.25 * gt.extent
-        extra = {"friction": 0.6}
-    if effect == "viscoelasticity":
-        extra = {"relaxationTime": 0.15}
+    name, lo, hi, logscale, increasing, extra = effect_search(gt, effect, base_x)
     u = (lambda v: math.log(v)) if logscale else (lambda v: v)          # noqa: E731
     uinv = (lambda w: math.exp(w)) if logscale else (lambda w: w)       # noqa: E731
     ulo, uhi = u(lo), u(hi)
