@@ -231,17 +231,15 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
 
 
 def spread_gpus() -> None:
-    """A pool worker's GPU on a host of several (`NGPUS` > 1): worker k sees only GPU k mod NGPUS, set before
-    Warp or torch start CUDA in it. The run is bound by the host's cores; on a machine of 4 GPUs and 64 cores the
-    workers are spread so no GPU serialises a quarter of the host's kernels alone. `GPU_LIST` (e.g. "1,2,3")
-    names the GPUs to spread over instead (GPU 0 left to a timed run beside)."""
-    gpus = [g for g in os.environ.get("GPU_LIST", "").split(",") if g] or \
-        [str(g) for g in range(int(os.environ.get("NGPUS", "1") or 1))]
-    if len(gpus) > 1 or os.environ.get("GPU_LIST"):
-        import multiprocessing as mp
+    """A pool worker's GPU on a host of several (benchmarks/gpu_spread.py: `NGPUS`, `GPU_LIST`), set before Warp
+    or torch start CUDA in it."""
+    import multiprocessing as mp
 
-        k = (mp.current_process()._identity or (1,))[0] - 1
-        os.environ["CUDA_VISIBLE_DEVICES"] = gpus[k % len(gpus)]
+    from gpu_spread import gpu_for
+
+    g = gpu_for((mp.current_process()._identity or (1,))[0] - 1)
+    if g is not None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = g
 
 
 def warm_up(device: str, where: Path) -> None:

@@ -82,15 +82,16 @@ def one_scene(scene: str, a) -> None:
 
 
 def gpu_env(scene: str, a) -> dict:
-    """The environment of a scene's processes: on a host of several GPUs (`NGPUS` > 1) the i-th scene of
-    --scenes runs on GPU (i + `GPU_OFFSET`) mod NGPUS, so scenes fitted at once do not queue on one GPU."""
+    """The environment of a scene's processes: on a host of several GPUs the i-th scene of --scenes runs on
+    the i-th GPU of benchmarks/gpu_spread.py's list (`NGPUS`, `GPU_LIST`, `GPU_OFFSET`)."""
     import os
 
+    from gpu_spread import gpu_for
+
     env = dict(os.environ)
-    n = int(env.get("NGPUS", "1") or 1)
-    if n > 1:
-        i = a.scenes.split(",").index(scene) + int(env.get("GPU_OFFSET", "0") or 0)
-        env["CUDA_VISIBLE_DEVICES"] = str(i % n)
+    g = gpu_for(a.scenes.split(",").index(scene), env)
+    if g is not None:
+        env["CUDA_VISIBLE_DEVICES"] = g
     return env
 
 
