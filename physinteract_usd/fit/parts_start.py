@@ -57,6 +57,12 @@ def probe_budget(parts: int, cap: int) -> int:
     return max(min(int(cap), PROBES_PER_DIM * (int(parts) + 1)), int(parts) + 2)
 
 
+def refine_kwargs(parts: int, cap: int) -> dict:
+    """`select.part_refine`'s arguments for the start's simplex over `parts` parts under the fit's cap."""
+    return dict(evals=probe_budget(parts, cap), step=SIMPLEX_STEP, stall=(stall_window(parts), STALL_TOL), two_sided=True,
+                bracket=True, stall_after_simplex=True)
+
+
 def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
     """Start the field (`mat`, on the level's basis) from the appearance parts' fitted E when it
     lowers the total loss. `total_fn()`: the fit's total loss at the current field (a forward).
@@ -80,8 +86,8 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     f = PartProbe(prob, list(range(1, prob.T)), labels, nu, tr, eff, batch=s.select_sweep_batch)
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
     with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
-        r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, probe_budget(m, probes), step=SIMPLEX_STEP,
-                        stall=(stall_window(m), STALL_TOL), two_sided=True)
+        kw = refine_kwargs(m, probes)
+        r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, kw.pop("evals"), kw.pop("step"), **kw)
     out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
                stalled=bool(r.get("stalled", False)))
     theta0 = mat.theta.detach().clone()
@@ -123,4 +129,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "probe_budget", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "parts_start_hook", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

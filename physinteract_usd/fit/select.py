@@ -616,12 +616,36 @@ def part_sweep(f: PartProbe, start: np.ndarray, grid: np.ndarray, s: FitSettings
     return {"log_e": cur, "loss": best, "lines": lines}
 
 
+def _bracket_vertex(hp: float, fp: float, hm: float, fm: float, f0: float, step: float) -> tuple | None:
+    """(offset, predicted drop) of the parabola's vertex through (0, f0), (hp, fp), (hm, fm), hm < 0 < hp or the
+    reverse, with fp and fm >= f0 (a bracketed minimum): the offset within the bracket and at least step / 8 from 0
+    (the simplex stays a simplex), the drop f0 minus the parabola's minimum (>= 0); None where the three are flat or
+    not finite."""
+    if not all(math.isfinite(v) for v in (fp, fm, f0)) or hp * hm >= 0:
+        return None
+    a, b = fp - f0, fm - f0
+    if a <= 0 and b <= 0:
+        return None
+    qa = (a / hp - b / hm) / (hp - hm)           # f0 + qb x + qa x^2 through the three
+    qb = a / hp - qa * hp
+    if not qa > 0:
+        return None
+    d = -qb / (2.0 * qa)
+    drop = max(qb * qb / (4.0 * qa), 0.0)
+    d = float(np.clip(d, min(hp, hm), max(hp, hm)))
+    floor = abs(step) / 8.0
+    if abs(d) < floor:
+        d = math.copysign(floor, d if d != 0 else (hp if a <= b else hm))
+    return d, drop
+
+
 class _Stalled(Exception):
     """part_refine's simplex stopped: its best probe did not improve for a while (`stall`)."""
 
 
 def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: int, step: float = math.log(1.25),
-                xtol: float = math.log(1.02), stall: tuple | None = None, two_sided: bool = False) -> dict:
+                xtol: float = math.log(1.02), stall: tuple | None = None, two_sided: bool = False,
+                bracket: bool = False, stall_after_simplex: bool = False) -> dict:
     """All parts' log E together by a Nelder-Mead simplex (scipy; forward passes only) from the
     coordinate sweep's best `log_e`, a first simplex `step` wide along each part, within [lo, hi],
     at most `evals` probes. The parts' loss is a narrow valley that runs across the axes (a softer
@@ -632,6 +656,12 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
     another stiffen, and a first simplex all on the stiff side spends its probes finding the way down (the demo's
     two parts, 2026-11-27: no gain in 7 probes). `stall` = (k, tol): the simplex also stops once its last k probes brought no new best more than tol
     (relative) below the best before them (the fit's plateau rule on the probes; None: off).
+    `bracket` (with `two_sided`): a part whose x`step` and x1/`step` probes both render worse than the start has its
+    minimum between them; its first vertex goes to the parabola's vertex through the three probes (one more probe)
+    instead of the worse side (#24, 2026-11-27: the H200's telephone_cable, whose coil wants 0.86x the uniform E, kept
+    its x2 vertex and the simplex stalled before turning towards it). `stall_after_simplex`: the stall clock starts
+    after the first simplex's vertices (their order is no descent: counted, a 3-part simplex stalled 3 probes after
+    its vertices on that scene).
     Returns {"log_e", "loss", "probes", "stalled"} (the start if nothing better was found)."""
     from scipy.optimize import minimize
 
@@ -644,11 +674,28 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
     simplex = np.vstack([x0] + [np.clip(x0 + step * np.eye(n)[j] * (1 if x0[j] + step <= hi else -1), lo, hi)
                                 for j in range(n)])
     if two_sided:
+        drops: list = []       # per part bracketed on both sides: the drop its parabola predicts (None: not bracketed)
         for j in range(n):
-            if f(simplex[j + 1]) >= start:
+            fp = f(simplex[j + 1])
+            drops.append(None)
+            if fp >= start:
                 other = np.clip(2 * x0 - simplex[j + 1], lo, hi)
-                if not np.allclose(other, x0) and f(other) < start:
+                if np.allclose(other, x0):
+                    continue
+                fm = f(other)
+                if fm < start:
                     simplex[j + 1] = other
+                elif bracket:
+                    vx = _bracket_vertex(simplex[j + 1][j] - x0[j], fp, other[j] - x0[j], fm, start, step)
+                    if vx is not None:
+                        simplex[j + 1] = np.clip(x0 + vx[0] * np.eye(n)[j], lo, hi)
+                        drops[j] = vx[1]
+        if bracket and stall is not None and all(d is not None for d in drops) \
+                and sum(drops) <= float(stall[1]) * abs(start):
+            # every part worse both ways and the parabolas through them predict less than the stall tolerance in
+            # all: the simplex would find nothing (the H200's toy_rope, tow_rope, basketball: gain 0.00000); stop
+            out.update(stalled=True)
+            return out
     before = len(f.cache)
     seen: list = []          # (loss, log E) of each probe, in order
 
@@ -656,7 +703,7 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
         x = np.clip(v, lo, hi)
         val = f(x)
         seen.append((val, x.copy()))
-        if stall is not None and len(seen) > int(stall[0]):
+        if stall is not None and len(seen) > int(stall[0]) + (n if stall_after_simplex else 0):
             k, tol = int(stall[0]), float(stall[1])
             prior = min(u for u, _ in seen[:-k])
             if math.isfinite(prior) and not any(u < prior - tol * abs(prior) for u, _ in seen[-k:]):
