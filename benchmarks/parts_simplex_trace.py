@@ -1,15 +1,16 @@
 """The parts start's simplex, probe by probe (#24): from one and the same state (the bumps fit's field and path just
 before its finest level, true contacts), each simplex variant's probes in order with their loss and the parts' E,
 and the MA of the parts field it ends at (per Gaussian, as `evaluate`); then the fit goes on with the variant
-`--apply` names (through `fit/parts_start.parts_start`, i.e. the code's own rule for taking the start) and its
-final MA is printed, or, with --trace-only, stops there.
+`--apply` names (its simplex run again, the same probes, through `fit/parts_start.parts_start`: the code's own rule
+for taking the start and charging its probes) and its final MA is printed; none: the default fit (no start);
+--trace-only stops after the traces.
 
 Variants (name -> `select.part_refine` arguments): p20 = the 20-probe start of code f6a2cc6 (one-sided first
 simplex x2, no stall stop, 20 probes); cheap = code acf1acc's (3 (m + 1) probes capped by the cap, two-sided,
 stall window m + 1); now = what `parts_start` does at this commit.
 
     python benchmarks/parts_simplex_trace.py STAGE GT_DIR [--iterations 20] [--cap 20] [--variants p20,cheap,now]
-        [--apply now|none] [--trace-only] [--device cpu] [--out rows.json]
+        [--apply now|none] [--trace-only] [--contacts gt|stage] [--device cpu] [--out rows.json]
 """
 
 from __future__ import annotations
@@ -53,8 +54,11 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--cap", type=int, default=20, help="--parts-start N")
     ap.add_argument("--variants", default="p20,cheap,now")
-    ap.add_argument("--apply", default="now", help="now: the fit goes on through parts_start; none: no start")
+    ap.add_argument("--apply", default="now", help="p20 | cheap | now: the fit goes on from that variant's start "
+                    "(the code's take rule); none: no start")
     ap.add_argument("--trace-only", action="store_true")
+    ap.add_argument("--contacts", default="gt", choices=("gt", "stage"),
+                    help="gt: the truth's contacts (GT_DIR); stage: those on the stage (e.g. the demo's extraction)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
 
@@ -71,7 +75,8 @@ def main(argv=None):
     from physinteract_usd.synth.gt import read_gt_array
 
     over = {"schedule": "bumps", "parts_start": a.cap}
-    job = prepare_fit(a.stage, iterations=a.iterations, contact_from=a.gt, device=a.device, warm=False,
+    job = prepare_fit(a.stage, iterations=a.iterations, contact_from=a.gt if a.contacts == "gt" else None,
+                      device=a.device, warm=False,
                       progress=False, log=lambda m: None, settings_overrides=over)
     prob = make_problem(job)
     s = job.settings
@@ -124,9 +129,12 @@ def main(argv=None):
             report["variants"][v] = out
             print(f"  -> E {np.round(e_end, 1).tolist()}, gain {100 * gain / l0:.2f}% of the loss, 90% of it by "
                   f"probe {first}; the parts field's MA {out['ma_parts']:.3f}", flush=True)
-        if a.trace_only or a.apply == "none":
+        if a.trace_only:
             raise _Done
-        return parts_start(prob_, mat, s_, trajs, eff, total_fn, a.cap, log)
+        if a.apply == "none":            # the default fit (the traces left the field and the rung as they were)
+            return {"forwards": 0, "used": False, "parts": m}
+        return parts_start(prob_, mat, s_, trajs, eff, total_fn, a.cap, log,
+                           refine=lambda m: variant_kwargs(a.apply, m, a.cap))
 
     t0 = time.process_time()
     try:

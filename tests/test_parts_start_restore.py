@@ -241,15 +241,15 @@ def test_a_part_worse_both_ways_gets_its_parabolas_vertex():
 
 
 def test_the_bracket_vertex_is_a_parabolas():
-    """Known answer: on a parabola the vertex and the drop are exact; a vertex near 0 is moved to step / 8 (the
-    simplex keeps its width); flat or one-sided probes give none."""
+    """Known answer: on a parabola the vertex and the drop are exact, also from uneven sides; flat or non-finite
+    probes give none."""
     f = lambda x: 2.0 + 3.0 * (x - 0.2) ** 2                       # noqa: E731
-    d, drop = select._bracket_vertex(0.7, f(0.7), -0.7, f(-0.7), f(0.0), 0.7)
+    d, drop = select._bracket_vertex(0.7, f(0.7), -0.7, f(-0.7), f(0.0))
     assert abs(d - 0.2) < 1e-12 and abs(drop - 3.0 * 0.04) < 1e-12
-    d, drop = select._bracket_vertex(0.5, f(0.5 + 0.2), -0.7, f(-0.7 + 0.2), f(0.2), 0.7)  # uneven sides, at the minimum
-    assert abs(d) == 0.7 / 8 and drop < 1e-12
-    assert select._bracket_vertex(0.7, 1.0, -0.7, 1.0, 1.0, 0.7) is None
-    assert select._bracket_vertex(0.7, float("inf"), -0.7, 2.0, 1.0, 0.7) is None
+    d, drop = select._bracket_vertex(0.5, f(0.5 + 0.25), -0.7, f(-0.7 + 0.25), f(0.25))   # uneven sides
+    assert abs(d + 0.05) < 1e-12 and abs(drop - 3.0 * 0.0025) < 1e-12
+    assert select._bracket_vertex(0.7, 1.0, -0.7, 1.0, 1.0) is None
+    assert select._bracket_vertex(0.7, float("inf"), -0.7, 2.0, 1.0) is None
 
 
 def test_a_loss_flat_both_ways_on_every_part_stops_after_the_axes():
@@ -284,3 +284,24 @@ def test_the_demos_two_parts_cost_no_more_probes():
         r_old = select.part_refine(g, x0, np.log(1e3), np.log(6e4), ps.probe_budget(2, 20), step=ps.SIMPLEX_STEP,
                                    stall=(ps.stall_window(2), ps.STALL_TOL), two_sided=True)
         assert len(f.cache) <= len(g.cache) and r_new["loss"] <= r_old["loss"] + 1e-12, (a, b)
+
+
+def test_a_part_bracketed_at_its_start_costs_no_probe():
+    """The CPU demo's stiff part (2026-11-27 trace, benchmarks/parts_simplex_trace.py): x2 +96%, x0.5 +101%, its
+    minimum 1.01x the start; the soft part wants ~0.55x. The bracket leaves that vertex at x2 (no probe for a part
+    already in place): the same probes and start as the cheap rule without the bracket."""
+    class Demo:
+        def __init__(self):
+            self.cache = {}
+
+        def __call__(self, le):
+            x = np.asarray(le, float)
+            v = 0.01485 * (1 + 2.047 * ((x[0] - 0.0081) ** 2 - 0.0081 ** 2) + 0.5 * ((x[1] + 0.6) ** 2 - 0.36))
+            self.cache[tuple(np.round(le, 10))] = v
+            return v
+
+    f, g = Demo(), Demo()
+    r_new = _refine(f, np.zeros(2), 2)
+    r_old = select.part_refine(g, np.zeros(2), -3.0, 3.0, ps.probe_budget(2, 20), step=ps.SIMPLEX_STEP,
+                               stall=(ps.stall_window(2), ps.STALL_TOL), two_sided=True)
+    assert list(f.cache) == list(g.cache) and r_new["loss"] == r_old["loss"]

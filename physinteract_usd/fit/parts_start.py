@@ -63,10 +63,11 @@ def refine_kwargs(parts: int, cap: int) -> dict:
                 bracket=True, stall_after_simplex=True)
 
 
-def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
+def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refine=None) -> dict:
     """Start the field (`mat`, on the level's basis) from the appearance parts' fitted E when it
     lowers the total loss. `total_fn()`: the fit's total loss at the current field (a forward).
-    Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
+    `refine(m)`: the simplex's `select.part_refine` arguments for m parts (default `refine_kwargs(m, probes)`; a
+    benchmark's other rule, benchmarks/parts_simplex_trace.py). Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
     from .select import PartProbe, part_candidates, part_refine
 
     out = {"forwards": 0, "used": False, "parts": 0}
@@ -86,7 +87,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     f = PartProbe(prob, list(range(1, prob.T)), labels, nu, tr, eff, batch=s.select_sweep_batch)
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
     with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
-        kw = refine_kwargs(m, probes)
+        kw = dict(refine(m)) if refine is not None else refine_kwargs(m, probes)
         r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, kw.pop("evals"), kw.pop("step"), **kw)
     out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
                stalled=bool(r.get("stalled", False)))
