@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# #24: the parts start's simplex after b15129a (a part worse both ways gets its parabola's vertex, the stall clock
-# after the first simplex, a loss flat both ways stops after the axes) on a host of 4 GPUs (H200 or H100), two calls:
+# #24: the parts start's simplex uncut on CUDA (the cap's probes, no stall stop; the CPU keeps the cut one of acf1acc)
+# on a host of 4 GPUs (H200 or H100), two calls:
 #
 #   OUT=/dir CALL=suite NGPUS=4 bash benchmarks/gpu_parts_simplex.sh   # the 12 suite scenes, old (the CLI default) vs
 #        parts20 (this code), as docs/benchmarks/gpu/session_2026-11-27b/stall_suite_cheap_parts.jsonl was run
@@ -8,9 +8,9 @@
 #        the suite's usual cell), both halves at once over the 4 GPUs (~8 min: the 2026-11-27b rows took 430 s)
 #   OUT=/dir CALL=trace NGPUS=4 bash benchmarks/gpu_parts_simplex.sh   # on the stages the suite call left under
 #        out/gps24e (same machine, right after): foam_bar, flower, telephone_cable, balloon_dog, one per GPU: the
-#        simplex probe by probe for the 20-probe start (p20, code f6a2cc6), the cheap one (acf1acc) and this code's
-#        (now), then the fit from each (and from none) with the code's take rule (benchmarks/parts_simplex_trace.py;
-#        ~5 min)
+#        simplex probe by probe for the 20-probe start (p20, code f6a2cc6), the cut one (cheap, acf1acc, the CPU's
+#        rule), this code's on CUDA (cuda) and cuda with the parabola bracket (an option), then the fit from each of
+#        cuda, p20, cheap and none with the code's take rule (benchmarks/parts_simplex_trace.py; ~5 min)
 #
 # A call cut by its limit keeps its rows. CPU smoke of the trace: DEVICE=cpu CALL=smoke (foam_bar at grid 12).
 set -u
@@ -60,8 +60,8 @@ balloon_dog:$WORK/a/balloon_dog/balloon_dog.usda:$WORK/a/balloon_dog/balloon_dog
       IFS=: read -r name stage gt <<< "$entry"
       g=$(python -c "import sys; sys.path.insert(0, 'benchmarks'); from gpu_spread import gpu_for; print(gpu_for($k) or '')")
       ( [ -n "$g" ] && export CUDA_VISIBLE_DEVICES=$g
-        for ap in now p20 cheap none; do
-          v=""; [ "$ap" = now ] && v="p20,cheap,now"
+        for ap in cuda p20 cheap none; do
+          v=""; [ "$ap" = cuda ] && v="p20,cheap,cuda,cuda:bracket=true"
           timeout -k 10 "$LIMIT" python benchmarks/parts_simplex_trace.py "$stage" "$gt" --device "$DEVICE" \
             --iterations "$ITER" --variants "$v" --apply "$ap" --out "$OUT/trace_${name}_$ap.json" \
             > "$OUT/trace_${name}_$ap.log" 2>&1 || echo "$name $ap: exit $?"

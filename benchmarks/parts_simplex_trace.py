@@ -7,7 +7,8 @@ for taking the start and charging its probes) and its final MA is printed; none:
 
 Variants (name -> `select.part_refine` arguments): p20 = the 20-probe start of code f6a2cc6 (one-sided first
 simplex x2, no stall stop, 20 probes); cheap = code acf1acc's (3 (m + 1) probes capped by the cap, two-sided,
-stall window m + 1); now = what `parts_start` does at this commit.
+stall window m + 1); now / cuda = what `parts_start` does at this commit on the CPU / on CUDA (whatever the device
+the script runs on: the variants are compared from one state).
 
     python benchmarks/parts_simplex_trace.py STAGE GT_DIR [--iterations 20] [--cap 20] [--variants p20,cheap,now]
         [--apply now|none] [--trace-only] [--contacts gt|stage] [--device cpu] [--out rows.json]
@@ -34,16 +35,29 @@ class _Done(Exception):
 
 
 def variant_kwargs(name: str, m: int, cap: int) -> dict:
+    """A variant's `part_refine` arguments; "now:key=json,key=json" (or "cheap:...") overrides some of them
+    (bracket, stall_after_simplex, evals, stall=[k, tol], two_sided, step)."""
     from physinteract_usd.fit import parts_start as ps
+
+    if ":" in name:
+        base, rest = name.split(":", 1)
+        kw = variant_kwargs(base, m, cap)
+        for item in rest.split(";"):
+            k, v = item.split("=", 1)
+            val = json.loads(v)
+            kw[k] = tuple(val) if k == "stall" and val is not None else val
+        return kw
 
     if name == "p20":
         return dict(evals=max(cap, m + 2), step=ps.SIMPLEX_STEP)
     if name == "cheap":
         return dict(evals=max(min(cap, 3 * (m + 1)), m + 2), step=ps.SIMPLEX_STEP, stall=(m + 1, ps.STALL_TOL),
                     two_sided=True)
-    if name == "now":
+    if name == "now":                       # this code's rule on the CPU
         return ps.refine_kwargs(m, cap)
-    raise SystemExit(f"--variants: unknown variant {name!r} (p20, cheap, now)")
+    if name == "cuda":                      # ... and on CUDA (the cap's probes, no stall stop)
+        return ps.refine_kwargs(m, cap, cheap=False)
+    raise SystemExit(f"--variants: unknown variant {name!r} (p20, cheap, now, cuda)")
 
 
 def main(argv=None):
@@ -53,7 +67,8 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--cap", type=int, default=20, help="--parts-start N")
-    ap.add_argument("--variants", default="p20,cheap,now")
+    ap.add_argument("--variants", default="p20,cheap,now", help="comma-separated; a variant may override arguments: "
+                    "'now:bracket=false;stall_after_simplex=true'")
     ap.add_argument("--apply", default="now", help="p20 | cheap | now: the fit goes on from that variant's start "
                     "(the code's take rule); none: no start")
     ap.add_argument("--trace-only", action="store_true")

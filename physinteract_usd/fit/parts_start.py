@@ -18,7 +18,10 @@ parts' own field gained (KEEP_SHARE) and the simplex found anything at all; else
 The simplex is cheap on the CPU (#24, 2026-11-27): at most 3 (m + 1) probes for m parts (`probe_budget`; 9 for
 two, under the fit's cap), its first vertices two-sided (a part whose x2 renders worse is tried at x0.5: from
 the uniform E one part softens and another stiffens), stopped when its last m + 1 probes bring no new best
-(STALL_TOL); every probe under `substep.kept_rung` (the adaptive substep's rung left as found).
+(STALL_TOL); every probe under `substep.kept_rung` (the adaptive substep's rung left as found). On CUDA, where a
+forward costs ~1 s, the simplex gets the cap's probes and no stall stop (`refine_kwargs(cheap=False)`): the cut
+lost telephone_cable's start on the H200 (2026-11-27b), and an uncut run extends the cut one's path, so it finds at
+least what the cut one found (docs/benchmarks/fit.md, "Why the cheap start lost telephone_cable").
 An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
 level's iteration budget (a forward and a backward per iteration) when the start is taken; one not
 taken leaves the fit exactly as without it (the field and the adaptive substep's rung restored), its probes'
@@ -57,10 +60,20 @@ def probe_budget(parts: int, cap: int) -> int:
     return max(min(int(cap), PROBES_PER_DIM * (int(parts) + 1)), int(parts) + 2)
 
 
-def refine_kwargs(parts: int, cap: int) -> dict:
-    """`select.part_refine`'s arguments for the start's simplex over `parts` parts under the fit's cap."""
-    return dict(evals=probe_budget(parts, cap), step=SIMPLEX_STEP, stall=(stall_window(parts), STALL_TOL), two_sided=True,
-                bracket=True, stall_after_simplex=True)
+def refine_kwargs(parts: int, cap: int, cheap: bool = True) -> dict:
+    """`select.part_refine`'s arguments for the start's simplex over `parts` parts under the fit's cap. `cheap` (a
+    forward is dear: the CPU): 3 (m + 1) probes and the stall stop (the demo's +83..104 CPU s cut to +16). Else (CUDA,
+    a forward ~1 s): the cap's probes, no stall stop: the 12 suite scenes on the H200 (2026-11-27b) lost
+    telephone_cable's start to the cut (MA 0.728 -> 0.228: its simplex stopped at [1, 2, 1]x, the 20-probe one found
+    the coil's 0.86x after ~20 probes), and a longer run of the same simplex only extends the cut one's path."""
+    if not cheap:
+        return dict(evals=max(int(cap), int(parts) + 2), step=SIMPLEX_STEP, two_sided=True)
+    return dict(evals=probe_budget(parts, cap), step=SIMPLEX_STEP, stall=(stall_window(parts), STALL_TOL), two_sided=True)
+
+
+def forwards_are_cheap(prob) -> bool:
+    """Whether the problem's forwards are cheap enough for the cap's probes (its tensors on CUDA)."""
+    return str(getattr(prob, "tdev", "cpu")).startswith("cuda")
 
 
 def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refine=None) -> dict:
@@ -87,7 +100,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     f = PartProbe(prob, list(range(1, prob.T)), labels, nu, tr, eff, batch=s.select_sweep_batch)
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
     with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
-        kw = dict(refine(m)) if refine is not None else refine_kwargs(m, probes)
+        kw = dict(refine(m)) if refine is not None else refine_kwargs(m, probes, cheap=not forwards_are_cheap(prob))
         r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, kw.pop("evals"), kw.pop("step"), **kw)
     out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
                stalled=bool(r.get("stalled", False)))
@@ -130,4 +143,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "parts_start_hook", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
