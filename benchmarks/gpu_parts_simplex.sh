@@ -18,6 +18,7 @@ OUT="${OUT:-out/gpu_parts_simplex}"
 mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1 OMP_NUM_THREADS="${OMP_NUM_THREADS:-2}"
 CALL="${CALL:-suite}"
+PY="${PY:-python3}"
 DEVICE="${DEVICE:-cuda}"
 LIMIT="${LIMIT:-560}"
 WORK="${WORK:-out/gps24e}"
@@ -26,17 +27,17 @@ git rev-parse --short HEAD 2>/dev/null | sed 's/^/code: /'
 T0=$(date +%s)
 case "$CALL" in
   suite)
-    ( timeout -k 10 "$LIMIT" python benchmarks/stall_suite.py \
+    ( timeout -k 10 "$LIMIT" "$PY" benchmarks/stall_suite.py \
         --scenes foam_bar,hemp_rope,balloon_dog,toy_rope,telephone_cable,tow_rope --variants parts20 --device "$DEVICE" \
         --size small --frames 14 --synth-fit-grid 128 --grid auto --iterations 20 --work "$WORK/a" \
         --out "$OUT/stall_suite.jsonl" --jobs 6 > "$OUT/suite_a.log" 2>&1; echo "truth-128 half: exit $? $(( $(date +%s) - T0 )) s" ) &
-    ( GPU_OFFSET=2 timeout -k 10 "$LIMIT" python benchmarks/stall_suite.py \
+    ( GPU_OFFSET=2 timeout -k 10 "$LIMIT" "$PY" benchmarks/stall_suite.py \
         --scenes balloon,bow_tie,glove,flower,basketball,knit_cap --variants parts20 --device "$DEVICE" \
         --size small --frames 14 --grid auto --iterations 20 --work "$WORK/b" \
         --out "$OUT/stall_suite.jsonl" --jobs 6 > "$OUT/suite_b.log" 2>&1; echo "usual-truth half: exit $? $(( $(date +%s) - T0 )) s" ) &
     wait
-    python benchmarks/stall_suite.py --out "$OUT/stall_suite.jsonl" --table-only
-    python - "$OUT/stall_suite.jsonl" <<'EOF'
+    "$PY" benchmarks/stall_suite.py --out "$OUT/stall_suite.jsonl" --table-only
+    "$PY" - "$OUT/stall_suite.jsonl" <<'EOF'
 import json, sys
 for line in open(sys.argv[1]):
     r = json.loads(line)
@@ -58,18 +59,18 @@ balloon_dog:$WORK/a/balloon_dog/balloon_dog.usda:$WORK/a/balloon_dog/balloon_dog
     k=0
     for entry in $SCENES; do
       IFS=: read -r name stage gt <<< "$entry"
-      g=$(python -c "import sys; sys.path.insert(0, 'benchmarks'); from gpu_spread import gpu_for; print(gpu_for($k) or '')")
+      g=$("$PY" -c "import sys; sys.path.insert(0, 'benchmarks'); from gpu_spread import gpu_for; print(gpu_for($k) or '')")
       ( [ -n "$g" ] && export CUDA_VISIBLE_DEVICES=$g
         for ap in cuda p20 cheap none; do
           v=""; [ "$ap" = cuda ] && v="p20,cheap,cuda,cuda:bracket=true"
-          timeout -k 10 "$LIMIT" python benchmarks/parts_simplex_trace.py "$stage" "$gt" --device "$DEVICE" \
+          timeout -k 10 "$LIMIT" "$PY" benchmarks/parts_simplex_trace.py "$stage" "$gt" --device "$DEVICE" \
             --iterations "$ITER" --variants "$v" --apply "$ap" --out "$OUT/trace_${name}_$ap.json" \
             > "$OUT/trace_${name}_$ap.log" 2>&1 || echo "$name $ap: exit $?"
         done; echo "$name done $(( $(date +%s) - T0 )) s" ) &
       k=$((k + 1))
     done
     wait
-    python - "$OUT" <<'EOF'
+    "$PY" - "$OUT" <<'EOF'
 import glob, json, os, sys
 print("| scene | start from | forwards | taken | parts' gain | final loss | MA |")
 print("|---|---|---:|---|---:|---:|---:|")

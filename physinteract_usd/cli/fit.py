@@ -69,8 +69,9 @@ def add_parser(sub):
                         "off; #24)")
     s.add_argument("--parts-start", type=int, default=None, metavar="N",
                    help="bumps schedule: start the finest level from the colour parts' E, found by a simplex of at "
-                        "most N forward probes from the uniform E (3 per part + 3 below N: 9-11 for two parts; it stops "
-                        "early when it stalls; charged to the iteration budget when taken; default 0: off; 20 took "
+                        "most N forward probes from the uniform E (on the CPU 3 per part + 3 below N: 9-11 for two "
+                        "parts, stopped early when it stalls; on a GPU all N; charged to the iteration budget when "
+                        "taken; default 0: off; 20 took "
                         "foam_bar's MA 0.21 -> 0.94 on the CPU; the demo's fit ~+13-24 CPU s; #24)")
     s.add_argument("--nuisance-damping", action="store_true",
                    help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "

@@ -116,7 +116,8 @@ class FitSettings:
                                         # it costs (fit/gauss_newton.py; 0: off). #24, foam_bar: Adam's step cap
     parts_start: int = 0                # schedule bumps (through fit.fit): the finest level starts from the appearance parts' E, found by
                                         # a simplex of at most this many forward probes from the uniform E (and at most
-                                        # 3 (parts + 1) + parts: parts_start.probe_budget; stops when it stalls; charged
+                                        # 3 (parts + 1) + parts on the CPU: parts_start.probe_budget, stopped when it
+                                        # stalls; on CUDA all of them, uncut: parts_start.refine_kwargs; charged
                                         # to the level's budget when taken; fit/parts_start.py; 0: off). #24, foam_bar.
                                         # Opt-in: on the CPU demo it costs ~+13-24 CPU s for no MA (docs/benchmarks/fit.md)
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
