@@ -655,9 +655,11 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
     drop above the stall tolerance, the part's first vertex goes there (one more probe) instead of the x`step` side
     (#24, 2026-11-27: the H200's telephone_cable, whose coil wants 0.86x the uniform E, kept its x2 vertex and the
     simplex stalled before turning towards it); where every part is bracketed, none so, and the drops add up to less
-    than the tolerance, the simplex stops there, with nothing found. `stall_after_simplex`: the stall clock starts
-    after the first simplex's vertices (their order is no descent: counted, a 3-part simplex stalled 3 probes after
-    its vertices on that scene).
+    than the tolerance, the simplex stops there, with nothing found. Off in the parts start: on the CPU's foam_bar at
+    grid 12 its stiff part's vertex at 1.09x sent the cut simplex to a parts' MA of 0.509 instead of 0.979
+    (docs/benchmarks/fit.md, "Why the cheap parts start lost telephone_cable"). `stall_after_simplex`: the stall
+    clock starts after the first simplex's vertices (their order is no descent: counted, a 3-part simplex stalled 3
+    probes after its vertices on that scene); off in the parts start (the CPU's cut simplex is acf1acc's).
     Returns {"log_e", "loss", "probes", "stalled"} (the start if nothing better was found)."""
     from scipy.optimize import minimize
 
