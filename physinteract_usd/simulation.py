@@ -410,3 +410,23 @@ class Simulation:
 def build_simulation(scene: SceneData, contacts: list[ContactSet], n_frames: int | None = None, **kw) -> Simulation:
     """`Simulation(scene, contacts, n_frames or scene.n_frames, effects=, device=, dtype=, knn=)`."""
     return Simulation(scene, contacts, scene.n_frames if n_frames is None else n_frames, **kw)
+
+
+def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
+    """Compile the Warp modules a fit on ``device`` launches (the simulator's substep and hand-written
+    adjoints, the renderer) into Warp's kernel cache, two at a time, and return their names: what
+    `scripts/setup.sh` runs once after an install, so that the first fit on a fresh machine loads them
+    instead of compiling them (~20 s of CPU on the demo; docs/benchmarks/cpu.md, #26). The cache is
+    keyed by the kernels' source and options: a changed kernel compiles again at its first launch."""
+    import warp as wp
+
+    from .devices import quiet_warp_init
+    from .render.rasterizer import kernels as render_kernels
+    from .sim.kernels import get_kernels
+
+    quiet_warp_init(device)
+    K = get_kernels(dtype)
+    R = render_kernels(wp.float32 if dtype == "float32" else wp.float64)
+    names = [K.modules.core, K.modules.adj, R.module]
+    wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=2)
+    return names

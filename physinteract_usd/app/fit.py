@@ -33,6 +33,7 @@ from ..fit.optimize import select_supports
 from ..fit.select import identifiability, model_summary
 from ..fit.problem import Observations
 from ..scene import SceneData
+from ..sim.kernels import preload as preload_kernels
 from ..usd.fit_io import write_fit_layer
 from ..usd.layout import LayerPaths
 from ..usd.versions import read_version_start
@@ -222,6 +223,8 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     cost = settings if starts <= 1 or str(device).startswith("cuda") else \
         dataclasses.replace(settings, iterations=settings.iterations * int(starts))
     check_cost(sd, cost, device, yes=yes, stage_path=stage_path, resumed=resume or warm_from is not None)
+    # past the refusals: the simulator's kernels compile on a second thread while extraction runs (#26)
+    preload_kernels(device)
     obs = load_observations(sd, with_hand_masks=False)
     source = "extracted"
     if contacts is not None:

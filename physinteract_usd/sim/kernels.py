@@ -1,7 +1,9 @@
 """Warp kernels of the MLS-MPM simulator, generic over float32 / float64.
 
-`get_kernels(dtype)` builds (once per dtype) a namespace of kernels in one Warp module per dtype
-(``physinteract_sim_float32`` / ``physinteract_sim_float64``). One substep is five launches:
+`get_kernels(dtype)` builds (once per dtype) a namespace of kernels in Warp modules per dtype
+(``physinteract_sim_float32`` / ``physinteract_sim_float64``, the substep's kernels, and beside them
+``..._adj``, ``..._rate``, ``..._cuda``, ``..._test``: `_build` says which is whose; Warp compiles a
+module whole, at its first launch). One substep is five launches:
 
     p2g_stress(state_s)           -> A = -dt V0 (4/dx^2) tau + m C per particle (tau: Kirchhoff stress)
     p2g_scatter(state_s, A)       -> grid mass / momentum (+ mass and momentum of pinned particles)
@@ -33,7 +35,9 @@ Functions of F whose textbook derivative goes through the SVD carry hand-written
 
 
 
+import atexit
 import math
+import threading
 from types import SimpleNamespace
 
 import warp as wp
@@ -73,13 +77,52 @@ ST_OUTSIDE_P = 3
 _CACHE = {}
 
 
+_BUILD_LOCK = threading.Lock()
+_PRELOAD: dict = {}    # dtype -> the thread compiling its modules (`preload`)
+
+
 def get_kernels(dtype: str) -> SimpleNamespace:
-    """The kernels for ``dtype`` in {"float32", "float64"} (built once, then cached)."""
+    """The kernels for ``dtype`` in {"float32", "float64"} (built once, then cached). Where `preload`
+    is compiling them on another thread, waits for it first: whatever launches a kernel asked for
+    them here, so no module is compiled twice at once."""
     if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be float32 or float64, not {dtype!r}")
+    t = _PRELOAD.get(dtype)
+    if t is not None and t is not threading.current_thread():
+        t.join()
+        _PRELOAD.pop(dtype, None)
     if dtype not in _CACHE:
-        _CACHE[dtype] = _build(dtype)
+        with _BUILD_LOCK:
+            if dtype not in _CACHE:
+                _CACHE[dtype] = _build(dtype)
     return _CACHE[dtype]
+
+
+def preload(device, dtype: str = "float32", backward: bool = True) -> None:
+    """Compile (or load from Warp's kernel cache) the modules a rollout on ``device`` launches, on a
+    background thread, while the caller does other work (a fit reads its stage and extracts the
+    interaction first); the next `get_kernels(dtype)` waits for it. The substep's module, then with
+    ``backward`` the hand-written adjoints', one after the other on one thread (Warp's compiler calls
+    release the GIL; two compiling threads beside the caller cost ~20% more CPU on a busy 2-core
+    machine): on a fresh machine the first fit compiles ~10 s of CPU work before its first substep
+    (docs/benchmarks/cpu.md, #26). CPU only (a GPU's modules differ by its defaults: the fused and
+    grid-box kernels); a no-op when a preload or the kernels already ran. A failure here is left to
+    the launch that needs the module."""
+    if not str(device).startswith("cpu") or dtype in _CACHE or dtype in _PRELOAD:
+        return
+
+    def run():
+        try:
+            K = get_kernels(dtype)
+            names = [K.modules.core] + ([K.modules.adj] if backward else [])
+            wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=0)
+        except Exception:    # noqa: BLE001  (the launch that needs the module compiles it again and raises)
+            pass
+
+    t = threading.Thread(target=run, name=f"physinteract-preload-{dtype}", daemon=True)
+    _PRELOAD[dtype] = t
+    t.start()
+    atexit.register(t.join)    # never leave the process while the compiler runs on that thread
 
 
 def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
@@ -91,7 +134,16 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         T = wp.float32
         vec3 = wp.vec3f
         mat33 = wp.mat33f
-    module = f"physinteract_sim_{name}"
+    # Warp compiles a module whole, at its first launch: the kernels are split by who launches them, so a
+    # run compiles only what it uses (a fresh machine's first fit compiled every kernel of one module,
+    # ~40% of them never launched on the CPU; docs/benchmarks/cpu.md, #26). `modules` names them all.
+    module = f"physinteract_sim_{name}"             # every forward substep (+ generated adjoints)
+    module_adj = f"physinteract_sim_{name}_adj"     # the hand-written adjoints: a backward
+    module_rate = f"physinteract_sim_{name}_rate"   # the rate transfer (SimModel.transfer_tau > 0)
+    module_cuda = f"physinteract_sim_{name}_cuda"   # fused transfers, grid box, fused zeroing (CUDA defaults)
+    module_test = f"physinteract_sim_{name}_test"   # eval_matfuncs (the gradient tests')
+    for m in (module_adj, module_rate):             # forward-only kernels: no adjoint code to build
+        wp.get_module(m).options["enable_backward"] = False
     SIG_EPS = 1.0e-6
     POLAR_MAX_IT = 30
     POLAR_MIN_DET = 1.0e-4
@@ -427,7 +479,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         p = wp.tid()
         A[p] = affine_A(p, F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt)
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_adj, enable_backward=False)
     def p2g_stress_adj(F: wp.array(dtype=mat33), mass: wp.array(dtype=T), vol: wp.array(dtype=T),
                        E: wp.array(dtype=T), nu: wp.array(dtype=T), material: int, inv_dx: T, dt: T,
                        adj_A: wp.array(dtype=mat33),
@@ -527,7 +579,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_cuda, enable_backward=False)
     def p2g_fused(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
                   vol: wp.array(dtype=T), E: wp.array(dtype=T), nu: wp.array(dtype=T),
                   eff: wp.array(dtype=T), flags: int, material: int, dt: T,
@@ -563,7 +615,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_adj, enable_backward=False)
     def p2g_scatter_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                         mass: wp.array(dtype=T),
                         pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
@@ -714,7 +766,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                                     frame, alpha, fps, blend_r)
             gv[t] = vel
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module_cuda)
     def grid_update_box(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
                         gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
                         eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
@@ -768,7 +820,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         vg[p] = nv
         Cg[p] = nC
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_adj, enable_backward=False)
     def g2p_gather_adj(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
                        adj_vg: wp.array(dtype=vec3), adj_Cg: wp.array(dtype=mat33),
                        adj_x: wp.array(dtype=vec3), adj_gv: wp.array3d(dtype=vec3)):
@@ -838,7 +890,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         update_particle(p, x, F, Fv, vg[p], Cg[p], E, nu, eff, flags, pin_id, pin_active, pin_pos, frame, fps, dt,
                         x1, v1, C1, F1, Fv1)
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_cuda, enable_backward=False)
     def g2p_fused(x: wp.array(dtype=vec3), gv: wp.array3d(dtype=vec3), lo: vec3, inv_dx: T, res: wp.vec3i,
                   F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
                   E: wp.array(dtype=T), nu: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int,
@@ -883,7 +935,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         gpm[t] = T(0.0)
         gpmv[t] = vec3()
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_cuda, enable_backward=False)
     def zero_grid(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
                   gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3)):
         # the grid's scatter targets (flat views) over the grid box, nthr threads (`box_span`)
@@ -893,7 +945,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             if inside:
                 clear_scatter_node(t, gm, gmv, gpm, gpmv)
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_cuda, enable_backward=False)
     def zero_grid_adj(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
                       gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
                       gpmv: wp.array(dtype=vec3), a_gm: wp.array(dtype=T), a_gmv: wp.array(dtype=vec3),
@@ -910,7 +962,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 a_gpmv[t] = vec3()
                 a_gv[t] = vec3()
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_cuda, enable_backward=False)
     def zero_particle_adj(a_A: wp.array(dtype=mat33), a_vg: wp.array(dtype=vec3), a_Cg: wp.array(dtype=mat33),
                           with_state: int, a_x: wp.array(dtype=vec3), a_v: wp.array(dtype=vec3),
                           a_C: wp.array(dtype=mat33), a_F: wp.array(dtype=mat33), a_Fv: wp.array(dtype=mat33)):
@@ -949,7 +1001,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         Fv[p] = wp.identity(n=3, dtype=T)
 
     # test hooks: the custom-gradient matrix functions as standalone kernels
-    @wp.kernel(module=module)
+    @wp.kernel(module=module_test)
     def eval_matfuncs(F: wp.array(dtype=mat33), c: wp.array(dtype=T), W: wp.array(dtype=mat33),
                       out: wp.array2d(dtype=T)):
         p = wp.tid()
@@ -966,7 +1018,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     # v_p <- v_apic + f (v_p - v_old(x_p)), v_old the substep's grid velocity before its forces (p2g of the
     # stress-free momentum m v + m C d, divided by the node's mass), for particles no pin drives. Launched
     # only when tau > 0 (the solver's `rate_f`); tau off leaves the substep's launches as they were.
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def p2g_scatter_old(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
                         mass: wp.array(dtype=T), lo: vec3, inv_dx: T, res: wp.vec3i, gmo: wp.array3d(dtype=vec3)):
         p = wp.tid()
@@ -984,7 +1036,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     d = (vec3(T(float(i)), T(float(j)), T(float(k))) - fx) * dx
                     wp.atomic_add(gmo, base[0] + i, base[1] + j, base[2] + k, w * (mv + mC * d))
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def p2g_scatter_old_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
                             mass: wp.array(dtype=T), lo: vec3, inv_dx: T, res: wp.vec3i,
                             adj_gmo: wp.array3d(dtype=vec3),
@@ -1019,7 +1071,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         adj_C[p] = adj_C[p] + g_C
         adj_x[p] = adj_x[p] + inv_dx * g_fx
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def grid_old(gm: wp.array(dtype=T), gmo: wp.array(dtype=vec3), m_eps: T, gvo: wp.array(dtype=vec3)):
         # the grid's velocity before the substep's forces (flat views; empty nodes as grid_update's)
         t = wp.tid()
@@ -1029,7 +1081,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         else:
             gvo[t] = vec3()
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def grid_old_adj(gm: wp.array(dtype=T), gmo: wp.array(dtype=vec3), m_eps: T, adj_gvo: wp.array(dtype=vec3),
                      adj_gm: wp.array(dtype=T), adj_gmo: wp.array(dtype=vec3)):
         t = wp.tid()
@@ -1053,7 +1105,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 return 0
         return 1
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def rate_update(v: wp.array(dtype=vec3), vgo: wp.array(dtype=vec3), pin_id: wp.array(dtype=int),
                     pin_active: wp.array2d(dtype=int), frame: int, f: T, v1: wp.array(dtype=vec3)):
         # in place on the substep's output velocity (after g2p_update / g2p_fused); x1 is not changed
@@ -1062,7 +1114,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if rate_free(p, pin_id, pin_active, frame) != 0:
             v1[p] = v1[p] + f * (v[p] - vgo[p])
 
-    @wp.kernel(module=module, enable_backward=False)
+    @wp.kernel(module=module_rate, enable_backward=False)
     def rate_update_adj(pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), frame: int, f: T,
                         adj_v1: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), adj_vgo: wp.array(dtype=vec3)):
         # adjoint of rate_update (adj_v1 passes through unchanged to g2p_update's adjoint)
@@ -1074,6 +1126,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     return SimpleNamespace(
         name=name, T=T, vec3=vec3, mat33=mat33, module=module,
+        modules=SimpleNamespace(core=module, adj=module_adj, rate=module_rate, cuda=module_cuda, test=module_test),
         p2g_stress=p2g_stress, p2g_stress_adj=p2g_stress_adj, p2g_stress_visco=p2g_stress_visco,
         p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj, p2g_fused=p2g_fused, g2p_fused=g2p_fused,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,

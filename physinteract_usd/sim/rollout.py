@@ -394,10 +394,11 @@ class Rollout:
 
     def _warm_key(self, key: str) -> tuple:
         """What a frame-shape body's warm-up run (module loads) holds for: the process, per device, dtype,
-        body and the solver's kernel choices (the bodies allocate nothing: their buffers are built before)."""
+        body and the solver's kernel choices (the bodies allocate nothing: their buffers are built before; the
+        rate transfer's kernels are a Warp module of their own, loaded by a warm-up run, never in a capture)."""
         sol = self.solver
         return (str(self.model.device), self.model.dtype, key, sol.fused_kernels, sol.fused_zero, sol.grid_box,
-                int(sol.flags))
+                int(sol.flags), sol.rate_f > 0)
 
     def _shape(self, graphs: dict, k: int):
         """(key, body) of the graph that runs frame k of this graph set (key None: nothing to run)."""
