@@ -66,7 +66,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 NOISE = 0.015
 # rule name -> (api.diagnose's floor_rule, its gate: None = the rule's own, 3% or 0 under a floor rule with refits)
 RULES = {"default": (False, None), "floor": ("full", None), "match": ("match", None),
-         "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01)}
+         "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01), "pair": (False, None)}
+EXTRA = {"pair": {"pair_signature": True}}     # a rule's other api.diagnose settings (pair: damping vs ground decided
+                                               # by the ground's signature at the lowest points, issue #22)
 
 
 def case_list(effects: list[str], strengths: list[float], controls: int, seed0: int) -> list[tuple[str, float, int]]:
@@ -163,7 +165,8 @@ def one(job) -> dict | None:
             t1 = time.perf_counter()
             fr, gate = RULES[rule]
             d = api.diagnose(stage, device=a.device, refit=a.refit, refit_iterations=a.diagnose_refit_iterations,
-                             starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule=fr, gate=gate)
+                             starts=a.starts, progress=False, log=quiet, write_stage=False, floor_rule=fr, gate=gate,
+                             **EXTRA.get(rule, {}))
             row[rule] = dict(summary(d), seconds=round(time.perf_counter() - t1, 1))
             part.write_text(json.dumps(row[rule], default=float))
         row["wall_s"] = round(time.perf_counter() - t0, 1)

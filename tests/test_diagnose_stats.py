@@ -559,3 +559,105 @@ def test_damping_and_viscoelasticity_tied_on_held_back_frames_are_told_apart_aft
     assert tie_break_after_release(g) is None and [c.effect for c in g.significant][0] == "viscoelasticity"
     g, v, d = diag_with(0.10, 0.09, accepted_second=False)
     assert tie_break_after_release(g) is None and [c.effect for c in g.significant][0] == "viscoelasticity"
+
+
+def _pair_diag(rng, n_frames=12, per_frame=90, tiles=3):
+    """A diagnosis context for the pair step's tests: frames x tiles blocks, two folds of held-back frames."""
+    from types import SimpleNamespace
+
+    from physinteract_usd.diagnose.core import DiagnoseSettings, Diagnosis
+
+    frame = np.repeat(np.arange(1, n_frames + 1), per_frame)
+    blocks = (frame - 1) * tiles + (np.arange(len(frame)) % per_frame) // (per_frame // tiles)
+    folds = [frame % 2 == 1, frame % 2 == 0]
+    d = Diagnosis("missing_effect", "", [], 1.0, 0.1)
+    d._ctx = {"blocks": blocks, "n_blocks": int(blocks.max()) + 1, "settings": DiagnoseSettings(),
+              "res": SimpleNamespace(frame_of=lambda: frame), "r0": None}
+    return d, frame, folds
+
+
+def _pair_cand(effect, r, folds):
+    from physinteract_usd.diagnose.core import CandidateResult
+
+    c = CandidateResult(effect, [], significant=True, accepted=True)
+    c._held = [(m, r) for m in folds]
+    return c
+
+
+def test_the_pair_step_names_the_effect_whose_removal_costs_held_back_loss_given_the_other():
+    """`refit.judge_nested`: two accepted candidates of a confusable pair refitted together; each is judged by what
+    it adds given the other (the paired held-back test from the other's model alone to the pair's). The effect the
+    data needs is the one whose removal costs held-back loss while its mimic's costs nothing; both needed or neither:
+    no winner. And the identity that limits it (docs/benchmarks/diagnose_named.md, 16th): on the same held-back
+    elements, what a adds given b less what b adds given a is exactly b's held-back loss alone less a's, so the nested
+    comparison cannot name a mimic's rival that explains the held-back frames worse alone."""
+    from physinteract_usd.diagnose.refit import judge_nested
+    from physinteract_usd.diagnose.residual import loss
+
+    rng = np.random.default_rng(5)
+    d, frame, folds = _pair_diag(rng)
+    n = len(frame)
+    sig = rng.normal(size=n) * (1.0 + (frame >= 6))          # the hidden effect's signal in the residual
+    noise = 0.3 * rng.normal(size=n)
+    d._ctx["r0"] = sig + noise
+    damp = _pair_cand("damping", 0.3 * sig + noise, folds)   # a mimic: explains 91% of it alone
+    ground = _pair_cand("ground", 0.1 * sig + noise, folds)
+    joint = [(m, 0.1 * sig + 0.01 * rng.normal(size=n) + noise) for m in folds]   # damping adds nothing to it
+    out = judge_nested(d, damp, ground, joint)
+    assert out["adds"]["ground"]["needed"] and out["adds"]["ground"]["p"] < 0.05
+    assert not out["adds"]["damping"]["needed"]
+    assert out["winner"] == "ground" and out["decided"]
+    assert "removing damping given ground" in out["why"] and "ground is needed, damping only mimics it" in out["why"]
+    assert set(out["per_frame"]) == {"base", "damping", "ground", "damping+ground"}
+    held = lambda c: loss(np.concatenate([r[m] for m, r in c._held]))     # noqa: E731
+    L_j = loss(np.concatenate([r[m] for m, r in joint]))
+    n_held = sum(int(m.sum()) for m in folds)
+    # the identity: adds(ground) - adds(damping) = L(damping alone) - L(ground alone) (drops are sums over elements
+    # normalised alike), so the pair step names what the held-back frames already prefer
+    da, dg = out["adds"]["damping"]["drop"], out["adds"]["ground"]["drop"]
+    assert (dg - da) == pytest.approx((held(damp) - held(ground)) * (dg / (held(damp) - L_j)), rel=1e-6)
+    # the reverse (a hidden damping, the ground a mimic): damping named
+    out = judge_nested(d, _pair_cand("damping", 0.1 * sig + noise, folds), _pair_cand("ground", 0.3 * sig + noise, folds),
+                       [(m, 0.1 * sig + 0.01 * rng.normal(size=n) + noise) for m in folds])
+    assert out["winner"] == "damping"
+    # both needed (each explains a different half of the frames): no winner, the order stays
+    half = frame >= 7
+    out = judge_nested(d, _pair_cand("damping", np.where(half, sig, 0.1 * sig) + noise, folds),
+                       _pair_cand("ground", np.where(half, 0.1 * sig, sig) + noise, folds),
+                       [(m, 0.1 * sig + noise) for m in folds])
+    assert out["adds"]["damping"]["needed"] and out["adds"]["ground"]["needed"] and out["winner"] is None
+    assert "both needed" in out["why"]
+    assert n_held == n
+
+
+def test_the_grounds_signature_is_a_better_fit_at_the_lowest_points_not_the_total():
+    """`refit.bottom_signature`: a hidden ground that damping mimics better in total (damping's refit absorbs more
+    of the residual over the body) is still told by its signature: at the lowest points (the elements the mask
+    marks) the ground's model fits better than damping's, by the paired held-back test. A hidden damping, where the
+    ground's model is no better at the lowest points (worse over the body): no signature."""
+    from physinteract_usd.diagnose.refit import bottom_signature
+
+    rng = np.random.default_rng(11)
+    d, frame, folds = _pair_diag(rng)
+    n = len(frame)
+    bottom = (np.arange(n) % 90) < 15                       # half a tile a frame: the lowest points
+    sig = rng.normal(size=n)
+    noise = 0.3 * rng.normal(size=n)
+    d._ctx["r0"] = sig + noise
+    # hidden ground: at the bottom the ground's model fits (0.1) and damping's only partly (0.5); over the body
+    # damping's refit absorbs more (0.2 against 0.4)
+    damp = _pair_cand("damping", np.where(bottom, 0.5, 0.2) * sig + noise, folds)
+    ground = _pair_cand("ground", np.where(bottom, 0.1, 0.4) * sig + noise, folds)
+    from physinteract_usd.diagnose.residual import loss
+
+    tot = lambda c: loss(np.concatenate([r[m] for m, r in c._held]))     # noqa: E731
+    assert tot(damp) < tot(ground)                          # damping the better fit in total
+    out = bottom_signature(d, damp, ground, mask=bottom)
+    assert out["ground_signature"] and out["bottom"]["drop"] > 0 and out["bottom"]["p"] < 0.05
+    assert out["rest"]["drop"] < 0
+    assert "the ground's signature" in out["why"]
+    # hidden damping: the ground's model no better at the lowest points
+    damp = _pair_cand("damping", 0.1 * sig + noise, folds)
+    ground = _pair_cand("ground", np.where(bottom, 0.15, 0.5) * sig + noise, folds)
+    out = bottom_signature(d, damp, ground, mask=bottom)
+    assert not out["ground_signature"] and "no floor's signature" in out["why"]

@@ -176,7 +176,10 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
         if len(group) < 2:
             continue
         win = compare_rivals(diag, cr, group)
-        if win is cr and cr.effect in TIE_PAIR:
+        pt = pair_step(diag, win, group, iterations, log) if PAIR_STEP else None
+        if pt is not None and pt["winner"] is not None:
+            win = next(c for c in group if c.effect == pt["winner"])
+        elif win is cr and cr.effect in TIE_PAIR:
             # the paired rival test could not tell them apart: damping vs viscoelasticity, the frames after
             # the release decide (`tie_break_after_release`)
             mate = next((c for c in group[1:] if c.effect in TIE_PAIR and c.effect != cr.effect), None)
@@ -196,7 +199,8 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
         win.note = (f"named in place of {cr.effect} (a confusable pair, |cos| {win.collinearity:.2f}): held-back "
                     f"drop {win.held_back_drop:.3g} +- {win.held_back_se:.2g} against "
                     f"{cr.held_back_drop if cr.held_back_drop is not None else float('nan'):.3g}"
-                    + ("" if cr.accepted else f" ({cr.effect} not accepted)") + "; " + win.note)
+                    + ("" if cr.accepted else f" ({cr.effect} not accepted)")
+                    + (f"; {pt['why']}" if pt is not None and pt["winner"] == win.effect else "") + "; " + win.note)
         res = diag.results
         res.remove(win)
         res.insert(res.index(cr), win)
@@ -209,6 +213,54 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
         sig = [c for c in res if c.significant]
         res[:] = ([c for c in sig if c.accepted] + [c for c in sig if not c.accepted]
                   + [c for c in res if not c.significant])
+
+
+PAIR_STEP = True   # the nested comparison of a confusable pair both accepted on the same held-back frames
+                   # (`pair_step`, issue #22); False: the order of the held-back drops / the rival test alone
+
+
+def _decided(a, b) -> bool:
+    """a and b were told apart by the nested comparison (`pair_step`): no later reordering undoes it."""
+    pt = getattr(a, "pair_test", None)
+    return bool(pt and pt.get("decided") and set(pt["pair"]) == {a.effect, b.effect})
+
+
+def pair_step(diag, win, group, iterations: int, log=print) -> dict | None:
+    """A confusable pair of physical effects (`refit.NESTED_PAIRS`: damping vs ground, damping vs
+    viscoelasticity), both accepted on the same held-back frames: `win` (the group's choice so far) and
+    the accepted mate with the largest held-back drop are refitted together and each is judged by what it
+    adds given the other (`refit.nested_pair`: drop-one held-back loss). One more refit a fold, only where
+    such a pair is confirmed. The result goes on both (`pair_test`) and in their notes; returns it (its
+    `winner` names the effect the data needs, None when not told apart) or None when it does not apply."""
+    from ..diagnose.refit import NESTED_PAIRS, _same_folds, bottom_signature, nested_pair
+
+    if not (win.accepted and win.effect in PHYSICAL and getattr(win, "_held", None) is not None):
+        return None
+    mates = [c for c in group if c is not win and c.accepted and frozenset((c.effect, win.effect)) in NESTED_PAIRS
+             and getattr(c, "_held", None) is not None and _same_folds(c._held, win._held)]
+    if not mates:
+        return None
+    mate = max(mates, key=lambda c: c.held_back_drop or 0.0)
+    log(f"refitting {win.effect} and {mate.effect} together ({iterations} iterations): what each adds given the other")
+    pt = nested_pair(diag, win, mate, iterations=iterations)
+    if pt is None:
+        return None
+    if getattr(diag._ctx.get("settings"), "pair_signature", False) and {win.effect, mate.effect} == {"damping", "ground"}:
+        # the physical signature decides the pair (opt-in until measured on the GPU's cases): the ground is named
+        # when its model fits the lowest points better than damping's (`refit.bottom_signature`), else damping
+        dmp, gnd = (win, mate) if win.effect == "damping" else (mate, win)
+        sig = bottom_signature(diag, dmp, gnd)
+        if sig is not None:
+            pt["signature"] = sig
+            pt["nested_winner"] = pt["winner"]
+            pt["winner"] = "ground" if sig["ground_signature"] else "damping"
+            pt["decided"] = True
+            pt["why"] = f"{sig['why']}; {pt['why']}"
+    joint = pt.pop("_joint", None)
+    for c in (win, mate):
+        c.pair_test, c._pair_joint = pt, joint
+        c.note = f"pair step: {pt['why']}; " + c.note
+    return pt
 
 
 def holm(diag) -> None:
@@ -250,7 +302,7 @@ def order_accepted(diag, refit: int) -> None:
     first = acc[0]
     best, bt = None, None
     for c in acc[1:]:
-        if not _same_folds(c._held, first._held):
+        if not _same_folds(c._held, first._held) or _decided(c, first):
             continue
         t = held_back_test(diag, [(h[1], g[1], h[0]) for h, g in zip(first._held, c._held)])
         c.rival_test = {"against": first.effect, "drop": t["drop"], "se": t["se"], "p": t["p"]}
@@ -318,6 +370,8 @@ def tie_break_after_release(diag, pair=TIE_PAIR) -> dict | None:
     if len(acc) != 2:
         return None
     a, b = (acc[e] for e in sorted(pair))
+    if _decided(a, b):                             # the nested comparison told them apart (`pair_step`)
+        return None
     got = _after_release(diag, a, b)
     if got is None:
         return None
@@ -353,7 +407,8 @@ START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
-             refit_folds: int | None = None, floor_rule: bool = False, gate: float | None = None) -> dict:
+             refit_folds: int | None = None, floor_rule: bool = False, gate: float | None = None,
+             pair_signature: bool = False) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -366,7 +421,9 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     True or "full", or "match": only the superset's substeps matched to the base's, or "rest": matched, the
     camera causes judged on the frames before the first grasp and `heterogeneity` priced as the fit's own
     model selection). `gate`: the size gate (a share of the loss a significant candidate must predict) in
-    place of the rule's (3%, or 0 under a floor rule where refits confirm)."""
+    place of the rule's (3%, or 0 under a floor rule where refits confirm). `pair_signature`: damping vs ground,
+    both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
+    opt-in)."""
     import torch
 
     from ..fit.problem import FitProblem
@@ -415,6 +472,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
                                 floor_rule=floor_rule)
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
+    settings.pair_signature = bool(pair_signature)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 

@@ -172,6 +172,10 @@ class DiagnoseSettings:
             self.floor_model = self.discretisation_column = True
         if self.floor_rule == "rest":
             self.camera_rest = self.heterogeneity_priced = True
+    pair_signature: bool = False        # damping vs ground both accepted on the same held-back frames: decided by the
+                                        # ground's signature at the lowest points (`refit.bottom_signature`) rather than
+                                        # by the nested comparison alone (`app.diagnose.pair_step`; issue #22, opt-in
+                                        # until measured on the GPU's frame-calibrated cases)
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -221,6 +225,8 @@ class CandidateResult:
     rivals: list = field(default_factory=list)   # the candidates this one explains away
     rival_test: dict | None = None  # a rival's paired held-back test against the selected one it rivals
                                     # ({"against", "drop", "se", "p"}; `refit.compare_rivals`)
+    pair_test: dict | None = None   # the nested comparison of a confusable pair both accepted (`app.diagnose.
+                                    # pair_step`: {"pair", "adds": {effect: drop-one held-back test}, "winner", "why"})
     rest_only: bool = False         # tested on the frames before the first grasp only (`test_on_rows`)
     priced: dict | None = None      # `heterogeneity` priced as the fit's model selection (`refit.price_heterogeneity`)
 
@@ -259,7 +265,7 @@ class Diagnosis:
                             "accepted": c.accepted, "held_back_drop": c.held_back_drop,
                             "held_back_se": c.held_back_se, "held_back_p": c.held_back_p,
                             "held_back_level": c.held_back_level,
-                            "rival_test": c.rival_test, "rest_only": c.rest_only, "priced": c.priced,
+                            "rival_test": c.rival_test, "pair_test": c.pair_test, "rest_only": c.rest_only, "priced": c.priced,
                             "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
                             "collinearity": c.collinearity, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),

@@ -190,8 +190,10 @@ def _pair_sentence(cr) -> str:
             hb = (f"; refitted on the same held-back frames, {cr.effect} lowers their loss by {cr.held_back_drop:.3g}, "
                   f"{o.effect} by {o.held_back_drop:.3g} (beyond the base refitted alike)")
         cos = f", |cos| {o.collinearity:.2f} of what the base cannot absorb" if o.collinearity is not None else ""
+        pt = getattr(cr, "pair_test", None)
+        nest = (f"; {pt['why']}" if pt and set(pt["pair"]) == {cr.effect, o.effect} else "")
         bits.append(f"(confusable with {o.effect}: it explains the same residual alone{cos}; "
-                    f"{separation(cr.effect, o.effect)}{hb})")
+                    f"{separation(cr.effect, o.effect)}{hb}{nest})")
     return " ".join(bits)
 
 

@@ -15,6 +15,7 @@ step gives, as the prediction is, and judge it on the held-back frames."""
 from __future__ import annotations
 
 import math
+import numbers
 
 import numpy as np
 import torch
@@ -170,16 +171,21 @@ def _refit(diag: Diagnosis, effect: str | None, start: dict, val: list, iteratio
 
     ctx = diag._ctx
     prob, base = ctx["prob"], ctx["base"]
-    s = FitSettings(iterations=int(iterations), joint=True, fit_effects=(effect,) if effect else (),
+    effs = tuple(effect) if isinstance(effect, (tuple, list)) else ((effect,) if effect else ())
+    if len(effs) > 1:                   # several effects at once (`refit_joint`): `start` is {effect: {param: v}}
+        starts = {e: dict(start.get(e) or {}) for e in effs}
+    else:
+        starts = {e: start for e in effs}
+    s = FitSettings(iterations=int(iterations), joint=True, fit_effects=effs,
                     holdout_every=holdout_every, confidence_probes=0)
     lrs = BASE_LR_SCALE if base_lr_scale is None else float(base_lr_scale)
     if lrs != 1.0:      # the base's own parameters (E, the path) moved more gently than the effect's
         s.lr_material, s.lr_trajectory = s.lr_material * lrs, s.lr_trajectory * lrs
     lad = _Ladder(prob, s, log, progress=False)
     warm_start(lad, base, warm or WARM)
-    for p, raw in (lad.effect_raw.get(effect, {}) if effect else {}).items():
-        v = start.get(p)
-        if v is None or not math.isfinite(float(v)):
+    for e_, p, raw in [(e_, p, raw) for e_ in effs for p, raw in lad.effect_raw.get(e_, {}).items()]:
+        v = starts[e_].get(p)
+        if not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
             continue
         v = float(v)
         if p in _POSITIVE:
@@ -341,6 +347,7 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
         vs = [float(st["effects"][cr.effect][p_]) for st in states]
         est[p_] = float(np.exp(np.mean(np.log(vs)))) if p_ in _POSITIVE and min(vs) > 0 else float(np.mean(vs))
     cr.estimate = est
+    cr._states = states
     hb = lambda rr: loss(np.concatenate([r[m] for r, (m, _) in zip(rr, held)]))  # noqa: E731
     v1 = loss(np.concatenate([r1[m] for m, r1 in held]))
     ref = "the base's" if nf is None else f"the base refitted alike: {hb(refs['control']):.3e}"
@@ -357,6 +364,164 @@ def refit_effect(diag: Diagnosis, cr: CandidateResult, *, iterations: int = 8, h
 
 def _same_folds(a: list, b: list) -> bool:
     return len(a) == len(b) and all(np.array_equal(x[0], y[0]) for x, y in zip(a, b))
+
+
+# The confusable pairs of physical effects the nested comparison (`nested_pair`) separates when both are
+# accepted on the same held-back frames (issue #22: "damping vs ground friction", damping vs viscoelasticity).
+NESTED_PAIRS = (frozenset(("damping", "ground")), frozenset(("damping", "viscoelasticity")))
+
+
+def refit_joint(diag: Diagnosis, crs: list, frames: list, *, iterations: int = 8, holdout_every: int = 4, log=None
+                ) -> dict | None:
+    """The candidates `crs` (physical effects) refitted together, each started at its own refitted
+    estimate, on the held-back `frames` (one list per fold, as each was refitted alone). Returns
+    {"effects", "held": [per fold (mask, image residual)], "states", "estimate": {effect: {param}}} or
+    None when the simulation fails."""
+    ctx = diag._ctx
+    res = ctx["res"]
+    effs = tuple(c.effect for c in crs)
+    start = {c.effect: dict(c.estimate) for c in crs}
+    held, states = [], []
+    for val in as_folds(frames):
+        try:
+            r1, _, state = _refit(diag, effs, start, val, iterations, holdout_every, log)
+        except SimulationError:
+            return None
+        held.append((_frame_mask(res, val) if val else np.ones(len(r1), bool), r1))
+        states.append(state)
+    return {"effects": effs, "held": held, "states": states,
+            "estimate": {e: dict(states[0]["effects"].get(e, {})) for e in effs}}
+
+
+def per_frame_loss(diag: Diagnosis, held: list) -> dict:
+    """{frame: the loss (mean square over its elements) of a model's held-back residual}, folds pooled
+    (each frame is held back in one fold)."""
+    fr = diag._ctx["res"].frame_of()
+    out = {}
+    for m, r in held:
+        for k in sorted(set(fr[m].tolist())):
+            mk = m & (fr == k)
+            out[int(k)] = float(np.mean(np.square(np.asarray(r)[mk])))
+    return out
+
+
+def nested_pair(diag: Diagnosis, a: CandidateResult, b: CandidateResult, *, iterations: int = 8,
+                holdout_every: int = 4, log=None) -> dict | None:
+    """Two candidates of a confusable pair, both accepted on the same held-back frames (`a` the one
+    named, `b` its rival), told apart by a nested comparison: refitted together (one more refit a fold,
+    `refit_joint`), each judged by what it adds given the other: the paired held-back test (`held_back_test`,
+    pooled over the folds) from the other one's model alone to the pair's. The effect the data needs is the
+    one whose removal costs held-back loss; its rival, whose removal costs nothing once the first is in, only
+    mimicked it. Returns {"pair", "adds": {effect: {"drop", "se", "p", "share"}}, "winner", "decided",
+    "why", "per_frame": {model: {frame: held-back loss}}, "estimate"}; `winner` is `a` or `b`'s effect, or None
+    (not told apart: both add, or neither does); None when the joint refit failed or the folds differ."""
+    ha, hb_ = getattr(a, "_held", None), getattr(b, "_held", None)
+    if ha is None or hb_ is None or not _same_folds(ha, hb_):
+        return None
+    folds = [sorted(set(diag._ctx["res"].frame_of()[m].tolist())) for m, _ in ha]
+    j = refit_joint(diag, [a, b], folds, iterations=iterations, holdout_every=holdout_every, log=log)
+    if j is None:
+        return None
+    out = judge_nested(diag, a, b, j["held"], effects=j["effects"])
+    out.update(estimate=j["estimate"], _joint=j)
+    return out
+
+
+def lowest_points_mask(diag: Diagnosis, band: float | None = None, radius_px: float = 1.5) -> np.ndarray:
+    """(n,) bool over the image residual's elements: the pixels (of the residual's subsampled grid) within
+    `radius_px` strided pixels of the base model's lowest particles projected into each frame, the particles
+    within `band` of that frame's lowest point (default half `core.ground_reach`: what a plane below the
+    body can touch). Where a ground acts and damping does not single out."""
+    from .core import ground_reach
+
+    ctx = diag._ctx
+    prob, res, x = ctx["prob"], ctx["res"], ctx["x"]
+    x = x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x)
+    band = 0.5 * ground_reach(prob) if band is None else float(band)
+    nf, h, w, _ = res.shape
+    s = res.stride
+    out = np.zeros((nf, h, w), bool)
+    for i, k in enumerate(res.frames):
+        y = x[k][:, 1]
+        low = x[k][y <= y.min() + band]
+        uv, z = prob.cameras[k].project(low)
+        uv = uv[z > 0]
+        if not len(uv):
+            continue
+        ci = (uv[:, 0] - (s // 2 + 0.5)) / s          # strided column / row of each projected particle
+        ri = (uv[:, 1] - (s // 2 + 0.5)) / s
+        rr, cc = np.mgrid[0:h, 0:w]
+        for a, b in zip(ri, ci):
+            out[i] |= (rr - a) ** 2 + (cc - b) ** 2 <= radius_px ** 2
+    return np.broadcast_to(out[..., None], (nf, h, w, 4)).ravel()
+
+
+def bottom_signature(diag: Diagnosis, damping: CandidateResult, ground: CandidateResult, *,
+                     mask: np.ndarray | None = None) -> dict | None:
+    """The ground's signature against damping (issue #22): a plane stops the lowest points at one height while
+    the rest of the body moves; damping slows every motion everywhere. On the held-back elements at the base
+    model's lowest points (`lowest_points_mask`) and on the rest, the paired test (`held_back_test`, folds
+    pooled) from damping's refitted model to the ground's: `bottom` > 0 with p < alpha is the ground's
+    signature (its model fits the lowest points better than damping's, which cannot single them out). Returns
+    {"bottom": {"drop", "se", "p", "elements"}, "rest": {...}, "ground_signature": bool, "why"} or None."""
+    hd, hg = getattr(damping, "_held", None), getattr(ground, "_held", None)
+    if hd is None or hg is None or not _same_folds(hd, hg):
+        return None
+    low = lowest_points_mask(diag) if mask is None else np.asarray(mask, bool)
+    out = {}
+    for name, sel in (("bottom", low), ("rest", ~low)):
+        trip = [(a[1], b[1], a[0] & sel) for a, b in zip(hd, hg)]
+        n = int(sum(t[2].sum() for t in trip))
+        if n == 0:
+            return None
+        t = held_back_test(diag, trip)
+        out[name] = {"drop": float(t["drop"]), "se": float(t["se"]), "p": float(t["p"]), "elements": n}
+    b, r = out["bottom"], out["rest"]
+    out["ground_signature"] = bool(b["p"] < _alpha(diag) and b["drop"] > 0)
+    out["why"] = (f"at the lowest points (the pixels of the particles within half a plane's reach of the lowest, "
+                  f"{b['elements']} held-back values) the ground's model leaves {b['drop']:.3g} +- {b['se']:.2g} less "
+                  f"than damping's (p = {b['p']:.2g}); over the rest of the body {r['drop']:.3g} +- {r['se']:.2g} "
+                  f"(p = {r['p']:.2g})" + (": the lowest points stop where a floor holds them (the ground's signature)"
+                                           if out["ground_signature"] else ": no floor's signature at the lowest points"))
+    return out
+
+
+def judge_nested(diag: Diagnosis, a: CandidateResult, b: CandidateResult, joint: list, effects=None) -> dict:
+    """The nested comparison's decision (`nested_pair`) from `a`'s and `b`'s held-back residuals (their
+    `_held`, on the same folds) and the pair's (`joint`: per fold (mask, image residual)): what each adds
+    given the other, by the paired held-back test from the other's model alone to the pair's; the one needed
+    (p < alpha, drop > 0) while the other is not is the `winner`."""
+    ha, hb_ = a._held, b._held
+    alpha = _alpha(diag)
+    base = [diag._ctx["r0"]] * len(ha)
+    L_base = loss(np.concatenate([np.asarray(r)[m] for r, (m, _) in zip(base, ha)]))
+    adds = {}
+    for me, other in ((a, b), (b, a)):
+        # what `me` adds given `other`: from other's held-back residual to the pair's
+        t = held_back_test(diag, [(ho[1], hj[1], ho[0]) for ho, hj in zip(other._held, joint)])
+        adds[me.effect] = {"drop": float(t["drop"]), "se": float(t["se"]), "p": float(t["p"]),
+                           "share": float(t["drop"]) / L_base if L_base > 0 else 0.0,
+                           "needed": bool(t["p"] < alpha and t["drop"] > 0)}
+    na, nb = adds[a.effect]["needed"], adds[b.effect]["needed"]
+    winner = a.effect if na and not nb else b.effect if nb and not na else None
+    pct = lambda e: f"{100 * adds[e]['share']:.1f}% (p = {adds[e]['p']:.2g})"  # noqa: E731
+    why = (f"refitted together (drop-one on the same held-back frames): removing {a.effect} given {b.effect} "
+           f"costs {pct(a.effect)} of the held-back loss, removing {b.effect} given {a.effect} {pct(b.effect)}")
+    L_j = loss(np.concatenate([np.asarray(r)[m] for m, r in joint]))
+    L_1 = min(loss(np.concatenate([np.asarray(r)[m] for m, r in h])) for h in (ha, hb_))
+    if L_j > L_1:
+        why += (" (the pair's refit ends above the better one alone: its few iterations from the two estimates did not "
+                "reach it; read the removal costs as bounds)")
+    if winner is None:
+        why += (": both needed" if na and nb else ": neither needed given the other (not told apart by nesting)")
+    else:
+        loser = b.effect if winner == a.effect else a.effect
+        why += f": {winner} is needed, {loser} only mimics it"
+    per_frame = {"base": per_frame_loss(diag, [(m, r) for r, (m, _) in zip(base, ha)]),
+                 a.effect: per_frame_loss(diag, ha), b.effect: per_frame_loss(diag, hb_),
+                 "+".join(effects or (a.effect, b.effect)): per_frame_loss(diag, joint)}
+    return {"pair": [a.effect, b.effect], "adds": adds, "winner": winner, "decided": winner is not None,
+            "why": why, "per_frame": per_frame}
 
 
 def compare_rivals(diag: Diagnosis, cr: CandidateResult, group: list):
@@ -540,7 +705,7 @@ def judge_on_rest(diag: Diagnosis, cr: CandidateResult) -> None:
 
 __all__ = ["refit_effect", "refit_null", "judge_probe", "judge_on_rest", "price_heterogeneity", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
            "held_back_test", "warm_start", "residual_at", "rung_for",
-           "compare_rivals"]
+           "compare_rivals", "nested_pair", "judge_nested", "bottom_signature", "lowest_points_mask", "refit_joint", "per_frame_loss", "NESTED_PAIRS"]
 
 
 def refit_base(prob, base, factor: float, *, iterations: int = 8, res: ImageResidual | None = None, log=None):
