@@ -36,7 +36,7 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         # touched for a frame or two, or longer with the toucher moving less than 2 px while it
         # acts (a slow press into a sheet on a floor, dev_0009), and parted without the object
         # following: a knock or a press, not a grasp (a hand that takes hold pulls the object along)
-        if surface > 0.45:
+        if flat(evidence, surface):
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
     tension = evidence.get("tension_px") or 0.0
@@ -44,16 +44,16 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     # pull toward the camera, whose motion in depth the image does not show (below)
     in_depth = (push is not None and moved >= 1.0 and push < -0.6 and approach is not None and ap_speed >= 1.0
                 and approach < 0.0)
-    if not in_depth and (evidence.get("press_cos") or 0.0) >= PRESS_COS \
-            and (evidence.get("pressed_in_px") or 0.0) >= 1.0 and tension < 0.7 \
-            and (evidence.get("withdrawn_px") or 0.0) >= 1.0:
+    if not in_depth and tension < 0.7 and (pressed(evidence) or pressed(evidence, "approach_")):
         # the object next to the contact moved only along the inward normal (its largest displacement
         # from rest within 32 deg of it) and never followed the toucher out past its rest surface (by
         # more than 2 eps, the noise), though the toucher moved out (a grasp that only pushes looks
         # the same until it pulls: dev_9372, a glove dragging a rope across itself):
         # pushed, not held (a grasp drags the contact region along the surface with the toucher, or
-        # holds it as the toucher moves away; dev_0007's stick, typed a grasp by its withdrawal)
-        if surface > 0.45:
+        # holds it as the toucher moves away; dev_0007's stick, typed a grasp by its withdrawal).
+        # Read against the silhouette's inward normal or, where that is ill-defined (a corner), the
+        # way the toucher came in (#23, dev_0144: a palm pressing a block's corner)
+        if flat(evidence, surface):
             return "surfaceNonAdherent", 0.6
         return "pointNonAdherent", 0.6
     face, into = evidence.get("face_normal_cos"), evidence.get("into_cos")
@@ -62,7 +62,8 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         # (tension): a palm or a board cannot pull, a hand that holds can (a glove's flat side read
         # as a press)
         return "pointAdherent", 0.5
-    if surface > 0.45 and moved >= 1.0 and face is not None and face >= FACE_NORMAL_COS and into is not None and into > 0:
+    if flat(evidence, surface) and surface > 0.45 and moved >= 1.0 and face is not None and face >= FACE_NORMAL_COS \
+            and into is not None and into > 0:
         # a long straight interface (not a ball's) whose first main motion goes along its own normal
         # (closer to it than to the face) and into the object: a flat face pressed into it, a
         # palm or a board, which cannot hold. Its body lies beside the contact along the face, so
@@ -73,14 +74,45 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     if in_depth:
         return "pointAdherent", 0.5
     if push < -0.6:
-        # the object only moved away from the hand: pushed. A long flat interface is a palm.
-        if surface > 0.45:
+        # the object only moved away from the hand: pushed. A wide front (else a long flat
+        # interface) is a palm.
+        if flat(evidence, surface):
             return "surfaceNonAdherent", float(min(1.0, 0.5 + (surface - 0.45)))
         return "pointNonAdherent", float(min(1.0, -push))
     return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
 
 
+def pressed(evidence: dict, prefix: str = "") -> bool:
+    """The object next to the contact was pressed in (at least 1 px, its largest displacement
+    within 32 deg of the inward direction) and never followed the toucher out past its rest
+    surface (under 2 eps of tension) though the toucher moved out (at least 1 px): `normal_motion`'s
+    evidence against the silhouette's inward normal (`prefix` "") or the toucher's approach
+    ("approach_")."""
+    return ((evidence.get(prefix + "press_cos") or 0.0) >= PRESS_COS
+            and (evidence.get(prefix + "pressed_in_px") or 0.0) >= 1.0
+            and (evidence.get(prefix + "tension_px") or 0.0) < 0.7
+            and (evidence.get(prefix + "withdrawn_px") or 0.0) >= 1.0)
+
+
+def flat(evidence: dict, surface: float) -> bool:
+    """A surface contact: the toucher's front is wide (`wide_front`) where it was measured (#23: a
+    contact is as wide as the front that makes it, whatever else of the toucher is seen over the
+    object), else the hand-object interface's straight span is over 0.45 of the object (`surface`,
+    0 for a ball)."""
+    if evidence.get("front_width_m") is not None:
+        return wide_front(evidence)
+    return surface > 0.45
+
+
+def wide_front(evidence: dict) -> bool:
+    """The toucher pushes with a front wider than any fingertip, stick end or ball cap
+    (`toucher_front_width` at least FRONT_WIDE_M): a face (a palm, a board), unless it is a ball."""
+    w = evidence.get("front_width_m")
+    return w is not None and w >= FRONT_WIDE_M and not is_ball(evidence.get("toucher_round"))
+
+
 FACE_NORMAL_COS = float(np.cos(np.pi / 4))   # a motion closer to a face's normal than to the face
+FRONT_WIDE_M = 0.06   # a front wider than this is a face: fingertips <= 2.8 cm, sticks <= 2 cm, palms >= 10 cm
 PRESS_COS = 0.85      # the object's largest displacement within 32 deg of the inward normal: a press
 TENSION_PX = 2.0      # px the object followed the toucher out past its rest surface: held
 
@@ -182,15 +214,30 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
     normal = {}
     n_in = inward_normal(an.rest.silhouette, c2)
+    end = len(timing.object_velocity) if timing.release is None else timing.release
     if n_in is not None:
-        end = len(timing.object_velocity) if timing.release is None else timing.release
         normal = normal_motion(timing.hand_velocity, timing.object_velocity, n_in, min(timing.period[0], g), g,
                                end)
+    # the same against the way the toucher came in (#23): a toucher reaches the surface from
+    # outside, so its approach points into the object wherever the silhouette's normal is
+    # ill-defined (a block's corner under a palm, dev_0144: 58 deg off the palm's press)
+    if app_speed >= 1.0:
+        ap = normal_motion(timing.hand_velocity, timing.object_velocity, unit(v_app), min(timing.period[0], g),
+                           g, end)
+        normal.update({f"approach_{k}": v for k, v in ap.items()})
     # the first main motion against the straight interface's normal: a flat face pushed into the
     # object moves along its own normal
     face_cos = float(abs(np.dot(unit(d2), face))) if face is not None and motion > 0 else None
+    # how wide the toucher's front is where it pushes (its own shape, in metres): its leading edge
+    # along its first main motion and along its approach (over 2 eps), the narrower: a flat face is
+    # wide whichever way it comes in, a finger on a hand only along itself (a push 70 deg off
+    # the finger reads the hand's side, 15 cm: dev_0204's glove finger on a ring)
+    fronts = [toucher_front_width(an, g, c2, p1 if timing.release is None else timing.release, d)
+              for d, ok in ((d2, motion > 0), (v_app, app_speed >= 2 * an.eps)) if ok]
+    fronts = [w for w in fronts if w is not None]
+    front = min(fronts) if fronts else None
     return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
-            "face_normal_cos": face_cos,
+            "face_normal_cos": face_cos, "front_width_m": front,
             "toucher_round": toucher_roundness(an, g, c2, p1),
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
@@ -301,3 +348,40 @@ def interface_span(an: Analysis, g: int, c2, end: int, with_normal: bool = False
         if straight >= 3.0 and length / max(size, 1.0) > best:
             best, normal = length / max(size, 1.0), V[:, 0].copy()
     return (best, normal) if with_normal else best
+
+
+def toucher_front_width(an: Analysis, g: int, c2, end: int, push, depth_m: float = 0.01,
+                        min_px: int = 5) -> float | None:
+    """How wide the toucher's front is where it pushes, in metres: per frame from the grasp to
+    `end`, the toucher's component at the contact, its pixels within `depth_m` (at the object's
+    depth; at least 1.5 px) of its leading edge along `push` (unit, image: the way it pushes), and
+    their extent across `push`; the median over the frames. This is the toucher's own shape, not
+    where it overlaps the object: a flat face (a palm, a board) is as wide at its front as it is
+    (10-18 cm here), a fingertip, a stick's end or a ball's cap a few centimetres. None where
+    `push` has no direction or no frame shows the toucher at the contact."""
+    import cv2
+
+    d = np.asarray(push, float)
+    if not np.isfinite(d).all() or np.linalg.norm(d) < 1e-9:
+        return None
+    d = d / np.linalg.norm(d)
+    perp = np.array([-d[1], d[0]])
+    band = max(1.5, depth_m * an.px_per_m)
+    widths = []
+    for k in range(g, min(end, an.T - 1) + 1):
+        hand = an.hand[k]
+        if not hand.any():
+            continue
+        n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
+        near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
+        if not (near > 0).any():
+            continue
+        p = pixel_centres(lab == np.bincount(near[near > 0], minlength=n).argmax())
+        if len(p) < min_px:
+            continue
+        along = p @ d
+        front = p[along >= along.max() - band]
+        widths.append(float(np.ptp(front @ perp)) + 1.0)
+    if not widths:
+        return None
+    return float(np.median(widths)) / an.px_per_m
