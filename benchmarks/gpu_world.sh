@@ -20,7 +20,9 @@
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # TRUE_CONTACTS (1: world_fit.py --true-contacts: the fit from the truth's interaction and floor, the material
 # alone), MIN_E_TRUE (world_fit.py --min-e-true: fit only captures whose true median E is at least this, e.g. 1e5),
-# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS).
+# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS). ROWS (default $WORK/rows: the rows and logs; a second
+# variant on the same captures, e.g. PHYSINTERACT_PIN_RULE=1,0, takes its own ROWS so that its fits are not skipped
+# as already done).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
 set -u
 SPLIT="${1:?split: dev or validation}"
@@ -39,7 +41,8 @@ NOFIT="${NOFIT:-}"
 TIMING="${TIMING:-}"
 PY="${PYTHON:-python3}"
 T_START=$(date +%s)
-mkdir -p "$OUT" "$WORK/rows"
+ROWS="${ROWS:-$WORK/rows}"
+mkdir -p "$OUT" "$ROWS"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 FINAL=""
 [ "$SPLIT" = validation ] && FINAL="--final"
@@ -68,19 +71,19 @@ worker() {
     step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" || return
     t1=$(date +%s)
     step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
-      --json "$WORK/rows/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
+      --json "$ROWS/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
       ${MAX_PARTICLES:+--max-particles "$MAX_PARTICLES"} ${TIMING:+--timing "$TIMING"} || return
     t2=$(date +%s)
     [ -n "$NOFIT" ] && { echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s (no fit)"; return; }
     step 15 $PY benchmarks/world_fit.py --work "$WORK" --split "$SPLIT" $FINAL --seeds "$s" --iterations "$ITER" \
-      --json "$WORK/rows/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS" ${TRUTH_SWEEP:+--truth-sweep} ${TRUE_CONTACTS:+--true-contacts} \
+      --json "$ROWS/fit_$n.json" --device "$DEVICE" --fit-settings "$FIT_SETTINGS" ${TRUTH_SWEEP:+--truth-sweep} ${TRUE_CONTACTS:+--true-contacts} \
       ${MIN_E_TRUE:+--min-e-true "$MIN_E_TRUE"}
     echo "$n: generate $((t1 - t0)) s, extract $((t2 - t1)) s, fit $(( $(date +%s) - t2 )) s"
-  } > "$WORK/rows/$n.log" 2>&1
-  grep -E "^$n|Error|error" "$WORK/rows/$n.log" | head -5
+  } > "$ROWS/$n.log" 2>&1
+  grep -E "^$n|Error|error" "$ROWS/$n.log" | head -5
 }
 export -f worker step
-export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
+export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time
@@ -96,7 +99,7 @@ fi
 wait $PID_FIRST 2>/dev/null
 
 # merge the per-seed rows and print the table
-$PY - "$WORK/rows" "$OUT" "$SPLIT" <<'EOF'
+$PY - "$ROWS" "$OUT" "$SPLIT" <<'EOF'
 import json, sys
 from pathlib import Path
 rows, out, split = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
@@ -114,5 +117,5 @@ $PY benchmarks/world_suite.py table --split "$SPLIT" $FINAL --work "$WORK" --jso
   --fits "$OUT/world_${SPLIT}_fit.json" | tee "$OUT/world_${SPLIT}.md"
 $PY -c "import json, sys; sys.path.insert(0, 'benchmarks'); import world_fit; \
 print(world_fit.e_table([r for r in json.load(open('$OUT/world_${SPLIT}_fit.json')) if 'ma' in r]))" | tee -a "$OUT/world_${SPLIT}.md"
-cat "$WORK"/rows/*.log > "$OUT/world_${SPLIT}_logs.txt" 2>/dev/null
+cat "$ROWS"/*.log > "$OUT/world_${SPLIT}_logs.txt" 2>/dev/null
 echo "total $(( $(date +%s) - T_START )) s"

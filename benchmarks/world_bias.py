@@ -9,6 +9,11 @@ true median E, its near-best interval and whether it holds the truth.
 
     python benchmarks/world_bias.py --work data/world_dev --seeds 0-14 --caps 15000,60000 --device cuda --json out/bias.json
     python benchmarks/world_bias.py --work data/world_dev --seeds 3 --caps 4000 --init-only   # grids only (CPU, seconds)
+    python benchmarks/world_bias.py --work data/world_stiff --seeds 143 --caps 1500 --rules default,band --grid-scales 1,2
+
+`--rules`, `--grid-scales`, `--steps`, `--blends`: the variants of world_simcheck.py (the pin rule; our grid as a
+multiple of grid auto's cells within the cap; the fit's adaptive substep or the truth's; the partial blends at a
+rate or once per substep), one row each: does the sweep's minimum move to the truth with them? (#24)
 
 A tuning tool: it refuses the validation split. docs/benchmarks/world_fits.md has the results.
 """
@@ -56,11 +61,12 @@ def gt_dir(work: Path, n: str) -> Path:
     raise InputError(work / n, "no ground truth (gt.json) next to this capture")
 
 
-def one(work: Path, n: str, cap_n: int, device: str, init_only: bool, scratch: Path, true_nu: bool = False) -> dict:
+def one(work: Path, n: str, cap_n: int, device: str, init_only: bool, scratch: Path, true_nu: bool = False,
+        grid="auto") -> dict:
     cap, gt = work / n, gt_dir(work, n)
-    out = scratch / f"{n}_{cap_n}_{'nu' if true_nu else 'default'}"
+    out = scratch / f"{n}_{cap_n}_{grid}_{'nu' if true_nu else 'default'}"
     t0 = time.perf_counter()
-    gc = prepare_stage(cap, gt, out, cap_n)
+    gc = prepare_stage(cap, gt, out, cap_n if grid == "auto" else 10 ** 7, grid=grid)
     row = {"scene": n, "cap": cap_n, "grid": gc.get("grid"), "cells_across": gc.get("cellsAcross"),
            "particles": gc.get("particles"), "limit": gc.get("limit") or "", "init_s": time.perf_counter() - t0,
            "nu_mode": "true" if true_nu else "default"}
@@ -82,15 +88,16 @@ def one(work: Path, n: str, cap_n: int, device: str, init_only: bool, scratch: P
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| capture | nu | cap | grid | cells across | particles | limit | E true | best uniform E / true | near-best interval / true | holds truth | sweep s |",
-           "|---|---|---:|---:|---:|---:|---|---:|---:|---|---|---:|"]
+    out = ["| capture | nu | cap | grid | cells across | particles | limit | variant (rule, grid x, step, blend) | E true | best uniform E / true | near-best interval / true | holds truth | sweep s |",
+           "|---|---|---:|---:|---:|---:|---|---|---:|---:|---|---|---:|"]
     for r in rows:
         iv = r.get("truth_sweep_interval")
         ivs = f"{iv[0] / r['e_true']:.2f} .. {iv[1] / r['e_true']:.2f}" if iv and r.get("e_true") else "-"
         ratio = f"{r['ratio']:.2f}" if "ratio" in r else r.get("error", "-")
         nu = f"{r['truth_sweep_nu']:.2f} ({r['nu_mode']})" if r.get("truth_sweep_nu") is not None else r.get("nu_mode", "-")
         out.append(f"| {r['scene']} | {nu} | {r['cap']} | {r.get('grid')} | {r.get('cells_across') or 0:.1f} | {r.get('particles')} "
-                   f"| {r.get('limit') or '-'} | {r.get('e_true', float('nan')):.3g} | {ratio} | {ivs} "
+                   f"| {r.get('limit') or '-'} | {r.get('rule', 'default')}, {r.get('grid_scale', 1):g}, {r.get('step', 'fit')}, {r.get('blend', 'rate')} "
+                   f"| {r.get('e_true', float('nan')):.3g} | {ratio} | {ivs} "
                    f"| {r.get('truth_sweep_covers', '-')} | {r.get('sweep_s', 0):.0f} |")
     return "\n".join(out)
 
@@ -148,12 +155,52 @@ def main(argv=None) -> int:
     ap.add_argument("--nu", default="default", help="the sweep's Poisson ratio: default (the stage's), true (the truth's "
                     "median) or both (two rows per cap)")
     ap.add_argument("--scratch", default="/tmp/world_bias")
+    ap.add_argument("--rules", default="default", help="pin rules (world_simcheck.RULES: default, band, gain1)")
+    ap.add_argument("--grid-scales", default="1", help="our grid: 1 = grid auto within the cap; 2 = twice its cells")
+    ap.add_argument("--steps", default="fit", help="fit (adaptive substep) and/or truth (the truth's substeps a frame)")
+    ap.add_argument("--blends", default="rate", help="rate (the fit's) and/or substep (the generator's partial blends)")
     a = ap.parse_args(argv)
     caps = [int(c) for c in a.caps.split(",") if c]
     modes = {"default": [False], "true": [True], "both": [False, True]}[a.nu]
+    import world_simcheck as wsc
+    from physinteract_usd import simulation
+
+    rules = [r for r in a.rules.split(",") if r]
+    if any(r not in wsc.RULES for r in rules):
+        print(f"world_bias.py: error: --rules: unknown {[r for r in rules if r not in wsc.RULES][0]!r} "
+              f"({', '.join(wsc.RULES)})", file=sys.stderr)
+        return 2
+    scales = [float(t) for t in a.grid_scales.split(",") if t]
+    steps = [t for t in a.steps.split(",") if t]
+    blends = [t for t in a.blends.split(",") if t]
 
     def rows_of(n):
-        return [one(Path(a.work), n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn) for c in caps for tn in modes]
+        rows = []
+        n_auto = {}
+        for c in caps:
+            for gs in scales:
+                grid = "auto"
+                if gs != 1.0:
+                    if c not in n_auto:
+                        n_auto[c] = int(prepare_stage(Path(a.work) / n, gt_dir(Path(a.work), n),
+                                                      Path(a.scratch) / f"{n}_{c}_probe", c).get("grid"))
+                    grid = int(round(gs * n_auto[c]))
+                for rule in rules:
+                    for stp in steps:
+                        for bl in blends:
+                            g = json.loads((gt_dir(Path(a.work), n) / "gt.json").read_text())
+                            wsc.FORCE.update({"substeps": int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None,
+                                              "blend": bl})
+                            simulation.PIN_RULE = wsc.RULES[rule]
+                            try:
+                                for tn in modes:
+                                    r = one(Path(a.work), n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn, grid=grid)
+                                    r.update({"rule": rule, "grid_scale": gs, "step": stp, "blend": bl})
+                                    rows.append(r)
+                            finally:
+                                wsc.FORCE.update({"substeps": None, "blend": "rate"})
+                                simulation.PIN_RULE = wsc.RULES["default"]
+        return rows
 
     return per_capture("world_bias.py", Path(a.work), a.seeds, rows_of, a.json, table,
                        show=lambda r: json.dumps({k: v for k, v in r.items() if k != "truth_sweep"}))

@@ -12,6 +12,15 @@ band, `simulation.PIN_RULE`): the mean displacement error over the frames of the
 over the frames after the release, against the truth's mean displacement.
 
     python benchmarks/world_simcheck.py --work data/world_dev --seeds 6 --factors 0.125,0.25,0.5,1,2 --device cuda
+    python benchmarks/world_simcheck.py --work data/world_stiff --seeds 141 --cap 3000 --grid-scales 1,1.5 \
+        --steps fit,truth --blends rate,substep --rules default,band,gain1       # the #24 stiff-bias variants
+
+Variants of OUR side (the truth is what it is), each crossed with the pin rules: `--grid-scales`: the fit's
+grid, 1 = `init --grid auto` within `--cap`, 1.5 = round(1.5 x that) cells (the cap lifted: 1.5^3 the
+particles); `--steps`: `fit` (the adaptive substep at CFL 0.6, its E rung) or `truth` (the truth's own
+substeps a frame, gt.json gt_sim, at every factor); `--blends`: `rate` (the fit's: a partial pin, collider
+or floor blend acts at a rate per unit time) or `substep` (the generator's: once per substep, blend_dt 0).
+Per (capture, variant) the best factor is refined by a parabola through the three least errors in log E.
 
 A tuning tool: it refuses the validation split. Results in docs/benchmarks/world_fits.md.
 """
@@ -39,6 +48,38 @@ from world_fit import add_ground  # noqa: E402
 # "gain1": the world generator's own blend (a node moves with the held share of its mass, pin_gain 1)
 RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND, "gain1": (1.0, 0.0)}
 
+# what our SimModel.create is given, per variant: a forced substep count, the blend once per substep
+FORCE = {"substeps": None, "blend": "rate"}
+_CREATE = simulation.SimModel.create.__func__
+
+
+def _create(cls, *a, **kw):
+    if FORCE["substeps"]:
+        kw["substeps"] = int(FORCE["substeps"])
+    if FORCE["blend"] == "substep":
+        kw["blend_dt"] = 0.0
+    return _CREATE(cls, *a, **kw)
+
+
+simulation.SimModel.create = classmethod(_create)
+
+
+def best_factor(pairs: list[tuple[float, float]]) -> float | None:
+    """The factor of least error, refined by a parabola through the least and its neighbours in log factor
+    (the grid's end when the least is at an end)."""
+    pairs = sorted(pairs)
+    if not pairs:
+        return None
+    i = min(range(len(pairs)), key=lambda k: pairs[k][1])
+    if i == 0 or i == len(pairs) - 1:
+        return pairs[i][0]
+    (a, fa), (b, fb), (c, fc) = [(np.log(pairs[k][0]), pairs[k][1]) for k in (i - 1, i, i + 1)]
+    den = (b - a) * (fb - fc) - (b - c) * (fb - fa)
+    if den == 0:
+        return pairs[i][0]
+    x = b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - c) ** 2 * (fb - fa)) / den
+    return float(np.exp(np.clip(x, a, c)))
+
 
 def compare(x: np.ndarray, x0: np.ndarray, truth: np.ndarray, nn: np.ndarray) -> np.ndarray:
     """(T,) mean distance between our particles' displacement and their nearest truth particle's."""
@@ -48,15 +89,41 @@ def compare(x: np.ndarray, x0: np.ndarray, truth: np.ndarray, nn: np.ndarray) ->
 
 
 def one(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], device: str, scratch: Path,
-        log=print) -> list[dict]:
+        log=print, grid_scales=(1.0,), steps=("fit",), blends=("rate",)) -> list[dict]:
+    rows = []
+    gt = gt_dir(work, n)
+    g = json.loads((gt / "gt.json").read_text())
+    n_auto = None
+    for gs in grid_scales:
+        grid = "auto"
+        if gs != 1.0:
+            if n_auto is None:
+                n_auto = int(prepare_stage(work / n, gt, scratch / f"{n}_{cap_n}_probe", cap_n).get("grid"))
+            grid = int(round(gs * n_auto))
+        for stp in steps:
+            for bl in blends:
+                FORCE["substeps"] = int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None
+                FORCE["blend"] = bl
+                try:
+                    rs = one_variant(work, n, cap_n, factors, rules, device, scratch, log, grid=grid)
+                finally:
+                    FORCE.update({"substeps": None, "blend": "rate"})
+                for r in rs:
+                    r.update({"grid_scale": gs, "step": stp, "blend": bl})
+                rows += rs
+    return rows
+
+
+def one_variant(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], device: str, scratch: Path,
+                log=print, grid="auto") -> list[dict]:
     from scipy.spatial import cKDTree
 
     from physinteract_usd.app.fit import make_problem, prepare_fit
 
     gt = gt_dir(work, n)
     g = json.loads((gt / "gt.json").read_text())
-    out = scratch / f"{n}_{cap_n}"
-    gc = prepare_stage(work / n, gt, out, cap_n)
+    out = scratch / f"{n}_{cap_n}_{grid}"
+    gc = prepare_stage(work / n, gt, out, cap_n if grid == "auto" else 10 ** 7, grid=grid)
     stage = out / "scene.usda"
     if g.get("floor"):
         add_ground(stage, g["floor"]["height"], g["floor"].get("friction", 0.5))
@@ -83,10 +150,13 @@ def one(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], 
                    "particles": len(x0), "truth_particles": len(rest), "rule": rule, "factor": f,
                    "e_true": float(np.median(tr["E"])), "truth_mean_disp_m": scale,
                    "shape": g.get("world", {}).get("shape"), "scenario": g.get("world", {}).get("scenario"),
-                   "type": it.get("type"), "grasp": grasp, "release": release}
+                   "type": it.get("type"), "grasp": grasp, "release": release,
+                   "substeps": None, "truth_substeps": g.get("gt_sim", {}).get("substeps_per_frame"),
+                   "truth_dx": g.get("gt_sim", {}).get("dx"), "dx": float(prob.sim.grid.dx)}
             try:
                 with torch.no_grad():
                     x, _ = prob.simulate(E_t * f, nu_t)
+                row["substeps"] = int(prob.sim.model.substeps)
                 err = compare(x[:T].detach().cpu().numpy(), x0, pos[:T], nn)
                 row.update({"err_all_m": float(err[1:].mean()),
                             "err_interaction_m": float(err[inter].mean()) if inter else None,
@@ -102,12 +172,14 @@ def one(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], 
 
 
 def table(rows: list[dict]) -> str:
-    """One line per (capture, rule): the error at each factor (mm), the factor with the least."""
-    out = ["| capture | what | particles (truth) | rule | mean truth displacement | error (mm) at E x factor: all / interaction / after release | best factor (all / after) |",
-           "|---|---|---|---|---:|---|---|"]
-    keys = sorted({(r["scene"], r["rule"]) for r in rows}, key=lambda k: (k[0], k[1]))
-    for sc, rule in keys:
-        rs = sorted([r for r in rows if r["scene"] == sc and r["rule"] == rule], key=lambda r: r["factor"])
+    """One line per (capture, variant, rule): the error at each factor (mm), the factor with the least
+    (over all frames, refined by a parabola in log E; and after the release, on the grid)."""
+    out = ["| capture | what | particles (truth) | grid x, dx / truth's | step: substeps (truth's) | blend | rule | mean truth displacement "
+           "| error (mm) at E x factor: all / interaction / after release | best factor all (refined) / after |",
+           "|---|---|---|---|---|---|---|---:|---|---|"]
+    key = lambda r: (r["scene"], r.get("grid_scale", 1.0), r.get("step", "fit"), r.get("blend", "rate"), r["rule"])  # noqa: E731
+    for k in sorted({key(r) for r in rows}, key=lambda k: tuple(map(str, k))):
+        rs = sorted([r for r in rows if key(r) == k], key=lambda r: r["factor"])
         ok = [r for r in rs if "err_all_m" in r]
         cells = []
         for r in rs:
@@ -117,12 +189,17 @@ def table(rows: list[dict]) -> str:
             ea = r["err_after_m"]
             cells.append(f"x{r['factor']:g}: {1e3 * r['err_all_m']:.1f} / {1e3 * (r['err_interaction_m'] or 0):.1f} / "
                          + (f"{1e3 * ea:.1f}" if ea is not None else "-"))
-        best_all = min(ok, key=lambda r: r["err_all_m"])["factor"] if ok else None
+        bf = best_factor([(r["factor"], r["err_all_m"]) for r in ok])
         aft = [r for r in ok if r["err_after_m"] is not None]
         best_after = min(aft, key=lambda r: r["err_after_m"])["factor"] if aft else None
         r0 = rs[0]
-        out.append(f"| {sc} | {r0.get('shape')} {r0.get('scenario')}, {r0.get('type')} | {r0['particles']} ({r0['truth_particles']}) "
-                   f"| {rule} | {1e3 * r0['truth_mean_disp_m']:.1f} mm | {'; '.join(cells)} | {best_all} / {best_after} |")
+        sub = sorted({r.get("substeps") for r in ok if r.get("substeps")})
+        subs = f"{sub[0]}-{sub[-1]}" if len(sub) > 1 else (str(sub[0]) if sub else "-")
+        dxr = r0["dx"] / r0["truth_dx"] if r0.get("dx") and r0.get("truth_dx") else float("nan")
+        out.append(f"| {k[0]} | {r0.get('shape')} {r0.get('scenario')}, {r0.get('type')} | {r0['particles']} ({r0['truth_particles']}) "
+                   f"| {k[1]:g}, {dxr:.2f} | {k[2]}: {subs} ({r0.get('truth_substeps')}) | {k[3]} | {k[4]} "
+                   f"| {1e3 * r0['truth_mean_disp_m']:.1f} mm | {'; '.join(cells)} "
+                   f"| {'-' if bf is None else f'{bf:.2f}'} / {best_after} |")
     return "\n".join(out)
 
 
@@ -133,6 +210,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cap", type=int, default=15000, help="init's --max-particles (grid auto)")
     ap.add_argument("--factors", default="0.125,0.25,0.5,1,2")
     ap.add_argument("--rules", default="default,band")
+    ap.add_argument("--grid-scales", default="1", help="our grid: 1 = init --grid auto within --cap; 1.5 = 1.5x its cells")
+    ap.add_argument("--steps", default="fit", help="fit (adaptive substep, CFL 0.6) and/or truth (the truth's substeps)")
+    ap.add_argument("--blends", default="rate", help="rate (the fit's partial blends per unit time) and/or substep (the generator's)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
     ap.add_argument("--scratch", default="/tmp/world_simcheck")
@@ -143,8 +223,21 @@ def main(argv=None) -> int:
     if bad:
         print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} (default, band, gain1)", file=sys.stderr)
         return 2
+    steps = [t for t in a.steps.split(",") if t]
+    blends = [t for t in a.blends.split(",") if t]
+    for flag, vals, ok in (("--steps", steps, ("fit", "truth")), ("--blends", blends, ("rate", "substep"))):
+        if any(v not in ok for v in vals):
+            print(f"world_simcheck.py: error: {flag}: unknown {[v for v in vals if v not in ok][0]!r} ({', '.join(ok)})",
+                  file=sys.stderr)
+            return 2
+    try:
+        scales = [float(t) for t in a.grid_scales.split(",") if t]
+    except ValueError:
+        print(f"world_simcheck.py: error: --grid-scales: not numbers: {a.grid_scales!r}", file=sys.stderr)
+        return 2
     return per_capture("world_simcheck.py", Path(a.work), a.seeds,
-                       lambda n: one(Path(a.work), n, a.cap, factors, rules, a.device, Path(a.scratch), log=lambda *x, **k: None),
+                       lambda n: one(Path(a.work), n, a.cap, factors, rules, a.device, Path(a.scratch), log=lambda *x, **k: print(*x, file=sys.stderr, **k),
+                                     grid_scales=scales, steps=steps, blends=blends),
                        a.json, table, show=lambda r: json.dumps({k: v for k, v in r.items() if k != "err_per_frame_m"}))
 
 if __name__ == "__main__":
