@@ -8,6 +8,10 @@ With the capture's gt/particles.npz it also prints each model's particle error a
 the bottom and over the body (the truth's particles matched to the model's nearest at rest).
 
     python benchmarks/diagnose_pair.py STAGE.usda [--capture DIR] [--out result.json] [--no-pair-step]
+        [--pair-signature]
+
+With damping and ground both accepted it also prints the ground's signature (`refit.bottom_signature`: the paired
+held-back test from damping's refitted model to the ground's at the lowest points and over the rest).
 
 CPU: one foam_bar case at fit grid 16 is ~15 min of CPU (docs/benchmarks/diagnose_named.md)."""
 
@@ -79,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--capture", default=None, help="the synthetic capture (its gt/particles.npz)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--no-pair-step", action="store_true")
+    ap.add_argument("--pair-signature", action="store_true", help="damping vs ground decided by the signature")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--starts", type=int, default=1, help="as benchmarks/diagnose_floor_rule.py (1: the stage's fit)")
     a = ap.parse_args(argv)
@@ -98,7 +103,7 @@ def main(argv=None) -> int:
 
     AD.refit_confusable = keep
     t0, c0 = time.perf_counter(), time.process_time()
-    out = api.diagnose(a.stage, device=a.device, starts=a.starts, progress=False, write_stage=False, log=lambda *x, **k: print(*x))
+    out = api.diagnose(a.stage, device=a.device, starts=a.starts, pair_signature=a.pair_signature, progress=False, write_stage=False, log=lambda *x, **k: print(*x))
     cpu = time.process_time() - c0
     diag = got["diag"]
     prob = diag._ctx["prob"]
@@ -140,7 +145,7 @@ def main(argv=None) -> int:
             truth = xt[:, idx]
             print(f"\ntruth: gt/particles.npz[{key}] {xt.shape}, matched to the model's {len(x0)} particles")
     print("\nwhere each candidate's refit acts and helps:")
-    print("| model | held-back reduction in the bottom band (share of pixels) | before / after release (bottom; rest) "
+    print("| model | held-back reduction in the bottom band (share of pixels) | its shares before / after release (bottom; rest) "
           "| particle change vs base: lowest 10% / all [mm] | error vs truth: lowest 10% / all [mm] |")
     print("|---|---|---|---|---|")
     models = [("base", None, None)] + [(c.effect, c._states[0], c._held) for c in acc if getattr(c, "_states", None)]
@@ -163,11 +168,19 @@ def main(argv=None) -> int:
             allr = tot["bottom"] + tot["rest"]
             img = (f"{100 * tot['bottom'] / allr:.0f}% ({100 * tot['bottom_pixels'] / max(tot['pixels'], 1):.0f}% of "
                    f"the silhouette's pixels)" if allr else "0")
-            ph = (f"{1e3 * tot['bottom_before']:.2f} / {1e3 * tot['bottom_after']:.2f}; "
-                  f"{1e3 * tot['rest_before']:.2f} / {1e3 * tot['rest_after']:.2f} (x1e-3)")
+            ph = (f"{100 * tot['bottom_before'] / allr:.0f}% / {100 * tot['bottom_after'] / allr:.0f}%; "
+                  f"{100 * tot['rest_before'] / allr:.0f}% / {100 * tot['rest_after'] / allr:.0f}%") if allr else "-"
         rows["candidates"][name] = {"particle_change_mm": ch, "truth_error_mm": err, "image_bottom": img, "phases": ph,
                                     "estimate": None if st is None else st["effects"]}
         print(f"| {name} | {img} | {ph} | {ch} | {err} |")
+    by = {c.effect: c for c in acc}
+    if "damping" in by and "ground" in by:
+        from physinteract_usd.diagnose.refit import bottom_signature
+
+        sig = bottom_signature(diag, by["damping"], by["ground"])
+        if sig is not None:
+            rows["bottom_signature"] = sig
+            print(f"\nthe ground's signature (damping's refit -> the ground's): {sig['why']}")
     if a.out:
         Path(a.out).write_text(json.dumps(rows, indent=1, default=float))
     return 0
