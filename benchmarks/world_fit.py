@@ -125,6 +125,9 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
     # the fitted E against the truth, the fit's own confidence and (schedule select) its uniform sweep's
     # minima and intervals: is a wrong E at least said to be uncertain?
     summ = out.summary()
+    from physinteract_usd import simulation   # the pin rule this process fitted with (PHYSINTERACT_PIN_RULE; #24 A/B rows)
+
+    row["pin_rule"] = list(simulation.PIN_RULE)
     e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
     row.update({"e_true": e_true, "e_fit": summ["youngs_modulus_pa"]["median"],
                 "e_ratio": summ["youngs_modulus_pa"]["median"] / e_true, "best_uniform_e": ev.get("best_uniform_e"),
