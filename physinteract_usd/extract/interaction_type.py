@@ -219,11 +219,16 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         normal = normal_motion(timing.hand_velocity, timing.object_velocity, n_in, min(timing.period[0], g), g,
                                end)
     # the same against the way the toucher came in (#23): a toucher reaches the surface from
-    # outside, so its approach points into the object wherever the silhouette's normal is
-    # ill-defined (a block's corner under a palm, dev_0144: 58 deg off the palm's press)
-    if app_speed >= 1.0:
-        ap = normal_motion(timing.hand_velocity, timing.object_velocity, unit(v_app), min(timing.period[0], g),
-                           g, end)
+    # outside, so its motion in the frames before it first touches the object points into it,
+    # wherever the silhouette's normal is ill-defined (a block's corner under a palm, dev_0144:
+    # 58 deg off the palm's press). Before the first touch, not before the grasp: a grasp put
+    # later than the touch (the user's --grasp-frame on a pull already under way) has the pull
+    # itself before it, not an approach
+    first = min(timing.period[0], g)
+    v_in = approach_velocity(an, first, c2)
+    in_speed = float(np.linalg.norm(v_in)) if v_in is not None else 0.0
+    if in_speed >= 1.0:
+        ap = normal_motion(timing.hand_velocity, timing.object_velocity, unit(v_in), first, g, end)
         normal.update({f"approach_{k}": v for k, v in ap.items()})
     # the first main motion against the straight interface's normal: a flat face pushed into the
     # object moves along its own normal
@@ -233,7 +238,7 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     # wide whichever way it comes in, a finger on a hand only along itself (a push 70 deg off
     # the finger reads the hand's side, 15 cm: dev_0204's glove finger on a ring)
     fronts = [toucher_front_width(an, g, c2, p1 if timing.release is None else timing.release, d)
-              for d, ok in ((d2, motion > 0), (v_app, app_speed >= 2 * an.eps)) if ok]
+              for d, ok in ((d2, motion > 0), (v_in, in_speed >= 2 * an.eps)) if ok]
     fronts = [w for w in fronts if w is not None]
     front = min(fronts) if fronts else None
     return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
