@@ -189,16 +189,15 @@ def main(argv=None) -> int:
                     for stp in steps:
                         for bl in blends:
                             g = json.loads((gt_dir(Path(a.work), n) / "gt.json").read_text())
-                            wsc.FORCE.update({"substeps": int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None,
-                                              "blend": bl})
                             simulation.PIN_RULE = wsc.RULES[rule]
                             try:
-                                for tn in modes:
-                                    r = one(Path(a.work), n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn, grid=grid)
-                                    r.update({"rule": rule, "grid_scale": gs, "step": stp, "blend": bl})
-                                    rows.append(r)
+                                with wsc.forced(int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None, bl):
+                                    for tn in modes:
+                                        r = one(Path(a.work), n, c, a.device, a.init_only, Path(a.scratch), true_nu=tn,
+                                                grid=grid)
+                                        r.update({"rule": rule, "grid_scale": gs, "step": stp, "blend": bl})
+                                        rows.append(r)
                             finally:
-                                wsc.FORCE.update({"substeps": None, "blend": "rate"})
                                 simulation.PIN_RULE = wsc.RULES["default"]
         return rows
 

@@ -28,6 +28,7 @@ A tuning tool: it refuses the validation split. Results in docs/benchmarks/world
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -50,18 +51,29 @@ RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND, "gain1":
 
 # what our SimModel.create is given, per variant: a forced substep count, the blend once per substep
 FORCE = {"substeps": None, "blend": "rate"}
-_CREATE = simulation.SimModel.create.__func__
 
 
-def _create(cls, *a, **kw):
-    if FORCE["substeps"]:
-        kw["substeps"] = int(FORCE["substeps"])
-    if FORCE["blend"] == "substep":
-        kw["blend_dt"] = 0.0
-    return _CREATE(cls, *a, **kw)
+@contextlib.contextmanager
+def forced(substeps=None, blend="rate"):
+    """Within it, `simulation`'s models take `substeps` a frame (None: the adaptive step) and, with blend
+    "substep", the partial blends once per substep (blend_dt 0, the generator's); the class is restored after."""
+    create = simulation.SimModel.__dict__["create"]
+    orig = create.__func__
 
+    def _create(cls, *a, **kw):
+        if FORCE["substeps"]:
+            kw["substeps"] = int(FORCE["substeps"])
+        if FORCE["blend"] == "substep":
+            kw["blend_dt"] = 0.0
+        return orig(cls, *a, **kw)
 
-simulation.SimModel.create = classmethod(_create)
+    FORCE.update({"substeps": substeps, "blend": blend})
+    simulation.SimModel.create = classmethod(_create)
+    try:
+        yield
+    finally:
+        simulation.SimModel.create = create
+        FORCE.update({"substeps": None, "blend": "rate"})
 
 
 def best_factor(pairs: list[tuple[float, float]]) -> float | None:
@@ -102,12 +114,8 @@ def one(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], 
             grid = int(round(gs * n_auto))
         for stp in steps:
             for bl in blends:
-                FORCE["substeps"] = int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None
-                FORCE["blend"] = bl
-                try:
+                with forced(int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None, bl):
                     rs = one_variant(work, n, cap_n, factors, rules, device, scratch, log, grid=grid)
-                finally:
-                    FORCE.update({"substeps": None, "blend": "rate"})
                 for r in rs:
                     r.update({"grid_scale": gs, "step": stp, "blend": bl})
                 rows += rs
