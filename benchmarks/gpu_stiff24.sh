@@ -7,14 +7,16 @@
 #     OUT=/dir CALL=gen   bash benchmarks/gpu_stiff24.sh   # generate the 8 captures on 4 GPUs (~3-5 min)
 #     OUT=/dir CALL=sim   bash benchmarks/gpu_stiff24.sh   # world_simcheck.py: 3-D error vs E x 1/4..2, pin rules
 #                                                           # default / band / gain1, grid auto within 15k particles (~6 min)
-#     OUT=/dir CALL=fine  bash benchmarks/gpu_stiff24.sh   # the same, default and gain1, grid x1.5 and the truth's substeps
+#     OUT=/dir CALL=fine  bash benchmarks/gpu_stiff24.sh   # default and gain1 at grid x1.5, and at the truth's substeps
 #     OUT=/dir CALL=sweep bash benchmarks/gpu_stiff24.sh   # world_bias.py: the truth sweep (the loss, renderer included)
-#                                                           # per pin rule default / gain1 / band, grid auto within 15k
+#                                                           # per pin rule default / band / gain1, grid auto within 15k
 #
 # then the fits themselves, before / after, with gpu_world.sh on the same captures (their own ROWS each):
 #     WORK=/tmp/stiff24 ROWS=/tmp/stiff24/rows_default OUT=$OUT/fit_default NGPUS=4 JOBS=8 TRUE_CONTACTS=1 MIN_E_TRUE=1e5 \
 #       TRUTH_SWEEP=1 GRID=auto MAX_PARTICLES=15000 bash benchmarks/gpu_world.sh dev 222,224,231,237,246,247,255,258 540
-#     PHYSINTERACT_PIN_RULE=1,0 WORK=/tmp/stiff24 ROWS=/tmp/stiff24/rows_gain1 OUT=$OUT/fit_gain1 ... (the same)
+#     PHYSINTERACT_PIN_RULE=band WORK=/tmp/stiff24 ROWS=/tmp/stiff24/rows_band OUT=$OUT/fit_band ... (the same)
+# (the clamp band: the rule that matches the Timoshenko beam; world_fit.py rows record the rule as pin_rule).
+# Measured on the CPU first (dev_0143 / 0164 / 0269 / 0255 / 0141 / 0153): docs/benchmarks/world_fits.md, top.
 #
 # WORK (default /tmp/stiff24) holds the captures between calls (a warm machine); SEEDS overrides the list; DEVICE cpu
 # and CAP for a CPU smoke: PATH=.venv/bin:$PATH OUT=/tmp/gs DEVICE=cpu CAP=600 SEEDS=269 CALL=sim bash benchmarks/gpu_stiff24.sh
@@ -41,7 +43,7 @@ for s in ${SEEDS//,/ }; do
     gen)   timeout -s TERM "$LIMIT" $PY benchmarks/world_suite.py generate --split dev --seeds "$s" --work "$WORK" \
              --device "$DEVICE" > "$OUT/gen_$s.log" 2>&1 & ;;
     # one process per rule, one after the other (a process writes its rows when it ends: what the limit cuts is one rule)
-    sim)   ( for r in default gain1 band; do
+    sim)   ( for r in default band gain1; do
                timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $r --device "$DEVICE" --scratch "$WORK/sc_$s" \
                  --json "$OUT/simcheck.jsonl"; done ) > "$OUT/sim_$s.log" 2>&1 & ;;
@@ -50,7 +52,7 @@ for s in ${SEEDS//,/ }; do
                timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $1 --grid-scales $2 --steps $3 --device "$DEVICE" \
                  --scratch "$WORK/scf_$s" --json "$OUT/simcheck_fine.jsonl"; done ) > "$OUT/fine_$s.log" 2>&1 & ;;
-    sweep) ( for r in default gain1 band; do
+    sweep) ( for r in default band gain1; do
                timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_bias.py --work "$WORK" --seeds "$s" \
                  --caps "$CAP" --rules $r --device "$DEVICE" --scratch "$WORK/sw_$s" --json "$OUT/sweep.jsonl"
              done ) > "$OUT/sweep_$s.log" 2>&1 & ;;
