@@ -7,7 +7,7 @@
 #     OUT=/dir CALL=gen   bash benchmarks/gpu_stiff24.sh   # generate the 8 captures on 4 GPUs (~3-5 min)
 #     OUT=/dir CALL=sim   bash benchmarks/gpu_stiff24.sh   # world_simcheck.py: 3-D error vs E x 1/4..2, pin rules
 #                                                           # default / band / gain1, grid auto within 15k particles (~6 min)
-#     OUT=/dir CALL=fine  bash benchmarks/gpu_stiff24.sh   # default and gain1 at grid x1.5, and at the truth's substeps
+#     OUT=/dir CALL=fine  bash benchmarks/gpu_stiff24.sh   # default and band at grid x1.5, and at the truth's substeps
 #     OUT=/dir CALL=sweep bash benchmarks/gpu_stiff24.sh   # world_bias.py: the truth sweep (the loss, renderer included)
 #                                                           # per pin rule default / band / gain1, grid auto within 15k
 #
@@ -47,7 +47,7 @@ for s in ${SEEDS//,/ }; do
                timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $r --device "$DEVICE" --scratch "$WORK/sc_$s" \
                  --json "$OUT/simcheck.jsonl"; done ) > "$OUT/sim_$s.log" 2>&1 & ;;
-    fine)  ( for v in "default 1.5 fit" "gain1 1.5 fit" "default 1 truth" "gain1 1 truth"; do
+    fine)  ( for v in "default 1.5 fit" "band 1.5 fit" "default 1 truth" "band 1 truth"; do
                set -- $v
                timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $1 --grid-scales $2 --steps $3 --device "$DEVICE" \
