@@ -35,6 +35,8 @@ export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>/dev/null | sed 's/^/device: /'
 git rev-parse --short HEAD 2>/dev/null | sed 's/^/code: /'
 echo "call $CALL seeds $SEEDS work $WORK cap $CAP limit ${LIMIT}s"
+# Warp's kernel cache built once before the workers start (not by eight processes at the same time)
+$PY -c "from physinteract_usd import simulation; simulation.warm_kernels('$DEVICE')" > /dev/null 2>&1 || true
 k=0
 for s in ${SEEDS//,/ }; do
   gpu=$(( k % NGPUS )); k=$(( k + 1 ))
