@@ -46,16 +46,16 @@ for s in ${SEEDS//,/ }; do
              --device "$DEVICE" > "$OUT/gen_$s.log" 2>&1 & ;;
     # one process per rule, one after the other (a process writes its rows when it ends: what the limit cuts is one rule)
     sim)   ( for r in default band gain1; do
-               timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
+               [ $(( LIMIT - SECONDS )) -gt 5 ] && timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $r --device "$DEVICE" --scratch "$WORK/sc_$s" \
                  --json "$OUT/simcheck.jsonl"; done ) > "$OUT/sim_$s.log" 2>&1 & ;;
     fine)  ( for v in "default 1.5 fit" "band 1.5 fit" "default 1 truth" "band 1 truth"; do
                set -- $v
-               timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
+               [ $(( LIMIT - SECONDS )) -gt 5 ] && timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_simcheck.py --work "$WORK" --seeds "$s" \
                  --cap "$CAP" --factors 0.25,0.5,1,2 --rules $1 --grid-scales $2 --steps $3 --device "$DEVICE" \
                  --scratch "$WORK/scf_$s" --json "$OUT/simcheck_fine.jsonl"; done ) > "$OUT/fine_$s.log" 2>&1 & ;;
     sweep) ( for r in default band gain1; do
-               timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_bias.py --work "$WORK" --seeds "$s" \
+               [ $(( LIMIT - SECONDS )) -gt 5 ] && timeout -s TERM $(( LIMIT - SECONDS )) $PY benchmarks/world_bias.py --work "$WORK" --seeds "$s" \
                  --caps "$CAP" --rules $r --device "$DEVICE" --scratch "$WORK/sw_$s" --json "$OUT/sweep.jsonl"
              done ) > "$OUT/sweep_$s.log" 2>&1 & ;;
     *) echo "CALL must be gen, sim, fine or sweep" >&2; exit 2 ;;
