@@ -16,8 +16,10 @@ The method (docs/extract.md has the full account), one module per question:
    main motion; the release is the hand's slowest frame before the object stops following it;
 5. type (`interaction_type.classify`, rules in `interaction_type.classify_interaction`): a contact
    whose first main motion moves the object away from the hand's body is a push (non-adherent),
-   unless the hand went back the way it came in (a pull in depth); a long, straight hand-object
-   interface is a surface (a palm); else adherent;
+   unless the hand went back the way it came in (a pull in depth); an object pressed in that never
+   follows the toucher out past its rest surface (read against the silhouette's normal or the
+   toucher's approach) is pushed; a toucher whose front is at least 6 cm wide (else, unmeasured, a
+   long straight hand-object interface) is a surface (a palm); else adherent;
 6. contact particles (`contact.contact_at_grasp`, `contact.contact_particles`): the contact pixels
    at the grasp frame back-projected with the rendered depth (X = T_c^-1 pi^-1(x, d)) and mapped
    to the particles within a radius;
