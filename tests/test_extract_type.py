@@ -97,3 +97,30 @@ def test_the_toucher_front_width_is_its_own_shape_at_its_leading_edge():
     # no push direction, or no toucher at the contact: nothing to say
     assert toucher_front_width(_analysis(palm[None], 500.0), 0, (100.0, 68.0), 0, np.zeros(2)) is None
     assert toucher_front_width(_analysis(palm[None], 500.0), 0, (10.0, 110.0), 0, down) is None
+
+
+def test_an_object_overtaking_the_toucher_outward_is_no_hold_with_the_follow_rule():
+    """PHYSINTERACT_TYPE_FOLLOW=1 (opt-in): tension counts only pairs in which the object keeps at
+    most the toucher's outward pace. A stick pushes a plush in 2 px (1 px a pair) and withdraws at
+    1 px a pair; the plush swings back out past its rest at 2 px a pair for 3 pairs (overtaking
+    the stick: its own motion) - 6 px of tension by default, none with the rule. A held region
+    dragged out at 0.6 of the toucher's pace keeps its tension either way."""
+    into = np.array([1.0, 0.0])
+    vh = _pairs((2, (1.0, 0.0)), (5, (-1.0, 0.0)))
+    vo = _pairs((2, (1.0, 0.0)), (1, (-2.0, 0.0)), (3, (-2.0, 0.0)), (1, (0.0, 0.0)))
+    swing = normal_motion(vh, vo, into, start=0, g=0, end=7, follow_only=False)
+    assert swing["pulled_out_px"] == pytest.approx(6.0) and swing["tension_px"] == pytest.approx(6.0)
+    assert normal_motion(vh, vo, into, start=0, g=0, end=7, follow_only=True)["tension_px"] == 0.0
+    held = _pairs((2, (0.0, 0.0)), (5, (-0.6, 0.0)))
+    a = normal_motion(vh, held, into, start=0, g=0, end=7, follow_only=False)
+    b = normal_motion(vh, held, into, start=0, g=0, end=7, follow_only=True)
+    assert a["tension_px"] == pytest.approx(3.0) and b["tension_px"] == pytest.approx(3.0)
+
+
+def test_the_follow_rule_is_read_from_the_environment_as_0_or_1():
+    from physinteract_usd.extract.interaction_type import FOLLOW_ONLY, follow_rule
+
+    assert FOLLOW_ONLY is False or FOLLOW_ONLY is True
+    assert follow_rule(None) is False and follow_rule("0") is False and follow_rule("1") is True
+    with pytest.raises(ValueError, match="PHYSINTERACT_TYPE_FOLLOW"):
+        follow_rule("yes")

@@ -5,6 +5,7 @@ is) and the default rules on it (`classify_interaction`, replaceable through `Mo
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -136,8 +137,22 @@ def inward_normal(silhouette: np.ndarray, c2, smooth: float = 1.5, min_grad: flo
     return g / n if n >= min_grad else None
 
 
+def follow_rule(value: str | None) -> bool:
+    """The environment's PHYSINTERACT_TYPE_FOLLOW ("0" or unset: off, "1": on), read once at import:
+    whether `normal_motion`'s tension counts only pairs in which the object keeps at most the
+    toucher's pace (opt-in, #23: measured on the CPU dev halves only as the lever, not tried)."""
+    if value in (None, "", "0"):
+        return False
+    if value == "1":
+        return True
+    raise ValueError(f"PHYSINTERACT_TYPE_FOLLOW={value!r}: expected 0 or 1")
+
+
+FOLLOW_ONLY = follow_rule(os.environ.get("PHYSINTERACT_TYPE_FOLLOW"))
+
+
 def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, g: int, end: int,
-                  eps: float = 0.35) -> dict:
+                  eps: float = 0.35, follow_only: bool | None = None) -> dict:
     """How the object next to the contact moved against the surface's inward normal `into` (unit,
     image), from rest (`start`, the first frame of the contact period or the grasp, whichever is
     earlier) to `end` (the release; the last pair otherwise): `pressed_in_px` and `pulled_out_px`,
@@ -148,7 +163,12 @@ def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, 
     normal and the object comes back at most to its rest surface; a grasp drags the contact region
     along the surface or holds it as the toucher moves away (the object follows it out: tension).
     `withdrawn_px`: the toucher's outward motion from the grasp to `end`, summed (the
-    no-tension reading says something only where it moved out)."""
+    no-tension reading says something only where it moved out). `follow_only` (default
+    FOLLOW_ONLY, off): a pair counts as tension only where the object's outward speed is at most
+    the toucher's (+ eps): a held region is dragged, so it lags or keeps pace; an object that
+    overtakes the toucher outward moves on its own (a plush swinging back past its rest as a
+    stick withdraws, dev_0188: 4.4 vs 2.6 px a frame), which is no evidence of a hold."""
+    follow_only = FOLLOW_ONLY if follow_only is None else follow_only
     d = np.asarray(into, float)
     X = np.zeros(2)
     big = np.zeros(2)
@@ -163,7 +183,8 @@ def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, 
             big = X.copy()
         out_max, in_max = max(out_max, float(-X @ d)), max(in_max, float(X @ d))
         if k >= g and np.isfinite(vh[k]).all() and np.isfinite(o).all():
-            if float(-vh[k] @ d) > eps and float(-o @ d) > 0 and float(-X @ d) > 0:
+            if float(-vh[k] @ d) > eps and float(-o @ d) > 0 and float(-X @ d) > 0 \
+                    and (not follow_only or float(-o @ d) <= float(-vh[k] @ d) + eps):
                 tension += min(float(-o @ d), float(-X @ d))
     nb = float(np.linalg.norm(big))
     return {"pressed_in_px": in_max, "pulled_out_px": out_max, "tension_px": tension, "withdrawn_px": withdrawn,
