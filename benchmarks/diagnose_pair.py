@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--no-pair-step", action="store_true")
     ap.add_argument("--pair-signature", action="store_true", help="damping vs ground decided by the signature")
+    ap.add_argument("--candidates", default=None, help="as diagnose --candidates (e.g. damping,ground: a cheaper look)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--starts", type=int, default=1, help="as benchmarks/diagnose_floor_rule.py (1: the stage's fit)")
     a = ap.parse_args(argv)
@@ -103,7 +104,7 @@ def main(argv=None) -> int:
 
     AD.refit_confusable = keep
     t0, c0 = time.perf_counter(), time.process_time()
-    out = api.diagnose(a.stage, device=a.device, starts=a.starts, pair_signature=a.pair_signature, progress=False, write_stage=False, log=lambda *x, **k: print(*x))
+    out = api.diagnose(a.stage, device=a.device, starts=a.starts, pair_signature=a.pair_signature, candidates=a.candidates, progress=False, write_stage=False, log=lambda *x, **k: print(*x))
     cpu = time.process_time() - c0
     diag = got["diag"]
     prob = diag._ctx["prob"]
