@@ -112,6 +112,11 @@ def test_diagnose_verb_names_damping_and_stores_it(damped):
     assert top["realized_loss_drop"] is not None and top["realized_loss_drop"] > 0
     assert top["estimate"]["coefficient"] == pytest.approx(C_TRUE, rel=0.3)
     assert "after release at frame" in top["evidence"]
+    # the ground, accepted as its mimic, and damping refitted together: the pair step's drop-one costs in the evidence
+    # and in `tested[].pair_test` (issue #22)
+    assert "removing ground given damping" in top["evidence"] and "damping is needed" in top["evidence"]
+    pt = next(t for t in d["tested"] if t["effect"] == "damping")["pair_test"]
+    assert pt["winner"] == "damping" and set(pt["pair"]) == {"damping", "ground"}
     # accepted by the paired test over the held-back blocks: its drop, standard error and p-value
     t = next(t for t in d["tested"] if t["effect"] == "damping")
     assert t["accepted"] and t["held_back_drop"] > 0 and t["held_back_se"] > 0 and t["held_back_p"] < 0.05
