@@ -272,19 +272,30 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
 
 
 # ------------------------------------------------------------------------------ evidence
-def hand_body_direction(an: Analysis, k: int, c2: np.ndarray) -> np.ndarray:
-    """Unit 2D vector from the contact to the hand's body (the centroid of the hand component
-    that touches the object)."""
+def touching_component(an: Analysis, k: int, c2) -> np.ndarray | None:
+    """Frame k's hand mask reduced to its connected component that reaches within 1.5 R of the
+    contact c2 (the toucher, not another hand part or a tool elsewhere); None where no hand pixel
+    is that near."""
     import cv2
 
     hand = an.hand[k]
     if not hand.any():
-        return np.zeros(2)
+        return None
     n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
     near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
-    comp = np.bincount(near[near > 0], minlength=n).argmax() if (near > 0).any() else 0
-    m = lab == comp if comp > 0 else hand
-    pts = pixel_centres(m)
+    if not (near > 0).any():
+        return None
+    return lab == np.bincount(near[near > 0], minlength=n).argmax()
+
+
+def hand_body_direction(an: Analysis, k: int, c2: np.ndarray) -> np.ndarray:
+    """Unit 2D vector from the contact to the hand's body (the centroid of the hand component
+    that touches the object)."""
+    hand = an.hand[k]
+    if not hand.any():
+        return np.zeros(2)
+    m = touching_component(an, k, c2)
+    pts = pixel_centres(hand if m is None else m)
     return unit(pts.mean(0) - c2)
 
 
@@ -313,14 +324,9 @@ def toucher_roundness(an: Analysis, g: int, c2, end: int, min_px: int = 12):
 
     res, size = [], []
     for k in range(g, min(end, an.T - 1) + 1):
-        hand = an.hand[k]
-        if not hand.any():
+        m = touching_component(an, k, c2)
+        if m is None:
             continue
-        n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
-        near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
-        if not (near > 0).any():
-            continue
-        m = lab == np.bincount(near[near > 0], minlength=n).argmax()
         cont, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         if not cont:
             continue
@@ -385,8 +391,6 @@ def toucher_front_width(an: Analysis, g: int, c2, end: int, push, depth_m: float
     where it overlaps the object: a flat face (a palm, a board) is as wide at its front as it is
     (10-18 cm here), a fingertip, a stick's end or a ball's cap a few centimetres. None where
     `push` has no direction or no frame shows the toucher at the contact."""
-    import cv2
-
     d = np.asarray(push, float)
     if not np.isfinite(d).all() or np.linalg.norm(d) < 1e-9:
         return None
@@ -395,14 +399,10 @@ def toucher_front_width(an: Analysis, g: int, c2, end: int, push, depth_m: float
     band = max(1.5, depth_m * an.px_per_m)
     widths = []
     for k in range(g, min(end, an.T - 1) + 1):
-        hand = an.hand[k]
-        if not hand.any():
+        m = touching_component(an, k, c2)
+        if m is None:
             continue
-        n, lab = cv2.connectedComponents(hand.astype(np.uint8), connectivity=8)
-        near = lab[disk_mask(hand.shape, c2, 1.5 * an.R) & hand]
-        if not (near > 0).any():
-            continue
-        p = pixel_centres(lab == np.bincount(near[near > 0], minlength=n).argmax())
+        p = pixel_centres(m)
         if len(p) < min_px:
             continue
         along = p @ d
