@@ -192,7 +192,7 @@ def main(argv=None) -> int:
             sp = np.linalg.norm(st["v"], axis=1)
             bad = ~np.isfinite(sp) | (sp > 10 * v_ref) | ~np.isfinite(st["F"]).all(axis=(1, 2))
             hist.append({"x": st["x"], "v": st["v"], "F": st["F"]})
-            if len(hist) > 40:
+            if len(hist) > 160:
                 hist.pop(0)
             if bad.any() and first is None:
                 first = (s, np.nonzero(bad)[0])
@@ -218,15 +218,18 @@ def main(argv=None) -> int:
             info["bad_rest_pos"] = x0[idx[:5]].round(4).tolist()
             info["rest_bbox"] = [x0.min(0).round(3).tolist(), x0.max(0).round(3).tolist()]
             tl = []
-            for j, h in enumerate(hist[-12:]):
+            for j in list(range(max(0, len(hist) - 150), len(hist) - 4, 10)) + list(range(max(0, len(hist) - 4), len(hist))):
+                h = hist[j]
                 J, sv = fstats(h["F"][idx])
                 spd = np.linalg.norm(h["v"][idx], axis=1)
-                tl.append({"substep": s - len(hist[-12:]) + 1 + j, "vmax": float(np.nanmax(np.where(np.isfinite(spd), spd, np.inf))),
+                tl.append({"substep": s - len(hist) + 1 + j, "vmax": float(np.nanmax(np.where(np.isfinite(spd), spd, np.inf))),
                            "cfl": float(np.nanmax(np.where(np.isfinite(spd), spd, np.inf)) * dt / dx),
                            "Jmin": float(np.nanmin(J)) if np.isfinite(J).any() else None,
                            "Jmax": float(np.nanmax(J)) if np.isfinite(J).any() else None,
                            "svmax": float(np.nanmax(sv)) if np.isfinite(sv).any() else None,
-                           "svmin": float(np.nanmin(sv)) if np.isfinite(sv).any() else None})
+                           "svmin": float(np.nanmin(sv)) if np.isfinite(sv).any() else None,
+                           # signed: < 0 past the valid box's face (the stencil clamped to the grid's last nodes)
+                           "wall_cells": float(min((h["x"][idx] - vlo).min(), (vhi - h["x"][idx]).min()) / dx)})
             info["timeline"] = tl
             # the whole body at the substep before: the worst J anywhere, where
             J, sv = fstats(hist[-2]["F"] if len(hist) > 1 else s0["F"])
