@@ -25,7 +25,9 @@ CLI_ADVICE = {
               "(`init --padding`, larger), raise the smallest E it may have (`init --youngs-range MIN,MAX`), "
               "or check the trajectory",
     "unstable": "the substep is too long for the stiffness reached: lower the largest E (`init --youngs-range "
-                "MIN,MAX`) or --max-poisson, or slow the trajectory",
+                "MIN,MAX`) or --max-poisson, or slow the trajectory; or the object swung past the edge of its "
+                "grid (a free end about a hook or clamp), which blows up the same way: give it more room "
+                "(`init --padding`, larger)",
 }
 
 

@@ -516,7 +516,9 @@ class MPMSolver:
                 f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]})", frame=frame,
                 advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
                         f"or speed reached: raise substeps per frame, lower E_max = {m.E_max:g} Pa (and nu_max "
-                        f"= {m.nu_max:g}), or slow the trajectory"), kind="unstable")
+                        f"= {m.nu_max:g}), or slow the trajectory; or particles swung past the grid's edge "
+                        f"(a free end about a support), which blows up the same way: enlarge the domain"),
+                kind="unstable")
         lo, hi = m.grid.valid_lower, m.grid.valid_upper
         raise SimulationError(
             f"left the grid domain ({st[r, 1]} particles, e.g. particle {st[r, 3]}; valid box "
