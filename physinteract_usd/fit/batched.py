@@ -45,6 +45,7 @@ import torch
 from .. import stopping
 from ..errors import SimulationError
 from ..sim.cfl import RUNG_RATIO
+from .adamw import AdamW
 from .converge import improved, lr_scale, plateaued
 from .material import MaterialField, neighbour_pairs, pair_weights
 from .optimize import (FitResult, FitSettings, _level_params, _restore_in_place, _seed, _split, assemble_result,
@@ -142,7 +143,7 @@ class _Copy:
             groups.append({"params": [mat.w_nu], "lr": s.lr_poisson})
         if s.joint and self.trajs and li >= len(self.levels) - s.trajectory_levels:
             groups.append({"params": self.trajs, "lr": s.lr_trajectory})
-        self.opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+        self.opt = AdamW(groups, weight_decay=s.weight_decay)
         self.base = [g["lr"] for g in self.opt.param_groups]
         self.n_it, self.j, self.stop_at, self.tail = self.per_level[li], 0, self.per_level[li], None
         self.level_losses: list[float] = []
@@ -412,7 +413,7 @@ def refit_regions_batched(prob: FitProblem, labels: np.ndarray, log_e_starts, nu
         mat.set_region_log_e(np.asarray(le, np.float64))
         with torch.no_grad():
             mat.w_nu.copy_(torch.full_like(mat.w_nu, float(math.log(nu0 / (mat.nu_max - nu0)))))
-        opt = torch.optim.AdamW([{"params": [mat.theta], "lr": lr or s.lr_material}], weight_decay=s.weight_decay)
+        opt = AdamW([{"params": [mat.theta], "lr": lr or s.lr_material}], weight_decay=s.weight_decay)
         mats.append(mat)
         opts.append(opt)
         bases.append([g["lr"] for g in opt.param_groups])

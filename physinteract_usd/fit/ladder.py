@@ -29,6 +29,7 @@ import torch
 
 from ..errors import SimulationError
 from . import regions as R
+from .adamw import AdamW
 from .effect_params import effect_parameters, effect_values, search_effects
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, assemble_result, clean_gradients, confidence, cosine_lr, frame_metrics
@@ -165,7 +166,7 @@ class _Ladder:
         eff = [v for ps in self.effect_raw.values() for v in ps.values()]
         if eff:
             groups.append({"params": eff, "lr": s.lr_effects})
-        opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+        opt = AdamW(groups, weight_decay=s.weight_decay)
         base = [g["lr"] for g in opt.param_groups]
         best_v, best = float("inf"), self.snapshot()
         for j in range(n):

@@ -26,6 +26,7 @@ from .. import metrics as M
 from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
+from .adamw import AdamW
 from .converge import improved, level_patience, lr_scale, plateaued
 from .gauss_newton import forwards_to_iterations, gauss_newton_step
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
@@ -437,7 +438,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 groups.append({"params": trajs, "lr": s.lr_trajectory})
             if eff_raw:   # the effects' parameters at every level
                 groups.append({"params": [v for ps in eff_raw.values() for v in ps.values()], "lr": s.lr_effects})
-            opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+            opt = AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]
             level_losses, tail, stop_at = [], None, n_it
             patience = level_patience(s.plateau_patience, start is None and li == 0 and mat.K == 1,

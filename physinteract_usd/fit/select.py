@@ -61,6 +61,7 @@ import numpy as np
 import torch
 
 from ..errors import SimulationError
+from .adamw import AdamW
 from .effect_params import effect_parameters, effect_values, fitted_values
 from .substep import kept_rung, pinned_substep  # noqa: F401  (re-exported: select.pinned_substep)
 from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
@@ -781,7 +782,7 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
     eff = [v for ps in eff_raw.values() for v in ps.values()]
     if eff:
         groups.append({"params": eff, "lr": s.lr_effects})
-    opt = torch.optim.AdamW(groups, weight_decay=s.weight_decay)
+    opt = AdamW(groups, weight_decay=s.weight_decay)
     base = [g["lr"] for g in opt.param_groups]
 
     def snap():
