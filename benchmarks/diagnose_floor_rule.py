@@ -99,7 +99,10 @@ def summary(d: dict) -> dict:
     tested = d.get("tested") or []
     named = [c["effect"] for c in d.get("candidates", [])
              if any(t["effect"] == c["effect"] and t.get("accepted") for t in tested)]
+    cf = d.get("confusable") or {}
     return {"verdict": d.get("verdict"), "reason": d.get("reason"), "named": named,
+            "confusable": cf.get("pair"), "confusable_add": cf.get("add"),
+            "confusable_tests": cf.get("tests"),
             "significant": [c["effect"] for c in d.get("candidates", [])],
             "loss": d.get("loss"), "floor": d.get("noise_floor"),
             "substeps": (d.get("noise") or {}).get("substeps"),
@@ -184,8 +187,8 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
     ctl = [r for r in rows if r.get("hidden") is None and "error" not in r]
     eff = [r for r in rows if r.get("hidden") is not None and "error" not in r]
     out.append("| rule | controls: false alarms (missing_effect) | what they named | effect cases: hidden named first "
-               "| hidden named at all |")
-    out.append("|---|---|---|---|---|")
+               "| named (the truth within a confusable verdict) | hidden named at all |")
+    out.append("|---|---|---|---|---|---|")
     for rule in rules:
         c = [r[rule] for r in ctl if rule in r]
         fa = [x for x in c if x["verdict"] == "missing_effect"]
@@ -194,22 +197,25 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
             for n in x["named"][:1]:
                 what[n] = what.get(n, 0) + 1
         e = [(r, r[rule]) for r in eff if rule in r]
-        first = sum(1 for r, x in e if x["named"][:1] == [r["hidden"]])
+        # a confusable verdict ("damping or ground friction: the frames cannot tell them apart") is not a name first,
+        # even when the truth is the one it would add: it is counted in its own column when the truth is in the pair
+        first = sum(1 for r, x in e if x["named"][:1] == [r["hidden"]] and not x.get("confusable"))
+        within = sum(1 for r, x in e if x.get("confusable") and r["hidden"] in x["confusable"])
         anyn = sum(1 for r, x in e if r["hidden"] in x["named"])
         out.append(f"| {rule} | {len(fa)}/{len(c)} | {', '.join(f'{k} {v}' for k, v in what.items()) or '-'} | "
-                   f"{first}/{len(e)} | {anyn}/{len(e)} |")
+                   f"{first}/{len(e)} | {within}/{len(e)} | {anyn}/{len(e)} |")
         js[rule] = {"controls": len(c), "false_alarms": len(fa), "named_on_controls": what, "effect_cases": len(e),
-                    "hidden_first": first, "hidden_named": anyn}
+                    "hidden_first": first, "hidden_within_confusable": within, "hidden_named": anyn}
 
         def gated(x, g=0.01):            # the names whose predicted share of the loss is >= g (after the fact)
             rel = {t["effect"]: t.get("relative_drop") or 0.0 for t in x["tested"]}
             return [n for n in x["named"] if rel.get(n, 0.0) >= g]
 
         fa1 = [x for x in c if gated(x)]
-        first1 = sum(1 for r, x in e if gated(x)[:1] == [r["hidden"]])
+        first1 = sum(1 for r, x in e if gated(x)[:1] == [r["hidden"]] and not x.get("confusable"))
         any1 = sum(1 for r, x in e if r["hidden"] in gated(x))
         out.append(f"| {rule} +gate1% | {len(fa1)}/{len(c)} | "
-                   f"{', '.join(sorted({n for x in fa1 for n in gated(x)[:1]})) or '-'} | {first1}/{len(e)} | "
+                   f"{', '.join(sorted({n for x in fa1 for n in gated(x)[:1]})) or '-'} | {first1}/{len(e)} | - | "
                    f"{any1}/{len(e)} |")
         js[rule + "+gate1%"] = {"controls": len(c), "false_alarms": len(fa1), "effect_cases": len(e),
                                 "hidden_first": first1, "hidden_named": any1}
@@ -228,7 +234,9 @@ def table(rows: list[dict], rules) -> tuple[str, dict]:
             hx = "" if h is None else (f"; {h['effect']}: p {h['marginal_p_value']:.2g}, "
                                        f"{100 * (h['relative_drop'] or 0):.1f}%"
                                        + ("" if h.get("held_back_p") is None else f", held-back p {h['held_back_p']:.2g}"))
-            cells.append(f"{x['verdict']}: {', '.join(x['named']) or '-'}{hx}")
+            names = (" or ".join(x["confusable"]) + " (confusable)") if x.get("confusable") else \
+                (", ".join(x["named"]) or "-")
+            cells.append(f"{x['verdict']}: {names}{hx}")
         out.append(f"| {r['case']} | " + " | ".join(cells) + " |")
     return "\n".join(out), js
 

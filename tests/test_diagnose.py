@@ -99,6 +99,10 @@ def test_score_is_the_float64_derivative_of_the_loss(damped):
     assert 2 * float(r0 @ j) == pytest.approx(g_auto, rel=1e-4)
 
 
+def t_note(d, effect):
+    return next(t for t in d["tested"] if t["effect"] == effect)["note"]
+
+
 def test_diagnose_verb_names_damping_and_stores_it(damped):
     from physinteract_usd import api
     from physinteract_usd.usd.diagnosis_io import read_diagnosis
@@ -117,6 +121,8 @@ def test_diagnose_verb_names_damping_and_stores_it(damped):
     assert "removing ground given damping" in top["evidence"] and "damping is needed" in top["evidence"]
     pt = next(t for t in d["tested"] if t["effect"] == "damping")["pair_test"]
     assert pt["winner"] == "damping" and set(pt["pair"]) == {"damping", "ground"}
+    # told apart (damping needed given the ground, not the reverse): no confusable verdict, damping named alone
+    assert d["confusable"] is None and "told apart from ground" in top["evidence"] + t_note(d, "damping")
     # accepted by the paired test over the held-back blocks: its drop, standard error and p-value
     t = next(t for t in d["tested"] if t["effect"] == "damping")
     assert t["accepted"] and t["held_back_drop"] > 0 and t["held_back_se"] > 0 and t["held_back_p"] < 0.05
@@ -409,3 +415,35 @@ def test_a_hidden_damping_that_a_ground_mimics_stays_damping(damped):
     assert not sig["ground_signature"], sig["why"]
     pt = RF.nested_pair(d, dm, g, iterations=2)
     assert pt["winner"] == "damping", pt["why"]
+
+
+@pytest.fixture(scope="module")
+def viscous(tmp_path_factory):
+    # the suite's tiny-bar viscoelasticity at 1x (benchmarks/diagnose_suite.hidden_for): E_v 0.3 E, tau 0.1 s
+    return ds.build(tmp_path_factory.mktemp("viscous"), noise=0.015,
+                    hidden={"viscoelasticity": {"modulus": 0.3 * rs.E_TRUE, "relaxationTime": 0.1}})
+
+
+def test_a_hidden_viscoelastic_bar_is_named_viscoelasticity_or_within_its_confusable_pair(viscous):
+    """Issue #22's viscoelasticity, known answer: on the tiny bar whose video has a Maxwell branch the base lacks,
+    with the same call that leaves the control `adequate` (`test_with_refits_the_size_gate_still_stops_a_rendering_
+    error`: refits confirming, damping its confusable mate among the candidates), the diagnosis names
+    viscoelasticity first, or says "damping or viscoelasticity: the frames cannot tell them apart" with
+    viscoelasticity in the pair; never damping alone. (On foam_bar the GPU's base fit absorbs a 1x branch into its
+    E field: docs/benchmarks/diagnose_named.md, 17th; here the base is the truth without it, so the test checks the
+    probes and the verdict, not that absorption.)"""
+    from physinteract_usd import api
+
+    d = api.diagnose(viscous["stage"], refit=3, refit_iterations=2, progress=False, log=lambda *a: None,
+                     write_stage=False, starts=1, candidates="damping,viscoelasticity,camera:depth_scale")
+    assert d["verdict"] == "missing_effect", d["reason"]
+    cf = d["confusable"]
+    if cf is None:
+        assert d["candidates"][0]["effect"] == "viscoelasticity", d["reason"]
+        t = next(t for t in d["tested"] if t["effect"] == "viscoelasticity")
+        assert t["accepted"] and t["held_back_p"] < 0.05
+    else:
+        assert set(cf["pair"]) == {"damping", "viscoelasticity"}, d["reason"]
+        assert d["reason"].startswith(f"{cf['pair'][0]} or {cf['pair'][1]}: the frames cannot tell them apart")
+        assert "held still" in cf["to_separate"] or "held load" in cf["to_separate"]
+    assert "camera:depth_scale" not in [c["effect"] for c in d["candidates"]]

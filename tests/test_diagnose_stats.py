@@ -661,3 +661,73 @@ def test_the_grounds_signature_is_a_better_fit_at_the_lowest_points_not_the_tota
     ground = _pair_cand("ground", np.where(bottom, 0.15, 0.5) * sig + noise, folds)
     out = bottom_signature(d, damp, ground, mask=bottom)
     assert not out["ground_signature"] and "no floor's signature" in out["why"]
+
+
+def test_a_confusable_pair_not_told_apart_gets_one_verdict_for_the_two():
+    """`diagnose.confusable.confusable_verdict` (issue #22): damping and ground both accepted on the same held-back
+    frames, each explaining the held-back residual alike, neither better than the other by the paired test and neither
+    needed given the other (the pair step): one verdict, "damping or ground friction: the frames cannot tell them
+    apart", both in the named candidates with their evidence, what capture separates them, and `effects add` of the
+    cheaper one (damping: one parameter; the two closer than their difference's standard error). Told apart (one
+    clearly better, or both needed): no such verdict."""
+    from physinteract_usd.diagnose.confusable import confusable_verdict
+    from physinteract_usd.diagnose.core import conclude
+    from physinteract_usd.diagnose.refit import judge_nested
+
+    def setup(k_damp, k_ground, k_joint, seed=2, needed_halves=False):
+        rng = np.random.default_rng(seed)
+        d, frame, folds = _pair_diag(rng)
+        n = len(frame)
+        sig = rng.normal(size=n) * (1.0 + (frame >= 6))
+        noise = 0.3 * rng.normal(size=n)
+        d._ctx["r0"] = sig + noise
+        if needed_halves:            # each explains a different half of the frames: both needed
+            half = frame >= 7
+            damp = _pair_cand("damping", np.where(half, 0.1, 1.0) * sig + noise, folds)
+            ground = _pair_cand("ground", np.where(half, 1.0, 0.1) * sig + noise, folds)
+        else:
+            damp = _pair_cand("damping", k_damp * sig + noise + 0.02 * rng.normal(size=n), folds)
+            ground = _pair_cand("ground", k_ground * sig + noise + 0.02 * rng.normal(size=n), folds)
+        joint = [(m, k_joint * sig + noise + 0.02 * rng.normal(size=n)) for m in folds]
+        L0 = float(np.mean(np.square(sig + noise)))
+        for c in (damp, ground):
+            held = np.concatenate([r[m] for m, r in c._held])
+            c.held_back_drop = L0 - float(np.mean(np.square(held)))
+            c.held_back_se, c.held_back_p, c.estimate = 0.01, 0.001, {}
+        ground.significant, ground.marginal = False, (0.002, 0.004)      # explained away by the linear test
+        damp.marginal, damp.drop = (0.00025, 0.1), 0.1
+        pt = judge_nested(d, damp, ground, joint)
+        damp.pair_test = ground.pair_test = pt
+        d.results = [damp, ground]
+        d.loss = L0
+        return d, damp, ground, pt
+
+    d, damp, ground, pt = setup(0.3, 0.3, 0.3)
+    assert pt["winner"] is None and not any(t["needed"] for t in pt["adds"].values())
+    cf = confusable_verdict(d)
+    assert cf is not None, damp.note
+    d.confusable = cf
+    # the one to add: the larger held-back drop, or the cheaper (damping: 1 parameter, ground 2) when the two are
+    # closer than their difference's standard error
+    close = abs(damp.held_back_drop - ground.held_back_drop) < cf["tests"]["direct"]["se"]
+    better = "damping" if damp.held_back_drop >= ground.held_back_drop else "ground"
+    assert set(cf["pair"]) == {"damping", "ground"} and cf["add"] == ("damping" if close else better) == cf["pair"][0]
+    assert cf["tests"]["direct"]["p"] >= 0.05 and cf["tests"]["direct"]["p_reverse"] >= 0.05
+    assert "free decay clear of the floor" in cf["to_separate"] and "side view" in cf["to_separate"]
+    assert set(cf["evidence"]) == {"damping", "ground"} and cf["evidence"]["ground"]["held_back_drop"] > 0
+    assert [c.effect for c in d.significant] == cf["pair"]                    # both named, the one to add first
+    conclude(d)
+    assert d.verdict == "missing_effect"
+    spoken = {"damping": "damping", "ground": "ground friction"}
+    assert d.reason.startswith(f"{spoken[cf['pair'][0]]} or {spoken[cf['pair'][1]]}: the frames cannot tell them apart")
+    assert f"effects add {cf['add']}" in d.reason
+    js = d.to_dict()
+    assert js["confusable"]["add"] == cf["add"] and [c["effect"] for c in js["candidates"]] == cf["pair"]
+    # the ground clearly better on the held-back frames (direct test): told apart, no confusable verdict
+    d, damp, ground, pt = setup(0.5, 0.1, 0.1)
+    assert confusable_verdict(d) is None and "told apart from ground" in damp.note
+    assert not ground.significant
+    # each needed for a different half of the frames: both needed, not a mimic pair
+    d, damp, ground, pt = setup(None, None, 0.1, needed_halves=True)
+    assert all(t["needed"] for t in pt["adds"].values())
+    assert confusable_verdict(d) is None

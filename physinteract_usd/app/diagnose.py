@@ -215,6 +215,9 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
                   + [c for c in res if not c.significant])
 
 
+CONFUSABLE_VERDICT = True   # a confusable pair both accepted and told apart by nothing measured: one verdict for the
+                            # two, "damping or ground friction: the frames cannot tell them apart" (issue #22,
+                            # `diagnose.confusable`); False: the first of the two named, as before
 PAIR_STEP = True   # the nested comparison of a confusable pair both accepted on the same held-back frames
                    # (`pair_step`, issue #22); False: the order of the held-back drops / the rival test alone
 
@@ -502,6 +505,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     if tc and tc.get("suspect"):
         diag.notes.extend(tc["notes"])
     refit_confusable(diag, int(refit), int(refit_iterations), log)
+    if CONFUSABLE_VERDICT and int(refit) >= 1:
+        from ..diagnose.confusable import confusable_verdict
+
+        diag.confusable = confusable_verdict(diag)
     conclude(diag)
     if starts_out.get("chosen") is not None:
         diag.reason = f"{diag.reason} [{starts_out['note']}]"
@@ -510,6 +517,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
             cr.evidence = describe(cr.effect, cr, diag._ctx)
         except Exception as exc:  # noqa: BLE001
             cr.evidence = f"(evidence unavailable: {exc})"
+    if diag.confusable:
+        from ..diagnose.confusable import word_confusable
+
+        word_confusable(diag)
     diag.cost["seconds"] = time.perf_counter() - t0
     out = json_safe(diag.to_dict())
     out.update({"stage": str(stage_path), "version": version})

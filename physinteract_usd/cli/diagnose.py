@@ -67,6 +67,16 @@ def run(a) -> int:
             print(f"{i:2d} {c['effect']:24} {c['score']:6.2f} {c['predicted_loss_drop']:10.3g} {r:>10}  {est}")
             if c["evidence"]:
                 print(f"   {c['evidence']}")
+    cf = d.get("confusable")
+    if cf:
+        print(f"CONFUSABLE: {cf['verdict']}")
+        for e in cf["pair"]:
+            ev = cf["evidence"][e]
+            print(f"  {e}: held-back drop {_fmt(ev['held_back_drop'])} +- {_fmt(ev['held_back_se'])} "
+                  f"(p {_fmt(ev['held_back_p'])}); " + ", ".join(f"{k}={_fmt(v)}" for k, v in ev["estimate"].items()))
+        print(f"  what would tell them apart: {cf['to_separate']}")
+        print(f"  to lower the error now: physinteract-usd effects add {d.get('stage', 'scene.usda')} {cf['add']} "
+              f"({cf['add_why']})")
     for n in d.get("notes") or []:
         print(f"note: {n}")
     print(f"tested: " + ", ".join(f"{t['effect']} (p {t['marginal_p_value']:.2g})" for t in d["tested"]))

@@ -251,6 +251,8 @@ class Diagnosis:
     trajectory_check: dict | None = None   # is the hand's path soaking up model error (`trajectory_check`)
     base_starts: dict | None = None        # the base refitted from other starts (app.diagnose)
     noise: dict | None = None              # the data's noise on the rest frames and the silhouette's weight
+    confusable: dict | None = None         # a confusable pair both accepted and not told apart: one verdict for
+                                           # the two (`confusable.confusable_verdict`, issue #22)
 
     @property
     def significant(self) -> list:
@@ -269,7 +271,8 @@ class Diagnosis:
                             "confusable_with": c.rival_of or ([r.effect for r in c.rivals] or None),
                             "collinearity": c.collinearity, "note": c.note} for c in self.results],
                 "loss": self.loss, "noise_floor": self.floor, "notes": list(self.notes), "cost": dict(self.cost),
-                "trajectory_check": self.trajectory_check, "base_starts": self.base_starts, "noise": self.noise}
+                "trajectory_check": self.trajectory_check, "base_starts": self.base_starts, "noise": self.noise,
+                "confusable": self.confusable}
 
 
 # ---------------------------------------------------------------------------------------- runner
@@ -1219,6 +1222,13 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
                                f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor")
             return diag
         top = good[0]
+        cf = getattr(diag, "confusable", None)
+        if cf:
+            # a confusable pair both accepted and not told apart: one verdict for the two (`confusable`)
+            rest = [c.effect for c in (good if confirmed else sig) if c.effect not in cf["pair"]]
+            diag.verdict = "missing_effect"
+            diag.reason = cf["summary"] + (f"; also: {', '.join(rest)}" if rest else "")
+            return diag
         share = 100.0 * top.drop / L if L > 0 else 0.0
         also = [c.effect for c in (good if confirmed else sig) if c is not top]
         diag.verdict = "missing_effect"
