@@ -1031,7 +1031,7 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         noise["substeps"] = matched or {"before": getattr(sim, "substeps_unmatched", None),
                                         "after": int(sim.substeps)}
     if s.discretisation_column:
-        noise["discretisation_column", "rest_rows", "test_on_rows", "CAMERA"] = "discretisation" in names
+        noise["discretisation_column"] = "discretisation" in names
     rows = rest_rows(prob, res, len(r0a)) if s.camera_rest else None
     if rows is not None:
         noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]
