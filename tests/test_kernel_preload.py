@@ -45,3 +45,32 @@ def test_preload_compiles_the_substep_and_adjoint_modules_only():
     line = [ln for ln in p.stdout.splitlines() if ln.startswith("LOADED")]
     # the substep's and the hand-written adjoints' modules loaded; rate, CUDA and test modules not
     assert line == ["LOADED True True False False False"], p.stdout[-2000:]
+
+
+CUDA_CHILD = textwrap.dedent("""
+    import os, threading
+    os.environ["PHYSINTERACT_CUDA_PRELOAD"] = "1"
+    import warp as wp
+    from physinteract_usd.devices import quiet_warp_init
+    from physinteract_usd.sim import kernels as sk
+    assert sk.CUDA_PRELOAD
+    quiet_warp_init("cpu")
+    ran = []
+    sk.preload("cuda:0", "float64", also=["physinteract_no_such_module"], before=lambda: ran.append(1))
+    t = sk._PRELOAD["float64"]                       # opted in: a thread even for a GPU's modules
+    K = sk.get_kernels("float64")                    # waits for it; no GPU here: the loads fail on the thread
+    assert not t.is_alive() and ran == [1] and "float64" not in sk._PRELOAD
+    # the frame graphs' module the thread names is the one their kernels live in
+    from physinteract_usd.sim.frame_graphs import get_frame_kernels
+    G = get_frame_kernels("float64")
+    names = {k.module.name for k in vars(G).values()}
+    print("FRAME", sorted(names))
+    sk.preload("cuda:0", "float64")                  # built: a no-op
+    assert "float64" not in sk._PRELOAD
+""")
+
+
+def test_cuda_preload_is_opt_in_and_its_failures_stay_on_its_thread():
+    p = subprocess.run([sys.executable, "-c", CUDA_CHILD], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "FRAME ['physinteract_framegraph_float64']" in p.stdout, p.stdout[-2000:]

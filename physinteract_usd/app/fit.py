@@ -224,7 +224,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         dataclasses.replace(settings, iterations=settings.iterations * int(starts))
     check_cost(sd, cost, device, yes=yes, stage_path=stage_path, resumed=resume or warm_from is not None)
     # past the refusals: the simulator's kernels compile on a second thread while extraction runs (#26)
-    preload_kernels(device)
+    preload(device)
     obs = load_observations(sd, with_hand_masks=False)
     source = "extracted"
     if contacts is not None:
@@ -270,6 +270,30 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         starts = 1
     return FitJob(stage_path, sd, obs, list(contacts), effects, settings, device, start, source,
                   resumed_from, history, starts=int(starts))
+
+
+def preload(device) -> None:
+    """The simulator's Warp modules loaded (or compiled) on a thread while the stage is read
+    (`sim.kernels.preload`); on CUDA (opt-in: PHYSINTERACT_CUDA_PRELOAD=1, #26) the renderer's module and
+    torch's CUDA context too, so the first launches of `FitProblem` find them ready."""
+    from ..sim import kernels as K
+
+    if not str(device).startswith("cuda"):
+        preload_kernels(device)
+        return
+    if not K.CUDA_PRELOAD:
+        return
+    import warp as wp
+
+    from ..devices import torch_device
+    from ..render.rasterizer import kernels as render_kernels
+
+    def torch_context():
+        import torch
+
+        torch.empty(1, device=torch_device(device))
+
+    preload_kernels(device, also=[render_kernels(wp.float32).module], before=torch_context)
 
 
 def fit_tracks(sd: SceneData, obs: Observations, *, device="cpu", log=print, progress=True):
