@@ -74,3 +74,16 @@ def test_cuda_preload_is_opt_in_and_its_failures_stay_on_its_thread():
     p = subprocess.run([sys.executable, "-c", CUDA_CHILD], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "FRAME ['physinteract_framegraph_float64']" in p.stdout, p.stdout[-2000:]
+
+
+def test_cuda_context_warm_up_is_opt_in(monkeypatch):
+    from physinteract_usd.devices import warm_cuda_context
+
+    monkeypatch.delenv("PHYSINTERACT_CUDA_PRELOAD", raising=False)
+    assert warm_cuda_context("cuda") is None and warm_cuda_context("cpu") is None
+    monkeypatch.setenv("PHYSINTERACT_CUDA_PRELOAD", "1")
+    assert warm_cuda_context("cpu") is None
+    t = warm_cuda_context("cuda:0")          # opted in: a thread (on a machine without CUDA its failure stays there)
+    assert t is not None and t.name == "physinteract-cuda-context"
+    t.join(60)
+    assert not t.is_alive()
