@@ -124,3 +124,102 @@ def test_the_follow_rule_is_read_from_the_environment_as_0_or_1():
     assert follow_rule(None) is False and follow_rule("0") is False and follow_rule("1") is True
     with pytest.raises(ValueError, match="PHYSINTERACT_TYPE_FOLLOW"):
         follow_rule("yes")
+
+
+# ------------------------------------------------------------------ thirteenth pass (#23)
+def test_the_toucher_acts_until_it_leaves_at_a_transit_pace():
+    """`acting_end`: a palm that presses at 1 px a frame and lifts off at 15 px a frame acts until
+    its first departure pair (the still object next to a fast toucher reads some of its flow);
+    a held pull on a smooth ramp (0.5 -> 4 -> 0.5 px a frame) acts to its release: no pair is over
+    3x its pace; a toucher seen nowhere acts to the end."""
+    from physinteract_usd.extract.interaction_type import acting_end
+
+    vh = _pairs((4, (0.0, 0.0)), (5, (0.0, 1.0)), (5, (0.0, -1.0)), (3, (0.0, -15.0)))
+    co = np.array([0] * 4 + [1] * 10 + [1] * 3)
+    assert acting_end(vh, co, 4, 17) == 14
+    # the departure's smeared flow read as the object following it out past its rest: gone with it
+    vo = _pairs((4, (0.0, 0.0)), (5, (0.0, 0.6)), (5, (0.0, -0.6)), (3, (0.0, -6.0)))
+    down = np.array([0.0, 1.0])   # into the object
+    assert normal_motion(vh, vo, down, start=4, g=4, end=17)["tension_px"] > 2.0
+    assert normal_motion(vh, vo, down, start=4, g=4, end=14)["tension_px"] < 1e-9
+    ramp = np.sin(np.linspace(0.15, np.pi - 0.15, 12)) * 4.0
+    pull = np.column_stack([ramp, -0.3 * ramp])
+    assert acting_end(pull, np.ones(12, int), 0, 12) == 12
+    assert acting_end(np.full((5, 2), np.nan), np.zeros(5, int), 0, 5) == 5
+
+
+def _palm_over_a_bar(T=24):
+    """A palm 80 px wide coming down (+v) onto a bar (rows 40-55) seen from above: in front of the
+    bar in depth, its leading edge is seen past the bar's lower outline. It comes in at 4 px a
+    frame (frames 0-3), touches from frame 4, presses 1 px a frame (pairs 8-12: the bar gives 0.6
+    px a pair), lifts 1 px a frame (13-17: the bar springs back to rest) and leaves at 15 px a frame
+    (18-20), the bar next to it read moving up at 6 px a frame (the palm's flow smeared onto it)."""
+    from physinteract_usd.extract.timing import Timing
+
+    H, W = 80, 120
+    b = [36, 40, 44, 48] + [52] * 5 + [53, 54, 55, 56, 57] + [56, 55, 54, 53, 52] + [37, 22, 7] + [-100] * (T - 22)
+    yy, xx = np.mgrid[0:H, 0:W]
+    hand = np.stack([(xx >= 20) & (xx < 100) & (yy <= bk) & (yy > bk - 30) for bk in b])
+    bar = (yy >= 40) & (yy <= 55) & (xx >= 10) & (xx < 110)
+    flow = np.zeros((T - 1, H, W, 2), np.float32)
+    for k in range(T - 1):
+        flow[k][hand[k]] = (0.0, b[k + 1] - b[k])
+    vh = np.full((T - 1, 2), np.nan)
+    vo = np.full((T - 1, 2), np.nan)
+    for k in range(4, 21):
+        vh[k] = (0.0, b[k + 1] - b[k])
+    vo[4:21] = _pairs((4, (0.0, 0.0)), (5, (0.0, 0.6)), (5, (0.0, -0.6)), (3, (0.0, -6.0)))
+    coupled = np.zeros(T - 1, int)
+    coupled[8:21] = 1
+    near = np.zeros(T, bool)
+    near[4:22] = True
+    timing = Timing(vh, vo, coupled, near, (4, 21), np.linalg.norm(np.nan_to_num(vh), axis=1), 8, 21)
+    an = SimpleNamespace(hand=hand, obj=np.repeat(bar[None], T, 0), T=T, H=H, W=W, R=6.0, eps=0.35,
+                         obj_size_px=100.0, px_per_m=500.0, flows=SimpleNamespace(forward=flow),
+                         rest=SimpleNamespace(silhouette=bar))
+    return an, timing, np.array([60.0, 52.0])
+
+
+def test_a_palm_pressing_a_bar_from_above_is_a_surface_not_a_grasp():
+    """dev_0266's kind (glove palm on a bar, typed a grasp): the silhouette's inward normal at the
+    contact points up (the palm's leading edge is seen near the bar's lower outline), against the
+    way the palm came in (down): a toucher reaches a surface from outside, so that edge is not the
+    surface it touches and its 'tension' (the press read as a pull out) is no evidence; and the
+    first main motion is read while the palm acts, not its 45 px departure. What is left: pressed
+    3 px in along its approach, back to rest, never past it, while the palm lifted 5 px: a press,
+    by a 16 cm front: a surface."""
+    from physinteract_usd.extract.interaction_type import inward_normal, type_evidence
+    from physinteract_usd.extract.lifting import track_hand
+
+    an, timing, c2 = _palm_over_a_bar()
+    assert inward_normal(an.rest.silhouette, c2) @ np.array([0.0, 1.0]) < -0.9   # "inward" is up
+    ev = type_evidence(an, timing, c2, track_hand(timing, c2))
+    assert ev["acting_end"] == 18 and "tension_px" not in ev
+    assert ev["approach_press_cos"] == pytest.approx(1.0) and ev["approach_pressed_in_px"] == pytest.approx(3.0)
+    assert ev["approach_tension_px"] < 1e-9 and ev["approach_withdrawn_px"] == pytest.approx(5.0)
+    assert ev["push_cos"] < -0.9 and ev["front_width_m"] >= 0.06
+    assert classify_interaction(ev)[0] == "surfaceNonAdherent"
+
+
+def test_a_board_that_leaves_fast_is_not_followed_while_it_acted():
+    """dev_0297's kind (a board on a stiff clamped sheet, typed a grasp): the board comes to rest,
+    presses 2.4 px, lifts 2.1 px and leaves at 1 and 4.5 px a frame; the sheet next to it moves
+    only within the noise, but the departure's smeared flow reads as following (4.5 of its 9.8 px).
+    Over the contact the share it followed is 0.63 (a grasp's); without the departure pair (over
+    3x the pace) 0.32: touched two frames and parted, not followed: a press, by an 18 cm front."""
+    from physinteract_usd.extract.interaction_type import transit_pairs
+    from physinteract_usd.extract.timing import coupled_share
+
+    sp = np.array([0.1, 0.58, 0.65, 0.77, 0.1, 0.37, 0.71, 0.81, 0.23, 1.05, 4.46])
+    vh = np.column_stack([np.zeros_like(sp), sp])
+    co = np.array([0, -1, 1, -1, 0, -1, -1, -1, 0, 1, 1])
+    fast = transit_pairs(vh, co, 0, len(sp))
+    assert fast.tolist() == [False] * 10 + [True]
+    before = coupled_share(co, sp, 0, len(sp))
+    after = coupled_share(co, np.where(fast, 0.0, sp), 0, len(sp))
+    assert before == pytest.approx(0.63, abs=0.01) and after == pytest.approx(0.32, abs=0.01)
+    ev = {"push_cos": 0.51, "contact_motion_px": 5.55, "interface_span": 0.85, "approach_cos": -1.0,
+          "approach_speed_px": 1.54, "contact_frames": 2, "acting_motion_px": 0.63, "face_normal_cos": 0.99,
+          "into_cos": -0.27, "front_width_m": 0.18, "toucher_round": [0.2, 0.7]}
+    assert classify_interaction({**ev, "coupled_share": before})[0] == "pointAdherent"
+    assert classify_interaction({**ev, "coupled_share": after})[0] == "surfaceNonAdherent"

@@ -6,13 +6,14 @@ is) and the default rules on it (`classify_interaction`, replaceable through `Mo
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .analysis import Analysis, disk_mask, median_flow, unit
 from .geometry import pixel_centres
-from .lifting import HandTrack
+from .lifting import HandTrack, track_hand
 from .segmentation import dilate, erode
 from .timing import Timing, coupled_share
 
@@ -116,6 +117,7 @@ FACE_NORMAL_COS = float(np.cos(np.pi / 4))   # a motion closer to a face's norma
 FRONT_WIDE_M = 0.06   # a front wider than this is a face: fingertips <= 2.8 cm, sticks <= 2 cm, palms >= 10 cm
 PRESS_COS = 0.85      # the object's largest displacement within 32 deg of the inward normal: a press
 TENSION_PX = 2.0      # px the object followed the toucher out past its rest surface: held
+TRANSIT_RATIO = 3.0   # a toucher moving over 3x its acting pace is arriving or leaving (`acting_end`)
 
 
 def inward_normal(silhouette: np.ndarray, c2, smooth: float = 1.5, min_grad: float = 0.5):
@@ -191,6 +193,38 @@ def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, 
             "press_cos": float(big @ d / nb) if nb > 2 * eps else None}
 
 
+def acting_end(vh: np.ndarray, coupled: np.ndarray, g: int, end: int, ratio: float = None,
+               floor: float = 1.0) -> int:
+    """The frame at which the toucher starts to leave at a transit's pace: the first pair from the
+    grasp `g` (before `end`) in which it moves faster than `ratio` (TRANSIT_RATIO) times its pace
+    while the object followed it (the median speed over the pairs coupled +1 in [g, end); all seen
+    pairs where none) and over `floor` px; `end` where none does. A toucher that acts on an object
+    moves at the pace the object follows (it drags or presses the material); one moving several
+    times faster is arriving or leaving, and the flow of the object next to a fast toucher takes
+    some of the toucher's (smeared across the motion boundary): that pair is no evidence of how
+    the object follows."""
+    fast = transit_pairs(vh, coupled, g, end, ratio, floor)
+    return int(np.argmax(fast)) if fast.any() else end
+
+
+def transit_pairs(vh: np.ndarray, coupled: np.ndarray, g: int, end: int, ratio: float = None,
+                  floor: float = 1.0) -> np.ndarray:
+    """(len(vh),) bool: the pairs in [g, end) in which the toucher moves at a transit's pace (over
+    `ratio` times its pace while the object followed it, and over `floor` px; `acting_end`)."""
+    ratio = TRANSIT_RATIO if ratio is None else ratio
+    vh = np.asarray(vh, float)
+    out = np.zeros(len(vh), bool)
+    ks = [k for k in range(max(0, g), min(end, len(vh))) if np.isfinite(vh[k]).all()]
+    if not ks:
+        return out
+    sp = np.linalg.norm(vh, axis=1)
+    fol = [sp[k] for k in ks if coupled[k] == 1]
+    pace = float(np.median(fol if fol else [sp[k] for k in ks]))
+    for k in ks:
+        out[k] = sp[k] > ratio * pace and sp[k] > floor
+    return out
+
+
 def is_ball(round_: list | None, residual: float = 0.1, size: tuple = (0.8, 1.25)) -> bool:
     """The toucher is a ball (`toucher_roundness`): its free outline is one circle (RMS residual
     under `residual` of its radius) whose radius is half its extent (within `size`: a disk's
@@ -218,7 +252,15 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     (`push_cos`), the hand's approach against it (`approach_cos`, `approach_speed_px`), the
     interface's straight span (`interface_span`), the contact's motion and the coupled share."""
     g, p1 = timing.grasp, timing.period[1]
-    motion, d2 = hand.motion, hand.first_move
+    motion = hand.motion
+    # the toucher acts on the object until it starts to leave at a transit's pace (#23, thirteenth
+    # pass): the pairs from there on are its departure, whose flow leaks into the object next to it
+    # (dev_0266: a palm lifting off at 16-21 px a frame, the still bar next to it read moving out at
+    # 7-13): the type reads the first main motion, the tension and the front up to there
+    end_all = len(timing.object_velocity) if timing.release is None else timing.release
+    end = acting_end(timing.hand_velocity, timing.coupled, g, end_all)
+    act_hand = hand if end >= end_all else track_hand(replace(timing, release=end), c2)
+    d2 = act_hand.first_move
     body = hand_body_direction(an, g, c2)
     push_cos = float(np.dot(unit(d2), body)) if motion > 0 and np.linalg.norm(body) > 0 else None
     span, face = interface_span(an, g, c2, p1, with_normal=True)
@@ -235,19 +277,21 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
         into_cos = float(np.dot(unit(d2), into)) if np.linalg.norm(into) > 0 else None
     normal = {}
     n_in = inward_normal(an.rest.silhouette, c2)
-    end = len(timing.object_velocity) if timing.release is None else timing.release
-    if n_in is not None:
-        normal = normal_motion(timing.hand_velocity, timing.object_velocity, n_in, min(timing.period[0], g), g,
-                               end)
-    # the same against the way the toucher came in (#23): a toucher reaches the surface from
-    # outside, so its motion in the frames before it first touches the object points into it,
-    # wherever the silhouette's normal is ill-defined (a block's corner under a palm, dev_0144:
-    # 58 deg off the palm's press). Before the first touch, not before the grasp: a grasp put
-    # later than the touch (the user's --grasp-frame on a pull already under way) has the pull
-    # itself before it, not an approach
+    # the way the toucher came in (#23): a toucher reaches the surface from outside, so its motion
+    # in the frames before it first touches the object points into it, wherever the silhouette's
+    # normal is ill-defined (a block's corner under a palm, dev_0144: 58 deg off the palm's press).
+    # Before the first touch, not before the grasp: a grasp put later than the touch (the user's
+    # --grasp-frame on a pull already under way) has the pull itself before it, not an approach
     first = min(timing.period[0], g)
     v_in = approach_velocity(an, first, c2)
     in_speed = float(np.linalg.norm(v_in)) if v_in is not None else 0.0
+    if n_in is not None and in_speed >= 1.0 and float(np.dot(unit(v_in), n_in)) < 0.0:
+        # the toucher came in from the side the silhouette calls inside: the silhouette's edge at
+        # the contact is not the surface it touches (a palm pressing a bar's top from above, in
+        # front of it in depth, its leading edge seen past the bar's lower outline: dev_0266)
+        n_in = None
+    if n_in is not None:
+        normal = normal_motion(timing.hand_velocity, timing.object_velocity, n_in, first, g, end)
     if in_speed >= 1.0:
         ap = normal_motion(timing.hand_velocity, timing.object_velocity, unit(v_in), first, g, end)
         normal.update({f"approach_{k}": v for k, v in ap.items()})
@@ -258,7 +302,7 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     # along its first main motion and along its approach (over 2 eps), the narrower: a flat face is
     # wide whichever way it comes in, a finger on a hand only along itself (a push 70 deg off
     # the finger reads the hand's side, 15 cm: dev_0204's glove finger on a ring)
-    fronts = [toucher_front_width(an, g, c2, p1 if timing.release is None else timing.release, d)
+    fronts = [toucher_front_width(an, g, c2, p1 if end >= end_all and timing.release is None else end, d)
               for d, ok in ((d2, motion > 0), (v_in, in_speed >= 2 * an.eps)) if ok]
     fronts = [w for w in fronts if w is not None]
     front = min(fronts) if fronts else None
@@ -267,8 +311,14 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
             "toucher_round": toucher_roundness(an, g, c2, p1),
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
-            "coupled_share": coupled_share(timing.coupled, timing.speed, g, p1),
-            "contact_frames": None if timing.release is None else int(timing.release - g), **normal}
+            # the share of its motion in which the object followed, while it acted: not its arrival or
+            # departure at a transit's pace (dev_0297: a board leaving a stiff sheet at 4.5 px a frame, the
+            # sheet next to it read following at 1 px, 0.63 of the board's motion from the grasp to the
+            # contact period's end)
+            "coupled_share": coupled_share(timing.coupled, np.where(transit_pairs(timing.hand_velocity,
+                                           timing.coupled, g, p1), 0.0, timing.speed), g, p1),
+            "contact_frames": None if timing.release is None else int(timing.release - g),
+            "acting_end": None if end >= end_all else int(end), **normal}
 
 
 # ------------------------------------------------------------------------------ evidence
