@@ -88,7 +88,8 @@ class RateTransfer:
             arr.zero_()
         c = sol.ctrl
         wp.launch(K.p2g_scatter, P, [a.x, a.v, self.An, sol.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
-                                     sol.fps, sol.lo, sol.inv_dx, sol.res3, 0, sol.box], self.g + [sol.box_flag], device=d)
+                                     sol.fps, sol.lo, sol.inv_dx, sol.res3, 0, sol.box, sol.dt, a.F],
+                  self.g + [sol.box_flag, sol.clamped], device=d)
         gm, gmv = self.g[0].numpy(), self.g[1].numpy()
         self.gvo.assign(np.where(gm[..., None] > sol.m_eps, gmv / np.maximum(gm, 1e-300)[..., None], 0.0))
         wp.launch(K.g2p_gather, P, [a.x, self.gvo, sol.lo, sol.inv_dx, sol.res3], [self.vgo, self.Cgo], device=d)

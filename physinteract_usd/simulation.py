@@ -33,20 +33,260 @@ SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.envi
     else None
 
 
-def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories) -> GridSpec:
-    """The stage's grid, grown (same dx, same node lattice) to hold the trajectories with a margin
-    of half the object's extent: the hand may lead the object out of the init domain."""
+# The simulation's domain (#24). A particle whose quadratic stencil passes the grid's valid box is clamped to
+# the last nodes and blows up within ~a cell (docs/benchmarks/world_fits.md 1b: dev_0141's bar swinging about its
+# hook, dev_0255's released sheet flapping about its clamp, 190-290 mm from the support, past the face of a grid
+# grown only around the hand's path). `grid_covering` grows the stage's grid (same dx, same node lattice) to what
+# the object can reach: around the hand's path (as before), about each support (`support_reach`: a free end's
+# pendulum swing below its rest height, and the rotation the hand's path drives, both ways), and a fall after a
+# release with nothing holding it (down to the ground when there is one). The growth beyond the stage's domain and
+# the hand's path is capped at REACH_CAP x the object's extent on each side (memory and speed); what still leaves
+# the grid is a clear "left the grid" error (sim/solver.py), never a silent clamp.
+REACH_CAP = 1.0
+REACH_MARGIN_CELLS = 1.0     # room beyond the reach, in cells, besides the stencil's own (the valid box)
+
+
+def _ground_height(effects: dict | None) -> float | None:
+    g = (effects or {}).get("ground")
+    if g is None:
+        return None
+    h = g.get("height", g.get("h", 0.0)) if isinstance(g, dict) else 0.0
+    try:
+        return float(h)
+    except (TypeError, ValueError):
+        return None
+
+
+def _rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """The least rotation turning direction a into direction b (None: either is ~0)."""
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na < 1e-12 or nb < 1e-12:
+        return None
+    a, b = a / na, b / nb
+    k = np.cross(a, b)
+    s, c = np.linalg.norm(k), float(np.dot(a, b))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        k = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])    # half a turn about any axis normal to a
+        s, c = 0.0, -1.0
+        k = k / np.linalg.norm(k)
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        return np.eye(3) + 2.0 * K @ K
+    k = k / s
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * K + (1.0 - c) * K @ K
+
+
+def support_reach(x0: np.ndarray, contacts, gravity=(0.0, -9.81, 0.0), fps: float | None = None,
+                  ground: float | None = None) -> np.ndarray | None:
+    """Points bounding where the object's particles can go about what holds them (a (N, 3) array whose box is the
+    reach; None: nothing holds it). Pivots: the fixed supports (each particle about its nearest), or, without any,
+    the pointAdherent grasps while they hold (translated along the hand's path).
+    - gravity: a free end swings as a rigid pendulum about its pivot from rest: down to r below the pivot (r its
+      distance from it; not below the ground) and sideways by its horizontal distance from the pivot, both ways
+      (by r where it starts above the pivot's height: a bar released horizontally swings through the bottom and
+      up the other side);
+    - a driving contact (a hand, a poke) about each fixed support: the rigid rotation about the support that takes
+      the contact's point at its grasp to its position at each frame it acts, and the same rotation reversed (the
+      rebound after a release swings as far to the other side), stretched by the contact's distance from the
+      support where the hand pulls away from it."""
+    x0 = np.asarray(x0, np.float64)
+    g = np.asarray(gravity, np.float64)
+    down = g / np.linalg.norm(g) if np.linalg.norm(g) > 0 else np.array([0.0, -1.0, 0.0])
+    fixed = [c for c in contacts if c.type == "fixed" and len(c.indices)]
+    out = []
+
+    def pendulum(pivot, pts):
+        o = pts - pivot
+        r = np.linalg.norm(o, axis=1)
+        h = -(o @ down)                                  # height above the pivot
+        oh = o + h[:, None] * down                       # horizontal part
+        a = np.linalg.norm(oh, axis=1)
+        e = np.where(a[:, None] > 1e-12, oh / np.maximum(a, 1e-12)[:, None], 0.0)
+        b = np.where(h >= 0, r, a)                       # the farthest sideways below the rest height
+        lowest = -r
+        if ground is not None and abs(down[1]) > 0.999:  # not below the ground plane y = h (gravity along y)
+            lowest = np.maximum(lowest, np.minimum(ground - float(pivot[1]), h))
+        pts_ = []
+        for side in (1.0, -1.0):
+            for y in (lowest, np.minimum(h, r)):
+                pts_.append(pivot + side * b[:, None] * e - y[:, None] * down)
+        # a particle above the pivot may topple in any horizontal direction (a sheet standing on its clamp flops
+        # out of its plane): r along every horizontal axis
+        top = h > 0
+        if top.any():
+            for ax in range(3):
+                u = np.eye(3)[ax] - (np.eye(3)[ax] @ down) * down
+                if np.linalg.norm(u) > 1e-9:
+                    u = u / np.linalg.norm(u)
+                    for side in (1.0, -1.0):
+                        pts_.append(pivot + side * r[top, None] * u[None] - lowest[top, None] * down)
+        return np.concatenate(pts_)
+
+    if fixed:
+        held = np.zeros(len(x0), bool)
+        for c in fixed:
+            held[c.indices] = True
+        pivots = np.stack([x0[c.indices].mean(0) for c in fixed])
+        free = np.where(~held)[0]
+        near = np.argmin(np.linalg.norm(x0[free][:, None] - pivots[None], axis=-1), axis=1) if free.size else free
+        for i, pv in enumerate(pivots):
+            pts = x0[free[near == i]]
+            if not len(pts):
+                continue
+            out.append(pendulum(pv, pts))
+            rel = pts - pv
+            r2 = float(np.mean(np.sum(rel ** 2, axis=1)))            # I / m about the pivot, at least
+            cm = rel.mean(0)
+            rc_h = -float(cm @ down)                                 # the centre of mass's height above the pivot
+            for c in contacts:
+                tr = getattr(c, "trajectory", None)
+                if c.type == "fixed" or tr is None or fps is None:
+                    continue
+                tr = np.asarray(tr, np.float64)
+                g0 = min(max(int(c.grasp_frame), 0), len(tr) - 1)
+                end = len(tr) if c.release_frame is None else min(int(c.release_frame) + 1, len(tr))
+                q = tr[g0] - pv
+                rq = np.linalg.norm(q)
+                if rq < 1e-9 or end - g0 < 2:
+                    continue
+                # the path's own rotations (as driven, and reversed: the rebound after a release swings as far
+                # to the other side), stretched where the hand pulls away from the support
+                frames = np.arange(g0, end)
+                frames = frames[np.unique(np.linspace(0, frames.size - 1, min(frames.size, 64)).astype(int))]
+                best, axis = 0.0, None
+                for t in frames:
+                    R = _rotation(q, tr[t] - pv)
+                    if R is None:
+                        continue
+                    s = max(1.0, float(np.linalg.norm(tr[t] - pv)) / rq)
+                    out.append(pv + s * rel @ R.T)
+                    out.append(pv + s * rel @ R)
+                    k = np.cross(q, tr[t] - pv)
+                    ang = float(np.arctan2(np.linalg.norm(k), np.dot(q, tr[t] - pv)))
+                    if ang > best and np.linalg.norm(k) > 1e-12:
+                        best, axis = ang, k / np.linalg.norm(k)
+                # and the swing the contact's speed can add (a rigid body about the pivot: its kinetic energy
+                # 1/2 I w^2, w <= the contact point's speed / its distance, x 2 for a push that may bounce the
+                # object off it, lifts its centre of mass by I w^2 / (2 m g) above the angle reached)
+                v = np.diff(tr[g0:end], axis=0) * fps
+                sp = np.linalg.norm(v, axis=1)
+                i = int(np.argmax(sp))
+                if sp[i] <= 0:
+                    continue
+                w = (1.0 if c.type == "pointAdherent" else 2.0) * sp[i] / rq
+                gmag = float(np.linalg.norm(g)) or 9.81
+                lift = r2 * w * w / (2.0 * gmag)
+                if axis is None:
+                    k = np.cross(q, v[i])
+                    if np.linalg.norm(k) < 1e-12:
+                        continue
+                    axis = k / np.linalg.norm(k)
+                rc = float(np.linalg.norm(cm))
+                if rc_h >= 0 or rc < 1e-9:
+                    amp = np.pi                                    # above the pivot: it may go over
+                else:
+                    amp = float(np.arccos(np.clip(np.cos(best) - lift / rc, -1.0, 1.0)))
+                if amp <= best + 1e-9:
+                    continue
+                K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+                for th in np.linspace(-amp, amp, 13):
+                    R = np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * K @ K
+                    out.append(pv + rel @ R.T)
+        return np.concatenate(out) if out else None
+    for c in contacts:                                   # no support: the grasps hold it while they act
+        tr = getattr(c, "trajectory", None)
+        if c.type != "pointAdherent" or tr is None or not len(c.indices):
+            continue
+        tr = np.asarray(tr, np.float64)
+        g0 = min(max(int(c.grasp_frame), 0), len(tr) - 1)
+        end = len(tr) if c.release_frame is None else min(int(c.release_frame) + 1, len(tr))
+        pv = x0[c.indices].mean(0)
+        held = np.zeros(len(x0), bool)
+        held[c.indices] = True
+        sw = pendulum(pv, x0[~held]) if (~held).any() else x0[c.indices]
+        d = tr[g0:end] - tr[g0]
+        out += [sw + d.min(0), sw + d.max(0)]
+    return np.concatenate(out) if out else None
+
+
+def fall_reach(x0: np.ndarray, contacts, n_frames: int | None, fps: float | None, gravity=(0.0, -9.81, 0.0),
+               ground: float | None = None) -> np.ndarray | None:
+    """Points bounding a free fall: the frames no support or grasp holds the object (from a release to the end,
+    or all of them with no contact holding it), from where the hand left it at the hand's speed then, under
+    gravity, not below the ground. None: always held (a fixed support) or no frames / fps given."""
+    if not n_frames or not fps or any(c.type == "fixed" and len(c.indices) for c in contacts):
+        return None
+    T = int(n_frames)
+    held = np.zeros(T, bool)
+    grasps = [c for c in contacts if c.type == "pointAdherent" and len(c.indices) and c.trajectory is not None]
+    for c in grasps:
+        held[max(int(c.grasp_frame), 0):T if c.release_frame is None else min(int(c.release_frame), T)] = True
+    if held.all():
+        return None
+    x0 = np.asarray(x0, np.float64)
+    g = np.asarray(gravity, np.float64)
+    out = []
+    k = 0
+    while k < T - 1:
+        if held[k]:
+            k += 1
+            continue
+        a = k
+        while k < T - 1 and not held[k]:
+            k += 1
+        t = (k - a) / float(fps)
+        shift, v = np.zeros(3), np.zeros(3)
+        for c in grasps:                                 # where a hand that let go left it, and its speed
+            if c.release_frame is not None and int(c.release_frame) == a and a >= 1:
+                tr = np.asarray(c.trajectory, np.float64)
+                i = min(a, len(tr) - 1)
+                shift = tr[i] - tr[min(max(int(c.grasp_frame), 0), i)]
+                v = (tr[i] - tr[i - 1]) * fps
+        d = v * t + 0.5 * g * t * t
+        lo_pts = x0 + shift + d
+        if ground is not None and g[1] < 0:
+            lo_pts[:, 1] = np.maximum(lo_pts[:, 1], ground)
+        out += [x0 + shift, lo_pts]
+    return np.concatenate(out) if out else None
+
+
+def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories=(), *, contacts=(), effects: dict | None = None,
+                  fps: float | None = None, n_frames: int | None = None) -> GridSpec:
+    """The stage's grid, grown (same dx, same node lattice) to hold the object's reach: the trajectories with a
+    margin of half the object's extent (the hand may lead the object out of the init domain), and, given the
+    contacts, the reach about the supports and a fall after a release (`support_reach`, `fall_reach`; growth
+    beyond the stage's domain and the trajectories' box capped at REACH_CAP x the object's extent a side). The one
+    rule every simulation of a stage uses (`Simulation`: fit, simulate, report, evaluate, diagnose)."""
     st = settings
     lo = np.asarray(st.domain_min, float)
     hi = lo + np.asarray(st.grid_resolution) * st.cell_size
+    x0 = np.asarray(x0, float)
+    ext = float(np.max(np.ptp(x0, axis=0)))
     trajectories = [t for t in trajectories if t is not None]
+    need_lo, need_hi = lo.copy(), hi.copy()
     if trajectories:
-        ext = float(np.max(np.ptp(x0, axis=0)))
         pts = np.concatenate([np.asarray(t, float) for t in trajectories])
-        need_lo = pts.min(0) - 0.5 * ext - np.array([0.0, 0.3 * ext, 0.0])  # room to sag
-        need_hi = pts.max(0) + 0.5 * ext
-        lo = lo - np.maximum(np.ceil((lo - need_lo) / st.cell_size), 0) * st.cell_size
-        hi = hi + np.maximum(np.ceil((need_hi - hi) / st.cell_size), 0) * st.cell_size
+        need_lo = np.minimum(need_lo, pts.min(0) - 0.5 * ext - np.array([0.0, 0.3 * ext, 0.0]))  # room to sag
+        need_hi = np.maximum(need_hi, pts.max(0) + 0.5 * ext)
+    contacts = list(contacts or ())
+    if contacts:
+        ground = _ground_height(effects)
+        reach = [r for r in (support_reach(x0, contacts, st.gravity, fps, ground),
+                             fall_reach(x0, contacts, n_frames, fps, st.gravity, ground)) if r is not None]
+        if reach:
+            pts = np.concatenate(reach)
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+            if len(pts):
+                # the valid box is [lower + dx/2, upper - 3 dx/2] (the stencil), plus the margin
+                r_lo = pts.min(0) - (0.5 + REACH_MARGIN_CELLS) * st.cell_size
+                r_hi = pts.max(0) + (1.5 + REACH_MARGIN_CELLS) * st.cell_size
+                cap = REACH_CAP * ext
+                need_lo = np.minimum(need_lo, np.maximum(r_lo, need_lo - cap))
+                need_hi = np.maximum(need_hi, np.minimum(r_hi, need_hi + cap))
+    lo = lo - np.maximum(np.ceil((lo - need_lo) / st.cell_size), 0) * st.cell_size
+    hi = hi + np.maximum(np.ceil((need_hi - hi) / st.cell_size), 0) * st.cell_size
     res = tuple(int(round(r)) for r in (hi - lo) / st.cell_size)
     return GridSpec(tuple(lo), st.cell_size, res)
 
@@ -127,7 +367,8 @@ class Simulation:
         for c in self.contacts:
             if c.type != "fixed" and (c.trajectory is None or len(c.trajectory) != self.T):
                 raise ValueError(f"contact {c.name}: a ({self.T}, 3) trajectory is needed")
-        self.grid = grid_covering(st, self.x0, [c.trajectory for c in self.contacts])
+        self.grid = grid_covering(st, self.x0, [c.trajectory for c in self.contacts], contacts=self.contacts,
+                                  effects=self.effects, fps=scene.fps, n_frames=self.T)
         self.dtype = dtype
         self.traj_slots = [(i, torch.as_tensor(c.trajectory, dtype=self.tdtype, device=self.tdev))
                            for i, c in enumerate(self.contacts) if c.type != "fixed"]

@@ -21,13 +21,12 @@ VERBS = [init, info, synth, extract, fit, versions, report, diagnose, effects, e
 
 # what to change, in flags, for the simulator's failures (its own advice names its classes)
 CLI_ADVICE = {
-    "domain": "a softer material sags further and a longer pull reaches further: give the object more room "
-              "(`init --padding`, larger), raise the smallest E it may have (`init --youngs-range MIN,MAX`), "
-              "or check the trajectory",
+    "domain": "the object's particles walked past the edge of the simulation's grid (a free end swinging about a hook "
+              "or clamp, a fall after a release, a long pull; the grid already grows to the reach it expects: "
+              "docs/sim.md): give the object more room (`init --padding`, larger), raise the smallest E it may have "
+              "(`init --youngs-range MIN,MAX`), or check the trajectory",
     "unstable": "the substep is too long for the stiffness reached: lower the largest E (`init --youngs-range "
-                "MIN,MAX`) or --max-poisson, or slow the trajectory; or the object swung past the edge of its "
-                "grid (a free end about a hook or clamp), which blows up the same way: give it more room "
-                "(`init --padding`, larger)",
+                "MIN,MAX`) or --max-poisson, or slow the trajectory",
 }
 
 

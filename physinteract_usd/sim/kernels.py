@@ -74,6 +74,13 @@ ST_NONFINITE = 0
 ST_OUTSIDE = 1
 ST_NONFINITE_P = 2
 ST_OUTSIDE_P = 3
+# a particle whose quadratic stencil was clamped to the grid's last nodes at some substep of the frame (it
+# passed the valid box mid-frame: its B-spline weights are evaluated outside their support, a wrong state
+# that blows up within ~a cell; #24): how many, the farthest past (in 1/1000 cells), one of them
+ST_CLAMPED = 4
+ST_CLAMPED_PAST = 5
+ST_CLAMPED_P = 6
+N_STATUS = 7
 
 _CACHE = {}
 
@@ -405,6 +412,20 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                         wp.clamp(int(wp.floor(xp[2] - T(0.5))), 0, res[2] - 3))
 
     @wp.func
+    def mark_clamped(p: int, xp: vec3, walk: T, J: T, res: wp.vec3i, clamped: wp.array(dtype=int)):
+        # a particle outside the valid box (0.5 <= xp < res - 1.5 in cells: where cell_base clamps nothing) that
+        # walked there in a sane state (`walk`: its speed x dt in cells < 0.5, J = det F in (1/4, 4): not a state
+        # already blowing up, whose particles fly out at many cells a substep or with F exploding: that is the
+        # step's instability, not the grid's size; tests/test_sim_physics.py) marks how far past
+        # it is, in 1/1000 cells + 1, in its own entry (the largest over the frame's substeps; the frame's check
+        # counts and clears it): no atomics, no host sync
+        past = T(-1.0)
+        for d in range(3):
+            past = wp.max(past, wp.max(T(0.5) - xp[d], xp[d] - (T(float(res[d])) - T(1.5))))
+        if past >= T(0.0) and walk < T(0.5) and J > T(0.25) and J < T(4.0):
+            clamped[p] = wp.max(clamped[p], int(wp.min(past, T(1.0e6)) * T(1000.0)) + 1)
+
+    @wp.func
     def out_of_box(base: wp.vec3i, box: wp.array(dtype=wp.vec3i)):
         # whether a stencil (nodes base .. base + 2) leaves the grid box [box[0], box[0] + box[1])
         b0 = box[0]
@@ -573,8 +594,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     mass: wp.array(dtype=T),
                     pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
                     frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
-                    gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
+                    dt: T, F: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int),
+                    clamped: wp.array(dtype=int)):
         p = wp.tid()
         m = mass[p]
         dx = T(1.0) / inv_dx
@@ -582,6 +604,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         base = cell_base(xp, res)
         if box_on != 0 and out_of_box(base, box):
             wp.atomic_add(box_flag, 0, 1)
+        mark_clamped(p, xp, wp.length(v[p]) * dt * inv_dx, wp.determinant(F[p]), res, clamped)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         Ap = A[p]
@@ -605,7 +628,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
                   frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                   A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int)):
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int),
+                  clamped: wp.array(dtype=int)):
         # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
         # reads it). The scatter's loop is p2g_scatter's, written out again: as a wp.func taking the
         # grid arrays it ran ~1.8x slower on the CPU backend. The two must stay the same arithmetic
@@ -619,6 +643,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         base = cell_base(xp, res)
         if box_on != 0 and out_of_box(base, box):
             wp.atomic_add(box_flag, 0, 1)
+        mark_clamped(p, xp, wp.length(v[p]) * dt * inv_dx, wp.determinant(F[p]), res, clamped)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
@@ -925,8 +950,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     @wp.kernel(module=module, enable_backward=False)
     def check(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), F: wp.array(dtype=mat33),
-              lo: vec3, inv_dx: T, res: wp.vec3i, row: int, status: wp.array2d(dtype=int)):
+              lo: vec3, inv_dx: T, res: wp.vec3i, row: int, status: wp.array2d(dtype=int),
+              clamped: wp.array(dtype=int)):
         p = wp.tid()
+        c = clamped[p]
+        if c > 0:       # its stencil was clamped at a substep of this frame (mark_clamped)
+            wp.atomic_add(status, row, 4, 1)
+            wp.atomic_max(status, row, 5, c)
+            wp.atomic_max(status, row, 6, p)
+            clamped[p] = 0
         xq = x[p]
         ok = wp.isfinite(xq) and wp.isfinite(v[p]) and wp.isfinite(F[p])
         if not ok:

@@ -251,12 +251,16 @@ class Rollout:
         sol.box_flag.zero_()
         return True
 
+    def _frame_positions(self, r: int) -> np.ndarray:
+        """The particles' positions at the start of frame r of the last forward (a left-the-grid error's face)."""
+        return self.ck.t["x"][r].detach().double().cpu().numpy()
+
     # ------------------------------------------------------------------ one frame, forward / backward
     def _forward_frame(self, k: int) -> None:
         sol = self.solver
         a, b = self._pp
         if k == 0:
-            self.status.zero_()
+            sol.reset_status(self.status)
             sol.box_flag.zero_()
             a.set_rest(self.model, self.v0)
             self.ck.frame(0).assign(a)
@@ -276,7 +280,7 @@ class Rollout:
         sol = self.solver
         st = self._states[k]
         if k == 0:
-            self.status.zero_()
+            sol.reset_status(self.status)
             sol.box_flag.zero_()
             st[0].set_rest(self.model, self.v0)
             self.ck.frame(0).assign(st[0])
@@ -379,7 +383,7 @@ class Rollout:
             # a forward-only rollout (synth, simulate) at a fine step would otherwise hold (S + 1) x P
             # states it never reads (107 GB for the suite's balloon truth at grid 128)
             self._fw = SimpleNamespace(FK=get_frame_kernels(m.dtype), ctr=wp.zeros(1, dtype=int, device=d),
-                                       ctrl=wctrl, adj=wadj, status=wp.zeros((1, 4), dtype=wp.int32, device=d),
+                                       ctrl=wctrl, adj=wadj, status=self.solver.new_status(1),
                                        states=None, st=None)
         return self._fw
 
@@ -446,7 +450,7 @@ class Rollout:
         """Frame 0's own work before the frame graphs (eager: a few launches per forward)."""
         fw = self._windows()
         a = self._pp[0]
-        self.status.zero_()
+        self.solver.reset_status(self.status)
         self.solver.box_flag.zero_()
         a.set_rest(self.model, self.v0)
         self.ck.frame(0).assign(a)
@@ -660,7 +664,7 @@ class Rollout:
                 break
         if eager:
             self._warm.add(id(graphs))         # its modules are loaded: the capture needs no warm-up frame
-        self.solver.raise_on_status(self.status)
+        self.solver.raise_on_status(self.status, positions=self._frame_positions)
         if self.solver.grid_box:
             self._update_box()
         self._record_stats()
@@ -672,14 +676,14 @@ class Rollout:
         self.n_forwards += 1
         sol = self.solver
         for _ in range(2):                     # the second time on the whole grid, if the box was left
-            self.status.zero_()
+            sol.reset_status(self.status)
             sol.box_flag.zero_()
             for k in range(start, self.T):
                 stopping.check("forward")
                 self._forward_frame(k)
             if not self._left_box():
                 break
-        self.solver.raise_on_status(self.status)
+        self.solver.raise_on_status(self.status, positions=self._frame_positions)
         if self.solver.grid_box:
             self._update_box()
         self._record_stats()

@@ -38,7 +38,7 @@ import warp as wp
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS
-from .kernels import F_VISCO, get_kernels
+from .kernels import F_VISCO, N_STATUS, get_kernels
 from .state import SimState
 
 # how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
@@ -151,6 +151,9 @@ class MPMSolver:
         self.chunk = 64 if wp.get_device(d).is_cpu else 1
         self.box = wp.array(np.array([[0, 0, 0], list(self.res)], dtype=np.int32), dtype=wp.vec3i, device=d)
         self.box_flag = wp.zeros(1, dtype=wp.int32, device=d)
+        # per particle: how far past the grid's valid box its stencil was clamped at this frame's substeps (kernels.
+        # mark_clamped, written by p2g; counted into the status row and cleared by the frame's check)
+        self.clamped = wp.zeros(model.n_particles, dtype=wp.int32, device=d)
         self.box_lo = (0, 0, 0)
         self.box_hi = tuple(self.res)
         self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
@@ -270,7 +273,7 @@ class MPMSolver:
 
     def _scatter_args(self, s: SimState, frame: int, c: ControlArrays):
         return [s.x, s.v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
-                self.inv_dx, self.res3]     # p2g_scatter: + whether the box is on, the box (and box_flag out)
+                self.inv_dx, self.res3]     # p2g_scatter: + whether the box is on, the box, dt, F (and box_flag, clamped out)
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
@@ -306,11 +309,12 @@ class MPMSolver:
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
                                        s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
                                        self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
-                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
+                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d,
+                      record_tape=False)
         else:
             wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
-            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [int(self.grid_box), self.box],
-                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag], device=d, record_tape=False)
+            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [int(self.grid_box), self.box, self.dt, s.F],
+                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d, record_tape=False)
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False)
         if gather:
@@ -495,23 +499,41 @@ class MPMSolver:
 
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
-        """Count non-finite and out-of-domain particles of state s into status[row] (no host sync)."""
-        wp.launch(self.K.check, s.x.shape[0], [s.x, s.v, s.F, self.lo, self.inv_dx, self.res3, row], [status],
+        """Count non-finite and out-of-domain particles of state s into status[row], and the particles whose
+        stencil was clamped at a substep since the last check (`clamped`, cleared here; no host sync)."""
+        wp.launch(self.K.check, s.x.shape[0], [s.x, s.v, s.F, self.lo, self.inv_dx, self.res3, row], [status, self.clamped],
                   device=self.device, record_tape=False)
 
     def new_status(self, n_rows: int) -> wp.array:
-        return wp.zeros((n_rows, 4), dtype=wp.int32, device=self.device)
+        return wp.zeros((n_rows, N_STATUS), dtype=wp.int32, device=self.device)
 
-    def raise_on_status(self, status: wp.array, frames=None, x_host=None):
-        """Raise SimulationError for the first frame whose status row reports a problem."""
+    def reset_status(self, status: wp.array) -> None:
+        """Before a pass: its status rows and the particles' clamp marks (a replay's p2g leaves them) cleared."""
+        status.zero_()
+        self.clamped.zero_()
+
+    def raise_on_status(self, status: wp.array, frames=None, positions=None):
+        """Raise SimulationError for the first frame whose status row reports a problem: "left the grid" (kind
+        "domain") where a particle's stencil was clamped at the grid's edge during the frame or a particle ended it
+        outside the valid box, whether or not the state then went non-finite (a clamped stencil's weights go
+        negative and the state blows up within ~a cell: that is the grid's size, not the step); "non-finite"
+        (kind "unstable", the step) where no particle walked out of the grid (kernels.mark_clamped). `positions(r)`: the particles' (P, 3)
+        positions at the start of bad row r's frame (to name the face), or None."""
         st = status.numpy()
-        bad = np.nonzero((st[:, 0] > 0) | (st[:, 1] > 0))[0]
+        m = self.model
+        if not getattr(m, "stencil_check", True):      # as before #24: the frame's end only (the synthetic truths)
+            st = st.copy()
+            st[:, 4:] = 0
+        bad = np.nonzero((st[:, 0] > 0) | (st[:, 1] > 0) | (st[:, 4] > 0))[0]
         if bad.size == 0:
             return
         r = int(bad[0])
         frame = r + 1 if frames is None else int(frames[r])
-        m = self.model
-        if st[r, 0] > 0:
+        # (a particle outside at the frame's end beside non-finite ones, with no clamp mark, flew out of a state
+        # already blowing up: the step)
+        if st[r, 4] > 0 or (st[r, 1] > 0 and st[r, 0] == 0):
+            raise self._left_grid_error(st[r], r, frame, positions)
+        if not getattr(m, "stencil_check", True):
             raise SimulationError(
                 f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]})", frame=frame,
                 advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
@@ -519,12 +541,44 @@ class MPMSolver:
                         f"= {m.nu_max:g}), or slow the trajectory; or particles swung past the grid's edge "
                         f"(a free end about a support), which blows up the same way: enlarge the domain"),
                 kind="unstable")
-        lo, hi = m.grid.valid_lower, m.grid.valid_upper
         raise SimulationError(
-            f"left the grid domain ({st[r, 1]} particles, e.g. particle {st[r, 3]}; valid box "
-            f"[{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)", frame=frame,
-            advice="enlarge the grid (GridSpec lower corner / resolution, or GridSpec.around with more padding), "
-                   "or check the trajectory, the ground height and gravity", kind="domain")
+            f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]}; none had walked out of "
+            "the grid)", frame=frame,
+            advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
+                    f"or speed reached: raise substeps per frame, lower E_max = {m.E_max:g} Pa (and nu_max "
+                    f"= {m.nu_max:g}), or slow the trajectory"),
+            kind="unstable")
+
+    def _left_grid_error(self, row, r: int, frame: int, positions) -> SimulationError:
+        """The "left the grid" error of status row `row` (index r): how many, how far past, which face."""
+        m, g = self.model, self.model.grid
+        n_clamped, past, p = int(row[4]), (int(row[5]) - 1) / 1000.0, int(row[6])
+        if n_clamped == 0:                       # seen outside only at the frame's end
+            n_clamped, p, past = int(row[1]), int(row[3]), None
+        face = ""
+        if positions is not None:
+            try:
+                x = np.asarray(positions(r), dtype=np.float64)[p]
+                lo, hi = g.valid_lower, g.valid_upper
+                d = np.concatenate([lo - x, x - hi])          # > 0: past that face
+                if np.all(np.isfinite(d)):
+                    i = int(np.argmax(d))
+                    face = f", nearest the {'-+'[i // 3]}{'xyz'[i % 3]} face"
+                    if past is None:
+                        past = max(float(d[i]) / g.dx, 0.0)
+            except Exception:  # noqa: BLE001 - the face is a courtesy; the error stands without it
+                face = ""
+        how = "" if past is None else f" by up to {past:.2f} cells ({1e3 * past * g.dx:.1f} mm)"
+        nf = f"; {int(row[0])} went non-finite after it" if row[0] > 0 else ""
+        lo, hi = g.valid_lower, g.valid_upper
+        return SimulationError(
+            f"left the grid domain ({n_clamped} particles past the edge of the grid's valid box{how}, e.g. particle {p}"
+            f"{face}{nf}; valid box [{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)",
+            frame=frame,
+            advice="enlarge the grid: give the object more room (init --padding, or a GridSpec with a larger box); the "
+                   "simulation's automatic domain covers the object's reach about its supports, the hand's path and a "
+                   "fall after a release (simulation.grid_covering); or check the trajectory, the ground and gravity",
+            kind="domain")
 
     # ------------------------------------------------------------------ convenience
     def simulate(self, n_frames: int, state: SimState | None = None, check: bool = True) -> dict[str, np.ndarray]:
@@ -539,6 +593,7 @@ class MPMSolver:
             a.assign(start)
             self.box_flag.zero_()
             status = self.new_status(n_frames)
+            self.clamped.zero_()
             frames = {"x": [a.x.numpy().copy()], "v": [a.v.numpy().copy()], "F": [a.F.numpy().copy()]}
             for k in range(n_frames):
                 for s in range(self.S):
@@ -553,7 +608,7 @@ class MPMSolver:
             self.set_box(None)
             self.clear_all()
         if check:
-            self.raise_on_status(status)
+            self.raise_on_status(status, positions=lambda r: frames["x"][r])
         if a is not state:
             state.assign(a)
         return {k: np.stack(v) for k, v in frames.items()}
