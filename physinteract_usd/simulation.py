@@ -44,6 +44,8 @@ SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.envi
 # the grid is a clear "left the grid" error (sim/solver.py), never a silent clamp.
 REACH_CAP = 1.0
 REACH_MARGIN_CELLS = 1.0     # room beyond the reach, in cells, besides the stencil's own (the valid box)
+# PHYSINTERACT_GRID_REACH=0 in the environment: the hand's path only, as before #24 (an A/B of the cost; read at import)
+GRID_REACH = os.environ.get("PHYSINTERACT_GRID_REACH", "1").strip() not in ("0", "off", "false")
 
 
 def _ground_height(effects: dict | None) -> float | None:
@@ -271,7 +273,7 @@ def grid_covering(settings: SimSettings, x0: np.ndarray, trajectories=(), *, con
         need_lo = np.minimum(need_lo, pts.min(0) - 0.5 * ext - np.array([0.0, 0.3 * ext, 0.0]))  # room to sag
         need_hi = np.maximum(need_hi, pts.max(0) + 0.5 * ext)
     contacts = list(contacts or ())
-    if contacts:
+    if contacts and GRID_REACH:
         ground = _ground_height(effects)
         reach = [r for r in (support_reach(x0, contacts, st.gravity, fps, ground),
                              fall_reach(x0, contacts, n_frames, fps, st.gravity, ground)) if r is not None]
