@@ -731,3 +731,32 @@ def test_a_confusable_pair_not_told_apart_gets_one_verdict_for_the_two():
     d, damp, ground, pt = setup(None, None, 0.1, needed_halves=True)
     assert all(t["needed"] for t in pt["adds"].values())
     assert confusable_verdict(d) is None
+
+
+def test_the_cli_prints_a_confusable_verdict_as_one_block(monkeypatch, capsys):
+    """The plain CLI of a confusable verdict: the verdict line, then a CONFUSABLE block with both candidates'
+    held-back evidence, what capture would tell them apart and the `effects add` command for the one to add."""
+    from types import SimpleNamespace
+
+    from physinteract_usd import api
+    from physinteract_usd.cli import diagnose as cli
+
+    cf = {"pair": ["damping", "ground"], "verdict": "damping or ground friction: the frames cannot tell them apart",
+          "evidence": {"damping": {"held_back_drop": 8.2e-4, "held_back_se": 2e-4, "held_back_p": 5e-4,
+                                   "estimate": {"coefficient": 3.1}},
+                       "ground": {"held_back_drop": 7.4e-4, "held_back_se": 2e-4, "held_back_p": 5e-4,
+                                  "estimate": {"height": -0.12, "friction": 0.6}}},
+          "to_separate": "a free decay clear of the floor", "add": "damping", "add_why": "the cheaper model"}
+    d = {"verdict": "missing_effect", "reason": cf["verdict"] + ": ...", "candidates": [], "tested": [], "notes": [],
+         "confusable": cf, "stage": "s.usda"}
+    monkeypatch.setattr(api, "diagnose", lambda *a, **k: d)
+    a = SimpleNamespace(stage="s.usda", refit=3, refit_iterations=8, candidates=None, no_stage=True, device="cpu",
+                        starts=3, trajectory_sigma=None, refit_folds=None, floor_rule=False, gate=None, json=False)
+    assert cli.run(a) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("MISSING_EFFECT: damping or ground friction: the frames cannot tell them apart")
+    assert out[1] == "CONFUSABLE: damping or ground friction: the frames cannot tell them apart"
+    assert out[2].startswith("  damping: held-back drop 0.00082 +- 0.0002 (p 0.0005); coefficient=3.1")
+    assert out[3].startswith("  ground: held-back drop") and "height=-0.12" in out[3]
+    assert out[4] == "  what would tell them apart: a free decay clear of the floor"
+    assert out[5] == "  to lower the error now: physinteract-usd effects add s.usda damping (the cheaper model)"
