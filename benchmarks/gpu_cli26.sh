@@ -9,13 +9,15 @@
 #        pyc       bytecode cached (PYTHONPYCACHEPREFIX=$W/pyc, PYTHONDONTWRITEBYTECODE unset; filled by a warm-up
 #                  run first): what an ordinary install has
 #        preload   pyc + PHYSINTERACT_CUDA_PRELOAD=1 (opt-in: the simulator's and renderer's Warp modules and torch's
-#                  CUDA context loaded on a thread while the stage is read; sim/kernels.py preload)
+#                  CUDA context, cuDNN and cuBLAS loaded on threads while the fit imports and reads the stage;
+#                  devices.warm_cuda_context, sim/kernels.py preload)
 #        torch_adamw  host, with torch.optim.AdamW in place of fit/adamw.py (the code before 67b4008: its first step
 #                  imports torch._dynamo), through a launcher that calls the CLI's main as `python -m` does
+#   (after the warm-ups: benchmarks/cuda_init_probe.py, a fresh process's start-up costs step by step)
 #   3. the per-phase breakdown and the in-process fit (benchmarks/cli_phases.py: two fits in one process, the first
 #      paying the imports, the second the "in-process" fit), with bytecode cached.
-# Development data (the bundled sample). Prints a table; writes $OUT/cli26.json, $OUT/cli26.tsv, $OUT/phases.json and
-# the logs. Usage, from the repository root on the GPU machine (Warp, usd-core on PYTHONPATH):
+# Development data (the bundled sample). Prints a table; writes $OUT/cli26.json, cli26.tsv, phases.json, cuda_init.json,
+# device.txt and logs.tgz (every log). Usage, from the repository root on the GPU machine (Warp, usd-core on PYTHONPATH):
 #     OUT=/tmp/out bash benchmarks/gpu_cli26.sh                    # ~6-7 min on an H200 (12 timed fits)
 #     VARIANTS="host pyc" OUT=/tmp/out bash benchmarks/gpu_cli26.sh   # ~3.5 min
 #     DEVICE=cpu GRID=10 ITERS=1 REPEATS=1 OUT=/tmp/o bash benchmarks/gpu_cli26.sh   # the CPU smoke test
@@ -78,6 +80,10 @@ fit_once host warm_host
 sed -i '$d' "$OUT/cli26.tsv"
 case " $VARIANTS " in *" pyc "*|*" preload "*) fit_once pyc warm_pyc; sed -i '$d' "$OUT/cli26.tsv" ;; esac
 echo "warm-ups done $(( $(date +%s) - T0 )) s"
+# a fresh process's start-up costs, step by step (torch's context, cuDNN, cuBLAS, Warp's module loads from the cache)
+env -u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX="$W/pyc" $PY benchmarks/cuda_init_probe.py --device "$DEVICE" \
+  --json "$OUT/cuda_init.json" > "$OUT/cuda_init.log" 2>&1
+grep -E "^\||^fresh" "$OUT/cuda_init.log"
 for r in $(seq 1 "$REPEATS"); do
   for v in $VARIANTS; do
     fit_once "$v" "${v}_r$r"
@@ -125,3 +131,6 @@ json.dump({"device": dev, "cli": rows, "summary": summary, "phases": ph}, open(f
 PY
 echo "total $(( $(date +%s) - T0 )) s"
 rm -rf "$W"
+# the device tool brings back at most 8 files: the logs go into one archive
+(cd "$OUT" && tar -czf logs.tgz ./*.log && rm -f ./*.log)
+ls "$OUT"
