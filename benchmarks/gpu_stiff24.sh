@@ -29,6 +29,7 @@ CAP="${CAP:-15000}"
 LIMIT="${LIMIT:-520}"
 SEEDS="${SEEDS:-222,224,231,237,246,247,255,258}"
 NGPUS="${NGPUS:-4}"
+GPU_OFFSET="${GPU_OFFSET:-0}"   # the first GPU of the NGPUS used (another job may hold the others)
 PY="${PYTHON:-python3}"
 mkdir -p "$OUT" "$WORK"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
@@ -39,7 +40,7 @@ echo "call $CALL seeds $SEEDS work $WORK cap $CAP limit ${LIMIT}s"
 $PY -c "from physinteract_usd import simulation; simulation.warm_kernels('$DEVICE')" > /dev/null 2>&1 || true
 k=0
 for s in ${SEEDS//,/ }; do
-  gpu=$(( k % NGPUS )); k=$(( k + 1 ))
+  gpu=$(( GPU_OFFSET + k % NGPUS )); k=$(( k + 1 ))
   [ "$DEVICE" = cuda ] && export CUDA_VISIBLE_DEVICES=$gpu
   case "$CALL" in
     gen)   timeout -s TERM "$LIMIT" $PY benchmarks/world_suite.py generate --split dev --seeds "$s" --work "$WORK" \
