@@ -61,3 +61,27 @@ def test_no_dynamo_import_and_the_fit_uses_it():
     users = [p.relative_to(ROOT).as_posix() for p in (ROOT / "physinteract_usd").rglob("*.py")
              if "torch.optim." in p.read_text() and p.name != "adamw.py"]
     assert users == [], users
+
+
+FIT_VERB = r"""
+import sys
+from physinteract_usd.cli import _main
+heavy = ("torch._dynamo", "sympy", "matplotlib", "trimesh")
+code = _main(["fit", sys.argv[1], "--contact-from", sys.argv[2], "--iterations", "1", "--yes"])
+print("EXIT", code)
+print("LOADED", sorted(m for m in heavy if m in sys.modules))
+"""
+
+
+def test_the_fit_verb_imports_no_dynamo_sympy_matplotlib_or_trimesh(tmp_path):
+    # what a CLI fit process loads (#26): torch._dynamo came with torch's AdamW (1-4 s a process), matplotlib
+    # and trimesh belong to report / mesh input, none of them to a fit of a splat capture
+    sys.path.insert(0, str(ROOT / "tests"))
+    import fit_scene
+
+    case = fit_scene.build(tmp_path)
+    out = subprocess.run([sys.executable, "-c", FIT_VERB, str(case["stage"]), str(case["gt"])], capture_output=True,
+                         text=True, timeout=600, cwd=ROOT)
+    lines = dict(line.split(" ", 1) for line in out.stdout.splitlines() if line.split(" ", 1)[0] in ("EXIT", "LOADED"))
+    assert lines.get("EXIT") == "0", out.stdout[-2000:] + out.stderr[-2000:]
+    assert lines["LOADED"] == "[]", lines
