@@ -37,6 +37,8 @@ over detection.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..errors import InputError
@@ -113,7 +115,14 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     if itype == "pointNonAdherent" and seen.hint_uv is None and seen.hint_particles is None:
         grasp = pushing_edge(an, grasp, hand.first_move, g)
     c3d = contact_particles(an, hint, itype, seen, grasp, g, evidence, notes)               # 6: where, in 3D
-    lifted = lift_trajectory(an, hint, itype, timing, grasp, hand, c3d, evidence)           # 7: T0
+    lift_hand = hand
+    if itype != "pointAdherent" and evidence.get("acting_end") is not None and \
+            (timing.release is None or evidence["acting_end"] < timing.release):
+        # a collider pushes the way it moved while it acted, not the way it left at a transit's pace
+        # (#23: dev_0213's palm, pressing down, lifted along its 44 px departure up, its plane 7 cm
+        # above the block): the same track, its first main motion read up to `acting_end`
+        lift_hand = track_hand(replace(timing, release=evidence["acting_end"]), grasp.uv)
+    lifted = lift_trajectory(an, hint, itype, timing, grasp, lift_hand, c3d, evidence)      # 7: T0
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
     low = None
     if lifted.contact.trajectory is not None:
