@@ -113,7 +113,7 @@ def main(argv=None) -> int:
     acc = [c for c in diag.results if c.accepted and getattr(c, "_held", None) is not None]
     r0 = residual_at(diag, None, None)[0]
     rows = {"verdict": out["verdict"], "named": [c["effect"] for c in out["candidates"]], "release": R,
-            "cpu_s": round(cpu, 1), "candidates": {}}
+            "cpu_s": round(cpu, 1), "candidates": {}, "confusable": out.get("confusable")}
     pair = next((c.pair_test for c in diag.results if getattr(c, "pair_test", None)), None)
     if pair:
         rows["pair_test"] = pair

@@ -668,8 +668,9 @@ def test_a_confusable_pair_not_told_apart_gets_one_verdict_for_the_two():
     frames, each explaining the held-back residual alike, neither better than the other by the paired test and neither
     needed given the other (the pair step): one verdict, "damping or ground friction: the frames cannot tell them
     apart", both in the named candidates with their evidence, what capture separates them, and `effects add` of the
-    cheaper one (damping: one parameter; the two closer than their difference's standard error). Told apart (one
-    clearly better, or both needed): no such verdict."""
+    cheaper one (damping: one parameter; the two closer than their difference's standard error). The direct
+    comparison of the single refits does not separate them (a mimic can fit better). Told apart (the pair step names
+    one, or both needed): no such verdict."""
     from physinteract_usd.diagnose.confusable import confusable_verdict
     from physinteract_usd.diagnose.core import conclude
     from physinteract_usd.diagnose.refit import judge_nested
@@ -723,8 +724,17 @@ def test_a_confusable_pair_not_told_apart_gets_one_verdict_for_the_two():
     assert f"effects add {cf['add']}" in d.reason
     js = d.to_dict()
     assert js["confusable"]["add"] == cf["add"] and [c["effect"] for c in js["candidates"]] == cf["pair"]
-    # the ground clearly better on the held-back frames (direct test): told apart, no confusable verdict
+    # damping's single refit clearly better on the held-back frames (the direct comparison) but, refitted together (a
+    # joint refit that ends above it, as on foam_bar's hidden ground), neither needed given the other: still one
+    # verdict (a mimic can fit better than the truth), with the direct comparison reported and damping added
+    d, damp, ground, pt = setup(0.3, 0.4, 0.4)
+    assert pt["winner"] is None and not any(t["needed"] for t in pt["adds"].values())
+    cf = confusable_verdict(d)
+    assert cf is not None and cf["tests"]["direct"]["better"] == "damping" and cf["add"] == "damping"
+    assert "a mimic can fit better than the truth" in cf["summary"]
+    # the ground needed given damping and not the reverse (the pair step names it): told apart, no confusable verdict
     d, damp, ground, pt = setup(0.5, 0.1, 0.1)
+    assert pt["winner"] == "ground"
     assert confusable_verdict(d) is None and "told apart from ground" in damp.note
     assert not ground.significant
     # each needed for a different half of the frames: both needed, not a mimic pair
