@@ -19,13 +19,15 @@ The method (docs/extract.md has the full account), one module per question:
    unless the hand went back the way it came in (a pull in depth); an object pressed in that never
    follows the toucher out past its rest surface (read against the silhouette's normal or the
    toucher's approach) is pushed; a toucher whose front is at least 6 cm wide (else, unmeasured, a
-   long straight hand-object interface) is a surface (a palm); else adherent;
+   long straight hand-object interface) is a surface (a palm); else adherent. All read while the
+   toucher acts: up to its first pair at over 3x its acting pace (`interaction_type.acting_end`:
+   its departure, whose flow leaks into the object next to it);
 6. contact particles (`contact.contact_at_grasp`, `contact.contact_particles`): the contact pixels
    at the grasp frame back-projected with the rendered depth (X = T_c^-1 pi^-1(x, d)) and mapped
    to the particles within a radius;
 7. T0 (`lifting.track_hand`, `lifting.lift_trajectory`): the hand's velocity at the contact
    integrated from the grasp, lifted to 3D (at the contact's depth for a pull, along the push
-   direction for a collider);
+   direction for a collider: its first main motion while it acts);
 8. supports (`supports.support_contacts`, `supports.find_supports`): particles that do not move
    while the rest does (tracked, interpolated to the ones the camera does not see), grouped into
    connected regions; gravity says a still object that would otherwise fall is held somewhere, so
