@@ -618,13 +618,14 @@ def cosine_lr(opt, base: list, j: int, n: int) -> None:
 def clean_gradients(opt, trajs) -> None:
     """Before an optimiser step: the trajectories' rest frame is observed, so its position is not a
     parameter (gradient zeroed); a rare non-finite gradient (a degenerate F) becomes 0, so that
-    parameter skips the step."""
+    parameter skips the step. Without a host read: every gradient goes through nan_to_num, which leaves a
+    finite one bitwise as it is (a test per tensor cost a device sync each on a GPU, #26)."""
     for tr in trajs:
         if tr.grad is not None:
             tr.grad[0] = 0
     for g in opt.param_groups:
         for p in g["params"]:
-            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+            if p.grad is not None:
                 p.grad = torch.nan_to_num(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
 
 
