@@ -11,6 +11,8 @@
 #        preload   pyc + PHYSINTERACT_CUDA_PRELOAD=1 (opt-in: the simulator's and renderer's Warp modules and torch's
 #                  CUDA context, cuDNN and cuBLAS loaded on threads while the fit imports and reads the stage;
 #                  devices.warm_cuda_context, sim/kernels.py preload)
+#        bdN       pyc + PHYSINTERACT_SIM_BLOCK_DIM=N (opt-in, #26: the solver's launches at N threads per block, e.g.
+#                  bd64, bd32; a warm-up fit each compiles the variant): VARIANTS="pyc bd64 bd32" ~4 min
 #        torch_adamw  host, with torch.optim.AdamW in place of fit/adamw.py (the code before 67b4008: its first step
 #                  imports torch._dynamo), through a launcher that calls the CLI's main as `python -m` does
 #   (after the warm-ups: benchmarks/cuda_init_probe.py, a fresh process's start-up costs step by step)
@@ -41,6 +43,7 @@ variant_env() {   # the environment of a variant, as `env` arguments
     host|torch_adamw) echo "PHYSINTERACT_CUDA_PRELOAD=0" ;;
     pyc) echo "-u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX=$W/pyc PHYSINTERACT_CUDA_PRELOAD=0" ;;
     preload) echo "-u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX=$W/pyc PHYSINTERACT_CUDA_PRELOAD=1" ;;
+    bd*) echo "-u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX=$W/pyc PHYSINTERACT_CUDA_PRELOAD=0 PHYSINTERACT_SIM_BLOCK_DIM=${1#bd}" ;;
   esac
 }
 
@@ -78,7 +81,10 @@ T0=$(date +%s)
 # warm-up (not counted): the kernel caches, and the bytecode cache the pyc variants read
 fit_once host warm_host
 sed -i '$d' "$OUT/cli26.tsv"
-case " $VARIANTS " in *" pyc "*|*" preload "*) fit_once pyc warm_pyc; sed -i '$d' "$OUT/cli26.tsv" ;; esac
+case " $VARIANTS " in *" pyc "*|*" preload "*|*" bd"*) fit_once pyc warm_pyc; sed -i '$d' "$OUT/cli26.tsv" ;; esac
+for v in $VARIANTS; do   # bdN: the solver's kernels at N threads per block, a module variant compiled on first use
+  case "$v" in bd*) fit_once "$v" "warm_$v"; sed -i '$d' "$OUT/cli26.tsv" ;; esac
+done
 echo "warm-ups done $(( $(date +%s) - T0 )) s"
 # a fresh process's start-up costs, step by step (torch's context, cuDNN, cuBLAS, Warp's module loads from the cache)
 env -u PYTHONDONTWRITEBYTECODE PYTHONPYCACHEPREFIX="$W/pyc" $PY benchmarks/cuda_init_probe.py --device "$DEVICE" \

@@ -402,7 +402,7 @@ class Rollout:
         rate transfer's kernels are a Warp module of their own, loaded by a warm-up run, never in a capture)."""
         sol = self.solver
         return (str(self.model.device), self.model.dtype, key, sol.fused_kernels, sol.fused_zero, sol.grid_box,
-                int(sol.flags), sol.rate_f > 0)
+                int(sol.flags), sol.rate_f > 0, sol.block_dim)
 
     def _shape(self, graphs: dict, k: int):
         """(key, body) of the graph that runs frame k of this graph set (key None: nothing to run)."""

@@ -29,6 +29,7 @@ inputs; tests/test_sim_tape.py); the rollout decides which frames keep one (sim/
 
 from __future__ import annotations
 
+import os
 from contextlib import contextmanager
 from types import SimpleNamespace
 
@@ -55,6 +56,15 @@ FUSED_KERNELS: bool | None = None
 # the whole grid: True / False force it, None (default) on CUDA devices only (where a 100^3 grid's
 # clear and scan are ~30% of a 15k substep); bitwise the same results (tests/test_grid_box.py)
 GRID_BOX: bool | None = None
+# threads per block of the solver's launches on CUDA devices (every substep kernel, forward and adjoint); None
+# (default): Warp's 256. A small fit's particle kernels run on ceil(P / 256) blocks (the demo's 1,769 particles:
+# 7 blocks on an H200's 132 SMs), each thread's work a long serial chain: fewer threads per block spread them over
+# more SMs (#26, benchmarks/gpu_iter26.py --block-dims; opt-in until a GPU run shows it). Each value is its own
+# variant of the kernels' modules (compiled and loaded on first use). The CPU ignores it. The results are the
+# same up to the order of the float atomics, which CUDA never fixed. PHYSINTERACT_SIM_BLOCK_DIM=64 in the
+# environment sets it for a process
+BLOCK_DIM: int | None = int(os.environ["PHYSINTERACT_SIM_BLOCK_DIM"]) if os.environ.get("PHYSINTERACT_SIM_BLOCK_DIM") \
+    else None
 
 
 class SimParams:
@@ -109,6 +119,8 @@ class MPMSolver:
         g = model.grid
         d = model.device
         self.device = d
+        # threads per block of every launch (BLOCK_DIM on CUDA; Warp's default 256 otherwise: the same kernels)
+        self.block_dim = int(BLOCK_DIM) if (BLOCK_DIM and wp.get_device(d).is_cuda) else 256
         self.res = tuple(g.resolution)
         self.lo = K.vec3(*g.lower)
         self.inv_dx = 1.0 / g.dx
@@ -310,22 +322,24 @@ class MPMSolver:
                                        s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
                                        self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
                       [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d,
-                      record_tape=False)
+                      record_tape=False, block_dim=self.block_dim)
         else:
-            wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False)
+            wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False,
+                      block_dim=self.block_dim)
             wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [int(self.grid_box), self.box, self.dt, s.F],
-                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d, record_tape=False)
+                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d, record_tape=False,
+                      block_dim=self.block_dim)
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
-                  device=d, record_tape=False)
+                  device=d, record_tape=False, block_dim=self.block_dim)
         if gather:
             wp.launch(K.g2p_gather, P, [s.x, self.gv, self.lo, self.inv_dx, self.res3], [self.vg, self.Cg],
-                      device=d, record_tape=False)
+                      device=d, record_tape=False, block_dim=self.block_dim)
 
     def _clear_grid(self):
         if self.fused_zero or self.grid_box:
             f = self._flat
             wp.launch(self.K.zero_grid, self.n_grid_threads, self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"]],
-                      device=self.device, record_tape=False)
+                      device=self.device, record_tape=False, block_dim=self.block_dim)
         else:
             self.gm.zero_()
             self.gmv.zero_()
@@ -345,11 +359,11 @@ class MPMSolver:
             ua = self._update_args(s_in, frame, p, c)    # x, F, Fv, vg, Cg, E, nu, eff, flags, pins, frame, fps, dt
             wp.launch(self.K.g2p_fused, s_in.x.shape[0], [s_in.x, self.gv, self.lo, self.inv_dx, self.res3,
                                                           ua[1], ua[2]] + ua[5:], self._outs(s_out),
-                      device=self.device, record_tape=False)
+                      device=self.device, record_tape=False, block_dim=self.block_dim)
         else:
             self.grid(s_in, frame, substep, p, c)
             wp.launch(self.K.g2p_update, s_in.x.shape[0], self._update_args(s_in, frame, p, c), self._outs(s_out),
-                      device=self.device, record_tape=False)
+                      device=self.device, record_tape=False, block_dim=self.block_dim)
         if self.rate_f > 0:
             self._rate_step(s_in, s_out, frame, c)
 
@@ -359,18 +373,19 @@ class MPMSolver:
         `grid` has scattered) gathered at the particles: self.vgo."""
         K, d = self.K, self.device
         P = s.x.shape[0]
-        wp.launch(K.zero_vec3, self.n_nodes, [self._rate_flat["gmo"]], device=d, record_tape=False)
+        wp.launch(K.zero_vec3, self.n_nodes, [self._rate_flat["gmo"]], device=d, record_tape=False,
+                  block_dim=self.block_dim)
         wp.launch(K.p2g_scatter_old, P, [s.x, s.v, s.C, self.dev["mass"], self.lo, self.inv_dx, self.res3],
-                  [self.gmo], device=d, record_tape=False)
+                  [self.gmo], device=d, record_tape=False, block_dim=self.block_dim)
         wp.launch(K.grid_old, self.n_nodes, [self._flat["gm"], self._rate_flat["gmo"], self.m_eps],
-                  [self._rate_flat["gvo"]], device=d, record_tape=False)
+                  [self._rate_flat["gvo"]], device=d, record_tape=False, block_dim=self.block_dim)
         wp.launch(K.g2p_gather, P, [s.x, self.gvo, self.lo, self.inv_dx, self.res3], [self.vgo, self.Cgo],
-                  device=d, record_tape=False)
+                  device=d, record_tape=False, block_dim=self.block_dim)
 
     def _rate_step(self, s_in: SimState, s_out: SimState, frame: int, c: ControlArrays):
         self._rate_old(s_in)
         wp.launch(self.K.rate_update, s_in.x.shape[0], [s_in.v, self.vgo, c.pin_id, c.pin_active, frame, self.rate_f],
-                  [s_out.v], device=self.device, record_tape=False)
+                  [s_out.v], device=self.device, record_tape=False, block_dim=self.block_dim)
 
     # ------------------------------------------------------------------ adjoint
     def _alloc_adj(self):
@@ -408,7 +423,8 @@ class MPMSolver:
         ap = self._adj_part
         if self.fused_zero:
             wp.launch(self.K.zero_particle_adj, P, [ap["A"], ap["vg"], ap["Cg"], int(clear_adj_in), adj_in.x, adj_in.v,
-                                                    adj_in.C, adj_in.F, adj_in.Fv], device=self.device, record_tape=False)
+                                                    adj_in.C, adj_in.F, adj_in.Fv], device=self.device, record_tape=False,
+                      block_dim=self.block_dim)
             return
         if clear_adj_in:
             adj_in.zero_()
@@ -434,7 +450,7 @@ class MPMSolver:
             f = self._flat
             wp.launch(K.zero_grid_adj, self.n_grid_threads,
                       self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"],
-                                          af["gpmv"], af["gv"]], device=d, record_tape=False)
+                                          af["gpmv"], af["gv"]], device=d, record_tape=False, block_dim=self.block_dim)
             self.grid(s_in, frame, substep, p, c, clear=False)
             self._zero_particle_adj(P, adj_in, clear_adj_in)
         else:
@@ -451,58 +467,60 @@ class MPMSolver:
             ra = self._rate_adj
             rf = self._rate_flat
             for a in (rf["a_gmo"], rf["a_gvo"]):
-                wp.launch(K.zero_vec3, self.n_nodes, [a], device=d, record_tape=False)
-            wp.launch(K.zero_vec3, P, [ra["vgo"]], device=d, record_tape=False)
+                wp.launch(K.zero_vec3, self.n_nodes, [a], device=d, record_tape=False, block_dim=self.block_dim)
+            wp.launch(K.zero_vec3, P, [ra["vgo"]], device=d, record_tape=False, block_dim=self.block_dim)
             wp.launch(K.rate_update_adj, P, [c.pin_id, c.pin_active, frame, self.rate_f, adj_out.v],
-                      [adj_in.v, ra["vgo"]], device=d, record_tape=False)
+                      [adj_in.v, ra["vgo"]], device=d, record_tape=False, block_dim=self.block_dim)
             # gather of the old grid velocity -> adj x, adj old grid velocity (its C part unused: zero adjoint)
             wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gvo, self.lo, self.inv_dx, self.res3, ra["vgo"], ra["Cgo"]],
-                      [adj_in.x, ra["gvo"]], device=d, record_tape=False)
+                      [adj_in.x, ra["gvo"]], device=d, record_tape=False, block_dim=self.block_dim)
             # old velocity = momentum / mass -> adj old momentum, adj grid mass (before p2g_scatter_adj reads it)
             wp.launch(K.grid_old_adj, self.n_nodes, [self._flat["gm"], rf["gmo"], self.m_eps, rf["a_gvo"]],
-                      [af["gm"], rf["a_gmo"]], device=d, record_tape=False)
+                      [af["gm"], rf["a_gmo"]], device=d, record_tape=False, block_dim=self.block_dim)
             wp.launch(K.p2g_scatter_old_adj, P, [s_in.x, s_in.v, s_in.C, self.dev["mass"], self.lo, self.inv_dx,
                                                  self.res3, ra["gmo"]],
-                      [adj_in.x, adj_in.v, adj_in.C], device=d, record_tape=False)
+                      [adj_in.x, adj_in.v, adj_in.C], device=d, record_tape=False, block_dim=self.block_dim)
         # particle update (Warp autodiff): -> adj x, F, Fv, vg, Cg, E, nu, effects, pins
         adj_upd = [adj_in.x, adj_in.F, adj_in.Fv, ap["vg"], ap["Cg"], adj_params.E, adj_params.nu, adj_params.eff, 0,
                    None, None, adj_ctrl.pin_pos, 0, 0.0, 0.0]
         wp.launch(K.g2p_update, P, self._update_args(s_in, frame, p, c), self._outs(s_out), adj_upd,
-                  self._outs(adj_out), adjoint=True, device=d, record_tape=False)
+                  self._outs(adj_out), adjoint=True, device=d, record_tape=False, block_dim=self.block_dim)
         if self.rate_f > 0:
             # the generated adjoint rewrote s_out from its forward (APIC's v): put the rate term back, so that s_out
             # holds what the forward wrote (a rollout's stored states are read again after an adjoint ran over them)
             wp.launch(K.rate_update, P, [s_in.v, self.vgo, c.pin_id, c.pin_active, frame, self.rate_f], [s_out.v],
-                      device=d, record_tape=False)
+                      device=d, record_tape=False, block_dim=self.block_dim)
         # gather (hand-written adjoint) -> adj x, adj grid velocity
         wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
-                  [adj_in.x, ag["gv"]], device=d, record_tape=False)
+                  [adj_in.x, ag["gv"]], device=d, record_tape=False, block_dim=self.block_dim)
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
         adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
                     None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
         # (a taped adjoint replays the forward's outputs into scratch: the tape stays as its forward wrote it)
         gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
-                  adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False)
+                  adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False, block_dim=self.block_dim)
         # scatter (hand-written adjoint) -> adj x, v, A, pins
         wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
-                  ag["gpmv"]], [adj_in.x, adj_in.v, ap["A"], adj_ctrl.pin_pos], device=d, record_tape=False)
+                  ag["gpmv"]], [adj_in.x, adj_in.v, ap["A"], adj_ctrl.pin_pos], device=d, record_tape=False,
+                  block_dim=self.block_dim)
         # stress: equilibrium branch by hand -> adj F, C, E, nu; Maxwell branch (Warp autodiff) -> adj Fv, nu, E_v
         wp.launch(K.p2g_stress_adj, P, [s_in.F, self.dev["mass"], self.dev["volume"], p.E, p.nu, self.material,
                                         self.inv_dx, self.dt, ap["A"]],
-                  [adj_in.F, adj_in.C, adj_params.E, adj_params.nu], device=d, record_tape=False)
+                  [adj_in.F, adj_in.C, adj_params.E, adj_params.nu], device=d, record_tape=False,
+                  block_dim=self.block_dim)
         if self.flags & F_VISCO:
             wp.launch(K.p2g_stress_visco, P, [s_in.Fv, self.dev["volume"], p.nu, p.eff, self.inv_dx, self.dt],
                       [self._own["A"] if taped else self.A], [adj_in.Fv, None, adj_params.nu, adj_params.eff, 0.0, 0.0],
                       [ap["A"]], adjoint=True,
-                      device=d, record_tape=False)
+                      device=d, record_tape=False, block_dim=self.block_dim)
 
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
         """Count non-finite and out-of-domain particles of state s into status[row], and the particles whose
         stencil was clamped at a substep since the last check (`clamped`, cleared here; no host sync)."""
         wp.launch(self.K.check, s.x.shape[0], [s.x, s.v, s.F, self.lo, self.inv_dx, self.res3, row], [status, self.clamped],
-                  device=self.device, record_tape=False)
+                  device=self.device, record_tape=False, block_dim=self.block_dim)
 
     def new_status(self, n_rows: int) -> wp.array:
         return wp.zeros((n_rows, N_STATUS), dtype=wp.int32, device=self.device)
