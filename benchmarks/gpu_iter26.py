@@ -180,7 +180,11 @@ def run_fit(stage_dir: Path, a, mode: str, iterations: int, rec_box: list):
     def run_forward(self, *aa, **kk):
         if rec.active and rec.cur is not None:
             rec.cur["shape"] = {"frames": self.T, "substeps": self.S, "particles": self.P,
-                                "grid": [int(v) for v in self.solver.res] if hasattr(self.solver, "res") else None}
+                                "grid": [int(v) for v in self.solver.res] if hasattr(self.solver, "res") else None,
+                                "fused_kernels": bool(self.solver.fused_kernels), "grid_box": bool(self.solver.grid_box),
+                                "rate_transfer": bool(self.solver.rate_f > 0), "effects_flags": int(self.solver.flags),
+                                "block_dim": int(getattr(self.solver, "block_dim", 256)),
+                                "frame_graphs": bool(self.graphs and self.frame_graphs)}
         return orig_rf(self, *aa, **kk)
     RO.Rollout.run_forward = run_forward
     undo.append((RO.Rollout, "run_forward", orig_rf))
