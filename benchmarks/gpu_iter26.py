@@ -466,9 +466,11 @@ def profile(stage_dir: Path, a, n: int) -> dict:
     for e in p.key_averages():     # the device's own events (kernels, memcpy / memset): device type CUDA
         if getattr(getattr(e, "device_type", None), "name", "") != "CUDA":
             continue
-        dt = getattr(e, "self_device_time_total", None)
-        if dt is None:
-            dt = getattr(e, "self_cuda_time_total", 0)
+        dt = 0.0
+        for attr in ("self_device_time_total", "device_time_total", "self_cuda_time_total", "cuda_time_total"):
+            dt = float(getattr(e, attr, 0.0) or 0.0)
+            if dt:
+                break
         if dt:
             kern.append((e.key, dt / n / 1e3, e.count / n))
     busy = sum(ms for _, ms, _ in kern)
