@@ -171,12 +171,41 @@ def one_variant(work: Path, n: str, cap_n: int, factors: list[float], rules: lis
                             "err_after_m": float(err[after].mean()) if after else None,
                             "err_per_frame_m": err.tolist()})
             except SimulationError as exc:
-                row["error"] = str(exc).splitlines()[0][:160]
+                # the message's first line, whole up to its advice (the table shows it shortened: `short_error`)
+                row["error"] = str(exc).splitlines()[0][:700]
+                row["error_kind"] = getattr(exc, "kind", "")
+                row["error_frame"] = getattr(exc, "frame", None)
             row["sim_s"] = time.perf_counter() - t0
             rows.append(row)
             log(json.dumps({k: v for k, v in row.items() if k != "err_per_frame_m"}), flush=True)
     simulation.PIN_RULE = RULES["default"]
     return rows
+
+
+def short_error(msg: str | None) -> str:
+    """A SimulationError's first line in a few words for the table: "left grid f21 -y 0.75c (1) alone" (frame, the
+    face, how far past in cells, how many; "alone": the particle had come off the object), "non-finite f19 (1,
+    p 13254) J 0.47 lone" (how many, one of them, its J at the frame's start, "lone": no other particle within its
+    stencil); else its first 40 characters (the JSON keeps the line whole: row["error"])."""
+    import re
+
+    if not msg:
+        return "failed"
+    m = msg.removeprefix("simulation ")
+    fr = re.search(r"at frame (\d+)", m)
+    f = f" f{fr.group(1)}" if fr else ""
+    if m.startswith("left the grid"):
+        n = re.search(r"\((\d+) particles", m)
+        face = re.search(r"nearest the ([-+][xyz]) face", m)
+        past = re.search(r"by up to ([\d.]+) cells", m)
+        return (f"left grid{f}" + (f" {face.group(1)}" if face else "") + (f" {past.group(1)}c" if past else "")
+                + (f" ({n.group(1)})" if n else "") + (" alone" if "alone: it had come off" in m else ""))
+    if m.startswith("state became non-finite"):
+        n = re.search(r"\((\d+) particles, e\.g\. particle (\d+)", m)
+        head = "non-finite" + f + (f" ({n.group(1)}, p {n.group(2)})" if n else "")
+        j = re.search(r"J (-?[\d.e+-]+), stretch", m)
+        return head + (f" J {j.group(1)}" if j else "") + (" lone" if "(a lone particle" in m else "")
+    return m[:40]
 
 
 def table(rows: list[dict]) -> str:
@@ -192,7 +221,7 @@ def table(rows: list[dict]) -> str:
         cells = []
         for r in rs:
             if "err_all_m" not in r:
-                cells.append(f"x{r['factor']:g}: unstable")
+                cells.append(f"x{r['factor']:g}: {short_error(r.get('error'))}")
                 continue
             ea = r["err_after_m"]
             cells.append(f"x{r['factor']:g}: {1e3 * r['err_all_m']:.1f} / {1e3 * (r['err_interaction_m'] or 0):.1f} / "

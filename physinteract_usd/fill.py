@@ -323,6 +323,25 @@ def _sample_count(area: float, spacing: float) -> int:
     return int(min(max(4 * area / (0.5 * spacing) ** 2, 1000), 2_000_000))
 
 
+def drop_stray_particles(parts: SimParticles) -> SimParticles:
+    """`parts` without its stray particles: one none of whose 26 lattice neighbours is filled (a lone lattice point
+    the surface's side test left at a thin part's edge or corner, 2+ spacings from the rest). Such a particle shares
+    only the far, light nodes of its neighbours' stencils: the MPM holds it to the object by a thread, and a snap (a
+    released grasp's recoil) flings it off as a free particle that flies out of the grid (#24: dev_0255 at 15k
+    particles, 10 strays, one flung at 10 m/s). All kept when every particle is stray (nothing else to fill).
+    init applies it to the simulation's fill only (`app.init.plan_grid`), not to the thickness probe's."""
+    x = np.asarray(parts.positions, dtype=np.float64)
+    if len(x) < 2:
+        return parts
+    d, _ = cKDTree(x).query(x, k=2)
+    stray = d[:, 1] > 1.01 * np.sqrt(3.0) * parts.spacing
+    if not stray.any() or stray.all():
+        return parts
+    keep = ~stray
+    return SimParticles(positions=parts.positions[keep], volumes=parts.volumes[keep],
+                        is_surface=parts.is_surface[keep], spacing=parts.spacing)
+
+
 def _particles_from_mask(inside, shell, lat: Lattice) -> SimParticles:
     idx = np.argwhere(inside)
     if len(idx) == 0:

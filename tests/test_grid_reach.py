@@ -156,3 +156,34 @@ def test_left_the_grid_through_captured_frame_graphs_and_the_fused_kernels(monke
         assert e.kind == "domain" and e.frame == 1 and "+x face" in e.problem
         marks = ro.status.numpy()[0]
         assert marks[4] > 0 and marks[5] > 1            # walked past mid-frame: marked by p2g, counted by the check
+
+
+def test_a_particle_flung_off_alone_reads_left_the_grid_alone_and_a_non_finite_one_says_where_it_stood():
+    """#24 dev_0255 (15k particles): a stray fill particle flung off by the released sheet's snap flew alone, F = I,
+    to a face. The error now says it was alone (no other particle within its stencil) and what that means; a
+    non-finite particle's message gives its speed, J, stretch, nearest neighbour and walls at the frame's start."""
+    x0 = np.concatenate([block((4, 4, 4), 0.01, (0.06, 0.06, 0.06)), [[0.16, 0.11, 0.11]]])
+    P = len(x0)
+    m = SimModel.create(x0, 1e-6, 1000.0, 1e4, 0.3, grid=GridSpec((0.0, 0.0, 0.0), DX, (12, 12, 12)), fps=10.0,
+                        E_max=1e4, gravity=(0, 0, 0), dtype="float64")
+    ro = Rollout(m, Control([], n_frames=3), graphs=False)
+    v0 = torch.zeros((P, 3), dtype=torch.float64)
+    v0[-1, 0] = 0.5                                                 # the lone one, 4 cells from the block, to +x
+    with pytest.raises(SimulationError) as ei, torch.no_grad():
+        ro(torch.full((P,), 1e4, dtype=torch.float64), torch.full((P,), 0.3, dtype=torch.float64), v0=v0)
+    e = ei.value
+    assert e.kind == "domain" and "+x face" in e.problem and f"particle {P - 1}" in e.problem
+    assert "alone: it had come off the object" in e.problem and "flung off the object alone" in e.advice
+    # the block itself thrown at the face (test above): not alone, no such words
+    m2 = SimModel.create(x0[:-1], 1e-6, 1000.0, 1e4, 0.3, grid=GridSpec((0.0, 0.0, 0.0), DX, (12, 12, 12)), fps=2.0,
+                         E_max=1e4, gravity=(0, 0, 0), dtype="float64")
+    with pytest.raises(SimulationError) as ei2:
+        MPMSolver(m2).simulate(2, SimState.rest(m2, v0=(1.0, 0, 0)))
+    assert ei2.value.kind == "domain" and "alone" not in str(ei2.value)
+    # a non-finite particle's note (solver.bad_particle_note): where it stood at its frame's start
+    sol = MPMSolver(m)
+    st = {"x": x0, "v": v0.numpy(), "F": np.repeat(np.eye(3)[None], P, 0)}
+    note = sol.bad_particle_note(P - 1, st)
+    assert "speed 0.5 m/s" in note and "J 1," in note and "nearest other particle 3.42 cells (a lone particle" in note
+    assert "cells inside the +x face" in note
+    assert sol.bad_particle_note(0, st).count("lone") == 0 and sol.bad_particle_note(0, None) == ""

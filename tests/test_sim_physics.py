@@ -315,6 +315,8 @@ def test_too_large_substep_raises_non_finite():
     with pytest.raises(SimulationError) as ei:
         MPMSolver(bad).simulate(4, SimState.rest(bad, v0=(0, -2.0, 0)))
     assert ei.value.frame is not None and "substeps" in ei.value.advice
+    # where the named particle stood at its frame's start (#24: the GPU's "unstable" said nothing of it)
+    assert "at the frame's start: speed" in ei.value.problem and "nearest other particle" in ei.value.problem
 
 
 def test_float32_matches_float64():

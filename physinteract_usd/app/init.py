@@ -15,7 +15,7 @@ import numpy as np
 
 from ..capture import read_capture
 from ..errors import InputError
-from ..fill import fill_from_gaussians, fill_from_mesh
+from ..fill import drop_stray_particles, fill_from_gaussians, fill_from_mesh
 from ..scene import SimSettings
 from ..sim.cfl import substeps_per_frame
 from ..thickness import Thickness, occupancy, thinnest_part
@@ -264,7 +264,7 @@ def plan_grid(fill, settings_for, points, grid, padding=DEFAULT_PADDING, max_gri
     n = suggested if auto else int(grid)
     for _ in range(3):
         settings = settings_for(n)
-        parts = fill(settings.particle_spacing, settings.domain_min)
+        parts = drop_stray_particles(fill(settings.particle_spacing, settings.domain_min))
         if not auto or len(parts) <= 1.05 * max_particles or n <= 8:
             break
         n, limit = max(8, int(n * (max_particles / len(parts)) ** (1 / 3))), "particles"

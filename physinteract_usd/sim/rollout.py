@@ -255,6 +255,10 @@ class Rollout:
         """The particles' positions at the start of frame r of the last forward (a left-the-grid error's face)."""
         return self.ck.t["x"][r].detach().double().cpu().numpy()
 
+    def _frame_state(self, r: int) -> dict:
+        """The particles' x, v, F at the start of frame r of the last forward (a non-finite error's particle)."""
+        return {k: self.ck.t[k][r].detach().double().cpu().numpy() for k in ("x", "v", "F")}
+
     # ------------------------------------------------------------------ one frame, forward / backward
     def _forward_frame(self, k: int) -> None:
         sol = self.solver
@@ -664,7 +668,7 @@ class Rollout:
                 break
         if eager:
             self._warm.add(id(graphs))         # its modules are loaded: the capture needs no warm-up frame
-        self.solver.raise_on_status(self.status, positions=self._frame_positions)
+        self.solver.raise_on_status(self.status, positions=self._frame_positions, states=self._frame_state)
         if self.solver.grid_box:
             self._update_box()
         self._record_stats()
@@ -683,7 +687,7 @@ class Rollout:
                 self._forward_frame(k)
             if not self._left_box():
                 break
-        self.solver.raise_on_status(self.status, positions=self._frame_positions)
+        self.solver.raise_on_status(self.status, positions=self._frame_positions, states=self._frame_state)
         if self.solver.grid_box:
             self._update_box()
         self._record_stats()

@@ -530,13 +530,43 @@ class MPMSolver:
         status.zero_()
         self.clamped.zero_()
 
-    def raise_on_status(self, status: wp.array, frames=None, positions=None):
+    def bad_particle_note(self, p: int, state: dict | None) -> str:
+        """Where non-finite particle p stood at the start of its bad frame (`state`: that frame's numpy x, v, F):
+        its speed (and cells a substep), J = det F and largest stretch, the nearest other particle in cells (a lone
+        particle: none within its stencil's reach, 1.5 cells) and the nearest face of the grid's valid box; "" when
+        the state is not at hand or the particle was already non-finite then."""
+        if state is None:
+            return ""
+        try:
+            m, g = self.model, self.model.grid
+            x = np.asarray(state["x"], dtype=np.float64)
+            xp = x[p]
+            v = np.asarray(state["v"], dtype=np.float64)[p]
+            F = np.asarray(state["F"], dtype=np.float64)[p].reshape(3, 3)
+            if not (np.isfinite(xp).all() and np.isfinite(v).all() and np.isfinite(F).all()):
+                return ""
+            J = float(np.linalg.det(F))
+            sv = np.linalg.svd(F, compute_uv=False)
+            near = self._nearest_other_cells(p, state)
+            lo, hi = np.asarray(g.valid_lower, float), np.asarray(g.valid_upper, float)
+            d = np.concatenate([xp - lo, hi - xp]) / g.dx
+            i = int(np.argmin(d))
+            spd = float(np.linalg.norm(v))
+            lone = " (a lone particle: none within its stencil's 1.5 cells)" if near > 1.5 else ""
+            return (f"; particle {p} at the frame's start: speed {spd:.3g} m/s ({spd * m.dt / g.dx:.3g} cells a "
+                    f"substep), J {J:.3g}, stretch {sv.max():.3g} / {sv.min():.3g}, nearest other particle "
+                    f"{near:.2f} cells{lone}, {d[i]:.1f} cells inside the {'-+'[i // 3]}{'xyz'[i % 3]} face")
+        except Exception:  # noqa: BLE001 - a courtesy; the error stands without it
+            return ""
+
+    def raise_on_status(self, status: wp.array, frames=None, positions=None, states=None):
         """Raise SimulationError for the first frame whose status row reports a problem: "left the grid" (kind
         "domain") where a particle's stencil was clamped at the grid's edge during the frame or a particle ended it
         outside the valid box, whether or not the state then went non-finite (a clamped stencil's weights go
         negative and the state blows up within ~a cell: that is the grid's size, not the step); "non-finite"
         (kind "unstable", the step) where no particle walked out of the grid (kernels.mark_clamped). `positions(r)`: the particles' (P, 3)
-        positions at the start of bad row r's frame (to name the face), or None."""
+        positions at the start of bad row r's frame (to name the face), or None; `states(r)`: that frame's start
+        {"x", "v", "F"} (a non-finite particle's speed, J, neighbours and walls in the message: `bad_particle_note`)."""
         st = status.numpy()
         m = self.model
         if not getattr(m, "stencil_check", True):      # as before #24: the frame's end only (the synthetic truths)
@@ -550,7 +580,7 @@ class MPMSolver:
         # (a particle outside at the frame's end beside non-finite ones, with no clamp mark, flew out of a state
         # already blowing up: the step)
         if st[r, 4] > 0 or (st[r, 1] > 0 and st[r, 0] == 0):
-            raise self._left_grid_error(st[r], r, frame, positions)
+            raise self._left_grid_error(st[r], r, frame, positions, states)
         if not getattr(m, "stencil_check", True):
             raise SimulationError(
                 f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]})", frame=frame,
@@ -559,16 +589,19 @@ class MPMSolver:
                         f"= {m.nu_max:g}), or slow the trajectory; or particles swung past the grid's edge "
                         f"(a free end about a support), which blows up the same way: enlarge the domain"),
                 kind="unstable")
+        note = self.bad_particle_note(int(st[r, 2]), None if states is None else states(r))
         raise SimulationError(
             f"state became non-finite ({st[r, 0]} particles, e.g. particle {st[r, 2]}; none had walked out of "
-            "the grid)", frame=frame,
+            f"the grid{note})", frame=frame,
             advice=(f"the substep dt = {m.dt:.3g} s ({m.substeps} per frame) is too large for the stiffness "
                     f"or speed reached: raise substeps per frame, lower E_max = {m.E_max:g} Pa (and nu_max "
                     f"= {m.nu_max:g}), or slow the trajectory"),
             kind="unstable")
 
-    def _left_grid_error(self, row, r: int, frame: int, positions) -> SimulationError:
-        """The "left the grid" error of status row `row` (index r): how many, how far past, which face."""
+    def _left_grid_error(self, row, r: int, frame: int, positions, states=None) -> SimulationError:
+        """The "left the grid" error of status row `row` (index r): how many, how far past, which face; and, given
+        the frame's start state, whether the particle had come off the object alone (no other particle within its
+        stencil's 1.5 cells: a particle flung off, which no domain holds; #24 dev_0255)."""
         m, g = self.model, self.model.grid
         n_clamped, past, p = int(row[4]), (int(row[5]) - 1) / 1000.0, int(row[6])
         if n_clamped == 0:                       # seen outside only at the frame's end
@@ -587,16 +620,37 @@ class MPMSolver:
             except Exception:  # noqa: BLE001 - the face is a courtesy; the error stands without it
                 face = ""
         how = "" if past is None else f" by up to {past:.2f} cells ({1e3 * past * g.dx:.1f} mm)"
+        lone, near = "", self._nearest_other_cells(p, states(r) if states is not None else None)
+        if near is not None and near > 1.5:
+            lone = f", alone: it had come off the object (no other particle within {near:.1f} cells)"
         nf = f"; {int(row[0])} went non-finite after it" if row[0] > 0 else ""
         lo, hi = g.valid_lower, g.valid_upper
         return SimulationError(
             f"left the grid domain ({n_clamped} particles past the edge of the grid's valid box{how}, e.g. particle {p}"
-            f"{face}{nf}; valid box [{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)",
+            f"{face}{lone}{nf}; valid box [{', '.join(f'{v:.3g}' for v in lo)}] - [{', '.join(f'{v:.3g}' for v in hi)}] m)",
             frame=frame,
-            advice="enlarge the grid: give the object more room (init --padding, or a GridSpec with a larger box); the "
-                   "simulation's automatic domain covers the object's reach about its supports, the hand's path and a "
-                   "fall after a release (simulation.grid_covering); or check the trajectory, the ground and gravity",
+            advice=(("a particle flung off the object alone leaves any grid: a stray fill particle (re-run init: "
+                     "its fill drops lattice points with no neighbour) or a violent snap (a stretched part released: "
+                     "a lower E or a gentler pull); " if lone else "")
+                    + "enlarge the grid: give the object more room (init --padding, or a GridSpec with a larger box); the "
+                    "simulation's automatic domain covers the object's reach about its supports, the hand's path and a "
+                    "fall after a release (simulation.grid_covering); or check the trajectory, the ground and gravity"),
             kind="domain")
+
+    def _nearest_other_cells(self, p: int, state: dict | None) -> float | None:
+        """Particle p's distance to its nearest other (finite) particle at `state`'s positions, in cells; None
+        without a state."""
+        if state is None:
+            return None
+        try:
+            x = np.asarray(state["x"], dtype=np.float64)
+            ok = np.isfinite(x).all(axis=1)
+            if not ok[p]:
+                return None
+            ok[p] = False
+            return float(np.sqrt(((x[ok] - x[p]) ** 2).sum(1).min()) / self.model.grid.dx) if ok.any() else float("inf")
+        except Exception:  # noqa: BLE001 - a courtesy
+            return None
 
     # ------------------------------------------------------------------ convenience
     def simulate(self, n_frames: int, state: SimState | None = None, check: bool = True) -> dict[str, np.ndarray]:
@@ -626,7 +680,8 @@ class MPMSolver:
             self.set_box(None)
             self.clear_all()
         if check:
-            self.raise_on_status(status, positions=lambda r: frames["x"][r])
+            self.raise_on_status(status, positions=lambda r: frames["x"][r],
+                                 states=lambda r: {k: frames[k][r] for k in ("x", "v", "F")})
         if a is not state:
             state.assign(a)
         return {k: np.stack(v) for k, v in frames.items()}
