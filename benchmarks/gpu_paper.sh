@@ -10,7 +10,7 @@ mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 SCENES="${1:-hemp_rope}"
 ITERS="${2:-20}"
-W=/tmp/paper
+W="${W:-/tmp/paper}"   # the work folder (two variants side by side take their own)
 mkdir -p $W
 echo "| scene | particles | substeps/frame | synth s | fit s | iterations | MA | best uniform MA | PSNR | PSNR masked | SSIM | position error mm |" > "$OUT/paper.md"
 echo "|---|---|---|---|---|---|---|---|---|---|---|---|" >> "$OUT/paper.md"
