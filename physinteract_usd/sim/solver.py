@@ -56,15 +56,17 @@ FUSED_KERNELS: bool | None = None
 # the whole grid: True / False force it, None (default) on CUDA devices only (where a 100^3 grid's
 # clear and scan are ~30% of a 15k substep); bitwise the same results (tests/test_grid_box.py)
 GRID_BOX: bool | None = None
-# threads per block of the solver's launches on CUDA devices (every substep kernel, forward and adjoint); None
-# (default): Warp's 256. A small fit's particle kernels run on ceil(P / 256) blocks (the demo's 1,769 particles:
-# 7 blocks on an H200's 132 SMs), each thread's work a long serial chain: fewer threads per block spread them over
-# more SMs (#26, benchmarks/gpu_iter26.py --block-dims; opt-in until a GPU run shows it). Each value is its own
-# variant of the kernels' modules (compiled and loaded on first use). The CPU ignores it. The results are the
-# same up to the order of the float atomics, which CUDA never fixed. PHYSINTERACT_SIM_BLOCK_DIM=64 in the
-# environment sets it for a process
+# threads per block of the solver's launches on CUDA devices (every substep kernel, forward and adjoint). A small
+# fit's particle kernels run on ceil(P / block) blocks (the demo's 1,769 particles: 7 blocks of 256 on an H200's 132
+# SMs), each thread's work a long serial chain: fewer threads per block spread them over more SMs. Default 64 on CUDA
+# since session 17 (#26, H200, benchmarks/gpu_iter26.py --block-dims and gpu_cli26.sh, docs/benchmarks/gpu.md): the
+# CLI small fit's iteration 0.260 -> 0.184 s (32: 0.182 s), the CLI fit 20.0-20.8 -> 15.5-16.6 s; hemp_rope at paper
+# size (21k particles) unchanged (55 s of fit clock both, MA 0.821 both). Each value is its own variant of the
+# kernels' modules (compiled and loaded on first use). The CPU ignores it (256). The results are the same up to the
+# order of the float atomics, which CUDA never fixed. PHYSINTERACT_SIM_BLOCK_DIM=N in the environment sets it for a
+# process (256: Warp's default, the code before)
 BLOCK_DIM: int | None = int(os.environ["PHYSINTERACT_SIM_BLOCK_DIM"]) if os.environ.get("PHYSINTERACT_SIM_BLOCK_DIM") \
-    else None
+    else 64
 
 
 class SimParams:
