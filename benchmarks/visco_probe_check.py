@@ -33,28 +33,11 @@ from pathlib import Path
 
 def problem(stage, device: str):
     """The stage's diagnosis problem and base, as `app.diagnose.diagnose` builds them (superset effects)."""
-    import numpy as np
-    import torch
-
-    from physinteract_usd.app.adapters import effects_with_fitted, load_observations, read_scene, stage_contacts
-    from physinteract_usd.app.diagnose import region_labels, superset_effects
-    from physinteract_usd.diagnose import BaseState
-    from physinteract_usd.fit.problem import FitProblem
+    from physinteract_usd.app.adapters import effects_with_fitted, read_scene
+    from physinteract_usd.app.diagnose import problem_and_base
 
     sd = read_scene(Path(stage))
-    obs = load_observations(sd)
-    fitted = {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}
-    measured = stage_contacts(sd)
-    contacts = [c.replace(trajectory=np.asarray(fitted[c.name])) if c.name in fitted and c.is_interaction else c
-                for c in measured]
-    present = effects_with_fitted(sd)
-    prob = FitProblem(sd, obs, contacts, effects=superset_effects(sd, present), device=device)
-    paths = [measured[ci].trajectory if measured[ci].trajectory is not None else t.detach().cpu().numpy()
-             for ci, t in prob.traj_slots]
-    st = sd.settings
-    E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=prob.tdtype, device=prob.tdev)
-    nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
-    base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
+    prob, base = problem_and_base(sd, effects_with_fitted(sd), device=device)
     return sd, prob, base
 
 

@@ -61,23 +61,11 @@ def _ground_height(effects: dict | None) -> float | None:
 
 def _rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """The least rotation turning direction a into direction b (None: either is ~0)."""
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    if na < 1e-12 or nb < 1e-12:
+    from scipy.spatial.transform import Rotation
+
+    if np.linalg.norm(a) < 1e-12 or np.linalg.norm(b) < 1e-12:
         return None
-    a, b = a / na, b / nb
-    k = np.cross(a, b)
-    s, c = np.linalg.norm(k), float(np.dot(a, b))
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        k = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])    # half a turn about any axis normal to a
-        s, c = 0.0, -1.0
-        k = k / np.linalg.norm(k)
-        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        return np.eye(3) + 2.0 * K @ K
-    k = k / s
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + s * K + (1.0 - c) * K @ K
+    return Rotation.align_vectors(np.asarray(b, float)[None], np.asarray(a, float)[None])[0].as_matrix()
 
 
 def support_reach(x0: np.ndarray, contacts, gravity=(0.0, -9.81, 0.0), fps: float | None = None,
@@ -192,9 +180,9 @@ def support_reach(x0: np.ndarray, contacts, gravity=(0.0, -9.81, 0.0), fps: floa
                     amp = float(np.arccos(np.clip(np.cos(best) - lift / rc, -1.0, 1.0)))
                 if amp <= best + 1e-9:
                     continue
-                K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-                for th in np.linspace(-amp, amp, 13):
-                    R = np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * K @ K
+                from scipy.spatial.transform import Rotation
+
+                for R in Rotation.from_rotvec(np.linspace(-amp, amp, 13)[:, None] * axis[None]).as_matrix():
                     out.append(pv + rel @ R.T)
         return np.concatenate(out) if out else None
     for c in contacts:                                   # no support: the grasps hold it while they act

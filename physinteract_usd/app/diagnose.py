@@ -407,6 +407,29 @@ START_FACTORS = (1.0, 0.5, 2.0)   # the base refits' starts: the E field x these
                                   # 1: none, the stage's fit as it is)
 
 
+
+def problem_and_base(sd, present, **problem_kw):
+    """The stage's diagnosis problem (its fitted trajectories on the superset simulator: every effect at its
+    null, `present` at their fitted values) and the base model (the stage's E and nu within the settings'
+    bounds, the measured paths as the trajectories' anchors). `problem_kw`: FitProblem's device, dtype, ..."""
+    import torch
+
+    from ..fit.problem import FitProblem
+
+    obs = load_observations(sd)
+    fitted = {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}
+    measured = stage_contacts(sd)       # their trajectories: the measured paths (T0)
+    contacts = [c.replace(trajectory=np.asarray(fitted[c.name])) if c.name in fitted and c.is_interaction else c
+                for c in measured]
+    prob = FitProblem(sd, obs, contacts, effects=superset_effects(sd, present), **problem_kw)
+    paths = [measured[ci].trajectory if measured[ci].trajectory is not None else t.detach().cpu().numpy()
+             for ci, t in prob.traj_slots]
+    st = sd.settings
+    E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=prob.tdtype, device=prob.tdev)
+    nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
+    return prob, BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
+
+
 def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidates=None, write_stage: bool = True,
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
@@ -427,10 +450,6 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     place of the rule's (3%, or 0 under a floor rule where refits confirm). `pair_signature`: damping vs ground,
     both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
     opt-in)."""
-    import torch
-
-    from ..fit.problem import FitProblem
-
     t0 = time.perf_counter()
     stage_path = Path(stage_path)
     if refit is None or isinstance(refit, bool) or int(refit) < 0:
@@ -452,25 +471,13 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     if not sd.reports or sd.current_report is None:
         raise InputError(stage_path, "has no fit to diagnose: run `physinteract-usd fit` first")
     version = int(sd.current_version or sd.current_report["version"])
-    obs = load_observations(sd)
-    fitted = {t.contact_set: t.positions for t in sd.trajectories if t.stage == "fitted"}
-    measured = stage_contacts(sd)       # their trajectories: the measured paths (T0)
-    contacts = [c.replace(trajectory=np.asarray(fitted[c.name])) if c.name in fitted and c.is_interaction else c
-                for c in measured]
     present = effects_with_fitted(sd)
     skipped = [e for e in cands if e in present]
     cands = tuple(e for e in cands if e not in present)
     try:
-        prob = FitProblem(sd, obs, contacts, effects=superset_effects(sd, present), device=device, dtype=dtype,
-                          traj_sigma_px=trajectory_sigma_px)
+        prob, base = problem_and_base(sd, present, device=device, dtype=dtype, traj_sigma_px=trajectory_sigma_px)
     except ValueError as exc:
         raise InputError(stage_path, str(exc)) from None
-    paths = [measured[ci].trajectory if measured[ci].trajectory is not None else t.detach().cpu().numpy()
-             for ci, t in prob.traj_slots]
-    st = sd.settings
-    E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=prob.tdtype, device=prob.tdev)
-    nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=prob.tdtype, device=prob.tdev)
-    base = BaseState(E, nu, superset_effects(sd, present), region_labels(sd.youngs_modulus), measured=paths)
     settings = DiagnoseSettings(candidates=cands, seed=seed, max_pixels=max_pixels, confirmed=int(refit) >= 1,
                                 floor_rule=floor_rule)
     if refit_folds is not None:
