@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-VARIANTS = {"damp": {"nuisance_damping": True}, "gn3": {"gn_steps": 3}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
+VARIANTS = {"damp": {"nuisance_damping": True}, "gn3": {"gn_steps": 3}, "parts0": {"parts_start": 0}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
             "lr03": {"lr_material": 0.3}}
 
 

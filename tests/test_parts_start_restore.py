@@ -349,3 +349,28 @@ def test_a_part_bracketed_at_its_start_costs_no_probe():
     r_old = select.part_refine(g, np.zeros(2), -3.0, 3.0, ps.probe_budget(2, 20), step=ps.SIMPLEX_STEP,
                                stall=(ps.stall_window(2), ps.STALL_TOL), two_sided=True)
     assert list(f.cache) == list(g.cache) and r_new["loss"] == r_old["loss"]
+
+
+def test_the_parts_starts_default_is_on_for_cuda_and_off_on_the_cpu(monkeypatch):
+    """FitSettings.parts_start None (the default): `fit.fit` resolves it from the problem's device (20 probes where
+    the tensors are on CUDA, 0 = off on the CPU) and passes the resolved number on, so the version records it; an
+    explicit number, 0 included, always wins."""
+    import physinteract_usd.fit as F
+
+    assert F.FitSettings().parts_start is None
+    cpu, gpu = types.SimpleNamespace(tdev="cpu"), types.SimpleNamespace(tdev="cuda:0")
+    assert ps.default_probes(cpu, None) == 0 and ps.default_probes(gpu, None) == ps.PARTS_START_CUDA == 20
+    assert ps.default_probes(gpu, 0) == 0 and ps.default_probes(cpu, 7) == 7
+    seen = {}
+
+    def schedule(prob, s, **kw):
+        seen[prob.tdev] = (s.parts_start, "before_finest" in kw)
+        return "done"
+
+    monkeypatch.setitem(F.SCHEDULES, "bumps", schedule)
+    for prob in (cpu, gpu):
+        prob.weights, prob.tracks = types.SimpleNamespace(track=0.0), None
+        assert F.fit(prob, F.FitSettings(schedule="bumps", unconstrained_floor=0.0)) == "done"
+    assert seen == {"cpu": (0, False), "cuda:0": (20, True)}, seen
+    F.fit(gpu, F.FitSettings(schedule="bumps", parts_start=0))
+    assert seen["cuda:0"] == (0, False)

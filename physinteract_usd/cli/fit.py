@@ -71,8 +71,8 @@ def add_parser(sub):
                    help="bumps schedule: start the finest level from the colour parts' E, found by a simplex of at "
                         "most N forward probes from the uniform E (on the CPU 3 per part + 3 below N: 9-11 for two "
                         "parts, stopped early when it stalls; on a GPU all N; charged to the iteration budget when "
-                        "taken; default 0: off; 20 took "
-                        "foam_bar's MA 0.21 -> 0.94 on the CPU; the demo's fit ~+13-24 CPU s; #24)")
+                        "taken; 0 turns it off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.40 -> 0.51, "
+                        "none lower), off on the CPU (the demo's fit ~+16-20 CPU s for no MA); #24)")
     s.add_argument("--nuisance-damping", action="store_true",
                    help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "
                         "dissipation the video has and the model lacks goes into c, not E; recorded in the version's "

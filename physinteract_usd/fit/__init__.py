@@ -8,10 +8,12 @@ by held-back frames; `select.py`). Two options of any schedule (#24): `uniform_g
 field only where its held-back loss clearly beats the uniform model's) and `unconstrained_floor` (the
 particles the video does not constrain marked and filled from their neighbours)."""
 
+import dataclasses
+
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
-from .parts_start import parts_start_hook
+from .parts_start import default_probes, parts_start_hook
 from .problem import FitProblem, LossWeights, Observations
 from .select import fill_unconstrained, fit_guarded, fit_select
 
@@ -30,11 +32,13 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if tw > 0 and prob.tracks is None:
         raise ValueError("track_weight > 0 needs point tracks in the fit's observations (Observations.tracks)")
     prob.weights.track = tw      # the point tracks' term (fit/tracks_loss.py) counts in every schedule's loss
+    if s.parts_start is None:    # the parts start's default: on CUDA, off on the CPU (recorded as resolved)
+        s = dataclasses.replace(s, parts_start=default_probes(prob, None))
     if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
         r = fit_guarded(prob, s, **kw)
     else:
         if s.schedule == "bumps" and int(getattr(s, "parts_start", 0) or 0) > 0 and kw.get("start") is None:
-            kw = {**kw, "before_finest": parts_start_hook(int(s.parts_start))}   # opt-in (#24, foam_bar)
+            kw = {**kw, "before_finest": parts_start_hook(int(s.parts_start))}   # #24, foam_bar
         r = SCHEDULES[s.schedule](prob, s, **kw)
     if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
         # what the video does not constrain (#24; not on a stop's zero-iteration last pass)

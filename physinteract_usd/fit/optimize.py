@@ -115,12 +115,14 @@ class FitSettings:
     gn_steps: int = 0                   # schedule bumps: Gauss-Newton steps on the finest level's bump amplitudes
                                         # before its Adam iterations, each charged to its budget at the forwards
                                         # it costs (fit/gauss_newton.py; 0: off). #24, foam_bar: Adam's step cap
-    parts_start: int = 0                # schedule bumps (through fit.fit): the finest level starts from the appearance parts' E, found by
+    parts_start: int | None = None      # schedule bumps (through fit.fit): the finest level starts from the appearance parts' E, found by
                                         # a simplex of at most this many forward probes from the uniform E (and at most
                                         # 3 (parts + 1) + parts on the CPU: parts_start.probe_budget, stopped when it
                                         # stalls; on CUDA all of them, uncut: parts_start.refine_kwargs; charged
                                         # to the level's budget when taken; fit/parts_start.py; 0: off). #24, foam_bar.
-                                        # Opt-in: on the CPU demo it costs ~+13-24 CPU s for no MA (docs/benchmarks/fit.md)
+                                        # None (the default): parts_start.PARTS_START_CUDA (20) where the problem's
+                                        # tensors are on CUDA (the 12 suite scenes gained, none lost: mean MA 0.399 ->
+                                        # 0.513), 0 on the CPU (the demo's +16-20 CPU s for no MA; docs/benchmarks/fit.md)
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
     uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
                                         # below the best uniform E's, else the uniform model (select.fit_guarded). #24

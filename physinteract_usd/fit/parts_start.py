@@ -1,4 +1,4 @@
-"""The bumps schedule's start from parts (opt-in: FitSettings.parts_start; #24, foam_bar).
+"""The bumps schedule's start from parts (FitSettings.parts_start: by default on CUDA, off on the CPU; #24, foam_bar).
 
 Why: Adam moves each bump amplitude by about its learning rate per iteration. From the uniform E,
 a two-part object whose parts sit 5x apart (foam_bar: 37.5 / 7.5 kPa) needs the soft part's bumps
@@ -69,6 +69,20 @@ def refine_kwargs(parts: int, cap: int, cheap: bool = True) -> dict:
     if not cheap:
         return dict(evals=max(int(cap), int(parts) + 2), step=SIMPLEX_STEP, two_sided=True)
     return dict(evals=probe_budget(parts, cap), step=SIMPLEX_STEP, stall=(stall_window(parts), STALL_TOL), two_sided=True)
+
+
+PARTS_START_CUDA = 20   # FitSettings.parts_start's default where the fit runs on CUDA (`default_probes`): the 12 suite
+                        # scenes from true contacts on the H200 (code f114153, 2026-11-27c) gained with it and lost
+                        # none (foam_bar 0.37 -> 0.94, telephone_cable 0.23 -> 0.73, flower 0.01 -> 0.31; mean 0.40 ->
+                        # 0.51). Off on the CPU: the demo's fit +16-20 CPU s for no MA (docs/benchmarks/fit.md)
+
+
+def default_probes(prob, asked: int | None) -> int:
+    """The parts start's probe cap for `prob`: what the settings ask (`FitSettings.parts_start`), else
+    PARTS_START_CUDA where the problem's forwards are cheap (CUDA) and 0 (off) on the CPU."""
+    if asked is not None:
+        return int(asked)
+    return PARTS_START_CUDA if forwards_are_cheap(prob) else 0
 
 
 def forwards_are_cheap(prob) -> bool:
@@ -143,4 +157,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
