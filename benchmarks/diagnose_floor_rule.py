@@ -110,7 +110,7 @@ def summary(d: dict) -> dict:
             "camera_rest_frames": (d.get("noise") or {}).get("camera_rest_frames"),
             "tested": [dict({k: t.get(k) for k in ("effect", "marginal_p_value", "p_value", "relative_drop", "significant",
                                                    "accepted", "held_back_drop", "held_back_p", "held_back_level",
-                                                   "rest_only")},
+                                                   "rest_only", "rival_of", "pair_test")},
                             priced=(t.get("priced") or {}).get("why"))
                        for t in tested]}
 
