@@ -107,29 +107,34 @@ def main():
     for r in range(args.rounds + 1):           # round 0 warms up (module loads, graph capture)
         Er = E.clone().requires_grad_(True)
         nur = nu.clone().requires_grad_(True)
-        c0 = time.process_time()
+        c0, w0 = time.process_time(), time.perf_counter()
         x, F = prob.simulate(Er, nur)
-        c1 = time.process_time()
+        c1, w1 = time.process_time(), time.perf_counter()
         if W is None:
             W = torch.randn(x.shape, generator=g, dtype=x.dtype)
             WF = torch.randn(F.shape, generator=g, dtype=F.dtype)
         loss = (x * W).sum() + (F * WF).sum()
         loss.backward()
-        c2 = time.process_time()
+        c2, w2 = time.process_time(), time.perf_counter()
         if r:
-            rows.append((c1 - c0, c2 - c1))
+            rows.append((c1 - c0, c2 - c1, w1 - w0, w2 - w1))
         elif per_kernel is not None:
             per_kernel.clear()
         gE = float(Er.grad.abs().sum())
-    fw, bw = np.array(rows).T
+    fw, bw, fw_wall, bw_wall = np.array(rows).T
     out = dict(code=str(code), opt_level=args.opt_level, particles=P, frames=int(x.shape[0]), substeps=int(prob.model.substeps),
                grid=list(prob.model.grid.resolution), loss=float(loss.detach()), grad_E_l1=gE,
                forward_median=float(np.median(fw)), forward_min=float(fw.min()),
-               backward_median=float(np.median(bw)), backward_min=float(bw.min()), rounds=args.rounds)
+               backward_median=float(np.median(bw)), backward_min=float(bw.min()), rounds=args.rounds,
+               forward_wall_median=float(np.median(fw_wall)), backward_wall_median=float(np.median(bw_wall)),
+               lanes=os.environ.get("PHYSINTERACT_SIM_LANES", ""), load_avg=os.getloadavg()[0])
     print(f"code {code} (opt level {args.opt_level}): P {P}, T {out['frames']}, substeps/frame {out['substeps']}, grid {out['grid']}, "
           f"loss {out['loss']:.9g}, |dL/dE|_1 {gE:.9g}")
-    print(f"forward  CPU s: median {out['forward_median']:.3f}, min {out['forward_min']:.3f}")
-    print(f"backward CPU s: median {out['backward_median']:.3f}, min {out['backward_min']:.3f}")
+    print(f"forward  CPU s: median {out['forward_median']:.3f}, min {out['forward_min']:.3f}; "
+          f"wall median {out['forward_wall_median']:.3f}")
+    print(f"backward CPU s: median {out['backward_median']:.3f}, min {out['backward_min']:.3f}; "
+          f"wall median {out['backward_wall_median']:.3f}")
+    print(f"lanes {out['lanes'] or 'default'}, load average (1 min) at the end {out['load_avg']:.2f}")
     if per_kernel is not None:
         print("| kernel | CPU s per round | launches per round |\n|---|---:|---:|")
         for name, (t, n) in sorted(per_kernel.items(), key=lambda kv: -kv[1][0]):

@@ -3,7 +3,14 @@ this one, e.g. render_helpers.py, imported by name: pytest puts tests/ on sys.pa
 tests (tests/blender, in Blender's own Python without torch) load this file too: import torch
 only inside the fixtures that need it."""
 
+import os
+
 import pytest
+
+# the simulator's two lanes (sim/lanes.py) sum the grid in another order than one lane: tests that compare runs
+# bitwise (graphs against eager launches, threads against one after another) run on one lane, whatever the
+# machine's load; tests/test_sim_lanes.py (and test_fit_lanes.py) switch the lanes on themselves
+os.environ.setdefault("PHYSINTERACT_SIM_LANES", "1")
 
 
 @pytest.fixture

@@ -50,6 +50,7 @@ import warp as wp
 from .. import stopping
 from ..devices import torch_device
 from ..errors import SimulationError
+from . import lanes as lanes_mod
 from .control import Control, ControlArrays
 from .effects import N_PARAMS, PARAMETERS, SLOTS, canonical
 from .solver import ControlAdjoint, MPMSolver, SimParams
@@ -329,6 +330,7 @@ class Rollout:
             sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl, clear_adj_in=True,
                              save=None if tape is None else tape[s])
             carry, other = other, carry
+        sol.lanes_fold(self.adj_params, self.adj_ctrl)
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)
 
@@ -343,8 +345,12 @@ class Rollout:
             if id(graphs) not in self._warm:      # load modules, allocate lazily built buffers: not in a capture
                 fn(0)
                 self._warm.add(id(graphs))
+            lanes = self._lanes()
             for k in range(self.T):
                 if k not in graphs:
+                    if lanes is not None:
+                        graphs[k] = self._capture_lanes(lanes, fn, k)
+                        continue
                     with wp.ScopedCapture(device=self.model.device) as cap:
                         fn(k)
                     graphs[k] = cap.graph
@@ -354,13 +360,47 @@ class Rollout:
             self.graphs = False
             graphs.clear()
 
+    def _lanes(self):
+        """The solver's second lane (sim/lanes.py) when this rollout's per-frame graphs run on two lanes, else None."""
+        sol = self.solver
+        if self.frame_graphs or not lanes_mod.wanted(sol):
+            return None
+        if sol.lanes is None:
+            sol.lanes = lanes_mod.Lanes(sol)
+        return sol.lanes
+
+    def _capture_lanes(self, lanes, fn, k: int):
+        """Frame k's two graphs: fn(k) captured with the solver issuing lane A's launches (and keeping lane B's),
+        then lane B's captured alone (Warp 1.19's CPU capture records without executing; were a capture to execute,
+        its barriers count one lane: `arm(1)`). Nothing may be allocated in here: on the CPU an allocation's memset
+        inside a capture is recorded into the graph and runs again at every replay (lanes.Lanes makes its buffers
+        first)."""
+        sol = self.solver
+        rec = lanes_mod.Recorder(lanes)
+        lanes.arm(1)
+        sol._rec = rec
+        try:
+            with wp.ScopedCapture(device=self.model.device) as cap:
+                fn(k)
+                rec.sync()
+        finally:
+            sol._rec = None
+        lanes.arm(1)
+        with wp.ScopedCapture(device=self.model.device) as cap_b:
+            rec.replay_b()
+        return lanes_mod.LanePair(cap.graph, cap_b.graph)
+
     def _frame(self, graphs: dict, fn, k: int) -> None:
         if self.graphs and self.frame_graphs:
             key = self._shape(graphs, k)[0]
             if key is not None:
                 wp.capture_launch(graphs[key])
         elif self.graphs:
-            wp.capture_launch(graphs[k])
+            g = graphs[k]
+            if isinstance(g, lanes_mod.LanePair):
+                self.solver.lanes.replay(g)
+            else:
+                wp.capture_launch(g)
         else:
             fn(k)
 
@@ -537,6 +577,7 @@ class Rollout:
             sol.step_adjoint(st[s], st[s + 1], other, carry, 0, s, self.adj_params, fw.adj, ctrl=fw.ctrl,
                              clear_adj_in=True)
             carry, other = other, carry
+        sol.lanes_fold(self.adj_params, self.adj_ctrl)
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)
         wp.launch(fw.FK.adj_end, 1, [fw.ctr, -1, fw.adj.pin_pos, fw.adj.col_pos], [ac.pin_pos, ac.col_pos], device=d,

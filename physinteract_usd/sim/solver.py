@@ -195,6 +195,10 @@ class MPMSolver:
                                    a_gmo=self._rate_adj["gmo"].flatten(), a_gvo=self._rate_adj["gvo"].flatten())
         # the solver's own buffers (`_using` swaps a tape's in): a taped adjoint's scratch outputs
         self._own = {k: getattr(self, k) for k in self._TAPED + ("_flat",)}
+        # the second lane (sim/lanes.py: set by a rollout that replays its frames on two lanes) and, while a
+        # frame is captured on two lanes, its recorder (the substeps then issue lane A's launches and keep lane B's)
+        self.lanes = None
+        self._rec = None
 
     # ------------------------------------------------------------------ the grid box
     @property
@@ -356,6 +360,8 @@ class MPMSolver:
                 return self.step(s_in, s_out, frame, substep, params, ctrl)
         p = params or self.params
         c = ctrl or self.ctrl
+        if self._rec is not None:
+            return self._step_lanes(s_in, s_out, frame, substep, p, c)
         if self.fused_kernels:
             self.grid(s_in, frame, substep, p, c, gather=False)
             ua = self._update_args(s_in, frame, p, c)    # x, F, Fv, vg, Cg, E, nu, eff, flags, pins, frame, fps, dt
@@ -438,6 +444,9 @@ class MPMSolver:
         K, d = self.K, self.device
         p = params or self.params
         c = ctrl or self.ctrl
+        if self._rec is not None:
+            return self._step_adjoint_lanes(s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, p, c,
+                                            clear_adj_in, taped)
         P = s_in.x.shape[0]
         ag = self._alloc_adj()
         af = self._adj_flat
@@ -517,10 +526,130 @@ class MPMSolver:
                       [ap["A"]], adjoint=True,
                       device=d, record_tape=False, block_dim=self.block_dim)
 
+    # ------------------------------------------------------------------ two lanes (sim/lanes.py)
+    def _half(self, lane: int):
+        """(particle count, slicer) of lane `lane`: per-particle arrays as views of its range."""
+        lo, hi = self.lanes.ranges[lane]
+        return hi - lo, (lambda a: a[lo:hi])
+
+    def _grid_lanes(self, s: SimState, frame: int, substep: int, p, c) -> None:
+        """`grid` on two lanes: each lane's p2g of its particles into its own grid | lane A sums them and runs
+        the grid update | each lane's gather at its particles."""
+        R, L, K = self._rec, self.lanes, self.K
+        bd = self.block_dim
+        for lane in (0, 1):
+            n, S = self._half(lane)
+            grid = [self.gm, self.gmv, self.gpm, self.gpmv] if lane == 0 else [L.gm, L.gmv, L.gpm, L.gpmv]
+            R.zero(lane, *grid)
+            R.launch(lane, K.p2g_stress, n, [S(s.F), S(s.Fv), S(s.C), S(self.dev["mass"]), S(self.dev["volume"]),
+                                             S(p.E), S(p.nu), p.eff, self.flags, self.material, self.inv_dx, self.dt],
+                     [S(self.A)], block_dim=bd)
+            R.launch(lane, K.p2g_scatter, n, [S(s.x), S(s.v), S(self.A), S(self.dev["mass"]), S(c.pin_id), c.pin_active,
+                                              c.pin_pos, frame, self.fps, self.lo, self.inv_dx, self.res3, 0, self.box,
+                                              self.dt, S(s.F)],
+                     grid + [self.box_flag if lane == 0 else L.box_flag, S(self.clamped)], block_dim=bd)
+        R.barrier()
+        f, LK = self._flat, L.LK
+        for k in ("gm", "gmv", "gpm", "gpmv"):
+            R.launch(0, LK.add_T if k in ("gm", "gpm") else LK.add_v3, self.n_nodes, [f[k], L.flat[k]], block_dim=bd)
+        R.launch(0, self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [f["gv"]],
+                 block_dim=bd)
+        R.barrier()
+        for lane in (0, 1):
+            n, S = self._half(lane)
+            R.launch(lane, K.g2p_gather, n, [S(s.x), self.gv, self.lo, self.inv_dx, self.res3], [S(self.vg), S(self.Cg)],
+                     block_dim=bd)
+
+    def _update_args_lane(self, s: SimState, frame: int, p, c, S):
+        return [S(s.x), S(s.F), S(s.Fv), S(self.vg), S(self.Cg), S(p.E), S(p.nu), p.eff, self.flags, S(c.pin_id),
+                c.pin_active, c.pin_pos, frame, self.fps, self.dt]
+
+    def _step_lanes(self, s_in, s_out, frame, substep, p, c) -> None:
+        R = self._rec
+        R.enter("step")
+        self._grid_lanes(s_in, frame, substep, p, c)
+        for lane in (0, 1):
+            n, S = self._half(lane)
+            R.launch(lane, self.K.g2p_update, n, self._update_args_lane(s_in, frame, p, c, S),
+                     [S(a) for a in self._outs(s_out)], block_dim=self.block_dim)
+
+    def _step_adjoint_lanes(self, s_in, s_out, adj_in, adj_out, frame, substep, adj_params, adj_ctrl, p, c,
+                            clear_adj_in, taped) -> None:
+        """`_step_adjoint` on two lanes (the CPU's choices: memsets, no box, no rate transfer): each lane's
+        particle update and gather adjoints over its particles (lane B's grid-velocity, effect and pin adjoints
+        into its own buffers) | lane A sums the grid-velocity adjoint, runs the grid update's adjoint | each
+        lane's scatter and stress adjoints over its particles. Lane B's effect / pin adjoints are folded in at the
+        frame's end (`lanes_fold`)."""
+        R, L, K = self._rec, self.lanes, self.K
+        bd = self.block_dim
+        R.enter("adj")
+        ag = self._alloc_adj()
+        af = self._adj_flat
+        ap = self._adj_part
+        L.check_adj(adj_params, adj_ctrl)
+        if not taped:
+            self._grid_lanes(s_in, frame, substep, p, c)
+        for lane in (0, 1):
+            n, S = self._half(lane)
+            if clear_adj_in:
+                R.zero(lane, *(S(a) for a in self._outs(adj_in)))
+            R.zero(lane, S(ap["A"]), S(ap["vg"]), S(ap["Cg"]), ag["gv"] if lane == 0 else L.a_gv)
+            a_eff = adj_params.eff if lane == 0 else L.a_eff
+            a_pin = adj_ctrl.pin_pos if lane == 0 else L.a_pin
+            adj_upd = [S(adj_in.x), S(adj_in.F), S(adj_in.Fv), S(ap["vg"]), S(ap["Cg"]), S(adj_params.E),
+                       S(adj_params.nu), a_eff, 0, None, None, a_pin, 0, 0.0, 0.0]
+            R.launch(lane, K.g2p_update, n, self._update_args_lane(s_in, frame, p, c, S), [S(a) for a in self._outs(s_out)],
+                     adj_inputs=adj_upd, adj_outputs=[S(a) for a in self._outs(adj_out)], adjoint=True, block_dim=bd)
+            R.launch(lane, K.g2p_gather_adj, n, [S(s_in.x), self.gv, self.lo, self.inv_dx, self.res3, S(ap["vg"]),
+                                                 S(ap["Cg"])], [S(adj_in.x), ag["gv"] if lane == 0 else L.a_gv],
+                     block_dim=bd)
+        R.barrier()
+        R.launch(0, L.LK.add_v3, self.n_nodes, [af["gv"], L.a_gv_flat], block_dim=bd)
+        R.zero(0, ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"])
+        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
+                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
+        gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
+        R.launch(0, self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
+                 adj_inputs=adj_grid, adj_outputs=[af["gv"]], adjoint=True, block_dim=bd)
+        R.barrier()
+        A_fwd = self._own["A"] if taped else self.A
+        for lane in (0, 1):
+            n, S = self._half(lane)
+            a_eff = adj_params.eff if lane == 0 else L.a_eff
+            a_pin = adj_ctrl.pin_pos if lane == 0 else L.a_pin
+            R.launch(lane, K.p2g_scatter_adj, n, [S(s_in.x), S(s_in.v), S(self.A), S(self.dev["mass"]), S(c.pin_id),
+                                                  c.pin_active, c.pin_pos, frame, self.fps, self.lo, self.inv_dx,
+                                                  self.res3, ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"]],
+                     [S(adj_in.x), S(adj_in.v), S(ap["A"]), a_pin], block_dim=bd)
+            R.launch(lane, K.p2g_stress_adj, n, [S(s_in.F), S(self.dev["mass"]), S(self.dev["volume"]), S(p.E), S(p.nu),
+                                                 self.material, self.inv_dx, self.dt, S(ap["A"])],
+                     [S(adj_in.F), S(adj_in.C), S(adj_params.E), S(adj_params.nu)], block_dim=bd)
+            if self.flags & F_VISCO:
+                R.launch(lane, K.p2g_stress_visco, n, [S(s_in.Fv), S(self.dev["volume"]), S(p.nu), p.eff, self.inv_dx,
+                                                       self.dt], [S(A_fwd)],
+                         adj_inputs=[S(adj_in.Fv), None, S(adj_params.nu), a_eff, 0.0, 0.0], adj_outputs=[S(ap["A"])],
+                         adjoint=True, block_dim=bd)
+
+    def lanes_fold(self, adj_params, adj_ctrl) -> None:
+        """At the end of a frame's adjoint captured on two lanes: lane B's effect-parameter and pin-trajectory
+        adjoints added into adj_params / adj_ctrl by lane A (then zeroed). Nothing otherwise."""
+        R = self._rec
+        if R is None:
+            return
+        R.sync()
+        L, bd = self.lanes, self.block_dim
+        R.launch(0, L.LK.add_T, adj_params.eff.shape[0], [adj_params.eff, L.a_eff], block_dim=bd)
+        R.zero(0, L.a_eff)
+        if L.a_pin.size:
+            R.launch(0, L.LK.add_v3, L.a_pin.size, [adj_ctrl.pin_pos.flatten(), L.a_pin.flatten()], block_dim=bd)
+            R.zero(0, L.a_pin)
+
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
         """Count non-finite and out-of-domain particles of state s into status[row], and the particles whose
         stencil was clamped at a substep since the last check (`clamped`, cleared here; no host sync)."""
+        if self._rec is not None:
+            self._rec.sync()
         wp.launch(self.K.check, s.x.shape[0], [s.x, s.v, s.F, self.lo, self.inv_dx, self.res3, row], [status, self.clamped],
                   device=self.device, record_tape=False, block_dim=self.block_dim)
 
