@@ -223,3 +223,127 @@ def test_a_board_that_leaves_fast_is_not_followed_while_it_acted():
           "into_cos": -0.27, "front_width_m": 0.18, "toucher_round": [0.2, 0.7]}
     assert classify_interaction({**ev, "coupled_share": before})[0] == "pointAdherent"
     assert classify_interaction({**ev, "coupled_share": after})[0] == "surfaceNonAdherent"
+
+
+# ------------------------------------------------------------------ fourteenth pass (#23)
+def _board_mask(H, W, corner, px_per_m, az_deg=30.0, el_deg=40.0, size=(0.18, 0.14)):
+    """A flat board (`size`, m) lying face down, seen from azimuth `az_deg` and elevation `el_deg`
+    (orthographic, `px_per_m`): a parallelogram whose nearest corner (its lowest point in the
+    image, +v down) is at `corner` (u, v)."""
+    import cv2
+
+    a, e = np.radians(az_deg), np.radians(el_deg)
+    X, Z = size[0] / 2, size[1] / 2
+    pts = np.array([[x * np.cos(a) + z * np.sin(a), (-x * np.sin(a) + z * np.cos(a)) * np.sin(e)]
+                    for x, z in ((-X, -Z), (X, -Z), (X, Z), (-X, Z))]) * px_per_m
+    pts += np.asarray(corner, float) - pts[np.argmax(pts[:, 1])]
+    m = np.zeros((H, W), np.uint8)
+    cv2.fillPoly(m, [np.round(pts * 16).astype(np.int32)], 1, shift=4)
+    return m.astype(bool)
+
+
+def test_a_face_seen_obliquely_is_wide_behind_its_leading_corner():
+    """A board 18 x 14 cm turned 30 deg to the camera, seen 40 deg from above (dev_0312's kind, at
+    its 250 px a metre) leads with a corner: 1 cm behind it the board is 2 / (sin 40 sin 60) = 3.6 cm
+    wide (a fingertip's, under the 6 cm of a face), 3 cm behind it 10.8 cm. A fingertip on a hand
+    stays 2 cm there, a ball of radius 3.5 cm 2 sqrt(2 r d - d^2) = 6.9 cm, a pinch's two fingers
+    (1 cm thick, 2.4 cm apart at their tips, 5 cm 6 cm back) 4.7 cm: only the face reaches 8 cm."""
+    down = np.array([0.0, 1.0])
+    H, W = 160, 240
+    board = _board_mask(H, W, (120.0, 120.0), 250.0)
+    an = _analysis(board[None], 250.0)
+    w1 = toucher_front_width(an, 0, (120.0, 119.0), 0, down)
+    w3 = toucher_front_width(an, 0, (120.0, 119.0), 0, down, depth_m=0.03)
+    assert w1 == pytest.approx(0.02 / (np.sin(np.radians(40)) * np.sin(np.radians(60))), abs=0.008) and w1 < 0.06
+    assert w3 == pytest.approx(0.03 * 2 / (np.sin(np.radians(40)) * np.sin(np.radians(60))), abs=0.008) and w3 >= 0.08
+    # at 500 px a metre (the shapes of test_the_toucher_front_width_is_its_own_shape_at_its_leading_edge)
+    yy, xx = np.mgrid[0:120, 0:200] + 0.5
+    hand = (((xx - 100) / 40) ** 2 + ((yy - 30) / 20) ** 2 <= 1) | ((np.abs(xx - 100) <= 5) & (yy >= 30) & (yy <= 75))
+    hand |= (np.abs(xx - 100) <= 5) & (yy <= 80) & ((xx - 100) ** 2 + (yy - 75) ** 2 <= 25)
+    ball = (xx - 100) ** 2 + (yy - 60) ** 2 <= 17.5 ** 2
+    # a pinch: two 1 cm thick fingers (5 px), their tips 2.4 cm apart (12 px) at v = 100, 5 cm apart 6 cm up,
+    # joined by the hand further up
+    pinch = ((xx - 100) / 25) ** 2 + ((yy - 55) / 15) ** 2 <= 1
+    for x0, x1 in ((94.0, 87.5), (106.0, 112.5)):
+        for t in np.linspace(0, 1, 200):
+            pinch |= (xx - (x0 + t * (x1 - x0))) ** 2 + (yy - (100 - 30 * t)) ** 2 <= 2.5 ** 2
+    deep = {n: toucher_front_width(_analysis(m[None], 500.0), 0, c, 0, down, depth_m=0.03)
+            for n, m, c in (("hand", hand, (100.0, 80.0)), ("ball", ball, (100.0, 77.5)), ("pinch", pinch, (100.0, 102.0)))}
+    assert deep["hand"] == pytest.approx(0.022, abs=0.004)
+    assert deep["ball"] == pytest.approx(2 * np.sqrt(2 * 0.035 * 0.03 - 0.03 ** 2), abs=0.006)
+    assert deep["pinch"] == pytest.approx(0.047, abs=0.004)
+    assert max(deep.values()) < 0.08 <= w3
+
+
+def test_a_board_pressing_with_a_corner_first_is_a_surface():
+    """The rules on dev_0339's evidence (a board pressing a plush on a floor at 128 px, typed a
+    fingertip by 7df5970): its front 1 cm behind the leading point 4.5 cm, 3 cm behind it 20 cm:
+    a face. Its front alone, or a ball's 7 cm, stays a point."""
+    ev = {"push_cos": -0.95, "contact_motion_px": 5.67, "interface_span": 0.8, "approach_cos": 0.99,
+          "approach_speed_px": 3.66, "contact_frames": 23, "acting_motion_px": 5.67, "coupled_share": 0.46,
+          "face_normal_cos": 0.97, "into_cos": 0.96, "tension_px": 0.0, "press_cos": 0.69, "pressed_in_px": 1.75,
+          "toucher_round": [0.17, 0.86], "front_width_m": 0.045}
+    assert classify_interaction(ev)[0] == "pointNonAdherent"
+    assert classify_interaction({**ev, "front_deep_m": 0.20})[0] == "surfaceNonAdherent"
+    assert classify_interaction({**ev, "front_deep_m": 0.069})[0] == "pointNonAdherent"
+    assert classify_interaction({**ev, "front_deep_m": 0.20, "toucher_round": [0.03, 0.97]})[0] == "pointNonAdherent"
+
+
+def test_a_round_toucher_as_wide_as_a_palm_is_no_ball():
+    """dev_0322's kind (a glove's palm seen from above, typed a fingertip): its free outline fits one
+    circle (RMS 3% of its radius) of half its extent, as a ball's does, but of radius 8 cm; a ball that
+    large presses like a face (its cap 1 cm deep is 6 cm wide). At 400 px a metre: a disk of radius
+    32 px (8 cm) over an object is no ball, one of 12 px (3 cm) is; without a scale both are."""
+    from physinteract_usd.extract.analysis import disk_mask
+    from physinteract_usd.extract.interaction_type import is_ball, toucher_roundness
+
+    H, W = 120, 160
+    obj = np.zeros((H, W), bool)
+    obj[70:, 10:150] = True
+    rounds = {}
+    for r in (32.0, 12.0):
+        hand = disk_mask((H, W), (80.0, 70.0 - r + 4.0), r) & ~obj     # sunk 4 px into the object
+        an = SimpleNamespace(hand=hand[None], obj=obj[None], R=4.0, T=1, H=H, W=W, px_per_m=400.0)
+        rounds[r] = toucher_roundness(an, 0, np.array([80.0, 70.0]), 0)
+    big, small = rounds[32.0], rounds[12.0]
+    assert big[0] < 0.1 and 0.8 <= big[1] <= 1.25 and big[2] == pytest.approx(0.08, abs=0.004)
+    assert small[2] == pytest.approx(0.03, abs=0.003)
+    assert not is_ball(big) and is_ball(small)
+    assert is_ball(big[:2]) and is_ball(small[:2])
+    ev = {"push_cos": 0.27, "contact_motion_px": 31.0, "interface_span": 0.46, "approach_cos": 1.0,
+          "approach_speed_px": 0.95, "contact_frames": 2, "acting_motion_px": 4.3, "coupled_share": 0.33,
+          "face_normal_cos": 0.97, "into_cos": -0.81, "front_width_m": 0.07}
+    assert classify_interaction({**ev, "toucher_round": big})[0] == "surfaceNonAdherent"
+    assert classify_interaction({**ev, "toucher_round": small})[0] == "pointNonAdherent"
+
+
+def test_a_toucher_coming_toward_the_camera_reads_as_a_pull_when_the_depth_rule_is_on(monkeypatch):
+    """`toucher_depth`: a toucher whose flow spreads 2% a frame about its centre for 5 frames grows
+    1.02^5 = 1.104x: at fx 400 px it came 400 (1 - 1/1.104) = 37.7 px-equivalents toward the camera
+    while it stayed in place in the image. With PHYSINTERACT_TYPE_DEPTH=1 (opt-in) a toucher that came
+    mostly toward the camera by over 7% holds what it moves (dev_0311: a pinch pulling a hanging rope
+    toward the camera, pressed-in by the image's reading); off, the image's reading stands."""
+    from physinteract_usd.extract import interaction_type as it
+    from physinteract_usd.extract.analysis import disk_mask
+    from physinteract_usd.extract.lifting import HandTrack
+
+    T, H, W = 7, 80, 80
+    hand = np.repeat(disk_mask((H, W), (40.0, 40.0), 15.0)[None], T, 0)
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    flow = np.repeat(np.stack([(xx - 40.0) * 0.02, (yy - 40.0) * 0.02], -1)[None].astype(np.float32), T - 1, 0)
+    an = SimpleNamespace(hand=hand, T=T, H=H, W=W, R=4.0, flows=SimpleNamespace(forward=flow),
+                         cam0=SimpleNamespace(fx=400.0))
+    track = HandTrack(np.tile([40.0, 40.0], (T, 1)), 0.0, 0, np.zeros(2), 0.0)
+    d = it.toucher_depth(an, track, 0, 5)
+    assert d["depth_scale"] == pytest.approx(1.02 ** 5, rel=2e-3)
+    assert d["depth_px"] == pytest.approx(400 * (1 - 1.02 ** -5), rel=0.01) and d["depth_image_px"] == 0.0
+    ev = {"push_cos": -0.6, "contact_motion_px": 18.8, "interface_span": 0.13, "approach_cos": 0.85,
+          "approach_speed_px": 2.9, "contact_frames": 7, "acting_motion_px": 18.8, "coupled_share": 0.99,
+          "tension_px": 0.0, "press_cos": 0.96, "pressed_in_px": 18.6, "withdrawn_px": 2.1, "front_width_m": 0.025}
+    monkeypatch.setattr(it, "DEPTH_RULE", False)
+    assert classify_interaction({**ev, **d})[0] == "pointNonAdherent"
+    monkeypatch.setattr(it, "DEPTH_RULE", True)
+    assert classify_interaction({**ev, **d})[0] == "pointAdherent"
+    assert classify_interaction({**ev, **d, "depth_scale": 1.05})[0] == "pointNonAdherent"       # under 7%
+    assert classify_interaction({**ev, **d, "depth_image_px": 40.0})[0] == "pointNonAdherent"    # mostly across
+    assert classify_interaction({**ev, **d, "depth_scale": 1 / 1.104})[0] == "pointNonAdherent"  # away: not read

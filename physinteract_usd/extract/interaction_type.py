@@ -13,7 +13,7 @@ import numpy as np
 
 from .analysis import Analysis, disk_mask, median_flow, unit
 from .geometry import pixel_centres
-from .lifting import HandTrack, track_hand
+from .lifting import HandTrack, hand_scale, track_hand
 from .segmentation import dilate, erode
 from .timing import Timing, coupled_share
 
@@ -41,6 +41,16 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
         if flat(evidence, surface):
             return "surfaceNonAdherent", 0.5
         return "pointNonAdherent", 0.5
+    along = depth_motion(evidence) if DEPTH_RULE else None
+    if along is not None:
+        # opt-in (PHYSINTERACT_TYPE_DEPTH=1, #23 fourteenth pass): the toucher moved mostly along the
+        # camera's axis while it acted, toward it (a pinch pulling a hanging rope's end toward the
+        # camera, dev_0311: 7.8% larger, truly 9.8%, read in the image as a press). Seen at the
+        # contact, it touches the surface from the camera's side: toward the camera is out of the
+        # surface, which only a hold takes the object along. Not the default: the apparent scale
+        # fitted to the flow reads up to 10% where the truth moved 1-3% (an approach, a board
+        # leaving), and "away, so a push" broke two grasps pulling away from the camera
+        return "pointAdherent", 0.5
     tension = evidence.get("tension_px") or 0.0
     # it looks pushed away from the hand, but the hand came in and went back out the way it came: a
     # pull toward the camera, whose motion in depth the image does not show (below)
@@ -84,6 +94,17 @@ def classify_interaction(evidence: dict, *, frames=None) -> tuple[str, float]:
     return "pointAdherent", float(min(1.0, 0.5 + 0.5 * (push + 0.6) / 1.6))
 
 
+def depth_motion(evidence: dict) -> int | None:
+    """+1 where the toucher moved mostly toward the camera while it acted (`toucher_depth`: its
+    apparent scale grew by at least DEPTH_SCALE and the motion along the axis that implies is larger
+    than its image motion), else None. (Away from the camera is not read: a grasp pulls that way as
+    often as a push presses, dev_0157 / dev_0218.)"""
+    S, along, across = (evidence.get(k) for k in ("depth_scale", "depth_px", "depth_image_px"))
+    if S is None or along is None or across is None or S < 1.0 + DEPTH_SCALE or along <= across:
+        return None
+    return 1
+
+
 def pressed(evidence: dict, prefix: str = "") -> bool:
     """The object next to the contact was pressed in (at least 1 px, its largest displacement
     within 32 deg of the inward direction) and never followed the toucher out past its rest
@@ -108,15 +129,23 @@ def flat(evidence: dict, surface: float) -> bool:
 
 def wide_front(evidence: dict) -> bool:
     """The toucher pushes with a front wider than any fingertip, stick end or ball cap
-    (`toucher_front_width` at least FRONT_WIDE_M): a face (a palm, a board), unless it is a ball."""
-    w = evidence.get("front_width_m")
-    return w is not None and w >= FRONT_WIDE_M and not is_ball(evidence.get("toucher_round"))
+    (`toucher_front_width` at least FRONT_WIDE_M 1 cm behind its leading point, or at least
+    FRONT_DEEP_WIDE_M 3 cm behind it: a face seen obliquely leads with a corner, #23 fourteenth
+    pass): a face (a palm, a board), unless it is a ball."""
+    w, deep = evidence.get("front_width_m"), evidence.get("front_deep_m")
+    wide = (w is not None and w >= FRONT_WIDE_M) or (deep is not None and deep >= FRONT_DEEP_WIDE_M)
+    return wide and not is_ball(evidence.get("toucher_round"))
 
 
 FACE_NORMAL_COS = float(np.cos(np.pi / 4))   # a motion closer to a face's normal than to the face
 FRONT_WIDE_M = 0.06   # a front wider than this is a face: fingertips <= 2.8 cm, sticks <= 2 cm, palms >= 10 cm
+FRONT_DEEP_AT_M = 0.03     # the front read again this far behind the leading point (`front_deep_m`)
+FRONT_DEEP_WIDE_M = 0.08   # wider there: a face (a right-angle corner seen at 45 deg: 8.5 cm; a ball of
+                           # radius 3.5 cm: 6.9; a pinch's two fingers: <= 5.7, a glove's 6.3; a finger 2.8)
 PRESS_COS = 0.85      # the object's largest displacement within 32 deg of the inward normal: a press
 TENSION_PX = 2.0      # px the object followed the toucher out past its rest surface: held
+BALL_MAX_R_M = 0.05    # a round toucher wider than this is a face (a palm seen from above), not a ball
+DEPTH_SCALE = 0.07    # an apparent scale change under 7% is no depth reading (seen: 5% on a push, dev_0201)
 TRANSIT_RATIO = 3.0   # a toucher moving over 3x its acting pace is arriving or leaving (`acting_end`)
 
 
@@ -139,18 +168,20 @@ def inward_normal(silhouette: np.ndarray, c2, smooth: float = 1.5, min_grad: flo
     return g / n if n >= min_grad else None
 
 
-def follow_rule(value: str | None) -> bool:
+def follow_rule(value: str | None, name: str = "PHYSINTERACT_TYPE_FOLLOW") -> bool:
     """The environment's PHYSINTERACT_TYPE_FOLLOW ("0" or unset: off, "1": on), read once at import:
     whether `normal_motion`'s tension counts only pairs in which the object keeps at most the
-    toucher's pace (opt-in, #23: measured on the CPU dev halves only as the lever, not tried)."""
+    toucher's pace (opt-in, #23: measured on the CPU dev halves only as the lever, not tried); the
+    same reading of PHYSINTERACT_TYPE_DEPTH (`name`): whether `depth_motion` decides (opt-in)."""
     if value in (None, "", "0"):
         return False
     if value == "1":
         return True
-    raise ValueError(f"PHYSINTERACT_TYPE_FOLLOW={value!r}: expected 0 or 1")
+    raise ValueError(f"{name}={value!r}: expected 0 or 1")
 
 
 FOLLOW_ONLY = follow_rule(os.environ.get("PHYSINTERACT_TYPE_FOLLOW"))
+DEPTH_RULE = follow_rule(os.environ.get("PHYSINTERACT_TYPE_DEPTH"), "PHYSINTERACT_TYPE_DEPTH")   # the in-depth pull (opt-in, `depth_motion`)
 
 
 def normal_motion(vh: np.ndarray, vo: np.ndarray, into: np.ndarray, start: int, g: int, end: int,
@@ -228,8 +259,13 @@ def transit_pairs(vh: np.ndarray, coupled: np.ndarray, g: int, end: int, ratio: 
 def is_ball(round_: list | None, residual: float = 0.1, size: tuple = (0.8, 1.25)) -> bool:
     """The toucher is a ball (`toucher_roundness`): its free outline is one circle (RMS residual
     under `residual` of its radius) whose radius is half its extent (within `size`: a disk's
-    outline circle is exactly that; a palm's or a hand's outline arcs fit a smaller one)."""
-    return round_ is not None and round_[0] < residual and size[0] <= round_[1] <= size[1]
+    outline circle is exactly that; a palm's or a hand's outline arcs fit a smaller one), and no
+    larger than BALL_MAX_R_M where its radius in metres was read (#23, fourteenth pass: a glove's
+    palm seen from above fits a circle of 8 cm, dev_0322; a ball that large presses like a face:
+    its cap 1 cm deep is 6 cm wide)."""
+    if round_ is None or not (round_[0] < residual and size[0] <= round_[1] <= size[1]):
+        return False
+    return len(round_) < 3 or round_[2] is None or round_[2] <= BALL_MAX_R_M
 
 
 # ------------------------------------------------------------------------------ step
@@ -302,12 +338,22 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
     # along its first main motion and along its approach (over 2 eps), the narrower: a flat face is
     # wide whichever way it comes in, a finger on a hand only along itself (a push 70 deg off
     # the finger reads the hand's side, 15 cm: dev_0204's glove finger on a ring)
-    fronts = [toucher_front_width(an, g, c2, p1 if end >= end_all and timing.release is None else end, d)
-              for d, ok in ((d2, motion > 0), (v_in, in_speed >= 2 * an.eps)) if ok]
-    fronts = [w for w in fronts if w is not None]
+    # Also 3 cm behind the leading point (`front_deep_m`, #23 fourteenth pass): a face seen obliquely
+    # leads with a corner (a board turned to the camera) or a shallow arc at a few pixels a
+    # centimetre (a palm at 128 px), whose first centimetre is narrow (dev_0312, dev_0339: 3-4.5 cm)
+    # but which widens at least as fast as a right-angle corner seen at 45 deg (2.8 cm per cm of
+    # depth: >= 8.5 cm at 3 cm); a finger's, a stick's, a pinch's stay at their own width there
+    dirs = [d for d, ok in ((d2, motion > 0), (v_in, in_speed >= 2 * an.eps)) if ok]
+    e_front = p1 if end >= end_all and timing.release is None else end
+    fronts = [w for w in (toucher_front_width(an, g, c2, e_front, d) for d in dirs) if w is not None]
     front = min(fronts) if fronts else None
+    deeps = [w for w in (toucher_front_width(an, g, c2, e_front, d, depth_m=FRONT_DEEP_AT_M) for d in dirs)
+             if w is not None]
+    deep = min(deeps) if deeps else None
+    depth = toucher_depth(an, hand, g, min(end, p1))
     return {"approach_speed_px": app_speed, "into_cos": into_cos, "approach_cos": approach_cos,
-            "face_normal_cos": face_cos, "front_width_m": front,
+            **depth,
+            "face_normal_cos": face_cos, "front_width_m": front, "front_deep_m": deep,
             "toucher_round": toucher_roundness(an, g, c2, p1),
             "contact_uv": c2.tolist(), "contact_motion_px": motion, "acting_motion_px": float(hand.acting), "push_cos": push_cos,
             "hand_body_dir": body.tolist(), "interface_span": span,
@@ -322,6 +368,23 @@ def type_evidence(an: Analysis, timing: Timing, c2, hand: HandTrack) -> dict:
 
 
 # ------------------------------------------------------------------------------ evidence
+def toucher_depth(an: Analysis, hand: HandTrack, g: int, end: int) -> dict:
+    """How far the toucher moved along the camera's axis against across it while it acted (#23,
+    fourteenth pass): its apparent scale S (`lifting.hand_scale`, a similarity fitted to its flow)
+    from the grasp to `end`, at the frame k of its largest change; a toucher at depth z that comes
+    to z / S moved fx |1 - 1/S| px-equivalents (at the object's depth, the image's own units) along
+    the axis, against its image motion from the grasp to k. `depth_scale`: S there (> 1: toward the
+    camera); `depth_px`, `depth_image_px`; {} where it was not read (no camera, under 2 frames)."""
+    cam = getattr(an, "cam0", None)
+    if cam is None or end - g < 2:
+        return {}
+    S = hand_scale(an, g, end, hand.uv)
+    k = g + int(np.argmax(np.abs(np.log(S[g:end + 1]))))
+    along = float(cam.fx * abs(1.0 - 1.0 / S[k]))
+    across = float(np.linalg.norm(hand.uv[k] - hand.uv[g]))
+    return {"depth_scale": float(S[k]), "depth_px": along, "depth_image_px": across}
+
+
 def touching_component(an: Analysis, k: int, c2) -> np.ndarray | None:
     """Frame k's hand mask reduced to its connected component that reaches within 1.5 R of the
     contact c2 (the toucher, not another hand part or a tool elsewhere); None where no hand pixel
@@ -366,13 +429,14 @@ def toucher_roundness(an: Analysis, g: int, c2, end: int, min_px: int = 12):
     """How much the toucher at the contact looks like a ball: per frame from the grasp to `end`,
     the outline of the hand component that touches the object, less where it meets the object (the
     object may hide part of it), fitted with a circle. Returns the median over the frames of
-    (RMS residual / radius) and of (radius / the component's half extent), or None where no frame
+    (RMS residual / radius), of (radius / the component's half extent) and, where the analysis
+    knows its scale (`px_per_m`), of the radius in metres at the object's depth; or None where no frame
     shows at least `min_px` free outline pixels. A ball's free outline is an arc of one circle
     whose radius is half its extent (about (0, 1)); a palm's, a finger on a hand or a tool's is
     not one circle (a large residual) or a much larger one."""
     import cv2
 
-    res, size = [], []
+    res, size, rad = [], [], []
     for k in range(g, min(end, an.T - 1) + 1):
         m = touching_component(an, k, c2)
         if m is None:
@@ -391,9 +455,11 @@ def toucher_roundness(an: Analysis, g: int, c2, end: int, min_px: int = 12):
         if r > 0:
             res.append(rms / r)
             size.append(r / (0.5 * ext))
+            rad.append(r)
     if not res:
         return None
-    return [float(np.median(res)), float(np.median(size))]
+    ppm = getattr(an, "px_per_m", None)
+    return [float(np.median(res)), float(np.median(size))] + ([float(np.median(rad)) / ppm] if ppm else [])
 
 
 def approach_velocity(an: Analysis, g: int, c2, frames: int = 3):
