@@ -79,3 +79,18 @@ def test_two_lanes_gradients_match_finite_differences(case, monkeypatch):
     monkeypatch.setattr(lanes_mod, "Lanes", Counted)
     case()
     assert made                       # the rollout ran on two lanes
+
+
+def test_the_default_takes_two_lanes_only_with_a_core_to_spare(monkeypatch):
+    """`auto_lanes` (LANES None): two lanes where >= 2 cores are the process's and one sits idle, decided once."""
+    for cores, spare, want in ((2, 1.0, 2), (2, 0.2, 1), (1, 1.0, 1), (4, 0.7, 2)):
+        monkeypatch.setattr(lanes_mod, "_AUTO", None)
+        monkeypatch.setattr(lanes_mod, "free_cores", lambda c=cores: c)
+        monkeypatch.setattr(lanes_mod, "spare_cores", lambda interval=0.1, s=spare: s)
+        assert lanes_mod.auto_lanes() == want, (cores, spare)
+    monkeypatch.setattr(lanes_mod, "spare_cores", lambda interval=0.1: 0.0)
+    assert lanes_mod.auto_lanes() == 2                     # once decided, the process keeps it
+    monkeypatch.setattr(lanes_mod, "AUTO", False)
+    monkeypatch.setattr(lanes_mod, "_AUTO", None)
+    assert lanes_mod.auto_lanes() == 1
+    assert -1.0 <= lanes_mod.spare_cores(0.02) <= (__import__("os").cpu_count() or 1)

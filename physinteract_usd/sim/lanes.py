@@ -5,18 +5,19 @@ CPU graph replays in one C++ loop (one ctypes call, which releases the GIL). Wit
 captures each frame twice: lane A's graph (the frame as before, its particle kernels over particles
 0 .. h - 1) and lane B's (the same substeps' particle kernels over h .. P - 1), and replays them at once,
 lane A on the calling thread and lane B on a worker thread. The lanes meet at barriers (a one-thread
-kernel that spins on a shared counter, `barrier`) where one needs the other's work:
+kernel that spins on a shared counter, `barrier`), two a substep, where one needs the other's work:
 
 - forward substep: both lanes p2g their half into their own grid (Warp's CPU atomics are plain adds,
-  not thread-safe) | lane A adds lane B's grid into its own and runs the grid update over every node |
-  both gather and update their half;
+  not thread-safe) | each lane adds lane B's grid into lane A's over its own nodes (a run of whole x slabs) and
+  runs the grid update there | both gather and update their half;
 - adjoint substep: both run the particle update's and the gather's adjoints over their half (lane B's
-  grid-velocity adjoint, effect-parameter and pin-trajectory adjoints into buffers of its own) | lane A
-  sums the grid adjoint and runs the grid update's adjoint | both run the scatter's and stress's
-  adjoints over their half; at a frame's end lane A folds lane B's parameter / pin adjoints in.
+  grid-velocity, effect-parameter and pin-trajectory adjoints into buffers of its own) | each lane sums the
+  grid-velocity adjoint and runs the grid update's adjoint over its nodes (lane B's effect and collider adjoints
+  into its own buffers) | both run the scatter's and stress's adjoints over their half; at a frame's end lane A
+  folds lane B's parameter / pin / collider adjoints in.
 
 Results equal the one-lane run's up to float summation order (the two grids summed instead of one in
-particle order): tests/test_sim_lanes.py. Only the CPU's per-frame graphs use lanes; eager launches,
+particle order; lane B's nodes placed from its first slab's corner): tests/test_sim_lanes.py. Only the CPU's per-frame graphs use lanes; eager launches,
 CUDA (its launches and graphs) and the GPU's frame-shape graphs are untouched.
 
 `LANES`: None (default) decides once per process (`auto_lanes`: two lanes where >= 2 cores are the process's
@@ -38,7 +39,7 @@ from ..errors import SimulationError
 LANES: int | None = int(os.environ["PHYSINTERACT_SIM_LANES"]) if os.environ.get("PHYSINTERACT_SIM_LANES") else None
 # where LANES is None: two lanes where this process may run on >= 2 cores and the machine has a core to spare
 # (`spare_cores`: measured once per process, at its first two-lane-capable capture); False: one lane
-AUTO = False
+AUTO = True
 # fewest particles for which lanes are worth their barriers (two per substep)
 MIN_PARTICLES = 256
 # the idle share of the machine's cores (besides this process's own busy thread) that counts as a core to spare
@@ -203,10 +204,18 @@ class Lanes:
         self.a_gv_flat = self.a_gv.flatten()
         self.a_eff = wp.zeros(solver.params.eff.shape[0], dtype=K.T, device=d)
         self.a_pin = wp.zeros_like(solver.ctrl.pin_pos)
+        self.a_col = wp.zeros_like(solver.ctrl.col_pos)
+        # the grid's nodes split between the lanes at a whole x slab (flat index = (i * ny + j) * nz + k): each lane
+        # sums and updates (and reverses the update of) its own nodes, its slab offset moved into the grid's corner
+        ny, nz = res[1], res[2]
+        i_mid = res[0] // 2
+        self.node_ranges = ((0, i_mid * ny * nz), (i_mid * ny * nz, res[0] * ny * nz))
+        self.slab0 = (0, i_mid)
 
     def check_adj(self, adj_params, adj_ctrl) -> None:
         """The adjoints a captured adjoint accumulates into match lane B's buffers (made before any capture)."""
-        if adj_params.eff.shape != self.a_eff.shape or adj_ctrl.pin_pos.shape != self.a_pin.shape:
+        if (adj_params.eff.shape != self.a_eff.shape or adj_ctrl.pin_pos.shape != self.a_pin.shape
+                or adj_ctrl.col_pos.shape != self.a_col.shape):
             raise RuntimeError("two lanes: the adjoint's parameter / pin shapes differ from the solver's controls")
 
     def arm(self, n_lanes: int) -> None:
@@ -220,6 +229,7 @@ class Lanes:
         that never came) raises."""
         self.a_eff.zero_()
         self.a_pin.zero_()
+        self.a_col.zero_()
         self.arm(2)
         fut = _pool().submit(wp.capture_launch, pair.b)
         try:

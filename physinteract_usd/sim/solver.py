@@ -533,8 +533,8 @@ class MPMSolver:
         return hi - lo, (lambda a: a[lo:hi])
 
     def _grid_lanes(self, s: SimState, frame: int, substep: int, p, c) -> None:
-        """`grid` on two lanes: each lane's p2g of its particles into its own grid | lane A sums them and runs
-        the grid update | each lane's gather at its particles."""
+        """`grid` on two lanes: each lane's p2g of its particles into its own grid | each lane sums the two grids
+        and runs the grid update over its own nodes (`_grid_args_lane`) | each lane's gather at its particles."""
         R, L, K = self._rec, self.lanes, self.K
         bd = self.block_dim
         for lane in (0, 1):
@@ -550,15 +550,31 @@ class MPMSolver:
                      grid + [self.box_flag if lane == 0 else L.box_flag, S(self.clamped)], block_dim=bd)
         R.barrier()
         f, LK = self._flat, L.LK
-        for k in ("gm", "gmv", "gpm", "gpmv"):
-            R.launch(0, LK.add_T if k in ("gm", "gpm") else LK.add_v3, self.n_nodes, [f[k], L.flat[k]], block_dim=bd)
-        R.launch(0, self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [f["gv"]],
-                 block_dim=bd)
+        for lane in (0, 1):
+            a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
+            for k in ("gm", "gmv", "gpm", "gpmv"):
+                R.launch(lane, LK.add_T if k in ("gm", "gpm") else LK.add_v3, b - a, [f[k][a:b], L.flat[k][a:b]],
+                         block_dim=bd)
+            R.launch(lane, self.grid_kernel, args[25], args, [f["gv"][a:b]], block_dim=bd)
         R.barrier()
         for lane in (0, 1):
             n, S = self._half(lane)
             R.launch(lane, K.g2p_gather, n, [S(s.x), self.gv, self.lo, self.inv_dx, self.res3], [S(self.vg), S(self.Cg)],
                      block_dim=bd)
+
+    def _grid_args_lane(self, lane: int, frame: int, substep: int, p, c):
+        """(first node, end node, grid_update's arguments) of lane `lane`'s nodes: a run of whole x slabs, the flat
+        grid arrays sliced to it and the grid's corner moved by its first slab (the kernel places a node at
+        lo + (i, j, k) dx, and the slab offset is all a slice changes)."""
+        a, b = self.lanes.node_ranges[lane]
+        args = self._grid_args(frame, substep, p, c)
+        for i in range(4):
+            args[i] = args[i][a:b]
+        i0 = self.lanes.slab0[lane]
+        if i0:
+            args[8] = self.K.vec3(float(self.lo[0]) + i0 * self.dx, float(self.lo[1]), float(self.lo[2]))
+        args[25] = max((b - a + self.chunk - 1) // self.chunk, 1)
+        return a, b, args
 
     def _update_args_lane(self, s: SimState, frame: int, p, c, S):
         return [S(s.x), S(s.F), S(s.Fv), S(self.vg), S(self.Cg), S(p.E), S(p.nu), p.eff, self.flags, S(c.pin_id),
@@ -577,9 +593,10 @@ class MPMSolver:
                             clear_adj_in, taped) -> None:
         """`_step_adjoint` on two lanes (the CPU's choices: memsets, no box, no rate transfer): each lane's
         particle update and gather adjoints over its particles (lane B's grid-velocity, effect and pin adjoints
-        into its own buffers) | lane A sums the grid-velocity adjoint, runs the grid update's adjoint | each
-        lane's scatter and stress adjoints over its particles. Lane B's effect / pin adjoints are folded in at the
-        frame's end (`lanes_fold`)."""
+        into its own buffers) | each lane sums the grid-velocity adjoint and runs the grid update's adjoint over its
+        own nodes (lane B's effect / collider adjoints into its own buffers) | each lane's scatter and stress
+        adjoints over its particles. Lane B's effect / pin / collider adjoints are folded in at the frame's end
+        (`lanes_fold`)."""
         R, L, K = self._rec, self.lanes, self.K
         bd = self.block_dim
         R.enter("adj")
@@ -604,13 +621,17 @@ class MPMSolver:
                                                  S(ap["Cg"])], [S(adj_in.x), ag["gv"] if lane == 0 else L.a_gv],
                      block_dim=bd)
         R.barrier()
-        R.launch(0, L.LK.add_v3, self.n_nodes, [af["gv"], L.a_gv_flat], block_dim=bd)
-        R.zero(0, ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"])
-        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
-                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
         gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
-        R.launch(0, self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
-                 adj_inputs=adj_grid, adj_outputs=[af["gv"]], adjoint=True, block_dim=bd)
+        for lane in (0, 1):
+            a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
+            R.launch(lane, L.LK.add_v3, b - a, [af["gv"][a:b], L.a_gv_flat[a:b]], block_dim=bd)
+            R.zero(lane, af["gm"][a:b], af["gmv"][a:b], af["gpm"][a:b], af["gpmv"][a:b])
+            adj_grid = [af["gm"][a:b], af["gmv"][a:b], af["gpm"][a:b], af["gpmv"][a:b],
+                        adj_params.eff if lane == 0 else L.a_eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0, None, None,
+                        adj_ctrl.col_pos if lane == 0 else L.a_col, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0,
+                        0.0]
+            R.launch(lane, self.grid_kernel, args[25], args, [gv_out[a:b]], adj_inputs=adj_grid,
+                     adj_outputs=[af["gv"][a:b]], adjoint=True, block_dim=bd)
         R.barrier()
         A_fwd = self._own["A"] if taped else self.A
         for lane in (0, 1):
@@ -631,8 +652,8 @@ class MPMSolver:
                          adjoint=True, block_dim=bd)
 
     def lanes_fold(self, adj_params, adj_ctrl) -> None:
-        """At the end of a frame's adjoint captured on two lanes: lane B's effect-parameter and pin-trajectory
-        adjoints added into adj_params / adj_ctrl by lane A (then zeroed). Nothing otherwise."""
+        """At the end of a frame's adjoint captured on two lanes: lane B's effect-parameter, pin- and collider-
+        trajectory adjoints added into adj_params / adj_ctrl by lane A (then zeroed). Nothing otherwise."""
         R = self._rec
         if R is None:
             return
@@ -640,9 +661,10 @@ class MPMSolver:
         L, bd = self.lanes, self.block_dim
         R.launch(0, L.LK.add_T, adj_params.eff.shape[0], [adj_params.eff, L.a_eff], block_dim=bd)
         R.zero(0, L.a_eff)
-        if L.a_pin.size:
-            R.launch(0, L.LK.add_v3, L.a_pin.size, [adj_ctrl.pin_pos.flatten(), L.a_pin.flatten()], block_dim=bd)
-            R.zero(0, L.a_pin)
+        for mine, theirs in ((adj_ctrl.pin_pos, L.a_pin), (adj_ctrl.col_pos, L.a_col)):
+            if theirs.size:
+                R.launch(0, L.LK.add_v3, theirs.size, [mine.flatten(), theirs.flatten()], block_dim=bd)
+                R.zero(0, theirs)
 
     # ------------------------------------------------------------------ checks
     def check(self, s: SimState, row: int, status: wp.array):
