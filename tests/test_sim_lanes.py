@@ -82,7 +82,9 @@ def test_two_lanes_gradients_match_finite_differences(case, monkeypatch):
 
 
 def test_the_default_takes_two_lanes_only_with_a_core_to_spare(monkeypatch):
-    """`auto_lanes` (LANES None): two lanes where >= 2 cores are the process's and one sits idle, decided once."""
+    """`auto_lanes` (LANES None) with AUTO on: two lanes where >= 2 cores are the process's and one sits idle,
+    decided once; with AUTO off (the default): one lane."""
+    monkeypatch.setattr(lanes_mod, "AUTO", True)
     for cores, spare, want in ((2, 1.0, 2), (2, 0.2, 1), (1, 1.0, 1), (4, 0.7, 2)):
         monkeypatch.setattr(lanes_mod, "_AUTO", None)
         monkeypatch.setattr(lanes_mod, "free_cores", lambda c=cores: c)
