@@ -577,7 +577,6 @@ class Rollout:
             sol.step_adjoint(st[s], st[s + 1], other, carry, 0, s, self.adj_params, fw.adj, ctrl=fw.ctrl,
                              clear_adj_in=True)
             carry, other = other, carry
-        sol.lanes_fold(self.adj_params, self.adj_ctrl)
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)
         wp.launch(fw.FK.adj_end, 1, [fw.ctr, -1, fw.adj.pin_pos, fw.adj.col_pos], [ac.pin_pos, ac.col_pos], device=d,
