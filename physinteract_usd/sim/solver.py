@@ -530,7 +530,8 @@ class MPMSolver:
     def _half(self, lane: int):
         """(particle count, slicer) of lane `lane`: per-particle arrays as views of its range."""
         lo, hi = self.lanes.ranges[lane]
-        return hi - lo, (lambda a: a[lo:hi])
+        part = self.lanes.part
+        return hi - lo, (lambda a: part(a, lane))
 
     def _grid_lanes(self, s: SimState, frame: int, substep: int, p, c) -> None:
         """`grid` on two lanes: each lane's p2g of its particles into its own grid | each lane sums the two grids
@@ -552,10 +553,10 @@ class MPMSolver:
         f, LK = self._flat, L.LK
         for lane in (0, 1):
             a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
-            for k in ("gm", "gmv", "gpm", "gpmv"):
-                R.launch(lane, LK.add_T if k in ("gm", "gpm") else LK.add_v3, b - a, [f[k][a:b], L.flat[k][a:b]],
-                         block_dim=bd)
-            R.launch(lane, self.grid_kernel, args[25], args, [f["gv"][a:b]], block_dim=bd)
+            N = L.nodes
+            R.launch(lane, LK.add_grid, b - a, [N(f[k], lane) for k in ("gm", "gmv", "gpm", "gpmv")]
+                     + [N(L.flat[k], lane) for k in ("gm", "gmv", "gpm", "gpmv")], block_dim=bd)
+            R.launch(lane, self.grid_kernel, args[25], args, [N(f["gv"], lane)], block_dim=bd)
         R.barrier()
         for lane in (0, 1):
             n, S = self._half(lane)
@@ -569,7 +570,7 @@ class MPMSolver:
         a, b = self.lanes.node_ranges[lane]
         args = self._grid_args(frame, substep, p, c)
         for i in range(4):
-            args[i] = args[i][a:b]
+            args[i] = self.lanes.nodes(args[i], lane)
         i0 = self.lanes.slab0[lane]
         if i0:
             args[8] = self.K.vec3(float(self.lo[0]) + i0 * self.dx, float(self.lo[1]), float(self.lo[2]))
@@ -624,14 +625,15 @@ class MPMSolver:
         gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
         for lane in (0, 1):
             a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
-            R.launch(lane, L.LK.add_v3, b - a, [af["gv"][a:b], L.a_gv_flat[a:b]], block_dim=bd)
-            R.zero(lane, af["gm"][a:b], af["gmv"][a:b], af["gpm"][a:b], af["gpmv"][a:b])
-            adj_grid = [af["gm"][a:b], af["gmv"][a:b], af["gpm"][a:b], af["gpmv"][a:b],
+            N = L.nodes
+            R.launch(lane, L.LK.add_v3, b - a, [N(af["gv"], lane), N(L.a_gv_flat, lane)], block_dim=bd)
+            R.zero(lane, N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane))
+            adj_grid = [N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane),
                         adj_params.eff if lane == 0 else L.a_eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0, None, None,
                         adj_ctrl.col_pos if lane == 0 else L.a_col, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0,
                         0.0]
-            R.launch(lane, self.grid_kernel, args[25], args, [gv_out[a:b]], adj_inputs=adj_grid,
-                     adj_outputs=[af["gv"][a:b]], adjoint=True, block_dim=bd)
+            R.launch(lane, self.grid_kernel, args[25], args, [N(gv_out, lane)], adj_inputs=adj_grid,
+                     adj_outputs=[N(af["gv"], lane)], adjoint=True, block_dim=bd)
         R.barrier()
         A_fwd = self._own["A"] if taped else self.A
         for lane in (0, 1):
