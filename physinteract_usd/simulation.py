@@ -655,13 +655,10 @@ def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
     from .render.rasterizer import kernels as render_kernels
     from .sim.kernels import get_kernels
 
-    from .sim import lanes as lanes_mod
-
     quiet_warp_init(device)
     K = get_kernels(dtype)
     R = render_kernels(wp.float32 if dtype == "float32" else wp.float64)
     names = [K.modules.core, K.modules.adj, R.module]
-    if wp.get_device(device).is_cpu:       # the two lanes' barrier and sums (sim/lanes.py), a small module
-        names.append(lanes_mod.get_kernels(dtype).module)
+    # (the two lanes' small module, sim/lanes.py, is opt-in: compiled at its first use, not here)
     wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=2)
     return names
