@@ -288,22 +288,27 @@ def run_extract(work: Path, split: str, names: list[str], json_path: Path | None
         if n in done:
             continue
         row = {"scene": n}
-        try:
-            cap, gt, stage = prepare(work, n, grid, max_particles)
-            t0 = time.perf_counter()
-            res = api.extract(stage, log=lambda *m: None, device=device)
-            row["extract_s"] = time.perf_counter() - t0
-            row.update(compare(stage, gt, res))
-            log(f"{n}: {row['type']}{'' if row['type_ok'] else ' (WRONG, ' + row['type_true'] + ')'}, grasp "
-                f"{row['grasp']}/{row['grasp_true']}, release {row['release']}/{row['release_true']}"
-                f"{'' if row.get('release_true_first') in (None, row['release_true']) else ' (leaves at %d)' % row['release_true_first']}, contact "
-                f"{row['contact_cm']:.1f} cm, supports R {fmt(row['support_recall'])} P {fmt(row['support_precision'])}"
-                f"{' INVENTED' if row['invented_support'] else ''}, hand IoU {row['hand_iou']:.2f}"
-                f" -> {'ok' if row['ok'] else 'FAIL'} ({row['extract_s']:.1f} s)", flush=True)
-        except Exception as exc:
-            row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+        if not ((work / f"{n}.gt" / "gt.json").exists() or (work / n / "gt" / "gt.json").exists()):
+            # the generator's own simulation failed (generate logged it): no truth, not an extraction failure
+            row["error"] = "generation failed: no ground truth (the generator's simulation failed; see its log)"
             log(f"{n}: FAILED {row['error']}", flush=True)
-            traceback.print_exc()
+        else:
+            try:
+                cap, gt, stage = prepare(work, n, grid, max_particles)
+                t0 = time.perf_counter()
+                res = api.extract(stage, log=lambda *m: None, device=device)
+                row["extract_s"] = time.perf_counter() - t0
+                row.update(compare(stage, gt, res))
+                log(f"{n}: {row['type']}{'' if row['type_ok'] else ' (WRONG, ' + row['type_true'] + ')'}, grasp "
+                    f"{row['grasp']}/{row['grasp_true']}, release {row['release']}/{row['release_true']}"
+                    f"{'' if row.get('release_true_first') in (None, row['release_true']) else ' (leaves at %d)' % row['release_true_first']}, contact "
+                    f"{row['contact_cm']:.1f} cm, supports R {fmt(row['support_recall'])} P {fmt(row['support_precision'])}"
+                    f"{' INVENTED' if row['invented_support'] else ''}, hand IoU {row['hand_iou']:.2f}"
+                    f" -> {'ok' if row['ok'] else 'FAIL'} ({row['extract_s']:.1f} s)", flush=True)
+            except Exception as exc:
+                row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+                log(f"{n}: FAILED {row['error']}", flush=True)
+                traceback.print_exc()
         rows.append(row)
         if json_path:
             json_path.parent.mkdir(parents=True, exist_ok=True)
