@@ -304,6 +304,13 @@ def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
         return timing.release
     d = d / nd
     vh, vo, c = timing.hand_velocity, timing.object_velocity, timing.coupled.copy()
+    a = approach(timing, eps)
+    if a is not None and float(a @ d) < 0:
+        # (#23, fifteenth pass) a collider comes into contact moving into the object: a "push"
+        # against its approach is its leaving (a palm that rests on the object, its press a pixel,
+        # reads its departure as its first main motion once the release is read late), and a
+        # leaving is no pressing on (dev_0322: released at 24, truly 23..24, read held to the end)
+        d = a / float(np.linalg.norm(a))
     for k in range(timing.grasp, len(c)):
         if c[k] >= 0 or not (np.isfinite(vh[k]).all() and np.isfinite(vo[k]).all()):
             continue
@@ -311,6 +318,20 @@ def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
         if ih > max(eps, 0.5 * float(np.linalg.norm(vh[k]))) and io < ih:
             c[k] = 0
     return release(c, timing.near, timing.grasp, timing.speed, vh=vh, vo=vo, share=timing.share, eps=eps)
+
+
+def approach(timing: Timing, eps: float = 0.35) -> np.ndarray | None:
+    """The toucher's approach in the image: its summed motion over the pairs of the contact period
+    before the grasp in which it is seen touching and moving (faster than `eps`); None where it
+    is not seen coming in (or its motion sums to under 2 `eps`)."""
+    vh, near = timing.hand_velocity, timing.near
+    p0, g = timing.period[0], timing.grasp
+    ks = [k for k in range(max(0, p0), min(g, len(vh))) if near[k] and np.isfinite(vh[k]).all()
+          and float(np.linalg.norm(vh[k])) > eps]
+    if not ks:
+        return None
+    a = np.sum([vh[k] for k in ks], axis=0)
+    return a if float(np.linalg.norm(a)) >= 2 * eps else None
 
 
 def part_by_ratio(coupled: np.ndarray, vh: np.ndarray, vo: np.ndarray, run, eps: float) -> np.ndarray:

@@ -1,0 +1,48 @@
+"""(#23, fifteenth pass) A collider's release is not read against its own departure: a collider comes
+into contact moving into the object, so a "push" (the first main motion) that points against its
+approach is its leaving, and its leaving pairs part it from the object (dev_0322, dev_0307, dev_0149)."""
+import numpy as np
+
+from physinteract_usd.extract.timing import Timing, approach, collider_release, coupling, release
+
+
+def _palm(seen_coming_in=True):
+    """A palm comes down onto a stiff object at 5 px a frame (pairs 0..3), rests on it pressing a
+    few tenths of a pixel (4..12: the object next to it gives 0.1 px), then lifts off back the way
+    it came at 5 px a frame (13..16) while the object stays; it is out of contact from frame 17."""
+    T1 = 20
+    vh = np.zeros((T1, 2))
+    vo = np.zeros((T1, 2))
+    vh[0:4, 1] = 5.0                        # the approach, down into the object
+    vh[4:13, 1] = 0.2                       # the press
+    vo[4:13, 1] = 0.1
+    vh[13:17, 1] = -5.0                     # the departure, back up; the object stays
+    near = np.zeros(T1 + 1, bool)
+    near[(0 if seen_coming_in else 4):17] = True
+    c = coupling(vh, vo, 0.35)
+    speed = np.linalg.norm(vh, axis=1)
+    g = 4
+    r = release(c, near, g, speed, vh=vh, vo=vo, eps=0.35)
+    p0 = 0 if seen_coming_in else 4
+    return Timing(vh, vo, c, near, (p0, 16), speed, g, r)
+
+
+def test_the_release_of_a_resting_palm_is_its_lift_off():
+    tm = _palm()
+    assert tm.release == 13                                   # the motion rule reads the lift-off
+    assert np.allclose(approach(tm) / np.linalg.norm(approach(tm)), [0.0, 1.0])
+    # its first main motion read as far as a late release is the departure itself (up): a push
+    # against the approach is no pressing on, the lift-off still parts them (before: 17, the
+    # frame it was no longer seen touching; on the world suite: held to the end)
+    assert collider_release(tm, np.array([0.0, -1.0])) == 13
+    # a push read along the approach: the same
+    assert collider_release(tm, np.array([0.0, 1.0])) == 13
+
+
+def test_without_a_seen_approach_the_push_is_the_first_main_motion():
+    # never seen coming in (touching from the grasp on): no approach, the rule as before (the
+    # departure read as a push into the object is not parting: the end of the contact)
+    tm = _palm(seen_coming_in=False)
+    assert approach(tm) is None
+    assert collider_release(tm, np.array([0.0, -1.0])) == 17
+    assert collider_release(tm, np.array([0.0, 1.0])) == 13
