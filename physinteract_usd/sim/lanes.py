@@ -39,8 +39,8 @@ from ..errors import SimulationError
 LANES: int | None = int(os.environ["PHYSINTERACT_SIM_LANES"]) if os.environ.get("PHYSINTERACT_SIM_LANES") else None
 # where LANES is None: True, two lanes where this process may run on >= 2 cores and the machine has a core to spare
 # (`spare_cores`: measured once per process, at its first two-lane-capable capture); False (default): one lane.
-# Off by default: the demo did not gain (docs/benchmarks/cpu.md session 19: on the idle VM 204 s one lane, 223 s two;
-# inside the fit the lanes' passes overlap little, unlike the rollout benchmark's -31%, for a reason not found yet)
+# Off by default: on the demo's fit -8.7% at best, +2-9% in the profiled demo runs (docs/benchmarks/cpu.md session
+# 19; the rollout benchmark's replays -31%, but a two-lane capture costs ~2.7x a one-lane one)
 AUTO = False
 # fewest particles for which lanes are worth their barriers (two per substep)
 MIN_PARTICLES = 256
