@@ -8,9 +8,8 @@
 #                  28.9 s was measured so)
 #        pyc       bytecode cached (PYTHONPYCACHEPREFIX=$W/pyc, PYTHONDONTWRITEBYTECODE unset; filled by a warm-up
 #                  run first): what an ordinary install has
-#        preload   pyc + PHYSINTERACT_CUDA_PRELOAD=1 (opt-in: the simulator's and renderer's Warp modules and torch's
-#                  CUDA context, cuDNN and cuBLAS loaded on threads while the fit imports and reads the stage;
-#                  devices.warm_cuda_context, sim/kernels.py preload)
+#        preload   pyc + PHYSINTERACT_CUDA_PRELOAD=1 (the opt-in CUDA preload measured here in session 17: no gain,
+#                  22.3 s with and without; removed in session 18, the variable is ignored now: equal to pyc)
 #        bdN       pyc + PHYSINTERACT_SIM_BLOCK_DIM=N (opt-in, #26: the solver's launches at N threads per block, e.g.
 #                  bd64, bd32; a warm-up fit each compiles the variant): VARIANTS="pyc bd64 bd32" ~4 min
 #        torch_adamw  host, with torch.optim.AdamW in place of fit/adamw.py (the code before 67b4008: its first step

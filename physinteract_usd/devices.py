@@ -24,38 +24,6 @@ def check_device(device) -> None:
         raise InputError("--device", "cuda was asked for, but this torch has no usable CUDA GPU: use --device cpu")
 
 
-def warm_cuda_context(device):
-    """On CUDA, opted in (PHYSINTERACT_CUDA_PRELOAD=1, #26): torch's CUDA context, cuDNN and cuBLAS
-    loaded on a daemon thread now, while the caller goes on importing (the fit verb: ~1-3 s of module
-    imports before its first CUDA work); returns the thread, or None (not CUDA, not opted in). A failure
-    stays on the thread: the first CUDA call of the caller meets it again."""
-    import os
-
-    if not str(device).startswith("cuda") or os.environ.get("PHYSINTERACT_CUDA_PRELOAD", "0") != "1":
-        return None
-    import threading
-
-    def run():
-        try:
-            import torch
-
-            d = torch_device(device)
-            torch.empty(1, device=d)
-            # the libraries the fit's loss loads at its first call (their loading and handles are per process):
-            # cuDNN (the SSIM's depthwise blur, render/losses.py) and cuBLAS (the splats' covariances); results
-            # are discarded, and neither library keeps a choice made here (no cudnn.benchmark)
-            x = torch.zeros(1, 2, 16, 16, device=d)
-            torch.nn.functional.conv2d(x, torch.ones(2, 1, 1, 3, device=d), groups=2)
-            m = torch.zeros(4, 3, 3, device=d)
-            m @ m
-        except Exception:  # noqa: BLE001
-            pass
-
-    t = threading.Thread(target=run, name="physinteract-cuda-context", daemon=True)
-    t.start()
-    return t
-
-
 def cpu_threads(device) -> None:
     """On the CPU, Warp runs single-threaded and the fit's torch ops are small: torch's thread pool
     only adds synchronisation (8 ms per op measured on a busy 2-core machine)."""

@@ -273,27 +273,9 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
 
 
 def preload(device) -> None:
-    """The simulator's Warp modules loaded (or compiled) on a thread while the stage is read
-    (`sim.kernels.preload`); on CUDA (opt-in: PHYSINTERACT_CUDA_PRELOAD=1, #26) the renderer's module and
-    torch's CUDA context too, so the first launches of `FitProblem` find them ready."""
-    from ..sim import kernels as K
-
-    if not str(device).startswith("cuda"):
-        preload_kernels(device)
-        return
-    if not K.CUDA_PRELOAD:
-        return
-    import warp as wp
-
-    from ..devices import torch_device
-    from ..render.rasterizer import kernels as render_kernels
-
-    def torch_context():
-        import torch
-
-        torch.empty(1, device=torch_device(device))
-
-    preload_kernels(device, also=[render_kernels(wp.float32).module], before=torch_context)
+    """On the CPU, the simulator's Warp modules loaded (or compiled) on a thread while the stage is
+    read (`sim.kernels.preload`), so the first launches of `FitProblem` find them ready; nothing on CUDA."""
+    preload_kernels(device)
 
 
 def fit_tracks(sd: SceneData, obs: Observations, *, device="cpu", log=print, progress=True):

@@ -82,9 +82,6 @@ def add_parser(sub):
 
 
 def run(a) -> int:
-    from ..devices import warm_cuda_context
-
-    warm_cuda_context(a.device)    # opt-in (PHYSINTERACT_CUDA_PRELOAD=1): the CUDA context while the fit imports
     from .. import api
 
     log = progress_log(a.json)

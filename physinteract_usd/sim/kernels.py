@@ -37,7 +37,6 @@ Functions of F whose textbook derivative goes through the SVD carry hand-written
 
 import atexit
 import math
-import os
 import threading
 from types import SimpleNamespace
 
@@ -87,9 +86,6 @@ _CACHE = {}
 
 _BUILD_LOCK = threading.Lock()
 _PRELOAD: dict = {}    # dtype -> the thread compiling its modules (`preload`)
-# `preload` on CUDA too (opt-in, #26): the CLI's small fit on a GPU loads its modules and contexts on a
-# thread while the stage is read; measured by benchmarks/gpu_cli26.sh before it can become the default
-CUDA_PRELOAD = os.environ.get("PHYSINTERACT_CUDA_PRELOAD", "0") == "1"
 
 
 def get_kernels(dtype: str) -> SimpleNamespace:
@@ -109,37 +105,24 @@ def get_kernels(dtype: str) -> SimpleNamespace:
     return _CACHE[dtype]
 
 
-def preload(device, dtype: str = "float32", backward: bool = True, also=(), before=None) -> None:
-    """Compile (or load from Warp's kernel cache) the modules a rollout on ``device`` launches, on a
+def preload(device, dtype: str = "float32", backward: bool = True) -> None:
+    """Compile (or load from Warp's kernel cache) the modules a rollout on the CPU launches, on a
     background thread, while the caller does other work (a fit reads its stage and extracts the
     interaction first); the next `get_kernels(dtype)` waits for it. The substep's module, then with
     ``backward`` the hand-written adjoints', one after the other on one thread (Warp's compiler calls
     release the GIL; two compiling threads beside the caller cost ~20% more CPU on a busy 2-core
     machine): on a fresh machine the first fit compiles ~10 s of CPU work before its first substep
     (docs/benchmarks/cpu.md, #26). A failure here is left to the launch that needs the module; a
-    no-op when a preload or the kernels already ran.
-    On CUDA only with `CUDA_PRELOAD` (opt-in, PHYSINTERACT_CUDA_PRELOAD=1; docs/benchmarks/gpu.md, #26):
-    there the modules are also the CUDA defaults' (fused kernels, grid box) and the frame graphs', plus
-    the modules named in ``also`` (the caller's: the renderer's, built before), and ``before`` (a
-    callable: the caller's CUDA context, say) runs first on the thread."""
-    cuda = str(device).startswith("cuda")
-    if not (str(device).startswith("cpu") or (cuda and CUDA_PRELOAD)) or dtype in _CACHE or dtype in _PRELOAD:
+    no-op on CUDA (the same preload there, with the CUDA context on the thread, measured no gain on the
+    H200: 22.3 s with and without, docs/benchmarks/gpu.md session 17; removed) and when a preload or the
+    kernels already ran."""
+    if not str(device).startswith("cpu") or dtype in _CACHE or dtype in _PRELOAD:
         return
-    also = list(also)
-    if cuda:     # the frame graphs' kernels, defined here (not on the thread: the rollout defines them too)
-        from .frame_graphs import get_frame_kernels
-
-        get_frame_kernels(dtype)
-        also = [f"physinteract_framegraph_{dtype}"] + also
 
     def run():
         try:
-            if before is not None:
-                before()
             K = get_kernels(dtype)
             names = [K.modules.core] + ([K.modules.adj] if backward else [])
-            if cuda:
-                names += [K.modules.cuda] + also
             wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=0)
         except Exception:    # noqa: BLE001  (the launch that needs the module compiles it again and raises)
             pass
