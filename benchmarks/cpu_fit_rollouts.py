@@ -1,6 +1,6 @@
 """A whole fit (`api.fit`, no profiler around it) with a count of its rollouts: per rollout its substeps, forwards,
 backwards, graph sets captured and the seconds those captures took, and the fit's wall time (docs/benchmarks/cpu.md
-session 19: what the simulator's two lanes pay at capture against what they save per pass).
+the 18th session: what the simulator's two lanes pay at capture against what they save per pass).
 
     python benchmarks/cpu_fit_rollouts.py STAGE [--iterations N]        (PHYSINTERACT_SIM_LANES=1 / 2 to compare)
 
