@@ -374,3 +374,16 @@ def test_the_parts_starts_default_is_on_for_cuda_and_off_on_the_cpu(monkeypatch)
     assert seen == {"cpu": (0, False), "cuda:0": (20, True)}, seen
     F.fit(gpu, F.FitSettings(schedule="bumps", parts_start=0))
     assert seen["cuda:0"] == (0, False)
+
+
+def test_the_default_is_resolved_in_the_callers_settings_object(monkeypatch):
+    """`fit.fit` resolves the default in the settings object it was given, not in a copy: a stop mutates that object
+    while the fit runs (SIGTERM sets confidence_probes = 0 for the estimate afterwards; tests/test_fit_stop.py)."""
+    import physinteract_usd.fit as F
+
+    seen = []
+    monkeypatch.setitem(F.SCHEDULES, "bumps", lambda prob, s, **kw: seen.append(s))
+    prob = types.SimpleNamespace(tdev="cpu", weights=types.SimpleNamespace(track=0.0), tracks=None)
+    s = F.FitSettings(schedule="bumps")
+    F.fit(prob, s)
+    assert seen == [s] and seen[0] is s and s.parts_start == 0

@@ -8,8 +8,6 @@ by held-back frames; `select.py`). Two options of any schedule (#24): `uniform_g
 field only where its held-back loss clearly beats the uniform model's) and `unconstrained_floor` (the
 particles the video does not constrain marked and filled from their neighbours)."""
 
-import dataclasses
-
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
@@ -32,8 +30,9 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if tw > 0 and prob.tracks is None:
         raise ValueError("track_weight > 0 needs point tracks in the fit's observations (Observations.tracks)")
     prob.weights.track = tw      # the point tracks' term (fit/tracks_loss.py) counts in every schedule's loss
-    if s.parts_start is None:    # the parts start's default: on CUDA, off on the CPU (recorded as resolved)
-        s = dataclasses.replace(s, parts_start=default_probes(prob, None))
+    if s.parts_start is None:    # the parts start's default: on CUDA, off on the CPU (recorded as resolved). In
+        # place, not a copy: a stop mutates the caller's settings while the fit runs (confidence_probes = 0)
+        s.parts_start = default_probes(prob, None)
     if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
         r = fit_guarded(prob, s, **kw)
     else:
