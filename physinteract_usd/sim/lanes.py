@@ -113,11 +113,6 @@ def _build(dtype: str) -> SimpleNamespace:
         a[i] = a[i] + b[i]
 
     @wp.kernel(module=module, enable_backward=False)
-    def add_v3(a: wp.array(dtype=vec3), b: wp.array(dtype=vec3)):
-        i = wp.tid()
-        a[i] = a[i] + b[i]
-
-    @wp.kernel(module=module, enable_backward=False)
     def add_grid(m: wp.array(dtype=T), mv: wp.array(dtype=vec3), pm: wp.array(dtype=T), pmv: wp.array(dtype=vec3),
                  bm: wp.array(dtype=T), bmv: wp.array(dtype=vec3), bpm: wp.array(dtype=T), bpmv: wp.array(dtype=vec3)):
         # lane B's four scatter targets added into lane A's, one launch (each launch costs a capture ~0.3 ms)
@@ -127,7 +122,7 @@ def _build(dtype: str) -> SimpleNamespace:
         pm[i] = pm[i] + bpm[i]
         pmv[i] = pmv[i] + bpmv[i]
 
-    return SimpleNamespace(barrier=barrier, add_T=add_T, add_v3=add_v3, add_grid=add_grid, module=module)
+    return SimpleNamespace(barrier=barrier, add_T=add_T, add_grid=add_grid, module=module)
 
 
 def free_cores() -> int:

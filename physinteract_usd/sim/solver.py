@@ -626,7 +626,7 @@ class MPMSolver:
         for lane in (0, 1):
             a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
             N = L.nodes
-            R.launch(lane, L.LK.add_v3, b - a, [N(af["gv"], lane), N(L.a_gv_flat, lane)], block_dim=bd)
+            R.launch(lane, self.K.add_vec3, b - a, [N(af["gv"], lane), N(L.a_gv_flat, lane)], block_dim=bd)
             R.zero(lane, N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane))
             adj_grid = [N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane),
                         adj_params.eff if lane == 0 else L.a_eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0, None, None,
@@ -665,7 +665,7 @@ class MPMSolver:
         R.zero(0, L.a_eff)
         for mine, theirs in ((adj_ctrl.pin_pos, L.a_pin), (adj_ctrl.col_pos, L.a_col)):
             if theirs.size:
-                R.launch(0, L.LK.add_v3, theirs.size, [mine.flatten(), theirs.flatten()], block_dim=bd)
+                R.launch(0, self.K.add_vec3, theirs.size, [mine.flatten(), theirs.flatten()], block_dim=bd)
                 R.zero(0, theirs)
 
     # ------------------------------------------------------------------ checks
