@@ -10,7 +10,7 @@ time. Rows are appended to --out (JSON lines) as they finish, so a run stopped b
 what it did; the table is printed at the end (and by --table-only).
 
 Variants (name=overrides): damp = {"nuisance_damping": True} (a global damping fitted with E, #24), parts20 / parts40 = {"parts_start": 20 / 40}, lr03 = {"lr_material": 0.3},
-gn3 = {"gn_steps": 3} (--variants picks, default parts20,parts40,lr03; a variant may be given inline as
+gn3 = {"gn_steps": 3} (--variants picks, default parts20,parts40,lr03; "" fits none: the old row alone; a variant may be given inline as
 name:key=value,key=value).
 
     python benchmarks/stall_suite.py --scenes foam_bar,hemp_rope,balloon_dog,toy_rope --device cuda \
@@ -68,13 +68,14 @@ def one_scene(scene: str, a) -> None:
     old = rows[-1] if rows else {"scene": scene, "error": "suite.py wrote no row"}
     row = {"scene": scene, "variant": "old", "ma": old.get("ma"), "ma_best_uniform": old.get("ma_best_uniform"),
            "psnr_masked": old.get("psnr_masked"), "fit_s": old.get("fit_s"), "grid": old.get("grid"),
-           "particles": old.get("particles"), "error": old.get("error"), "wall_s": round(time.perf_counter() - t, 1)}
+           "particles": old.get("particles"), "error": old.get("error"), "wall_s": round(time.perf_counter() - t, 1),
+           "pin_rule": __import__("os").environ.get("PHYSINTERACT_PIN_RULE") or "default"}
     with open(a.out, "a") as fh:
         fh.write(json.dumps(row) + "\n")
     print(json.dumps(row), flush=True)
     if old.get("error"):
         return
-    for v in a.variants.split(","):
+    for v in [v for v in a.variants.split(",") if v]:
         cmd = [sys.executable, __file__, "--variant-worker", v, "--scene", scene, "--work", str(work), "--device",
                a.device, "--iterations", str(a.iterations), "--out", a.out]
         subprocess.run(cmd, stdout=sys.stdout, stderr=open(work / f"{scene}.{v.split(':')[0]}.log", "w"),
@@ -174,7 +175,7 @@ def main(argv=None):
         return
     if not a.table_only:
         Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-        for v in a.variants.split(","):
+        for v in [v for v in a.variants.split(",") if v]:
             parse_variant(v)        # a bad name fails here, before any work
         with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as ex:
             list(ex.map(lambda s: one_scene(s, a), a.scenes.split(",")))
