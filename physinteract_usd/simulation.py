@@ -367,6 +367,7 @@ class Simulation:
         self._rollouts: dict[float, Rollout] = {}
         self._batch_rollouts: dict = {}          # (rung, copies) -> (Tiled, Rollout)
         self._twins: dict = {}                   # rung -> eager Rollouts for `simulate_each`'s other threads
+        self._probe_twins: dict = {}             # (rung, slot) -> an eager Rollout for `forward_at` (probes on two threads)
         self.e_bound = float(st.youngs_max)
         # the Maxwell branch's modulus the substep is made stable for (None: up to the E bound, which takes
         # ~sqrt(2) x the substeps; `match_substeps_to_base`)
@@ -393,6 +394,7 @@ class Simulation:
         self._rollouts.clear()
         self._batch_rollouts.clear()
         self._twins.clear()
+        self._probe_twins.clear()
         self._use_bound(self.e_bound)
 
     def bound_for(self, e_max: float) -> float:
@@ -401,20 +403,30 @@ class Simulation:
         (`sim.cfl.rung`; so a field may stiffen ~40% before the model is rebuilt, and rollouts are reused per rung)."""
         return rung(e_max, float(self.scene.settings.youngs_max))
 
-    def _use_bound(self, bound: float) -> None:
+    def _model_at(self, bound: float):
+        """The simulator's model with its substep taken at rung `bound` (one of this simulation's rollouts' or
+        a probe twin's where one is at that rung: the same model, built once)."""
+        if bound in self._rollouts:
+            return self._rollouts[bound].model
+        for (b, _), ro in self._probe_twins.items():
+            if b == bound:
+                return ro.model
         st = self.scene.settings
+        return SimModel.create(
+            self.x0, self.scene.particles_volumes, st.density,
+            np.minimum(self.scene.youngs_modulus.clip(st.youngs_min, st.youngs_max), bound),
+            self.scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model, grid=self.grid,
+            fps=self.scene.fps, substeps=None if self.adaptive else st.substeps, E_max=bound, nu_max=st.poisson_max,
+            E_v_max=self.viscous_cfl_modulus, cfl=CFL,
+            max_speed=self.control.max_speed(self.scene.fps) if self.adaptive else 0.0, gravity=st.gravity,
+            effects=self.effects, dtype=self.dtype, device=self.device,
+            # the contacts' partial blends keep the rate they have at the stage's substep
+            blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0,
+            pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1], transfer_tau=st.transfer_tau)
+
+    def _use_bound(self, bound: float) -> None:
         if bound not in self._rollouts:
-            model = SimModel.create(
-                self.x0, self.scene.particles_volumes, st.density,
-                np.minimum(self.scene.youngs_modulus.clip(st.youngs_min, st.youngs_max), bound),
-                self.scene.poisson_ratio.clip(1e-3, st.poisson_max), material=st.constitutive_model, grid=self.grid,
-                fps=self.scene.fps, substeps=None if self.adaptive else st.substeps, E_max=bound, nu_max=st.poisson_max,
-                E_v_max=self.viscous_cfl_modulus, cfl=CFL,
-                max_speed=self.control.max_speed(self.scene.fps) if self.adaptive else 0.0, gravity=st.gravity,
-                effects=self.effects, dtype=self.dtype, device=self.device,
-                # the contacts' partial blends keep the rate they have at the stage's substep
-                blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0,
-                pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1], transfer_tau=st.transfer_tau)
+            model = self._model_at(bound)
             if len(self._rollouts) >= 3:     # keep a few rungs' buffers and graphs
                 self._twins.pop(next(iter(self._rollouts)), None)
                 self._rollouts.pop(next(iter(self._rollouts)))
@@ -497,14 +509,47 @@ class Simulation:
         return self.rollout.forward_from(start, states, E.to(self.tdtype), nu.to(self.tdtype), effects=effects,
                                          trajectories=trajs)
 
-    def rung_wanted(self, e_max: float) -> float:
-        """The rung `ensure_stable(e_max)` would move to (the current one when it would not move)."""
+    def rung_wanted(self, e_max: float, current: float | None = None) -> float:
+        """The rung `ensure_stable(e_max)` would move to (the current one when it would not move); from rung
+        `current` instead of the one in use where given (the rung after a sequence of probes)."""
+        cur = self.e_bound if current is None else float(current)
         if not self.adaptive:
-            return self.e_bound
+            return cur
         want = self.bound_for(e_max)
-        if want < self.e_bound and e_max * 1.1 > want:
-            want = self.e_bound
+        if want < cur and e_max * 1.1 > want:
+            want = cur
         return want
+
+    def twin_at(self, bound: float, slot: int = 0) -> Rollout:
+        """An eager rollout (no graph capture: safe beside another thread's launches) at rung `bound`, for
+        `forward_at`, one per `slot` (one per thread: two threads never share a twin); built here, in the
+        calling thread, before any worker uses it. The three most recent kept (`drop_probe_twins` frees them)."""
+        key = (bound, int(slot))
+        ro = self._probe_twins.pop(key, None)      # (re-inserted: the most recent)
+        if ro is not None:
+            self._probe_twins[key] = ro
+        else:
+            ro = Rollout(self._model_at(bound), self.control, graphs=False)
+            while len(self._probe_twins) >= 3:
+                self._probe_twins.pop(next(iter(self._probe_twins)))
+            self._probe_twins[key] = ro
+        return ro
+
+    def drop_probe_twins(self) -> None:
+        self._probe_twins.clear()
+
+    def forward_at(self, bound: float, E, nu, trajectories=None, effects=None, slot: int = 0):
+        """x, F of `simulate(E, nu, ...)` without gradients on the eager twin at rung `bound` and `slot`
+        (`twin_at`, built first), this simulation's own rung and rollouts untouched: callable from a worker
+        thread while the calling thread simulates on another slot. Bitwise `simulate`'s where `bound` is the
+        rung it would take (`rung_wanted`; tests/test_sim_threads.py)."""
+        ro = self._probe_twins[(bound, int(slot))]
+        trajs = None
+        if trajectories is not None:
+            trajs = {slot_: tr for (slot_, _), tr in zip(self.traj_slots, trajectories)}
+        with torch.no_grad():
+            return ro(torch.as_tensor(E).detach().to(self.tdtype), torch.as_tensor(nu).detach().to(self.tdtype),
+                      effects=effects, trajectories=trajs)
 
     def simulate_each(self, jobs: list, threads: int | None = None) -> list:
         """Independent simulations without gradients at the current rung: `jobs` a list of (E, nu,

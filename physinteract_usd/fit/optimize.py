@@ -199,10 +199,12 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
     sweep over the range looks for a finite probe before giving up with a SimulationError."""
     lo, hi = mat.lo, mat.hi
     nu = mat.poisson().detach()
-    f = UniformProbe(lambda E: prob.loss(E, nu)["rec"], len(mat.points), mat.dtype, mat.device, log, skipped)
+    f = UniformProbe(lambda E: prob.loss(E, nu)["rec"], len(mat.points), mat.dtype, mat.device, log, skipped,
+                     many=_probes_beside(prob, nu))
     cache = f.cache
 
     a, b = lo + 0.02 * (hi - lo), hi - 0.02 * (hi - lo)
+    f.prefetch([b - GOLDEN * (b - a), a + GOLDEN * (b - a)])     # the first two probes at once (two threads)
     if not (math.isfinite(f(b - GOLDEN * (b - a))) or math.isfinite(f(a + GOLDEN * (b - a)))):
         # both first probes failed: a coarse sweep finds where the simulation holds, the search
         # continues around the best finite probe
@@ -214,6 +216,11 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
             step = (b - a) / 4
             a, b = max(a, k - step), min(b, k + step)
     golden_section(f, a, b, evals)
+    if f.many is not None:
+        prob.sim.drop_probe_twins()
+        if log:
+            log(f"start search on two threads: {f.ahead_used} of {len(cache)} probes from the pairs, "
+                f"{f.ahead_wasted} guessed ahead in vain")
     if seen is not None:      # every probe, E -> loss (None: unstable), for what the video says about E
         seen.update({f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None) for k, v in sorted(cache.items())})
     fin = [k for k in cache if math.isfinite(cache[k])]
@@ -221,6 +228,73 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
         raise no_finite_uniform_probe()
     best = min(fin, key=cache.get)
     return (math.exp(best), cache[best]) if with_loss else math.exp(best)
+
+
+def _probes_beside(prob: FitProblem, nu):
+    """`UniformProbe`'s `many` for a search's uniform-E probes on two threads (`simulation.SIM_THREADS` >= 2,
+    the CPU only; None otherwise): `many([E1, E2])` simulates E1 in the calling thread and E2 in a worker,
+    each on an eager twin at the rung the one-at-a-time search would take it at (E2's after E1's:
+    `Simulation.rung_wanted`), and renders E1's loss while E2 simulates. Its callables, called in the
+    search's order, move the simulation's rung as `prob.loss` would have and give `prob.loss`'s value
+    (E2's rendered from its simulated states; recomputed by `prob.loss` if the rung is not the one
+    assumed): the one-thread search's probes, values and decisions (tests/test_fit_probes_threads.py)."""
+    import threading
+
+    from .. import simulation as simulation_mod
+
+    sim = prob.sim
+    threads = int(simulation_mod.SIM_THREADS or 1)
+    if (threads < 2 or not isinstance(sim, simulation_mod.Simulation) or not str(sim.device).startswith("cpu")
+            or "simulate" in vars(prob) or type(prob).simulate is not FitProblem.simulate):
+        return None
+
+    def many(Es):
+        E1, E2 = Es[0], Es[1]
+        r1 = sim.rung_wanted(float(E1.max()))
+        r2 = sim.rung_wanted(float(E2.max()), current=r1)
+        sim.twin_at(r1, 0)
+        sim.twin_at(r2, 1)           # both built here, before the worker starts (one per thread)
+        box: dict = {}
+
+        def work():
+            try:
+                box["x"] = sim.forward_at(r2, E2, nu, slot=1)
+            except SimulationError as e:
+                box["error"] = e
+            except BaseException as e:  # noqa: BLE001  (re-raised in the calling thread)
+                box["failed"] = e
+
+        t = threading.Thread(target=work, name="physinteract-probe", daemon=True)
+        t.start()
+        try:
+            with torch.no_grad():
+                sim.ensure_stable(float(E1.max()))          # the rung E1's probe moves to (nothing simulated)
+                try:
+                    first = float(prob.loss(E1, nu, simulated=sim.forward_at(r1, E1, nu, slot=0))["rec"])
+                except SimulationError as e:
+                    first = e
+        finally:
+            t.join()
+        if "failed" in box:
+            raise box["failed"]
+
+        def one():
+            if isinstance(first, SimulationError):
+                raise first
+            return first
+
+        def two():
+            e_max = float(E2.max())
+            if sim.rung_wanted(e_max) != r2:                # not asked right after E1: simulate it here
+                return float(prob.loss(E2, nu)["rec"])
+            sim.ensure_stable(e_max)
+            if "error" in box:
+                raise box["error"]
+            return float(prob.loss(E2, nu, simulated=box["x"])["rec"])
+
+        return [one, two]
+
+    return many
 
 
 def uniform_loss(prob: FitProblem, evals: int, log=None) -> tuple[float, float]:

@@ -12,19 +12,66 @@ GOLDEN = (math.sqrt(5) - 1) / 2
 def golden_section(f, a: float, b: float, evals: int) -> tuple[float, float]:
     """Golden-section search for a minimum of `f` on [a, b] with `evals` evaluations of `f` (the
     caller's `f` keeps what it saw); a non-finite value loses to a finite one. Returns the final
-    bracket."""
+    bracket. Where `f` has a `prefetch(points, maybe)` (`UniformProbe` with a `many`: two probes at once
+    on the CPU's second core), the search hands it the first two points together, and then each point
+    with the one most likely to follow it (`_likely_next`): the same points, values and decisions, in
+    the same order, whatever prefetch does."""
+    ahead = getattr(f, "prefetch", None)
+    n = max(int(evals) - 2, 0)
     c, d = b - GOLDEN * (b - a), a + GOLDEN * (b - a)
+    if ahead is not None:
+        ahead([c, d])
     fc, fd = f(c), f(d)
-    for _ in range(max(int(evals) - 2, 0)):
-        if fc < fd or (math.isfinite(fc) and not math.isfinite(fd)):
+    known = {c: fc, d: fd}
+    for i in range(n):
+        left = _goes_left(fc, fd)
+        if left:
             b, d, fd = d, c, fc
             c = b - GOLDEN * (b - a)
-            fc = f(c)
         else:
             a, c, fc = c, d, fd
             d = a + GOLDEN * (b - a)
-            fd = f(d)
+        if ahead is not None:
+            ahead([c if left else d], _likely_next(known, a, b, c, d, fc, fd, left) if i + 1 < n else None)
+        if left:
+            fc = known[c] = f(c)
+        else:
+            fd = known[d] = f(d)
     return a, b
+
+
+def _goes_left(fc: float, fd: float) -> bool:
+    return fc < fd or (math.isfinite(fc) and not math.isfinite(fd))
+
+
+def _predict(known: dict, x: float) -> float:
+    """f(x) from the finite values seen: the parabola through the three nearest, the line through two."""
+    pts = sorted(((k, v) for k, v in known.items() if math.isfinite(v)), key=lambda kv: abs(kv[0] - x))[:3]
+    if len(pts) < 2:
+        return pts[0][1] if pts else float("inf")
+    if len(pts) == 2:
+        (x0, y0), (x1, y1) = pts
+        return y0 + (y1 - y0) * (x - x0) / (x1 - x0) if x1 != x0 else y0
+    (x0, y0), (x1, y1), (x2, y2) = pts
+    try:
+        return (y0 * (x - x1) * (x - x2) / ((x0 - x1) * (x0 - x2)) + y1 * (x - x0) * (x - x2) / ((x1 - x0) * (x1 - x2))
+                + y2 * (x - x0) * (x - x1) / ((x2 - x0) * (x2 - x1)))
+    except ZeroDivisionError:
+        return y0
+
+
+def _likely_next(known: dict, a, b, c, d, fc, fd, left: bool) -> float:
+    """The point `golden_section` evaluates after the pending one (c if `left`, else d), with the pending
+    value predicted from those seen (`_predict`): a guess, only ever computed ahead, never used unchecked."""
+    if left:
+        fc = _predict(known, c)
+    else:
+        fd = _predict(known, d)
+    if _goes_left(fc, fd):
+        b, d = d, c
+        return b - GOLDEN * (b - a)
+    a, c = c, d
+    return a + GOLDEN * (b - a)
 
 
 def no_finite_uniform_probe() -> SimulationError:
@@ -39,12 +86,45 @@ class UniformProbe:
     """The reconstruction loss at one uniform E, called with log E (no gradients) and cached per
     log E in `cache`. `loss_of(E)` takes the (P,) tensor of that E and returns the loss. A probe
     that goes unstable, leaves the grid or gives a non-finite loss is inf: it is logged and its E
-    appended to `skipped`, so a search moves away from it and never returns it."""
+    appended to `skipped`, so a search moves away from it and never returns it.
 
-    def __init__(self, loss_of, n: int, dtype, device, log=None, skipped: list | None = None):
+    `many` (optional): `many([E1, E2])` simulates two probes at once (the CPU's second core) and returns
+    one callable per probe, called in order when the search asks for that probe, giving what `loss_of`
+    would give there (or raising its error); `prefetch` uses it. What was computed ahead and not asked
+    for next is dropped: the values, the log and `skipped` are those of the one-at-a-time search."""
+
+    def __init__(self, loss_of, n: int, dtype, device, log=None, skipped: list | None = None, many=None):
         self.loss_of, self.n, self.dtype, self.device = loss_of, int(n), dtype, device
         self.log, self.skipped = log, skipped
+        self.many = many
         self.cache: dict[float, float] = {}
+        self._ahead: dict = {}         # log E -> the callable `many` gave for it, in the order asked
+        self.ahead_used = 0            # probes answered from what `many` computed
+        self.ahead_wasted = 0          # guesses computed ahead and not asked for
+
+    def _E(self, le: float):
+        import torch
+
+        return torch.full((self.n,), math.exp(le), dtype=self.dtype, device=self.device)
+
+    def prefetch(self, points, maybe=None) -> None:
+        """Compute `points` (asked for next, in this order) ahead, two at a time with `many`, and where only
+        one is new, `maybe` (perhaps asked for after it) beside it. Without `many`: nothing."""
+        if self.many is None:
+            return
+        pending = lambda le: le in self.cache or le in self._ahead  # noqa: E731
+        les: list[float] = []
+        for p in points:
+            le = float(p)
+            if not pending(le) and le not in les:
+                les.append(le)
+        if len(les) == 1 and maybe is not None and not pending(float(maybe)) and float(maybe) != les[0]:
+            les.append(float(maybe))
+        if len(les) < 2:
+            return
+        les = les[:2]
+        for le, run in zip(les, self.many([self._E(le) for le in les])):
+            self._ahead[le] = run
 
     def __call__(self, le) -> float:
         import torch
@@ -52,11 +132,17 @@ class UniformProbe:
         le = float(le)
         if le in self.cache:
             return self.cache[le]
-        E = torch.full((self.n,), math.exp(le), dtype=self.dtype, device=self.device)
+        run = self._ahead.pop(le, None)
+        if run is None:
+            self.ahead_wasted += len(self._ahead)
+            self._ahead.clear()            # guesses made for another order of probes
+        else:
+            self.ahead_used += 1
+        E = self._E(le)
         why = ""
         try:
             with torch.no_grad():
-                v = float(self.loss_of(E))
+                v = float(run() if run is not None else self.loss_of(E))
             if not math.isfinite(v):
                 why = f"loss {v}"
         except SimulationError as exc:
