@@ -142,6 +142,23 @@ def frame_camera(spec: SceneSpec, gt: "GroundTruth", sz: Size) -> Camera:
 
 
 # ------------------------------------------------------------------------------ ground truth sim
+def truth_pin_rule() -> tuple[float, float]:
+    """The pin rule of the ground truth's simulation (a grid node's blend clamp(gain (pinned share - floor), 0, 1),
+    docs/sim.md): the environment's PHYSINTERACT_TRUTH_PIN_RULE ("default", "band" or "GAIN,FLOOR", as
+    PHYSINTERACT_PIN_RULE reads), read at each call; unset: (4, 0), every capture made before #24's study. The
+    fit's PHYSINTERACT_PIN_RULE never reaches the truth: an A/B of a pin rule in truth AND fit sets both
+    (docs/benchmarks/fit.md, "The clamp band in the suite")."""
+    import os
+
+    from ..simulation import pin_rule
+
+    v = os.environ.get("PHYSINTERACT_TRUTH_PIN_RULE")
+    try:
+        return pin_rule(v)
+    except ValueError as exc:
+        raise InputError("PHYSINTERACT_TRUTH_PIN_RULE", str(exc).split(": ", 1)[-1]) from None
+
+
 class GroundTruth:
     """The ground-truth particles, control and simulator of a scene."""
 
@@ -222,10 +239,11 @@ class GroundTruth:
         self.SimModel = SimModel
 
     def model(self, effects=None):
+        gain, floor = truth_pin_rule()
         return self.SimModel.create(self.x0, self.spacing ** 3, self.spec.density, self.E, self.nu,
                                     grid=self.grid, fps=self.size.fps, substeps=self.substeps,
                                     E_max=float(self.E.max()), effects=effects or {}, device=self.device,
-                                    transfer_tau=getattr(self, "transfer_tau", 0.0),
+                                    transfer_tau=getattr(self, "transfer_tau", 0.0), pin_gain=gain, pin_floor=floor,
                                     # the truth checks its frames' ends only, as before #24: the captures
                                     # generated before regenerate the same (sim/model.py stencil_check)
                                     stencil_check=False)
@@ -590,7 +608,8 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         "masks": "visible",
         "gt_sim": {"particles": int(len(gt.x0)), "spacing": gt.spacing, "dx": gt.grid.dx,
                    "substeps_per_frame": gt.substeps, "dt": 1.0 / (sz.fps * gt.substeps),
-                   "fit_dt_suggested": gt.fit_dt, "transfer_tau": transfer_tau},
+                   "fit_dt_suggested": gt.fit_dt, "transfer_tau": transfer_tau,
+                   "pin_rule": list(truth_pin_rule())},
         "suggested_init": {"grid": sz.fit_grid, "padding": sz.fit_padding,
                            "youngs_range": list(sz.fit_youngs), "max_poisson": sz.fit_poisson_max,
                            "density": spec.density, **({"transfer_tau": transfer_tau} if transfer_tau else {})},
