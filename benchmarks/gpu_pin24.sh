@@ -26,10 +26,10 @@ run() { # fit-rule gpu half cores
     echo "truth band, fit $rule, $half: exit $? $(( $(date +%s) - T0 )) s" ) &
 }
 if [ "$NG" -ge 4 ]; then
-  C=$(( $(nproc) / 4 ))
+  C=$(( $(nproc --all) / 4 ))
   run band 0 a 0-$((C-1)); run band 1 b $C-$((2*C-1)); run default 2 a $((2*C))-$((3*C-1)); run default 3 b $((3*C))-$((4*C-1))
 else
-  C=$(( $(nproc) / 2 ))
+  C=$(( $(nproc --all) / 2 ))
   run band 0 a 0-$((C-1)); run band 1 b $C-$((2*C-1))
 fi
 wait
