@@ -2,7 +2,10 @@
 README demo's problem, on one thread and on two (simulation.py SIM_THREADS), wall and process CPU seconds
 per round, alternating, and whether the diagonals are bitwise equal (docs/benchmarks/cpu.md, #26).
 
-    python benchmarks/cpu_confidence_threads.py [--stage DIR] [--rounds 3] [--K 8] [--E 2.5e4]
+    python benchmarks/cpu_confidence_threads.py [--stage DIR] [--rounds 3] [--K 8] [--E 2.5e4] [--fresh]
+
+--fresh: a new problem for every estimate, as in a fit (the rung's rollout new: its first forward eager, its
+graphs captured inside the estimate); without it one problem, warmed up (graphs captured before the timing).
 
 The stage is cpu_sim_demo.py's (built there when missing). Wall time is what the second core buys: run it
 on an otherwise idle machine (on a loaded one both threads wait for cores).
@@ -26,6 +29,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--K", type=int, default=8, help="basis functions (the demo's level 2: 8)")
     ap.add_argument("--E", type=float, default=2.5e4)
+    ap.add_argument("--fresh", action="store_true")
     args = ap.parse_args()
     from cpu_sim_demo import build_stage
     stage = build_stage(Path(args.stage), ROOT)
@@ -39,19 +43,27 @@ def main():
     from physinteract_usd.fit.optimize import confidence
 
     job = app_fit.prepare_fit(stage, log=lambda *a, **k: None, progress=False)
-    prob = app_fit.make_problem(job)
-    st = prob.scene.settings
-    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype, device=prob.tdev)
-    mat.set_uniform(args.E, 0.3)
-    mat.refine(args.K)
-    with torch.no_grad():
-        mat.theta += torch.linspace(-0.2, 0.2, mat.K, dtype=mat.theta.dtype)
+
+    def problem():
+        prob = app_fit.make_problem(job)
+        st = prob.scene.settings
+        mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
+                            device=prob.tdev)
+        mat.set_uniform(args.E, 0.3)
+        mat.refine(args.K)
+        with torch.no_grad():
+            mat.theta += torch.linspace(-0.2, 0.2, mat.K, dtype=mat.theta.dtype)
+        return prob, mat
+
+    prob, mat = problem()
     rows = {1: [], 2: []}
     diags = {}
     confidence(prob, mat, [], probes=4, method="fd")          # warm-up: module loads, graph capture
     for r in range(args.rounds):
         for n in (1, 2):
             simulation.SIM_THREADS = n
+            if args.fresh:
+                prob, mat = problem()
             w0, c0 = time.perf_counter(), time.process_time()
             _, d, used = confidence(prob, mat, [], probes=4, method="fd", return_diag=True)
             rows[n].append((time.perf_counter() - w0, time.process_time() - c0))
@@ -59,7 +71,8 @@ def main():
             if n in diags:
                 assert np.array_equal(diags[n], d)
             diags[n] = d
-    print(f"P {len(prob.x0)}, substeps/frame {prob.sim.substeps}, K {mat.K}, rounds {args.rounds}")
+    print(f"P {len(prob.x0)}, substeps/frame {prob.sim.substeps}, K {mat.K}, rounds {args.rounds}"
+          f"{', a fresh problem each' if args.fresh else ''}")
     print("| threads | wall s (median, min) | CPU s (median, min) |\n|---|---:|---:|")
     for n, rr in rows.items():
         w, c = np.array(rr).T

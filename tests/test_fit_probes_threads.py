@@ -133,3 +133,24 @@ def test_a_wrong_guess_is_dropped():
     assert f(0.0) == 2.0 and f.ahead_used == 1
     assert f(2.0) == math.exp(2.0) + 1.0 and f.ahead_wasted == 1 and not f._ahead      # not the guess: dropped
     assert np.isclose(calls[0][1], math.e)
+
+
+def test_simulate_each_before_any_capture_runs_every_job_eagerly(problem):
+    """A rung whose forward graphs are not captured yet: the calling thread takes an eager twin too (no
+    capture while another thread launches); the same simulations as one thread's."""
+    sd, obs, contacts = problem
+    P = len(sd.particles_positions)
+    nu = torch.full((P,), fs.NU_TRUE)
+    Es = [torch.linspace(0.6, 1.0, P) * fs.E_TRUE * s for s in (1.0, 0.97, 0.94)]
+    out = {}
+    for threads in (1, 2):
+        sim = FitProblem(sd, obs, contacts).sim
+        sim.ensure_stable(float(Es[0].max()))
+        jobs = [(E.to(sim.tdtype), nu.to(sim.tdtype), None, None) for E in Es]
+        out[threads] = sim.simulate_each(jobs, threads=threads)
+        ro = sim.rollout
+        if threads == 2:
+            assert len(sim._twins[sim.e_bound]) == 2 and not ro._fwd_graphs     # nothing captured, two twins
+    for (x1, F1), (x2, F2) in zip(out[1], out[2]):
+        assert torch.equal(x1, x2) and torch.equal(F1, F2)
+    assert not torch.equal(out[1][0][0], out[1][1][0])
