@@ -23,14 +23,28 @@ from .scene import SceneData, SimSettings
 from .sim import Contact, Control, GridSpec, Rollout, SimModel
 from .sim.cfl import rung
 
-# Independent forwards without gradients (`Simulation.simulate_each`: the confidence's finite differences)
-# on this many threads: Warp's CPU kernels and graph replays run inside ctypes calls, which release the GIL,
-# so a second thread can simulate on the second core while the first replays its graphs. Bitwise the same
-# results either way. Default 1 (opt-in): on the shared 2-core VM two threads measured slower, not faster (the
-# confidence's forwards 16.9 -> 19.9 s wall, +10% CPU, load 4-6; docs/benchmarks/cpu.md session 13); the idle
-# machine's re-time decides (benchmarks/cpu_confidence_threads.py). PHYSINTERACT_SIM_THREADS=N sets it
+# Independent forwards without gradients (the start search's probes, the confidence's finite differences, the
+# interaction check's counterfactuals: `sim_threads`) on this many threads: Warp's CPU kernels run inside ctypes
+# calls, which release the GIL, so a second thread simulates on the second core. Bitwise the same results either
+# way. None (default): `sim_threads` decides per phase, on the CPU only (CUDA: 1, its probes batched instead).
+# PHYSINTERACT_SIM_THREADS=N sets it (1: off)
 SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.environ.get("PHYSINTERACT_SIM_THREADS") \
     else None
+# SIM_THREADS None on the CPU: two threads where >= 2 cores are the process's and at least `lanes.SPARE_MIN` of a
+# core sat idle beside it over 0.1 s (sim/lanes.py's measure), else one. Measured on the demo (docs/benchmarks/
+# cpu.md, 19th session): -9.8 s wall of 198 s with a core to spare; on a machine without one the second thread
+# only waits for a core (sessions 13 and 15: slower)
+AUTO_THREADS = True
+
+
+def sim_threads(device="cpu") -> int:
+    """How many threads a phase of independent forwards runs on (`SIM_THREADS`, `AUTO_THREADS`)."""
+    if SIM_THREADS is not None:
+        return max(1, int(SIM_THREADS))
+    if not AUTO_THREADS or not str(device).startswith("cpu"):
+        return 1
+    from .sim.lanes import SPARE_MIN, free_cores, spare_cores
+    return 2 if free_cores() >= 2 and spare_cores() >= SPARE_MIN else 1
 
 
 # The simulation's domain (#24). A particle whose quadratic stencil passes the grid's valid box is clamped to
@@ -555,7 +569,7 @@ class Simulation:
         """Independent simulations without gradients at the current rung: `jobs` a list of (E, nu,
         trajectories, effects) as `simulate` takes them, each at an E for which `rung_wanted` is the
         current rung (checked: ValueError). Returns, in order, (x, F) or the SimulationError a job
-        raised. On `threads` (default SIM_THREADS) threads: the calling one on this rollout where its
+        raised. On `threads` (default `sim_threads()`) threads: the calling one on this rollout where its
         forward graphs are captured (else on an eager twin: no capture while other threads launch), the
         others on eager twins of it (own buffers). Bitwise what `simulate` gives, one job after another
         (tests/test_sim_threads.py)."""
@@ -565,7 +579,7 @@ class Simulation:
             if self.rung_wanted(float(torch.as_tensor(E).detach().max())) != self.e_bound:
                 raise ValueError("simulate_each: a job's E needs another rung than the current one")
         if threads is None:
-            threads = 1 if SIM_THREADS is None else int(SIM_THREADS)
+            threads = sim_threads(self.device) if len(jobs) > 1 else 1
         out: list = [None] * len(jobs)
         lock = threading.Lock()
         todo = iter(range(len(jobs)))

@@ -11,6 +11,10 @@ import pytest
 # bitwise (graphs against eager launches, threads against one after another) run on one lane, whatever the
 # machine's load; tests/test_sim_lanes.py (and test_fit_lanes.py) switch the lanes on themselves
 os.environ.setdefault("PHYSINTERACT_SIM_LANES", "1")
+# the fit's independent forwards (simulation.sim_threads: two threads where a core sits idle) give the same
+# results on one thread or two; the suite runs them on one (its CPU time does not depend on the machine's load);
+# tests/test_sim_threads.py and test_fit_probes_threads.py switch two on themselves
+os.environ.setdefault("PHYSINTERACT_SIM_THREADS", "1")
 
 
 @pytest.fixture

@@ -154,3 +154,23 @@ def test_simulate_each_before_any_capture_runs_every_job_eagerly(problem):
     for (x1, F1), (x2, F2) in zip(out[1], out[2]):
         assert torch.equal(x1, x2) and torch.equal(F1, F2)
     assert not torch.equal(out[1][0][0], out[1][1][0])
+
+
+def test_sim_threads_takes_the_second_core_only_where_one_sits_idle(monkeypatch):
+    from physinteract_usd.sim import lanes
+
+    monkeypatch.setattr(simulation_mod, "SIM_THREADS", None)
+    monkeypatch.setattr(lanes, "free_cores", lambda: 2)
+    monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: 0.9)
+    assert simulation_mod.sim_threads("cpu") == 2
+    assert simulation_mod.sim_threads("cuda:0") == 1                 # the GPU batches its probes instead
+    monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: 0.2)
+    assert simulation_mod.sim_threads("cpu") == 1                    # a busy machine: the second thread would wait
+    monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: 0.9)
+    monkeypatch.setattr(lanes, "free_cores", lambda: 1)
+    assert simulation_mod.sim_threads("cpu") == 1
+    monkeypatch.setattr(simulation_mod, "AUTO_THREADS", False)
+    monkeypatch.setattr(lanes, "free_cores", lambda: 2)
+    assert simulation_mod.sim_threads("cpu") == 1
+    monkeypatch.setattr(simulation_mod, "SIM_THREADS", 2)
+    assert simulation_mod.sim_threads("cpu") == 2                    # the environment's choice wins

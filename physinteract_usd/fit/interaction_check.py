@@ -183,7 +183,7 @@ class Counterfactuals:
     passes only, for `confirm`'s suspects. The model as fitted is simulated once and shared: its loss is
     every suspect's reference, and its per-frame states let a variant that agrees with it before frame
     `start` (a grasp or release frame moved, never earlier than `start`) simulate frames start.. only
-    (`Simulation.simulate_from`: bitwise the whole forward). With `simulation.SIM_THREADS` >= 2 the
+    (`Simulation.simulate_from`: bitwise the whole forward). With `simulation.sim_threads()` > 1 the
     variants' forwards run on that many threads (each its own eager twin; Warp's CPU launches release the
     GIL), the losses after them in the calling thread: the same values in any case."""
 
@@ -268,7 +268,7 @@ class Counterfactuals:
             job[4] = None
             return float("inf") if isinstance(r, SimulationError) else self._loss(*r, job[2])
 
-        n = max(1, min(int(simulation_mod.SIM_THREADS or 1), len(variants)))
+        n = min(simulation_mod.sim_threads(self.prob.sim.device), len(variants)) if len(variants) > 1 else 1
         out = {}
         if n == 1:          # one twin at a time (a paper-size twin's buffers are GBs)
             for key, v in variants.items():

@@ -231,8 +231,8 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
 
 
 def _probes_beside(prob: FitProblem, nu):
-    """`UniformProbe`'s `many` for a search's uniform-E probes on two threads (`simulation.SIM_THREADS` >= 2,
-    the CPU only; None otherwise): `many([E1, E2])` simulates E1 in the calling thread and E2 in a worker,
+    """`UniformProbe`'s `many` for a search's uniform-E probes on two threads (`simulation.sim_threads`, the
+    CPU only; None otherwise): `many([E1, E2])` simulates E1 in the calling thread and E2 in a worker,
     each on an eager twin at the rung the one-at-a-time search would take it at (E2's after E1's:
     `Simulation.rung_wanted`), and renders E1's loss while E2 simulates. Its callables, called in the
     search's order, move the simulation's rung as `prob.loss` would have and give `prob.loss`'s value
@@ -243,9 +243,9 @@ def _probes_beside(prob: FitProblem, nu):
     from .. import simulation as simulation_mod
 
     sim = prob.sim
-    threads = int(simulation_mod.SIM_THREADS or 1)
-    if (threads < 2 or not isinstance(sim, simulation_mod.Simulation) or not str(sim.device).startswith("cpu")
-            or "simulate" in vars(prob) or type(prob).simulate is not FitProblem.simulate):
+    if (not isinstance(sim, simulation_mod.Simulation) or not str(sim.device).startswith("cpu")
+            or "simulate" in vars(prob) or type(prob).simulate is not FitProblem.simulate
+            or simulation_mod.sim_threads(sim.device) < 2):
         return None
 
     def many(Es):
