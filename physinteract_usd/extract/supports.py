@@ -205,18 +205,47 @@ def find_supports(an: Analysis, exclude=np.zeros(0, np.int64), contact_motion_px
     return sets, motion, ev
 
 
-def lowest_toucher_y(trajectory, radius: float, itype: str, base_y: float) -> float:
+def lowest_toucher_y(trajectory, radius: float, itype: str, base_y: float, acting=None) -> float | None:
     """The lowest height at which the toucher acts on the object (resting_base's (c)): its
     trajectory's lowest point, less a pusher's radius only when its centre goes below the object's
     base `base_y` (it acts on the underside, holding the object up). A round collider pushing a thin
     object sideways reaches below its base with its radius (a radius more than half the object's
     height) while it pushes along the floor, not up (#23: dev_0184, a bar 2.8 cm tall on a floor
     pushed sideways by a 2.1 cm fingertip whose centre stayed 0.6 cm above the base, was given a
-    support)."""
-    low = float(np.asarray(trajectory)[:, 1].min())
+    support). `acting` ((T,) bool, `toucher_acting`): only those frames count; None when none
+    does (a toucher that never reaches the object holds nothing up)."""
+    tr = np.asarray(trajectory, np.float64)
+    if acting is not None:
+        tr = tr[np.asarray(acting, bool)]
+        if not len(tr):
+            return None
+    low = float(tr[:, 1].min())
     if itype == "pointNonAdherent" and low < base_y:
         low -= float(radius)
     return low
+
+
+def toucher_acting(trajectory, itype: str, radius: float, x0: np.ndarray, h: float, grasp: int,
+                   release: int | None) -> np.ndarray:
+    """(T,) bool: the frames in which the toucher acts on the object, the only ones whose T0 says
+    anything about what holds the object up (resting_base's (c), `lowest_toucher_y`). A grasp acts
+    from its grasp frame to its release (the held particles follow it then, not before or after);
+    a fingertip's sphere while its surface is within a spacing of the object at rest (before it
+    arrives and after it leaves it is elsewhere, and may pass under the object's base level beside
+    it: #23, dev_0390's glove finger going down and away after its release, its T0 2.3 cm under a
+    plush's base, the truth's too; dev_0402's sphere put 1.5 cm clear under a ring on its floor,
+    which it never reached); a palm's plane every frame, as before (it is not a point)."""
+    tr = np.asarray(trajectory, np.float64)
+    T = len(tr)
+    if itype == "pointAdherent":
+        act = np.zeros(T, bool)
+        act[max(int(grasp), 0): T if release is None else min(int(release) + 1, T)] = True
+        return act
+    if itype == "pointNonAdherent" and radius > 0:
+        from scipy.spatial import cKDTree
+
+        return cKDTree(np.asarray(x0, np.float64)).query(tr)[0] <= float(radius) + h
+    return np.ones(T, bool)
 
 
 def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float | None = None,
@@ -234,7 +263,8 @@ def resting_base(x0: np.ndarray, h: float, sets: list, lowest_contact_y: float |
     on the floor's plane (`one_underside`: a block pressed on a floor is still at two corners of its
     bottom); a strap on its anchors or a toy on its feet, off the plane between them, stays held;
     (c) the contact is not pushed below it (`lowest_contact_y`, the lowest point of the toucher's
-    T0, more than a spacing under the base: something holds the object above the ground).
+    T0 while it acts on the object, `toucher_acting`, more than a spacing under the base:
+    something holds the object above the ground).
     With no still region at all, (a) and (c) decide (the whole object moved: it slid or tipped on
     something that does not hold it).
     A still region smaller than `hold_share` of the object's size (its area n h^2 under
