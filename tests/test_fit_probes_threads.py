@@ -174,3 +174,25 @@ def test_sim_threads_takes_the_second_core_only_where_one_sits_idle(monkeypatch)
     assert simulation_mod.sim_threads("cpu") == 1
     monkeypatch.setattr(simulation_mod, "SIM_THREADS", 2)
     assert simulation_mod.sim_threads("cpu") == 2                    # the environment's choice wins
+
+
+def test_probes_that_fail_on_either_thread_are_skipped_alike(problem, monkeypatch):
+    """A probe whose simulation fails (here: every E above a threshold, on whichever thread it runs) is
+    skipped, logged and never the answer, as on one thread."""
+    from physinteract_usd.errors import SimulationError
+
+    sd = problem[0]
+    thr = math.sqrt(sd.settings.youngs_min * sd.settings.youngs_max)
+    from physinteract_usd.sim.rollout import Rollout
+
+    orig = Rollout.__call__
+
+    def failing(self, E, *a, **kw):        # the simulator itself fails: the rung was taken before, as for real
+        if float(torch.as_tensor(E).max()) > thr:
+            raise SimulationError("test: unstable", frame=1)
+        return orig(self, E, *a, **kw)
+    monkeypatch.setattr(Rollout, "__call__", failing)
+    e1, l1, log1, _, sk1, seen1, _ = _search(problem, 1)
+    e2, l2, log2, _, sk2, seen2, _ = _search(problem, 2)
+    assert sk1 and sk1 == sk2 and log1 == log2 and seen1 == seen2 and (e1, l1) == (e2, l2)
+    assert e1 < thr and any(v is None for v in seen1.values())

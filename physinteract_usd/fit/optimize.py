@@ -242,8 +242,9 @@ def _probes_beside(prob: FitProblem, nu):
 
     from .. import simulation as simulation_mod
 
-    sim = prob.sim
-    if (not isinstance(sim, simulation_mod.Simulation) or not str(sim.device).startswith("cpu")
+    sim = getattr(prob, "sim", None)
+    if (not isinstance(prob, FitProblem) or not isinstance(sim, simulation_mod.Simulation)
+            or not str(sim.device).startswith("cpu")
             or "simulate" in vars(prob) or type(prob).simulate is not FitProblem.simulate
             or simulation_mod.sim_threads(sim.device) < 2):
         return None
