@@ -45,6 +45,7 @@ def test_a_sphere_that_never_reaches_the_object_holds_nothing_up():
     assert not toucher_acting(tr, "pointNonAdherent", r, BLOCK, H, 0, None).any()
     assert _low(tr, r, "pointNonAdherent") is None
     assert resting_base(BLOCK, H, [], None) is not None
+    assert resting_base(BLOCK, H, [], lowest_toucher_y(tr, r, "pointNonAdherent", 0.0)) is None   # every frame: held
 
 
 def test_a_strap_on_its_anchors_pushed_down_past_them_stays_held():
