@@ -32,8 +32,9 @@ SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.envi
     else None
 # SIM_THREADS None on the CPU: two threads where >= 2 cores are the process's and at least `lanes.SPARE_MIN` of a
 # core sat idle beside it over 0.1 s (sim/lanes.py's measure), else one. Measured on the demo (docs/benchmarks/
-# cpu.md, 19th session): -9.8 s wall of 198 s with a core to spare; on a machine without one the second thread
-# only waits for a core (sessions 13 and 15: slower)
+# cpu.md, 19th session, a busy VM at raised priority): -3.3 s wall on average of four A/B pairs (-9.8 to +2.3 s),
+# the three phases -7.3 s; on a machine without a core to spare the second thread only waits for one (sessions
+# 13 and 15: slower). The lead's idle A/B decides whether it stays
 AUTO_THREADS = True
 
 
