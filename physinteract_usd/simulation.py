@@ -630,15 +630,16 @@ class Simulation:
             return twins[threads - 1] if own else None
 
         try:
-            if threads > 1 and len(jobs) > 1 and not captured():
-                # the calling thread's graphs not captured yet: none captured here (a capture records every
-                # thread's launches, and costs ~2 eager forwards: on the demo 2.7 s against 1.6 s eager, 1.2 s
-                # a replay): the calling thread on an eager twin too, beside the others from the start
-                ro = start(own=True)
+            if threads > 1 and len(jobs) > 1:
+                if captured():          # the calling thread replays its graphs beside the others from the start
+                    start()
+                else:
+                    # its graphs not captured yet: none captured here (a capture records every thread's launches,
+                    # and costs ~2 eager forwards: on the demo 2.7 s against 1.6 s eager, 1.2 s a replay): the
+                    # calling thread on an eager twin too, beside the others from the start
+                    ro = start(own=True)
             while (i := take()) is not None:
                 run(ro, i)
-                if not workers and threads > 1 and len(jobs) > 1 and captured():
-                    start()
         finally:
             for t in workers:
                 t.join()
