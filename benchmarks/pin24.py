@@ -15,6 +15,8 @@ loss (the renderer, the fit's own loss over frames 1..; `--loss-all`: at every f
     python benchmarks/pin24.py --scenes foam_bar,basketball --work /tmp/pin24 --frames 10 --grid 16 \
         --truth-rules default,band --rules default,band --factors 0.5,0.71,1,1.41,2 --out rows.jsonl
     python benchmarks/pin24.py --out rows.jsonl --table-only
+    python benchmarks/pin24.py --scenes foam_bar --truth-rules band --rules band,default --parts-scan \
+        --factors 0.71,0.84,1,1.19,1.41 --frames 14 --grid 24 --out parts.jsonl     # a two-part scene's loss plane
 """
 
 from __future__ import annotations
@@ -222,6 +224,55 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
     return rows
 
 
+def parts_scan(scene: str, truth_rule: str, a) -> list[dict]:
+    """The image loss and the 3-D error over a plane of two factors: one on the truth's stiffer particles (E above the
+    midpoint of its range), one on the softer (a two-part scene: foam_bar), per fit rule, at the true path."""
+    import torch
+
+    torch.set_num_threads(1)
+    from scipy.spatial import cKDTree
+
+    from physinteract_usd import simulation
+    from physinteract_usd.app.fit import make_problem, prepare_fit
+    from traj_pin import make_stage
+
+    work = Path(a.work) / f"truth_{truth_rule}"
+    os.environ["PHYSINTERACT_TRUTH_PIN_RULE"] = truth_rule
+    stage, gt = make_stage(scene, a, work)
+    tr = np.load(gt / "particles.npz")
+    rest, pos = tr["rest"], tr["positions"]
+    rows = []
+    fs = [float(v) for v in a.factors.split(",")]
+    for rule in a.rules.split(","):
+        simulation.PIN_RULE = simulation.pin_rule(rule)
+        prob = make_problem(prepare_fit(stage, iterations=1, contact_from=gt, device=a.device, log=lambda *x: None,
+                                        warm=False, progress=False))
+        x0 = np.asarray(prob.x0)
+        nn = cKDTree(rest).query(x0)[1]
+        T = min(prob.T, len(pos))
+        e = tr["E"][nn]
+        stiff = e > 0.5 * (tr["E"].min() + tr["E"].max())     # the stiffer part (two-valued fields)
+        disp = pos[:T, nn] - pos[0, nn][None]
+        nu_t = torch.as_tensor(tr["nu"][nn], dtype=prob.tdtype, device=prob.tdev)
+        for fa in fs:
+            for fb in fs:
+                E = torch.as_tensor(np.where(stiff, fa, fb) * e, dtype=prob.tdtype, device=prob.tdev)
+                with torch.no_grad():
+                    x, F = prob.simulate(E, nu_t)
+                    loss = float(prob.loss(E, nu_t, simulated=(x, F))["rec"])
+                err = float(np.linalg.norm(x[:T].cpu().numpy() - x0[None] - disp, axis=-1)[1:].mean())
+                row = {"scene": scene, "truth_rule": truth_rule, "fit_rule": rule, "stiff_factor": fa,
+                       "soft_factor": fb, "loss": loss, "err_m": err}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    if a.out:
+        with open(a.out, "a") as fh:
+            for row in rows:
+                fh.write(json.dumps(row) + "\n")
+    simulation.PIN_RULE = simulation.DEFAULT_PIN_RULE
+    return rows
+
+
 def table(rows: list[dict]) -> str:
     head = ("| scene | truth rule | fit rule | grid | least-error E / truth | error at 1x: all / grasp / support / free (mm) "
             "| truth's mean displacement: grasp / support / free (mm) | loss at 1x |\n" + "|---" * 8 + "|\n")
@@ -255,8 +306,14 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default=None)
     ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--parts-scan", action="store_true", help="the loss over (stiffer part x, softer part x) --factors")
     ap.add_argument("--held", action="store_true", help="only the held mass per pin at rest (truth and fit, both rules)")
     a = ap.parse_args(argv)
+    if a.parts_scan:
+        for sc in a.scenes.split(","):
+            for tr in a.truth_rules.split(","):
+                parts_scan(sc, tr, a)
+        return
     if a.held:
         rows = [r for sc in a.scenes.split(",") for r in held_rows(sc, a)]
         print("| scene | side | pin | particles | cell (mm) | its extent (cells) | held / pinned mass: default | band |\n"
