@@ -32,9 +32,9 @@ SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.envi
     else None
 # SIM_THREADS None on the CPU: two threads where >= 2 cores are the process's and at least `lanes.SPARE_MIN` of a
 # core sat idle beside it over 0.1 s (sim/lanes.py's measure), else one. Measured on the demo (docs/benchmarks/
-# cpu.md, 19th session, a busy VM at raised priority): -3.3 s wall on average of four A/B pairs (-9.8 to +2.3 s),
-# the three phases -7.3 s; on a machine without a core to spare the second thread only waits for one (sessions
-# 13 and 15: slower). The lead's idle A/B decides whether it stays
+# cpu.md, 19th session): -4.5 s wall on average of six A/B pairs (-12.1 to +2.3 s), the three phases -7.7 s; on a
+# machine without a core to spare the second thread only waits for one (sessions 13 and 15: slower). The lead's
+# idle A/B decides whether it stays
 AUTO_THREADS = True
 
 
@@ -45,7 +45,11 @@ def sim_threads(device="cpu") -> int:
     if not AUTO_THREADS or not str(device).startswith("cpu"):
         return 1
     from .sim.lanes import SPARE_MIN, free_cores, spare_cores
-    return 2 if free_cores() >= 2 and spare_cores() >= SPARE_MIN else 1
+    if free_cores() < 2:
+        return 1
+    # a 0.1 s window; where another process's blip filled it, a longer one decides (on the idle VM one phase of
+    # four read busy once, 19th session); a busy machine reads busy in both
+    return 2 if spare_cores() >= SPARE_MIN or spare_cores(0.25) >= SPARE_MIN else 1
 
 
 # The simulation's domain (#24). A particle whose quadratic stencil passes the grid's valid box is clamped to

@@ -166,6 +166,9 @@ def test_sim_threads_takes_the_second_core_only_where_one_sits_idle(monkeypatch)
     assert simulation_mod.sim_threads("cuda:0") == 1                 # the GPU batches its probes instead
     monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: 0.2)
     assert simulation_mod.sim_threads("cpu") == 1                    # a busy machine: the second thread would wait
+    reads = iter([0.1, 0.95])
+    monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: next(reads))
+    assert simulation_mod.sim_threads("cpu") == 2                    # a blip in the first window: the second decides
     monkeypatch.setattr(lanes, "spare_cores", lambda interval=0.1: 0.9)
     monkeypatch.setattr(lanes, "free_cores", lambda: 1)
     assert simulation_mod.sim_threads("cpu") == 1
