@@ -36,6 +36,14 @@ if str(ROOT) not in sys.path:
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
+def append_rows(path, rows: list[dict]) -> None:
+    """Append rows to a JSON-lines file (nothing where `path` is None)."""
+    if path:
+        with open(path, "a") as fh:
+            for row in rows:
+                fh.write(json.dumps(row) + "\n")
+
+
 def regions(prob, radius_cells: float) -> dict:
     """Boolean masks over the fit's particles: grasp / support / free (a particle near both counts as grasp)."""
     from scipy.spatial import cKDTree
@@ -216,10 +224,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
             row["best_factor"] = bf
             row["best_loss_factor"] = bl
         rows += per
-        if a.out:
-            with open(a.out, "a") as fh:
-                for row in per:
-                    fh.write(json.dumps(row) + "\n")
+        append_rows(a.out, per)
     simulation.PIN_RULE = simulation.DEFAULT_PIN_RULE
     return rows
 
@@ -265,10 +270,7 @@ def parts_scan(scene: str, truth_rule: str, a) -> list[dict]:
                        "soft_factor": fb, "loss": loss, "err_m": err}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    if a.out:
-        with open(a.out, "a") as fh:
-            for row in rows:
-                fh.write(json.dumps(row) + "\n")
+    append_rows(a.out, rows)
     simulation.PIN_RULE = simulation.DEFAULT_PIN_RULE
     return rows
 

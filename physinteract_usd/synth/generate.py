@@ -147,7 +147,7 @@ def truth_pin_rule() -> tuple[float, float]:
     docs/sim.md): the environment's PHYSINTERACT_TRUTH_PIN_RULE ("default", "band" or "GAIN,FLOOR", as
     PHYSINTERACT_PIN_RULE reads), read at each call; unset: (4, 0), every capture made before #24's study. The
     fit's PHYSINTERACT_PIN_RULE never reaches the truth: an A/B of a pin rule in truth AND fit sets both
-    (docs/benchmarks/fit.md, "The clamp band in the suite")."""
+    (docs/benchmarks/fit.md, "The real A/B: the clamp band in truth and fit")."""
     import os
 
     from ..simulation import pin_rule
