@@ -66,8 +66,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 NOISE = 0.015
 # rule name -> (api.diagnose's floor_rule, its gate: None = the rule's own, 3% or 0 under a floor rule with refits)
 RULES = {"default": (False, None), "floor": ("full", None), "match": ("match", None),
-         "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01), "pair": (False, None)}
-EXTRA = {"pair": {"pair_signature": True}}     # a rule's other api.diagnose settings (pair: damping vs ground decided
+         "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01), "pair": (False, None),
+         "res": (False, None)}
+EXTRA = {"pair": {"pair_signature": True}, "res": {"resolution": True}}     # a rule's other api.diagnose settings (pair: damping vs ground decided
                                                # by the ground's signature at the lowest points, issue #22)
 
 
@@ -106,6 +107,7 @@ def summary(d: dict) -> dict:
             "significant": [c["effect"] for c in d.get("candidates", [])],
             "loss": d.get("loss"), "floor": d.get("noise_floor"),
             "substeps": (d.get("noise") or {}).get("substeps"),
+            "resolution": _resolution((d.get("noise") or {}).get("resolution")),
             "floor_rest_share": ((d.get("noise") or {}).get("floor_model") or {}).get("rest_share"),
             "camera_rest_frames": (d.get("noise") or {}).get("camera_rest_frames"),
             "tested": [dict({k: t.get(k) for k in ("effect", "marginal_p_value", "p_value", "relative_drop", "significant",
@@ -113,6 +115,17 @@ def summary(d: dict) -> dict:
                                                    "rest_only", "rival_of", "pair_test")},
                             priced=(t.get("priced") or {}).get("why"))
                        for t in tested]}
+
+
+def _resolution(rz: dict | None) -> dict | None:
+    """The fit's resolution error (`diagnose --resolution`) without its arrays: the estimate, the order and
+    each finer grid's change and loss."""
+    if not rz:
+        return None
+    return {"error": rz.get("error"), "order": rz.get("order"), "order_raw": rz.get("order_raw"), "cos": rz.get("cos"),
+            "seconds": rz.get("seconds"),
+            "levels": [{k: lv.get(k) for k in ("split", "particles", "substeps", "change", "loss_fine", "cos", "error")}
+                       for lv in rz.get("levels") or []]}
 
 
 def rules_for(a, eff: str) -> list[str]:

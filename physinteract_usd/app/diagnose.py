@@ -392,6 +392,21 @@ def region_labels(E: np.ndarray, max_regions: int = 8) -> np.ndarray | None:
     return inv.astype(np.int64) if len(vals) <= max_regions else None
 
 
+def parse_resolution(spec) -> tuple:
+    """`diagnose --resolution`'s splits: None / False: off; True: (2, 3); else two whole numbers 2-4."""
+    if spec is None or spec is False:
+        return ()
+    if spec is True:
+        return (2, 3)
+    try:
+        sp = tuple(int(v) for v in (spec.split(",") if isinstance(spec, str) else spec))
+    except (TypeError, ValueError):
+        raise InputError("--resolution", f"must be two splits of the cell such as 2,3, got {spec!r}") from None
+    if len(sp) != 2 or len(set(sp)) != 2 or not all(2 <= v <= 4 for v in sp):
+        raise InputError("--resolution", f"must be two different splits of the cell, each 2, 3 or 4, got {spec!r}")
+    return tuple(sorted(sp))
+
+
 def parse_candidates(spec) -> tuple:
     if spec is None:
         return CANDIDATES
@@ -434,7 +449,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
              refit_folds: int | None = None, floor_rule: bool = False, gate: float | None = None,
-             pair_signature: bool = False) -> dict:
+             pair_signature: bool = False, resolution=None) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -447,7 +462,9 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     True or "full", or "match": only the superset's substeps matched to the base's, or "rest": matched, the
     camera causes judged on the frames before the first grasp and `heterogeneity` priced as the fit's own
     model selection). `gate`: the size gate (a share of the loss a significant candidate must predict) in
-    place of the rule's (3%, or 0 under a floor rule where refits confirm). `pair_signature`: damping vs ground,
+    place of the rule's (3%, or 0 under a floor rule where refits confirm). `resolution`: the fit's own
+    resolution error in the verdict (`DiagnoseSettings.resolution`: True for cell / 2 and / 3, or the
+    splits; opt-in: the base simulated on those finer grids, ~16x and ~80x a forward). `pair_signature`: damping vs ground,
     both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
     opt-in)."""
     t0 = time.perf_counter()
@@ -483,6 +500,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
     settings.pair_signature = bool(pair_signature)
+    settings.resolution = parse_resolution(resolution)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 

@@ -40,6 +40,10 @@ def add_parser(sub):
     s.add_argument("--gate", type=float, default=None, metavar="SHARE",
                    help="the size gate: the share of the loss a significant candidate must predict (default 0.03, "
                         "0 under --floor-rule where refits confirm)")
+    s.add_argument("--resolution", nargs="?", const="2,3", default=None, metavar="A,B",
+                   help="weigh the fit's own resolution error in the verdict (opt-in): the fitted model simulated on "
+                        "grids A and B times finer (default 2,3), Richardson's estimate of what the grid costs the "
+                        "fit added to the rest frame's floor before a residual is called unexplained")
     s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--json", action="store_true", help="print the diagnosis as JSON")
@@ -53,7 +57,8 @@ def run(a) -> int:
 
     d = api.diagnose(a.stage, refit=a.refit, refit_iterations=a.refit_iterations, candidates=a.candidates,
                      write_stage=not a.no_stage, device=a.device, starts=a.starts,
-                     trajectory_sigma_px=a.trajectory_sigma, refit_folds=a.refit_folds, floor_rule=a.floor_rule, gate=a.gate, progress=not a.json and sys.stderr.isatty(),
+                     trajectory_sigma_px=a.trajectory_sigma, refit_folds=a.refit_folds, floor_rule=a.floor_rule, gate=a.gate, resolution=a.resolution,
+                     progress=not a.json and sys.stderr.isatty(),
                      log=(lambda *m: print(*m, file=sys.stderr)) if a.json else print)
     if a.json:
         print(json.dumps(d, indent=1, allow_nan=False))

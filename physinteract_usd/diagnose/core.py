@@ -176,6 +176,11 @@ class DiagnoseSettings:
                                         # ground's signature at the lowest points (`refit.bottom_signature`) rather than
                                         # by the nested comparison alone (`app.diagnose.pair_step`; issue #22, opt-in
                                         # until measured on the GPU's frame-calibrated cases)
+    resolution: tuple = ()              # the model's own resolution error (`diagnose.resolution`): the base on grids
+                                        # split by these (e.g. (2, 3): cell / 2 and / 3), Richardson's estimate of
+                                        # the fit's discretisation error added to the rest frame's floor in the
+                                        # verdict's `unexplained` test (`conclude`); () off (`diagnose --resolution`;
+                                        # #22, opt-in until measured)
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -1032,6 +1037,15 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
                                         "after": int(sim.substeps)}
     if s.discretisation_column:
         noise["discretisation_column"] = "discretisation" in names
+    if s.resolution:
+        from .resolution import resolution_error
+
+        rz = resolution_error(prob, base, res, r0, splits=tuple(s.resolution), log=log)
+        noise["resolution"] = rz
+        if rz.get("error") is not None:
+            log(f"diagnose: the fit's resolution error {rz['error']:.3g} (order {rz['order']:.2g}; the frames move by "
+                + ", ".join(f"{lv['change']:.3g} at cell / {lv['split']}" for lv in rz["levels"])
+                + f"; {rz['seconds']:.0f} s)")
     rows = rest_rows(prob, res, len(r0a)) if s.camera_rest else None
     if rows is not None:
         noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]
@@ -1194,11 +1208,20 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
     """The verdict: `missing_effect` when a candidate is significant and confirmed (where the
     candidates are confirmed by refits, `DiagnoseSettings.confirmed`: accepted by the held-back test;
     else not rejected by it), `unexplained` when the residual is well above the rest frame's floor (x
-    `excess_factor`) and nothing explains it (or every refit failed), else `adequate` (a candidate
+    `excess_factor`; with `DiagnoseSettings.resolution`, the floor plus the fit's own resolution error:
+    what a finer simulation of the same model says the grid costs) and nothing explains it (or every
+    refit failed), else `adequate` (a candidate
     significant by the score test but not confirmed on held-back frames is said in the reason)."""
     sig = diag.significant
     L, floor = diag.loss, diag.floor
-    above = floor > 0 and L > excess_factor * floor
+    rz = (getattr(diag, "noise", None) or {}).get("resolution") or {}
+    res_err = rz.get("error")
+    budget = floor + (res_err or 0.0)
+    above = floor > 0 and L > excess_factor * budget
+    within = (f"; a finer simulation moves the frames by {rz['levels'][0]['change']:.3g} (cell / "
+              f"{rz['levels'][0]['split']}), the fit's own resolution error ~{res_err:.3g} (Richardson, order "
+              f"{rz['order']:.2g}): the residual is {L / budget:.1f}x the floor and that error together"
+              if res_err is not None and floor > 0 else "")
     st = (getattr(diag, "_ctx", None) or {}).get("settings")
     confirmed = bool(getattr(st, "confirmed", False))
     if sig:
@@ -1219,7 +1242,7 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
             else:
                 diag.verdict = "adequate"
                 diag.reason = (f"{why}; the residual (loss {L:.3g}) is "
-                               f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor")
+                               f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor{within}")
             return diag
         top = good[0]
         cf = getattr(diag, "confusable", None)
@@ -1240,10 +1263,10 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
         return diag
     if above:
         diag.verdict = "unexplained"
-        diag.reason = (f"the residual (loss {L:.3g}) is {L / floor:.1f}x the rest frame's floor ({floor:.3g}) and no "
-                       "candidate explains a significant part of it")
+        diag.reason = (f"the residual (loss {L:.3g}) is {L / floor:.1f}x the rest frame's floor ({floor:.3g}){within} "
+                       "and no candidate explains a significant part of it")
         return diag
     diag.verdict = "adequate"
     diag.reason = (f"no candidate explains a significant part of the residual (loss {L:.3g}, "
-                   f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor)")
+                   f"{L / floor if floor > 0 else float('nan'):.1f}x the rest frame's floor{within})")
     return diag

@@ -1,0 +1,148 @@
+"""The model's resolution error: the fitted model on a finer grid, in the diagnosis's residual (#22).
+
+A fitted model's residual has three parts: the data's noise and the rendering's own error (the rest
+frame's floor, `core._floor`), what the model lacks (the candidates), and the simulator's
+discretisation: the video is the continuum, the model a grid. The third grows with the motion, so
+the rest frame does not show it, and without a measure of it every clean capture whose truth is
+finer than the fit reads `unexplained` (foam_bar's 20 controls on the H200: 2.1-2.9x the floor).
+
+`resolution_change` simulates the base (its E and nu carried to the finer particles, its effects and
+hand paths) on `refine.refine_scene`'s finer grid and takes its residual through the *same*
+`ImageResidual` (pixels, weights, photometric and floor projectors fixed at the coarse base): the
+change d = r_fine - r_coarse is how far the frames move when only the resolution changes. Its mean
+square, `change`, is on the loss's scale. The finer model is not refitted (that would be a fit); the
+finer grid's 1-D stiffness scan (`stiffness_scan`: the base's E field x s) says whether a finer model
+wants another E (the fit's resolution bias of E, #24).
+
+No USD, no CLI: a FitProblem, a BaseState and an ImageResidual in, numbers out.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+
+import numpy as np
+import torch
+
+from ..refine import REFINE, refine_scene
+from ..errors import SimulationError
+from .residual import loss
+
+
+def fine_problem(prob, split: int = REFINE):
+    """(the finer FitProblem, parent index) of `prob` (a fit.FitProblem): its scene refined
+    (`refine.refine_scene`), its contacts (hand paths included) carried, its effects and settings."""
+    from ..fit.problem import FitProblem
+
+    fine_sd, contacts, parent = refine_scene(prob.scene, split, contacts=prob.contacts)
+    fp = FitProblem(fine_sd, prob.obs, contacts, effects=dict(prob.effects), device=prob.device,
+                    dtype="float64" if prob.tdtype == torch.float64 else "float32", weights=prob.weights,
+                    traj_sigma_px=prob.traj_sigma_px)
+    return fp, parent
+
+
+def residual_on(res, prob):
+    """`res` (an ImageResidual) rendering through `prob` instead: the same pixels, weights and projectors."""
+    r = copy.copy(res)
+    r.prob = prob
+    return r
+
+
+def resolution_change(prob, base, res, r0: np.ndarray, *, split: int = REFINE, scales=(),
+                      log=None, _keep: dict | None = None) -> dict:
+    """The base simulated on the grid `split` x finer (module doc). Returns {"split", "particles": (coarse, fine),
+    "substeps": (coarse, fine), "loss", "loss_fine", "change" (mean square of d), "cos" (d against r0:
+    > 0 where the finer model moves the frames toward the video), "scan": [(s, loss_fine at E x s)],
+    "seconds"}; {"error": why} when the finer model cannot be built or goes unstable."""
+    log = log or (lambda *a: None)
+    t0 = time.perf_counter()
+    try:
+        fp, parent = fine_problem(prob, split)
+    except (ValueError, SimulationError) as exc:
+        log(f"resolution check skipped: {exc}")
+        return {"error": str(exc)}
+    pi = torch.as_tensor(parent, dtype=torch.long, device=base.E.device)
+    E, nu = base.E[pi].to(fp.tdtype), base.nu[pi].to(fp.tdtype)
+    eff = {e: dict(p) for e, p in base.effects.items()}
+    rf = residual_on(res, fp)
+    out = {"split": int(split), "particles": [int(len(prob.x0)), int(len(fp.x0))]}
+    try:
+        fp.sim.ensure_stable(float(E.max()) * max([1.0, *scales]))
+        with torch.no_grad():
+            x, F = fp.sim.simulate(E, nu, None, effects=eff)
+        r1 = rf(x, F)
+        scan = []
+        for s in scales:
+            with torch.no_grad():
+                xs, Fs = fp.sim.simulate(E * float(s), nu, None, effects=eff)
+            scan.append((float(s), loss(rf(xs, Fs))))
+    except SimulationError as exc:
+        log(f"resolution check: the finer model went unstable ({exc})")
+        return dict(out, error=str(exc))
+    d = r1 - r0
+    if _keep is not None:
+        _keep[split] = d
+    n0, nd = float(np.linalg.norm(r0)), float(np.linalg.norm(d))
+    out.update(substeps=[int(prob.sim.substeps), int(fp.sim.substeps)], loss=loss(r0), loss_fine=loss(r1),
+               change=loss(d), cos=float(-(d @ r0) / (n0 * nd)) if n0 > 0 and nd > 0 else 0.0, scan=scan,
+               seconds=time.perf_counter() - t0)
+    return out
+
+
+def richardson(changes: dict) -> dict:
+    """The coarse model's own discretisation error from two refinements (Richardson): with the frames'
+    error ~ h^p, the change to the grid split a (cell / a) is d_a = e(h / a) - e(h) = e(h) (a^-p - 1), so
+    |d_b| / |d_a| = (1 - b^-p) / (1 - a^-p) gives p, and the coarse model's error |e(h)| = |d_a| / (1 - a^-p).
+    `changes`: {split: mean square of d_split} (the loss's scale) for two splits a < b. The order is kept
+    within [1/2, 4] (outside: not the asymptotic range; the estimate then says so, `clipped`). Returns
+    {"order", "order_raw", "error" (a mean square: the loss's scale), "clipped"}."""
+    (a, ca), (b, cb) = sorted((int(k), float(v)) for k, v in changes.items())
+    if not ca > 0:
+        return {"order": None, "order_raw": None, "error": 0.0, "clipped": False}
+    ratio = math.sqrt(max(cb, 0.0) / ca)
+
+    def g(p):
+        return (1.0 - b ** -p) / (1.0 - a ** -p)
+
+    lo, hi = 0.5, 4.0
+    raw = None
+    if g(hi) < ratio < g(1e-6):          # g falls from log b / log a (p -> 0) to 1 (p -> inf)
+        x0, x1 = 1e-6, 50.0
+        for _ in range(100):
+            mid = 0.5 * (x0 + x1)
+            x0, x1 = (mid, x1) if g(mid) > ratio else (x0, mid)
+        raw = 0.5 * (x0 + x1)
+    elif ratio >= g(1e-6):
+        raw = 0.0
+    else:
+        raw = math.inf
+    p = float(min(max(raw, lo), hi))
+    return {"order": p, "order_raw": raw if math.isfinite(raw) else None,
+            "error": ca / (1.0 - a ** -p) ** 2, "clipped": bool(p != raw)}
+
+
+def resolution_error(prob, base, res, r0: np.ndarray, *, splits=(2, 3), log=None) -> dict:
+    """The base's own discretisation error on the diagnosis's residual: `resolution_change` at two
+    splits, extrapolated by `richardson`. Returns {"levels": [the changes' dicts], "order", "error" (a mean
+    square on the loss's scale), "cos" (the two changes' directions), "seconds"}; "error" None when a finer
+    model could not be simulated."""
+    t0 = time.perf_counter()
+    keep = {}
+    levels = []
+    for m in splits:
+        lv = resolution_change(prob, base, res, r0, split=m, log=log, _keep=keep)
+        levels.append(lv)
+        if "error" in lv:
+            return {"levels": levels, "order": None, "error": None, "seconds": time.perf_counter() - t0}
+    a, b = splits[0], splits[-1]
+    da, db = keep[a], keep[b]
+    na, nb = float(np.linalg.norm(da)), float(np.linalg.norm(db))
+    out = richardson({a: levels[0]["change"], b: levels[-1]["change"]})
+    out.update(levels=levels, cos=float(da @ db / (na * nb)) if na > 0 and nb > 0 else 0.0,
+               seconds=time.perf_counter() - t0)
+    return out
+
+
+__all__ = ["fine_problem", "residual_on", "resolution_change", "richardson", "resolution_error"]
