@@ -761,7 +761,8 @@ def test_the_cli_prints_a_confusable_verdict_as_one_block(monkeypatch, capsys):
          "confusable": cf, "stage": "s.usda"}
     monkeypatch.setattr(api, "diagnose", lambda *a, **k: d)
     a = SimpleNamespace(stage="s.usda", refit=3, refit_iterations=8, candidates=None, no_stage=True, device="cpu",
-                        starts=3, trajectory_sigma=None, refit_folds=None, floor_rule=False, gate=None, json=False)
+                        starts=3, trajectory_sigma=None, refit_folds=None, floor_rule=False, gate=None, resolution=None,
+                        json=False)
     assert cli.run(a) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].startswith("MISSING_EFFECT: damping or ground friction: the frames cannot tell them apart")

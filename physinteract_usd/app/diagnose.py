@@ -392,9 +392,17 @@ def region_labels(E: np.ndarray, max_regions: int = 8) -> np.ndarray | None:
     return inv.astype(np.int64) if len(vals) <= max_regions else None
 
 
-def parse_resolution(spec) -> tuple:
-    """`diagnose --resolution`'s splits: None / False: off; True: (2, 3); else two whole numbers 2-4."""
-    if spec is None or spec is False:
+RESOLUTION_DEFAULT = {"cuda": (2, 3), "cpu": ()}   # `diagnose --resolution` unless said: on the GPU ~7 s a
+                                                   # diagnosis (foam_bar, H200); on the CPU off (the demo's bar at
+                                                   # cell / 3: 48k particles, 717 substeps a frame: minutes)
+
+
+def parse_resolution(spec, device: str = "cpu") -> tuple:
+    """`diagnose --resolution`'s splits: None: the device's default (`RESOLUTION_DEFAULT`); False or "off":
+    off; True: (2, 3); else two different whole numbers 2-4."""
+    if spec is None:
+        return RESOLUTION_DEFAULT["cuda" if str(device).startswith("cuda") else "cpu"]
+    if spec is False or (isinstance(spec, str) and spec.strip().lower() == "off"):
         return ()
     if spec is True:
         return (2, 3)
@@ -464,7 +472,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     model selection). `gate`: the size gate (a share of the loss a significant candidate must predict) in
     place of the rule's (3%, or 0 under a floor rule where refits confirm). `resolution`: the fit's own
     resolution error in the verdict (`DiagnoseSettings.resolution`: True for cell / 2 and / 3, or the
-    splits; opt-in: the base simulated on those finer grids, ~16x and ~80x a forward). `pair_signature`: damping vs ground,
+    splits, False / "off" for none; None: on with CUDA, off on the CPU, `RESOLUTION_DEFAULT`: the base
+    simulated on those finer grids costs ~16x and ~80x a forward). `pair_signature`: damping vs ground,
     both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
     opt-in)."""
     t0 = time.perf_counter()
@@ -500,7 +509,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     if refit_folds is not None:
         settings.refit_folds = int(refit_folds)
     settings.pair_signature = bool(pair_signature)
-    settings.resolution = parse_resolution(resolution)
+    settings.resolution = parse_resolution(resolution, device)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 

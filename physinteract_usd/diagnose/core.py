@@ -1264,7 +1264,8 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
     if above:
         diag.verdict = "unexplained"
         diag.reason = (f"the residual (loss {L:.3g}) is {L / floor:.1f}x the rest frame's floor ({floor:.3g}){within} "
-                       "and no candidate explains a significant part of it")
+                       "and no candidate explains a significant part of it"
+                       + ("" if rz else " (how much of it is the simulation's grid: `diagnose --resolution`)"))
         return diag
     diag.verdict = "adequate"
     diag.reason = (f"no candidate explains a significant part of the residual (loss {L:.3g}, "
