@@ -33,7 +33,9 @@ import sys
 import time
 from pathlib import Path
 
-from physinteract_usd import api
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from physinteract_usd import api  # noqa: E402
 
 TRUTH_PARAM = {"damping": "coefficient", "plasticity": "yieldStress", "ground": "height",
                "viscoelasticity": "modulus"}
@@ -345,6 +347,9 @@ def main(argv=None) -> int:
                     help="diagnose's confirmation refits: 2 cross-fitted folds (default) or 1")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once, each in its own process")
+    ap.add_argument("--warm-up", action="store_true",
+                    help="compile the kernels on the tests' tiny bar (seconds) instead of running the first case alone, "
+                         "and spread the workers over the host's GPUs (NGPUS / GPU_LIST)")
     ap.add_argument("--out", default="/tmp/suite_diagnose")
     ap.add_argument("--deadline", type=float, default=0, help="stop starting cases after this many seconds")
     ap.add_argument("--write", default=None)
@@ -374,13 +379,23 @@ def main(argv=None) -> int:
     if a.jobs > 1 and len(jobs) > 1:
         import multiprocessing as mp
 
-        # the first case here, alone: it compiles Warp's kernels into the on-disk cache that the
-        # workers then load (a fresh machine's cold cache, compiled once rather than by every worker)
-        row = _worker(jobs[0])
-        if row is not None:
-            _append(jl, row)
-        with mp.get_context("spawn").Pool(min(a.jobs, len(jobs) - 1)) as pool:
-            for row in pool.imap_unordered(_worker, jobs[1:]):
+        if a.warm_up:
+            # the tests' tiny bar diagnosed in seconds compiles the kernels (diagnose_floor_rule.warm_up); every
+            # case then runs in the pool, each worker on its GPU of a host of several (`NGPUS`, `GPU_LIST`)
+            from diagnose_floor_rule import spread_gpus, warm_up
+
+            warm_up(a.device, work / "warm_up")
+            first, init = [], spread_gpus
+        else:
+            # the first case here, alone: it compiles Warp's kernels into the on-disk cache that the
+            # workers then load (a fresh machine's cold cache, compiled once rather than by every worker)
+            first, init = [jobs[0]], None
+            row = _worker(jobs[0])
+            if row is not None:
+                _append(jl, row)
+        rest = jobs[len(first):]
+        with mp.get_context("spawn").Pool(min(a.jobs, len(rest)), initializer=init) as pool:
+            for row in pool.imap_unordered(_worker, rest):
                 if row is not None:
                     _append(jl, row)
     else:
