@@ -166,7 +166,7 @@ def one(sc: str, eff: str, s: float, a, work: Path, log, seed: int = 0) -> dict:
         api.effects_add(stage, eff)
         t3 = time.perf_counter()
         f2 = api.fit(stage, iterations=a.refit_iterations, contact_from=gt, device=a.device, progress=False,
-                     log=quiet, keep_best=False)
+                     log=quiet, keep_best=False, warm_path=a.warm_path)
         row["refit_s"] = round(time.perf_counter() - t3, 1)
         row["loss_after"] = f2.summary().get("final_loss")
         row["after"] = scored(stage, gt, a.device)
@@ -347,6 +347,9 @@ def main(argv=None) -> int:
                     help="diagnose's confirmation refits: 2 cross-fitted folds (default) or 1")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once, each in its own process")
+    ap.add_argument("--warm-path", default="fitted", choices=("fitted", "measured"),
+                    help="the refit after `effects add` starts its hand paths from the base fit's (default) or the "
+                         "measured ones (fit's warm_path)")
     ap.add_argument("--warm-up", action="store_true",
                     help="compile the kernels on the tests' tiny bar (seconds) instead of running the first case alone, "
                          "and spread the workers over the host's GPUs (NGPUS / GPU_LIST)")

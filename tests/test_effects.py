@@ -180,6 +180,27 @@ def test_warm_start_begins_at_the_previous_versions_loss(bar, tmp_path):
     assert fresh.start is None and fresh.settings.iterations == DEFAULT_ITERATIONS > WARM_ITERATIONS
 
 
+def test_a_warm_start_can_take_the_hand_paths_from_the_measured_ones(bar, tmp_path):
+    """`fit --warm-path measured`: after `effects add` the field is the previous version's, the hand paths
+    start again from the measured ones (the previous path may have soaked up the effect just added)."""
+    from physinteract_usd.app.fit import prepare_fit
+    from physinteract_usd.errors import InputError
+
+    stage = fs.copy_scene(bar["root"], tmp_path / "s")
+    over = dict(fs.SMOKE_SETTINGS, confidence_probes=0)
+    api.fit(stage, iterations=fs.SMOKE_ITERATIONS, contact_from=bar["gt"], settings_overrides=over, **QUIET)
+    api.effects_add(stage, "damping")
+    warm = prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None)
+    assert warm.start["trajectories"] and warm.resumed_from == "warm:v1"
+    logs = []
+    meas = prepare_fit(stage, contact_from=bar["gt"], log=logs.append, warm_path="measured")
+    assert "trajectories" not in meas.start and meas.resumed_from == "warm:v1"
+    np.testing.assert_array_equal(meas.start["youngs"], warm.start["youngs"])
+    assert any("--warm-path measured" in m for m in logs), logs
+    with pytest.raises(InputError, match="--warm-path"):
+        prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None, warm_path="both")
+
+
 def test_added_damping_is_fitted_and_recovers_the_truth(tmp_path):
     """Known answer: the video's bar is damped with c = 8/s after the release (frame 5 of 14)."""
     c_true = 8.0

@@ -172,7 +172,7 @@ def check_starts(starts) -> None:
 
 def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None,
                 hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
-                yes=True, warm=True, progress=True, starts=1) -> FitJob:
+                yes=True, warm=True, progress=True, starts=1, warm_path: str = "fitted") -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
@@ -196,6 +196,8 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     # what can be refused is refused before extraction writes anything
     if resume and not sd.reports and not LayerPaths.of(stage_path).checkpoint.exists():
         raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
+    if warm_path not in ("fitted", "measured"):
+        raise InputError("--warm-path", f"must be fitted or measured, got {warm_path!r}")
     warm_from = None if (resume or not warm) else warm_start(stage_path, sd)
     default_its = WARM_ITERATIONS if warm_from is not None else DEFAULT_ITERATIONS
     fit_effects = tuple(e for e, p in sd.effects.items() if p.get("fit", True))
@@ -258,6 +260,11 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     elif warm_from is not None:
         start, ver, added, removed = warm_from
         resumed_from = f"warm:{ver}"
+        if warm_path == "measured" and added:
+            # the previous version's path may have soaked up the effect just added (diagnose's trajectory check):
+            # the hand paths start again from the measured ones, the field and the other effects warm
+            start = {k: v for k, v in start.items() if k != "trajectories"}
+            log("warm start: the hand paths from the measured ones (--warm-path measured)")
         change = ", ".join([f"+{e}" for e in added] + [f"-{e}" for e in removed])
         log(f"effects changed since {ver} ({change}): warm start from {ver}'s field and trajectory, "
             f"{iterations or default_its} iterations (--fresh: a fit from scratch)")
@@ -378,9 +385,10 @@ def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
 
 def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None, hand_masks=None,
         device="cpu", seed=0, resume=False, progress=True, log=print, settings_overrides=None, keep_best=True,
-        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True, starts=1) -> FitOutcome:
+        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True, starts=1, warm_path: str = "fitted") -> FitOutcome:
     """Fit the stage's material field and trajectory to its video; write it as a new version
-    (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `keep_best`: the new version becomes current
+    (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `warm_path`: where a warm start after `effects add`
+    takes the hand paths from: "fitted" (the previous version's, default) or "measured" (opt-in, #22). `keep_best`: the new version becomes current
     only if its loss is below the current one's; `checkpoint_every`: iterations between
     checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours; `warm`: a
     refit after the stage's effects changed starts from the current version (`prepare_fit`);
@@ -395,7 +403,8 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
     cpu_threads(device)
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
-                      settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress, starts=starts)
+                      settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress, starts=starts,
+                      warm_path=warm_path)
     lp = LayerPaths.of(job.stage_path)
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built
