@@ -347,9 +347,9 @@ def main(argv=None) -> int:
                     help="diagnose's confirmation refits: 2 cross-fitted folds (default) or 1")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once, each in its own process")
-    ap.add_argument("--warm-path", default="fitted", choices=("fitted", "measured"),
-                    help="the refit after `effects add` starts its hand paths from the base fit's (default) or the "
-                         "measured ones (fit's warm_path)")
+    ap.add_argument("--warm-path", default="both", choices=("both", "fitted", "measured"),
+                    help="the refit after `effects add` starts its hand paths from the base fit's, the measured ones, "
+                         "or both with the lower final loss kept (fit's warm_path; default both)")
     ap.add_argument("--warm-up", action="store_true",
                     help="compile the kernels on the tests' tiny bar (seconds) instead of running the first case alone, "
                          "and spread the workers over the host's GPUs (NGPUS / GPU_LIST)")

@@ -180,9 +180,10 @@ def test_warm_start_begins_at_the_previous_versions_loss(bar, tmp_path):
     assert fresh.start is None and fresh.settings.iterations == DEFAULT_ITERATIONS > WARM_ITERATIONS
 
 
-def test_a_warm_start_can_take_the_hand_paths_from_the_measured_ones(bar, tmp_path):
-    """`fit --warm-path measured`: after `effects add` the field is the previous version's, the hand paths
-    start again from the measured ones (the previous path may have soaked up the effect just added)."""
+def test_a_warm_start_takes_the_hand_paths_from_the_fitted_the_measured_or_both(bar, tmp_path):
+    """`fit --warm-path`: after `effects add` the field is the previous version's; the hand paths the previous
+    version's (fitted), the measured ones (the previous path may have soaked up the effect just added) or both
+    refits run and the lower final loss kept (the default)."""
     from physinteract_usd.app.fit import prepare_fit
     from physinteract_usd.errors import InputError
 
@@ -190,15 +191,28 @@ def test_a_warm_start_can_take_the_hand_paths_from_the_measured_ones(bar, tmp_pa
     over = dict(fs.SMOKE_SETTINGS, confidence_probes=0)
     api.fit(stage, iterations=fs.SMOKE_ITERATIONS, contact_from=bar["gt"], settings_overrides=over, **QUIET)
     api.effects_add(stage, "damping")
-    warm = prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None)
-    assert warm.start["trajectories"] and warm.resumed_from == "warm:v1"
+    warm = prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None, warm_path="fitted")
+    assert warm.start["trajectories"] and warm.resumed_from == "warm:v1" and warm.alt_start is None
     logs = []
     meas = prepare_fit(stage, contact_from=bar["gt"], log=logs.append, warm_path="measured")
-    assert "trajectories" not in meas.start and meas.resumed_from == "warm:v1"
+    assert "trajectories" not in meas.start and meas.resumed_from == "warm:v1" and meas.alt_start is None
     np.testing.assert_array_equal(meas.start["youngs"], warm.start["youngs"])
     assert any("--warm-path measured" in m for m in logs), logs
+    both = prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None)        # the default: both, the lower kept
+    assert both.start["trajectories"] and "trajectories" not in both.alt_start
     with pytest.raises(InputError, match="--warm-path"):
-        prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None, warm_path="both")
+        prepare_fit(stage, contact_from=bar["gt"], log=lambda *a: None, warm_path="neither")
+    # the refit from both: each start's final loss recorded, the lower one kept, its confidence estimated
+    logs = []
+    out = api.fit(stage, iterations=2, contact_from=bar["gt"], settings_overrides=dict(over, confidence_probes=2),
+                  progress=False, log=logs.append, keep_best=False)
+    wp = out.result.settings["warm_path"]
+    assert set(wp["final_loss"]) == {"fitted", "measured"}
+    assert wp["kept"] == min(wp["final_loss"], key=wp["final_loss"].get)
+    assert out.result.final_loss == pytest.approx(min(wp["final_loss"].values()), rel=1e-9)
+    assert any("kept the refit from the" in m for m in logs), logs
+    assert out.confidence_estimated and np.all(np.isfinite(out.result.confidence))
+    assert "damping" in out.result.effect_parameters
 
 
 def test_added_damping_is_fitted_and_recovers_the_truth(tmp_path):

@@ -64,6 +64,8 @@ class FitJob:
     history: list = field(default_factory=list)   # a resumed checkpoint's loss history
     problem: FitProblem | None = None    # built by run_fit (kept for the last pass after a late stop)
     starts: int = 1                      # fits from this many starts, the best kept (fit/batched.py)
+    alt_start: dict | None = None        # a warm start's second start (`warm_path` "both": the measured hand paths),
+                                         # the lower final loss of the two kept (`run_fit`)
 
 
 @dataclass
@@ -172,7 +174,7 @@ def check_starts(starts) -> None:
 
 def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None,
                 hand_masks=None, device="cpu", seed=0, resume=False, log=print, settings_overrides=None,
-                yes=True, warm=True, progress=True, starts=1, warm_path: str = "fitted") -> FitJob:
+                yes=True, warm=True, progress=True, starts=1, warm_path: str = "both") -> FitJob:
     """Read what a fit of the stage needs. `contact_from`: a synth capture's gt/ (contacts, supports,
     T0 and hand masks from the truth); `contacts`: the caller's `ContactSet`s (with `hand_masks`, an
     optional (T, H, W) override of the stage's); neither: the stage's contacts, extracted first
@@ -196,8 +198,8 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     # what can be refused is refused before extraction writes anything
     if resume and not sd.reports and not LayerPaths.of(stage_path).checkpoint.exists():
         raise InputError(stage_path, "nothing to resume: the stage has no fit yet")
-    if warm_path not in ("fitted", "measured"):
-        raise InputError("--warm-path", f"must be fitted or measured, got {warm_path!r}")
+    if warm_path not in ("fitted", "measured", "both"):
+        raise InputError("--warm-path", f"must be fitted, measured or both, got {warm_path!r}")
     warm_from = None if (resume or not warm) else warm_start(stage_path, sd)
     default_its = WARM_ITERATIONS if warm_from is not None else DEFAULT_ITERATIONS
     fit_effects = tuple(e for e, p in sd.effects.items() if p.get("fit", True))
@@ -246,7 +248,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
             sd = read_scene(stage_path)
             contacts = stage_contacts(sd)
         obs = load_observations(sd)
-    start, resumed_from, history = None, "", []
+    start, resumed_from, history, alt = None, "", [], None
     if resume:
         start, resumed_from, ck = resume_start(stage_path, sd, contacts)
         if ck is not None:
@@ -260,11 +262,18 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     elif warm_from is not None:
         start, ver, added, removed = warm_from
         resumed_from = f"warm:{ver}"
-        if warm_path == "measured" and added:
+        alt = None
+        if warm_path in ("measured", "both") and added:
             # the previous version's path may have soaked up the effect just added (diagnose's trajectory check):
             # the hand paths start again from the measured ones, the field and the other effects warm
-            start = {k: v for k, v in start.items() if k != "trajectories"}
-            log("warm start: the hand paths from the measured ones (--warm-path measured)")
+            measured = {k: v for k, v in start.items() if k != "trajectories"}
+            if warm_path == "measured":
+                start = measured
+                log("warm start: the hand paths from the measured ones (--warm-path measured)")
+            else:
+                alt = measured
+                log("warm start: twice, from the previous paths and from the measured ones; the lower final loss kept "
+                    "(--warm-path both)")
         change = ", ".join([f"+{e}" for e in added] + [f"-{e}" for e in removed])
         log(f"effects changed since {ver} ({change}): warm start from {ver}'s field and trajectory, "
             f"{iterations or default_its} iterations (--fresh: a fit from scratch)")
@@ -276,7 +285,8 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         log(f"--starts {starts}: a {'resumed' if resume else 'warm-started'} fit goes on from one field; one start")
         starts = 1
     return FitJob(stage_path, sd, obs, list(contacts), effects, settings, device, start, source,
-                  resumed_from, history, starts=int(starts))
+                  resumed_from, history, starts=int(starts), alt_start=alt if warm_from is not None and not resume
+                  else None)
 
 
 def preload(device) -> None:
@@ -350,8 +360,42 @@ def run_fit(job: FitJob, *, progress=True, log=print, on_iteration=None) -> FitR
 
         return fit_starts(prob, s, job.starts, progress=progress, log=log, on_iteration=on_iteration,
                           uniform_e=uniform_e)
+    if job.start is not None and job.alt_start is not None:
+        return _two_warm_starts(job, prob, progress=progress, log=log, on_iteration=on_iteration)
     return optimise(prob, s, progress=progress, log=log, start=job.start, uniform_e=uniform_e,
                     on_iteration=on_iteration)
+
+
+def _two_warm_starts(job: FitJob, prob, *, progress=True, log=print, on_iteration=None) -> FitResult:
+    """A warm refit after `effects add` from the previous version's hand paths and from the measured ones
+    (`warm_path` "both"), the lower final loss kept (the fit's own objective: on foam_bar's 16 hidden-effect
+    cases the kept one had the higher masked PSNR in all 16; docs/benchmarks/diagnose_named.md, 20th
+    session); its confidence estimated once, on the kept iterate."""
+    s = job.settings
+    quiet = dataclasses.replace(s, confidence_probes=0)
+    runs = []
+    from ..fit.substep import kept_rung
+
+    for name, st in (("fitted", job.start), ("measured", job.alt_start)):
+        if stopping.requested():
+            break
+        with kept_rung(prob):      # each run from the substep's rung the warm start found (its hysteresis)
+            r = optimise(prob, quiet, progress=progress, log=log, start=st, on_iteration=on_iteration)
+        runs.append((float(r.final_loss), name, r))
+        log(f"warm start from the {name} hand paths: final loss {r.final_loss:.6g}")
+    loss, name, best = min(runs, key=lambda t: t[0])
+    best.settings["warm_path"] = {"kept": name, "final_loss": {n: lo for lo, n, _ in runs}}
+    log(f"kept the refit from the {name} hand paths (final loss {loss:.6g})")
+    if s.confidence_probes > 0 and not stopping.requested():
+        start = {"youngs": best.youngs, "poisson": best.poisson, "trajectories": best.trajectories,
+                 "effects": {e: dict(p) for e, p in (best.effect_parameters or {}).items()}}
+        conf = optimise(prob, dataclasses.replace(s, iterations=0, search_effects=()), progress=False, log=None,
+                        start=start)
+        best.confidence, best.confidence_gaussian = conf.confidence, conf.confidence_gaussian
+        best.settings["confidence_probes"] = conf.settings.get("confidence_probes", s.confidence_probes)
+    else:
+        best.settings["confidence_probes"] = 0
+    return best
 
 
 def interaction_notes(job: FitJob, result: FitResult) -> list[str]:
@@ -385,10 +429,11 @@ def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
 
 def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=None, hand_masks=None,
         device="cpu", seed=0, resume=False, progress=True, log=print, settings_overrides=None, keep_best=True,
-        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True, starts=1, warm_path: str = "fitted") -> FitOutcome:
+        checkpoint_every=CHECKPOINT_EVERY, yes=True, warm=True, starts=1, warm_path: str = "both") -> FitOutcome:
     """Fit the stage's material field and trajectory to its video; write it as a new version
     (scene.fit.usdc and `<stem>.versions/v<N>.usdc`). `warm_path`: where a warm start after `effects add`
-    takes the hand paths from: "fitted" (the previous version's, default) or "measured" (opt-in, #22). `keep_best`: the new version becomes current
+    takes the hand paths from: "both" (default: from the previous version's and from the measured ones, the
+    lower final loss kept, `_two_warm_starts`; twice the refit's cost), "fitted" or "measured" (#22). `keep_best`: the new version becomes current
     only if its loss is below the current one's; `checkpoint_every`: iterations between
     checkpoints (0: none); `yes`: go on even when the cost model says the fit takes hours; `warm`: a
     refit after the stage's effects changed starts from the current version (`prepare_fit`);

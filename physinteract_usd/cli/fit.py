@@ -24,9 +24,10 @@ def add_parser(sub):
                    "newest version")
     s.add_argument("--fresh", action="store_true", help="fit from scratch even when the effects changed since the "
                    "current version (default: a refit after `effects add/remove` warm-starts from it)")
-    s.add_argument("--warm-path", default="fitted", choices=("fitted", "measured"),
-                   help="a warm start after `effects add`: the hand paths from the current version (fitted, default) "
-                        "or from the measured ones (measured: when diagnose says the path soaked up the effect)")
+    s.add_argument("--warm-path", default="both", choices=("both", "fitted", "measured"),
+                   help="a warm start after `effects add`: the hand paths from the current version (fitted), from the "
+                        "measured ones (measured: the current path may have soaked up the effect just added) or "
+                        "both, the lower final loss kept (default; twice the refit)")
     kb = s.add_mutually_exclusive_group()
     kb.add_argument("--keep-best", dest="keep_best", action="store_true", default=True,
                     help="the new version becomes current only if its loss is below the current one's (default)")
@@ -128,7 +129,7 @@ def run(a) -> int:
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,
                       keep_best=a.keep_best, checkpoint_every=a.checkpoint_every, yes=a.yes, warm=not a.fresh,
-                      starts=a.starts, warm_path=getattr(a, "warm_path", "fitted"))
+                      starts=a.starts, warm_path=getattr(a, "warm_path", "both"))
     summary = outcome.summary()
     if a.json:
         print(json.dumps(summary, indent=2))
