@@ -237,7 +237,7 @@ def test_sigterm_stops_cleanly_keeping_what_finished(captures, tmp_path):
     m = tmp_path / "m.csv"
     m.write_text("source,name,iterations,grid,fit_settings,skip\n"
                  f"{captures / 'a'},quick,2,12,{TINY_FIT},diagnose\n"
-                 f"{captures / 'b'},long,400,12,{TINY_FIT},diagnose\n")
+                 f"{captures / 'b'},long,400,12,{TINY_FIT};plateau_patience=1000;plateau_patience_searched=1000,diagnose\n")   # no convergence stop
     out = tmp_path / "out"
     p = subprocess.Popen([sys.executable, "-m", "physinteract_usd", "batch", str(m), "--out", str(out), "--workers", "1",
                           "--no-progress"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
