@@ -139,3 +139,16 @@ def test_diagnose_with_the_resolution_check(bar):
         with pytest.raises(InputError, match="--resolution"):
             api.diagnose(bar["stage"], refit=0, starts=1, progress=False, log=lambda *a: None, write_stage=False,
                           resolution=bad)
+
+
+def test_a_failed_or_empty_resolution_check_leaves_the_verdict_to_the_floor():
+    from physinteract_usd.diagnose.core import Diagnosis, conclude
+
+    d = Diagnosis("adequate", "", [], loss=2.8e-3, floor=1.0e-3)
+    d.noise = {"resolution": {"levels": [], "order": None, "error": None, "failed": "CUDA out of memory"}}
+    d = conclude(d)
+    assert d.verdict == "unexplained" and "Richardson" not in d.reason
+    d = Diagnosis("adequate", "", [], loss=1.5e-3, floor=1.0e-3)         # the finer grids moved nothing: order None
+    d.noise = {"resolution": {"levels": [{"split": 2, "change": 0.0}], "order": None, "error": 0.0}}
+    d = conclude(d)
+    assert d.verdict == "adequate" and "order -" in d.reason

@@ -179,8 +179,8 @@ class DiagnoseSettings:
     resolution: tuple = ()              # the model's own resolution error (`diagnose.resolution`): the base on grids
                                         # split by these (e.g. (2, 3): cell / 2 and / 3), Richardson's estimate of
                                         # the fit's discretisation error added to the rest frame's floor in the
-                                        # verdict's `unexplained` test (`conclude`); () off (`diagnose --resolution`;
-                                        # #22, opt-in until measured)
+                                        # verdict's `unexplained` test (`conclude`); () off (app.diagnose: on by
+                                        # default with CUDA, off on the CPU, `--resolution`; #22)
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -1040,10 +1040,14 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     if s.resolution:
         from .resolution import resolution_error
 
-        rz = resolution_error(prob, base, res, r0, splits=tuple(s.resolution), log=log)
+        try:
+            rz = resolution_error(prob, base, res, r0, splits=tuple(s.resolution), log=log)
+        except Exception as exc:  # noqa: BLE001 - an estimate for the verdict, never the diagnosis itself
+            log(f"diagnose: the resolution check failed ({type(exc).__name__}: {exc}); the verdict goes without it")
+            rz = {"levels": [], "order": None, "error": None, "failed": f"{type(exc).__name__}: {exc}"}
         noise["resolution"] = rz
         if rz.get("error") is not None:
-            log(f"diagnose: the fit's resolution error {rz['error']:.3g} (order {rz['order']:.2g}; the frames move by "
+            log(f"diagnose: the fit's resolution error {rz['error']:.3g} (order {_order(rz)}; the frames move by "
                 + ", ".join(f"{lv['change']:.3g} at cell / {lv['split']}" for lv in rz["levels"])
                 + f"; {rz['seconds']:.0f} s)")
     rows = rest_rows(prob, res, len(r0a)) if s.camera_rest else None
@@ -1204,6 +1208,12 @@ __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Pro
            "discretisation_column", "rest_rows", "test_on_rows", "CAMERA"]
 
 
+def _order(rz: dict) -> str:
+    """The resolution check's convergence order as words (None: the finer grids did not move the frames)."""
+    p = rz.get("order")
+    return "-" if p is None else f"{p:.2g}" + (", clipped" if rz.get("clipped") else "")
+
+
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
     """The verdict: `missing_effect` when a candidate is significant and confirmed (where the
     candidates are confirmed by refits, `DiagnoseSettings.confirmed`: accepted by the held-back test;
@@ -1220,8 +1230,8 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
     above = floor > 0 and L > excess_factor * budget
     within = (f"; a finer simulation moves the frames by {rz['levels'][0]['change']:.3g} (cell / "
               f"{rz['levels'][0]['split']}), the fit's own resolution error ~{res_err:.3g} (Richardson, order "
-              f"{rz['order']:.2g}): the residual is {L / budget:.1f}x the floor and that error together"
-              if res_err is not None and floor > 0 else "")
+              f"{_order(rz)}): the residual is {L / budget:.1f}x the floor and that error together"
+              if res_err is not None and floor > 0 and rz.get("levels") else "")
     st = (getattr(diag, "_ctx", None) or {}).get("settings")
     confirmed = bool(getattr(st, "confirmed", False))
     if sig:
