@@ -67,8 +67,9 @@ NOISE = 0.015
 # rule name -> (api.diagnose's floor_rule, its gate: None = the rule's own, 3% or 0 under a floor rule with refits)
 RULES = {"default": (False, None), "floor": ("full", None), "match": ("match", None),
          "rest": ("rest", None), "rest1": ("rest", 0.01), "gate1": (False, 0.01), "pair": (False, None),
-         "res": (False, None)}
-EXTRA = {"pair": {"pair_signature": True}, "res": {"resolution": True}}     # a rule's other api.diagnose settings (pair: damping vs ground decided
+         "res": (False, None), "rescol": (False, None)}
+EXTRA = {"pair": {"pair_signature": True}, "res": {"resolution": True},
+         "rescol": {"resolution": True, "resolution_column": True}}     # a rule's other api.diagnose settings (pair: damping vs ground decided
                                                # by the ground's signature at the lowest points, issue #22)
 
 

@@ -20,6 +20,7 @@ RANKS = {
     "resolution": 1,  # the MPM's apparent stiffness by cells across a thin part (numpy)
     "fit_summary": 1,  # what a fit said about E, in short (pure Python: `info` reads it without torch, #26)
     "scene": 2, "fill": 2, "tetmesh": 2, "batch": 2,
+    "refine": 2,  # the same scene on a finer grid (numpy: the resolution check, #22)
     "capture": 3, "sim": 3,
     "render": 4,
     "simulation": 5,

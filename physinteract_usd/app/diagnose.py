@@ -457,7 +457,7 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
              device: str = "cpu", dtype: str = "float32", seed: int = 0, max_pixels: int = 6000,
              progress: bool = True, log=print, starts: int = 3, trajectory_sigma_px: float | None = None,
              refit_folds: int | None = None, floor_rule: bool = False, gate: float | None = None,
-             pair_signature: bool = False, resolution=None) -> dict:
+             pair_signature: bool = False, resolution=None, resolution_column: bool = False) -> dict:
     """Diagnose the stage's current fit (module doc); returns the JSON-able diagnosis.
 
     `starts`: 1 scores the stage's fit as it is; 2 or 3 first refit the base briefly
@@ -473,7 +473,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     place of the rule's (3%, or 0 under a floor rule where refits confirm). `resolution`: the fit's own
     resolution error in the verdict (`DiagnoseSettings.resolution`: True for cell / 2 and / 3, or the
     splits, False / "off" for none; None: on with CUDA, off on the CPU, `RESOLUTION_DEFAULT`: the base
-    simulated on those finer grids costs ~16x and ~80x a forward). `pair_signature`: damping vs ground,
+    simulated on those finer grids costs ~16x and ~80x a forward). `resolution_column`: the check's change at
+    its first split also a base column (`DiagnoseSettings.resolution_column`, opt-in). `pair_signature`: damping vs ground,
     both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
     opt-in)."""
     t0 = time.perf_counter()
@@ -510,6 +511,9 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
         settings.refit_folds = int(refit_folds)
     settings.pair_signature = bool(pair_signature)
     settings.resolution = parse_resolution(resolution, device)
+    if resolution_column and not settings.resolution:
+        raise InputError("--resolution-column", "needs the resolution check (--resolution)")
+    settings.resolution_column = bool(resolution_column)
     if settings.match_substeps:           # before the base starts: every base refit steps as the fit did
         from ..diagnose.core import match_base_substeps
 

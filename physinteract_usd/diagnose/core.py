@@ -181,6 +181,10 @@ class DiagnoseSettings:
                                         # the fit's discretisation error added to the rest frame's floor in the
                                         # verdict's `unexplained` test (`conclude`); () off (app.diagnose: on by
                                         # default with CUDA, off on the CPU, `--resolution`; #22)
+    resolution_column: bool = False     # the resolution check's change at its first split (the finer model less the
+                                        # base) as a base column, its amplitude free: a candidate then explains only
+                                        # what a finer grid would not (needs `resolution`; opt-in, CPU-measured only:
+                                        # docs/diagnose.md "The fit's own resolution")
     refit_folds: int = 2                # the confirmation refits (`refit`): 2 = cross-fitted, each candidate and
                                         # the control refitted twice, each time without one half of the frames the
                                         # candidate changes most, and judged on it; the paired test pools both
@@ -368,6 +372,12 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: 
             names.append("discretisation")
             if prior_cols is not None:
                 prior_cols.append(np.zeros_like(p0))
+    col = getattr(run, "resolution_col", None)
+    if col is not None and np.any(col):
+        cols.append(col)
+        names.append("resolution")
+        if prior_cols is not None:
+            prior_cols.append(np.zeros_like(p0))
     if s.depth_scale_in_base:
         eps = 0.05
         try:
@@ -1009,6 +1019,22 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     img_blocks, img_nb = blocks, nb              # the image's blocks: the refits' paired tests (refit.py)
     noise = dict(noise or {}, correlation_frames=tau, frames_per_block=fpb)
     log(f"diagnose: residual of {len(r0)} values ({res.shape[0]} frames, stride {res.stride}), loss {L0:.3e}")
+    if s.resolution:
+        from .resolution import resolution_error
+
+        try:
+            changes = {}
+            rz = resolution_error(prob, base, res, r0, splits=tuple(s.resolution), log=log, keep=changes)
+            if s.resolution_column and changes:
+                run.resolution_col = changes[min(changes)]
+        except Exception as exc:  # noqa: BLE001 - an estimate for the verdict, never the diagnosis itself
+            log(f"diagnose: the resolution check failed ({type(exc).__name__}: {exc}); the verdict goes without it")
+            rz = {"levels": [], "order": None, "error": None, "failed": f"{type(exc).__name__}: {exc}"}
+        noise["resolution"] = rz
+        if rz.get("error") is not None:
+            log(f"diagnose: the fit's resolution error {rz['error']:.3g} (order {_order(rz)}; the frames move by "
+                + ", ".join(f"{lv['change']:.3g} at cell / {lv['split']}" for lv in rz["levels"])
+                + f"; {rz['seconds']:.0f} s)")
     pcols = [] if s.trajectory_prior else None
     J, names = base_columns(run, s, r0, pcols)
     log(f"diagnose: {J.shape[1]} base columns ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})")
@@ -1037,19 +1063,6 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
                                         "after": int(sim.substeps)}
     if s.discretisation_column:
         noise["discretisation_column"] = "discretisation" in names
-    if s.resolution:
-        from .resolution import resolution_error
-
-        try:
-            rz = resolution_error(prob, base, res, r0, splits=tuple(s.resolution), log=log)
-        except Exception as exc:  # noqa: BLE001 - an estimate for the verdict, never the diagnosis itself
-            log(f"diagnose: the resolution check failed ({type(exc).__name__}: {exc}); the verdict goes without it")
-            rz = {"levels": [], "order": None, "error": None, "failed": f"{type(exc).__name__}: {exc}"}
-        noise["resolution"] = rz
-        if rz.get("error") is not None:
-            log(f"diagnose: the fit's resolution error {rz['error']:.3g} (order {_order(rz)}; the frames move by "
-                + ", ".join(f"{lv['change']:.3g} at cell / {lv['split']}" for lv in rz["levels"])
-                + f"; {rz['seconds']:.0f} s)")
     rows = rest_rows(prob, res, len(r0a)) if s.camera_rest else None
     if rows is not None:
         noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]

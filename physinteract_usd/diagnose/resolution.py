@@ -123,13 +123,13 @@ def richardson(changes: dict) -> dict:
             "error": ca / (1.0 - a ** -p) ** 2, "clipped": bool(p != raw)}
 
 
-def resolution_error(prob, base, res, r0: np.ndarray, *, splits=(2, 3), log=None) -> dict:
+def resolution_error(prob, base, res, r0: np.ndarray, *, splits=(2, 3), log=None, keep: dict | None = None) -> dict:
     """The base's own discretisation error on the diagnosis's residual: `resolution_change` at two
     splits, extrapolated by `richardson`. Returns {"levels": [the changes' dicts], "order", "error" (a mean
     square on the loss's scale), "cos" (the two changes' directions), "seconds"}; "error" None when a finer
-    model could not be simulated."""
+    model could not be simulated. `keep`: a dict that receives each split's change vector d_split."""
     t0 = time.perf_counter()
-    keep = {}
+    keep = {} if keep is None else keep          # {split: the change d_split}: the caller's, when given
     levels = []
     for m in splits:
         lv = resolution_change(prob, base, res, r0, split=m, log=log, _keep=keep)
