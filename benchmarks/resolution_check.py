@@ -42,6 +42,11 @@ def check(stage, *, splits, scales, device: str, dtype: str = "float32", max_pix
            "cell_mm": 1000 * float(sd.settings.cell_size), "E_median": float(torch.median(base.E))}
     row["resolution"] = resolution_error(prob, base, res, r0, splits=splits)
     if scales:
+        emax = float(sd.settings.youngs_max)
+        kept = [s for s in scales if float(base.E.max()) * s <= emax]     # the stage's E bound: the substep's CFL
+        if len(kept) < len(scales):
+            row["scales_over_the_bound"] = [s for s in scales if s not in kept]
+        scales = kept
         row["scan"] = resolution_change(prob, base, res, r0, split=splits[0], scales=scales).get("scan")
         with torch.no_grad():
             row["scan_coarse"] = []
