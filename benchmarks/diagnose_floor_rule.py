@@ -124,8 +124,8 @@ def _resolution(rz: dict | None) -> dict | None:
     if not rz:
         return None
     return {"error": rz.get("error"), "order": rz.get("order"), "order_raw": rz.get("order_raw"), "cos": rz.get("cos"),
-            "seconds": rz.get("seconds"),
-            "levels": [{k: lv.get(k) for k in ("split", "particles", "substeps", "change", "loss_fine", "cos", "error")}
+            "failed": rz.get("failed"), "seconds": rz.get("seconds"),
+            "levels": [{k: lv.get(k) for k in ("split", "particles", "substeps", "change", "loss_fine", "cos", "failed")}
                        for lv in rz.get("levels") or []]}
 
 

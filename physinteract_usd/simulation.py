@@ -33,8 +33,8 @@ SIM_THREADS: int | None = int(os.environ["PHYSINTERACT_SIM_THREADS"]) if os.envi
 # SIM_THREADS None on the CPU: two threads where >= 2 cores are the process's and at least `lanes.SPARE_MIN` of a
 # core sat idle beside it over 0.1 s (sim/lanes.py's measure), else one. Measured on the demo (docs/benchmarks/
 # cpu.md, 19th session): -4.5 s wall on average of six A/B pairs (-12.1 to +2.3 s), the three phases -7.7 s; on a
-# machine without a core to spare the second thread only waits for one (sessions 13 and 15: slower). The lead's
-# idle A/B decides whether it stays
+# machine without a core to spare the second thread only waits for one (sessions 13 and 15: slower). On the idle VM
+# the demo took 2:38.6 with it against 2:55.8 on one thread (19th session, cpu.md): it stays on
 AUTO_THREADS = True
 
 

@@ -262,7 +262,6 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     elif warm_from is not None:
         start, ver, added, removed = warm_from
         resumed_from = f"warm:{ver}"
-        alt = None
         if warm_path in ("measured", "both") and added:
             # the previous version's path may have soaked up the effect just added (diagnose's trajectory check):
             # the hand paths start again from the measured ones, the field and the other effects warm
@@ -285,8 +284,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         log(f"--starts {starts}: a {'resumed' if resume else 'warm-started'} fit goes on from one field; one start")
         starts = 1
     return FitJob(stage_path, sd, obs, list(contacts), effects, settings, device, start, source,
-                  resumed_from, history, starts=int(starts), alt_start=alt if warm_from is not None and not resume
-                  else None)
+                  resumed_from, history, starts=int(starts), alt_start=alt)
 
 
 def preload(device) -> None:
@@ -371,13 +369,13 @@ def _two_warm_starts(job: FitJob, prob, *, progress=True, log=print, on_iteratio
     (`warm_path` "both"), the lower final loss kept (the fit's own objective: on foam_bar's 16 hidden-effect
     cases the kept one had the higher masked PSNR in all 16; docs/benchmarks/diagnose_named.md, 20th
     session); its confidence estimated once, on the kept iterate."""
+    from ..fit.substep import kept_rung
+
     s = job.settings
     quiet = dataclasses.replace(s, confidence_probes=0)
     runs = []
-    from ..fit.substep import kept_rung
-
     for name, st in (("fitted", job.start), ("measured", job.alt_start)):
-        if stopping.requested():
+        if runs and stopping.requested():       # a stop during the first run: keep it, skip the second
             break
         with kept_rung(prob):      # each run from the substep's rung the warm start found (its hysteresis)
             r = optimise(prob, quiet, progress=progress, log=log, start=st, on_iteration=on_iteration)

@@ -294,6 +294,8 @@ class _Runner:
         self._sims = {}
         self.p0 = np.zeros(0)          # the trajectory prior's rows at the base (scaled; diagnose_problem)
         self.n_img = 0                 # the image residual's length
+        self.resolution_col = None     # the resolution check's change at its first split, a base column where asked
+                                       # (`DiagnoseSettings.resolution_column`)
 
     def aug(self, r: np.ndarray, p: np.ndarray | None = None) -> np.ndarray:
         """An image residual with the trajectory prior's rows appended (`p`, default the base's)."""
@@ -372,7 +374,7 @@ def base_columns(run: _Runner, s: DiagnoseSettings, r0: np.ndarray, prior_cols: 
             names.append("discretisation")
             if prior_cols is not None:
                 prior_cols.append(np.zeros_like(p0))
-    col = getattr(run, "resolution_col", None)
+    col = run.resolution_col
     if col is not None and np.any(col):
         cols.append(col)
         names.append("resolution")

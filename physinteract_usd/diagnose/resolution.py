@@ -10,9 +10,10 @@ finer than the fit reads `unexplained` (foam_bar's 20 controls on the H200: 2.1-
 hand paths) on `refine.refine_scene`'s finer grid and takes its residual through the *same*
 `ImageResidual` (pixels, weights, photometric and floor projectors fixed at the coarse base): the
 change d = r_fine - r_coarse is how far the frames move when only the resolution changes. Its mean
-square, `change`, is on the loss's scale. The finer model is not refitted (that would be a fit); the
-finer grid's 1-D stiffness scan (`stiffness_scan`: the base's E field x s) says whether a finer model
-wants another E (the fit's resolution bias of E, #24).
+square, `change`, is on the loss's scale. The finer model is not refitted (that would be a fit); its 1-D
+stiffness scan (`resolution_change(scales=...)`: the base's E field x s) says whether a finer model wants
+another E (the fit's resolution bias of E, #24). `resolution_error` takes two splits and extrapolates their
+changes (`richardson`) to the coarse model's own error, which `core.conclude` weighs in the verdict.
 
 No USD, no CLI: a FitProblem, a BaseState and an ImageResidual in, numbers out.
 """
@@ -25,6 +26,7 @@ import time
 
 import numpy as np
 import torch
+from scipy.optimize import brentq
 
 from ..refine import REFINE, refine_scene
 from ..errors import SimulationError
@@ -51,18 +53,19 @@ def residual_on(res, prob):
 
 
 def resolution_change(prob, base, res, r0: np.ndarray, *, split: int = REFINE, scales=(),
-                      log=None, _keep: dict | None = None) -> dict:
+                      log=None, keep: dict | None = None) -> dict:
     """The base simulated on the grid `split` x finer (module doc). Returns {"split", "particles": (coarse, fine),
     "substeps": (coarse, fine), "loss", "loss_fine", "change" (mean square of d), "cos" (d against r0:
     > 0 where the finer model moves the frames toward the video), "scan": [(s, loss_fine at E x s)],
-    "seconds"}; {"error": why} when the finer model cannot be built or goes unstable."""
+    "seconds"}; {"split", "failed": why} when the finer model cannot be built or goes unstable. `keep`: a dict
+    that receives the change vector d under its split."""
     log = log or (lambda *a: None)
     t0 = time.perf_counter()
     try:
         fp, parent = fine_problem(prob, split)
     except (ValueError, SimulationError) as exc:
         log(f"resolution check skipped: {exc}")
-        return {"error": str(exc)}
+        return {"split": int(split), "failed": str(exc)}
     pi = torch.as_tensor(parent, dtype=torch.long, device=base.E.device)
     E, nu = base.E[pi].to(fp.tdtype), base.nu[pi].to(fp.tdtype)
     eff = {e: dict(p) for e, p in base.effects.items()}
@@ -80,10 +83,10 @@ def resolution_change(prob, base, res, r0: np.ndarray, *, split: int = REFINE, s
             scan.append((float(s), loss(rf(xs, Fs))))
     except SimulationError as exc:
         log(f"resolution check: the finer model went unstable ({exc})")
-        return dict(out, error=str(exc))
+        return dict(out, failed=str(exc))
     d = r1 - r0
-    if _keep is not None:
-        _keep[split] = d
+    if keep is not None:
+        keep[split] = d
     n0, nd = float(np.linalg.norm(r0)), float(np.linalg.norm(d))
     out.update(substeps=[int(prob.sim.substeps), int(fp.sim.substeps)], loss=loss(r0), loss_fine=loss(r1),
                change=loss(d), cos=float(-(d @ r0) / (n0 * nd)) if n0 > 0 and nd > 0 else 0.0, scan=scan,
@@ -107,17 +110,14 @@ def richardson(changes: dict) -> dict:
         return (1.0 - b ** -p) / (1.0 - a ** -p)
 
     lo, hi = 0.5, 4.0
-    raw = None
-    if g(hi) < ratio < g(1e-6):          # g falls from log b / log a (p -> 0) to 1 (p -> inf)
-        x0, x1 = 1e-6, 50.0
-        for _ in range(100):
-            mid = 0.5 * (x0 + x1)
-            x0, x1 = (mid, x1) if g(mid) > ratio else (x0, mid)
-        raw = 0.5 * (x0 + x1)
-    elif ratio >= g(1e-6):
+    # g falls from log b / log a (p -> 0) to 1 (p -> inf): a root where the ratio lies between them, else the
+    # ratio is past one end (a finer change as large as p -> 0 allows: raw 0; no larger than the first: raw inf)
+    if ratio >= g(1e-6):
         raw = 0.0
-    else:
+    elif ratio <= g(50.0):
         raw = math.inf
+    else:
+        raw = float(brentq(lambda q: g(q) - ratio, 1e-6, 50.0, xtol=1e-12))
     p = float(min(max(raw, lo), hi))
     return {"order": p, "order_raw": raw if math.isfinite(raw) else None,
             "error": ca / (1.0 - a ** -p) ** 2, "clipped": bool(p != raw)}
@@ -126,16 +126,17 @@ def richardson(changes: dict) -> dict:
 def resolution_error(prob, base, res, r0: np.ndarray, *, splits=(2, 3), log=None, keep: dict | None = None) -> dict:
     """The base's own discretisation error on the diagnosis's residual: `resolution_change` at two
     splits, extrapolated by `richardson`. Returns {"levels": [the changes' dicts], "order", "error" (a mean
-    square on the loss's scale), "cos" (the two changes' directions), "seconds"}; "error" None when a finer
-    model could not be simulated. `keep`: a dict that receives each split's change vector d_split."""
+    square on the loss's scale), "cos" (the two changes' directions), "seconds"}; "error" None and "failed" (why)
+    when a finer model could not be simulated. `keep`: a dict that receives each split's change vector d_split."""
     t0 = time.perf_counter()
     keep = {} if keep is None else keep          # {split: the change d_split}: the caller's, when given
     levels = []
     for m in splits:
-        lv = resolution_change(prob, base, res, r0, split=m, log=log, _keep=keep)
+        lv = resolution_change(prob, base, res, r0, split=m, log=log, keep=keep)
         levels.append(lv)
-        if "error" in lv:
-            return {"levels": levels, "order": None, "error": None, "seconds": time.perf_counter() - t0}
+        if "failed" in lv:
+            return {"levels": levels, "order": None, "error": None, "failed": lv["failed"],
+                    "seconds": time.perf_counter() - t0}
     a, b = splits[0], splits[-1]
     da, db = keep[a], keep[b]
     na, nb = float(np.linalg.norm(da)), float(np.linalg.norm(db))
