@@ -69,6 +69,7 @@ def one_scene(scene: str, a) -> None:
     row = {"scene": scene, "variant": "old", "ma": old.get("ma"), "ma_best_uniform": old.get("ma_best_uniform"),
            "psnr_masked": old.get("psnr_masked"), "fit_s": old.get("fit_s"), "grid": old.get("grid"),
            "particles": old.get("particles"), "error": old.get("error"), "wall_s": round(time.perf_counter() - t, 1),
+           "by_truth_level": old.get("by_truth_level"), "calibration": old.get("calibration"),
            "pin_rule": __import__("os").environ.get("PHYSINTERACT_PIN_RULE") or "default",
            # the synth's truth's rule (synth.generate.truth_pin_rule): PHYSINTERACT_PIN_RULE never reached it (#24)
            "truth_pin_rule": __import__("os").environ.get("PHYSINTERACT_TRUTH_PIN_RULE") or "default"}

@@ -126,7 +126,7 @@ def one(scene: str, a, work: Path) -> dict:
             return {**row, "error": "evaluate failed"}
         ev = json.loads(p.stdout)
         row.update({k: ev[k] for k in ("ma", "ma_best_uniform", "psnr", "psnr_masked", "ssim", "iou",
-                                        "position_error_m")})
+                                        "position_error_m", "by_truth_level", "calibration")})
         row["hidden_effect"] = gt.get("hidden_effect")
         row.update(uniform_mas(row.get("model") or {}, cap / "gt"))
     return row

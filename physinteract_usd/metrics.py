@@ -8,6 +8,10 @@
 - Silhouette IoU; 2D track error in pixels; 3D position error in metres.
 - Material accuracy MA: the share of Gaussians whose predicted E is within 20% of the truth,
   and the MA of the best uniform E (what a single number could at most reach).
+- Where MA is lost (`ma_by_truth_level`): MA, share and E ratio per material of the truth, with the
+  truth's own strain there (`strain_exposure`: a material that never strains is not in the video);
+  and whether the fit's per-Gaussian confidence (its claimed probability of being within 20%) holds
+  (`confidence_calibration`).
 """
 
 from __future__ import annotations
@@ -114,3 +118,84 @@ def summarize(per_frame: list[dict]) -> dict:
         vals = np.array([min(f[key], 100.0) for f in per_frame if key in f and not np.isnan(f[key])])
         out[key] = float(np.nanmean(vals)) if len(vals) else float("nan")
     return out
+
+
+def truth_levels(e_true, max_levels: int = 4, bins: int = 3) -> np.ndarray:
+    """A material index per entry: the truth's distinct E values (equal to 3 significant digits) when
+    there are at most `max_levels`, else `bins` quantile bins of log E (a graded truth). 0 = softest."""
+    e = np.asarray(e_true, dtype=np.float64)
+    key = np.round(np.log10(np.maximum(e, 1e-30)), 3)
+    vals = np.unique(key)
+    if len(vals) <= max_levels:
+        return np.searchsorted(vals, key)
+    edges = np.quantile(key, np.linspace(0, 1, bins + 1)[1:-1])
+    return np.searchsorted(edges, key, side="right")
+
+
+def strain_exposure(rest, positions, k: int = 12) -> np.ndarray:
+    """Per point, the largest Frobenius norm over frames of the Green strain 0.5 (F^T F - I), F the
+    least-squares affine map of its k nearest rest neighbours' offsets (rigid motion reads 0).
+    rest (N, 3); positions (T, N, 3)."""
+    from scipy.spatial import cKDTree
+
+    x0 = np.asarray(rest, dtype=np.float64)
+    xs = np.asarray(positions, dtype=np.float64)
+    n = len(x0)
+    k = int(min(k, n - 1))
+    if k < 3:
+        return np.zeros(n)
+    _, nb = cKDTree(x0).query(x0, k + 1)
+    d0 = x0[nb[:, 1:]] - x0[:, None, :]                       # (N, k, 3)
+    # F^T = (D0^T D0)^-1 D0^T D: solve once per point for the rest offsets' pseudo-inverse
+    g = np.einsum("nki,nkj->nij", d0, d0) + 1e-12 * np.eye(3)
+    pinv = np.linalg.solve(g, np.transpose(d0, (0, 2, 1)))    # (N, 3, k)
+    out = np.zeros(n)
+    eye = np.eye(3)
+    for x in xs:
+        d = x[nb[:, 1:]] - x[:, None, :]
+        ft = pinv @ d                                         # (N, 3, 3) = F^T
+        green = 0.5 * (ft @ np.transpose(ft, (0, 2, 1)) - eye)
+        out = np.maximum(out, np.sqrt((green ** 2).sum((1, 2))))
+    return out
+
+
+def ma_by_truth_level(e_pred, e_true, confidence=None, exposure=None, tol: float = MA_TOLERANCE) -> list[dict]:
+    """Per material of the truth (`truth_levels`), softest first: its share of the entries, its MA,
+    the median and quartiles of E_pred / E_true, the mean claimed confidence and the median strain
+    exposure (when given). The shares times the MAs sum to the overall MA."""
+    e_pred = np.asarray(e_pred, dtype=np.float64)
+    e_true = np.asarray(e_true, dtype=np.float64)
+    lev = truth_levels(e_true)
+    ok = np.abs(e_pred - e_true) <= tol * e_true + 1e-12 * e_true
+    out = []
+    for v in np.unique(lev):
+        m = lev == v
+        r = e_pred[m] / e_true[m]
+        row = {"e_truth": float(np.median(e_true[m])), "share": float(m.mean()), "ma": float(ok[m].mean()),
+               "ratio_median": float(np.median(r)), "ratio_q25": float(np.quantile(r, 0.25)),
+               "ratio_q75": float(np.quantile(r, 0.75))}
+        if confidence is not None:
+            row["confidence"] = float(np.mean(np.asarray(confidence, dtype=np.float64)[m]))
+        if exposure is not None:
+            row["exposure"] = float(np.median(np.asarray(exposure, dtype=np.float64)[m]))
+        out.append(row)
+    return out
+
+
+def confidence_calibration(e_pred, e_true, confidence, edges=(0.0, 0.2, 0.5, 0.8, 1.0),
+                           tol: float = MA_TOLERANCE) -> dict:
+    """Does the claimed confidence (the probability of being within `tol`) hold? Per confidence bin:
+    the share of entries, the mean claim and the MA found; overall: the mean claim (the MA the fit
+    expects) against the MA, and the share that is confident (>= 0.8) and wrong."""
+    e_pred = np.asarray(e_pred, dtype=np.float64)
+    e_true = np.asarray(e_true, dtype=np.float64)
+    c = np.asarray(confidence, dtype=np.float64)
+    ok = np.abs(e_pred - e_true) <= tol * e_true + 1e-12 * e_true
+    bins = []
+    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        m = (c >= a) & ((c < b) if i < len(edges) - 2 else (c <= b))
+        if m.any():
+            bins.append({"lo": float(a), "hi": float(b), "share": float(m.mean()), "claimed": float(c[m].mean()),
+                         "ma": float(ok[m].mean())})
+    return {"claimed": float(c.mean()), "ma": float(ok.mean()), "confident_wrong": float(((c >= 0.8) & ~ok).mean()),
+            "bins": bins}

@@ -81,3 +81,45 @@ def test_excluded_hand_pixels_do_not_count():
     assert d["psnr"] == float("inf") and d["psnr_masked"] == float("inf")
     assert d["ssim"] == pytest.approx(1.0) and d["iou"] == 1.0
     assert M.frame_metrics(pred, true, sil, sil)["psnr"] < 30
+
+
+# ------------------------------------------------------------------ where MA is lost (#24)
+def test_strain_exposure_reads_a_known_stretch_and_nothing_for_a_rigid_motion():
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(-1, 1, (300, 3))
+    th = 0.7
+    R = np.array([[np.cos(th), -np.sin(th), 0], [np.sin(th), np.cos(th), 0], [0, 0, 1]])
+    rigid = x0 @ R.T + np.array([0.3, -2.0, 1.0])
+    s = 1.1                                              # 10% stretch along x: Green strain 0.5 (s^2 - 1)
+    stretched = x0 * np.array([s, 1.0, 1.0])
+    e = M.strain_exposure(x0, np.stack([x0, rigid]))
+    assert np.max(e) < 1e-9
+    e = M.strain_exposure(x0, np.stack([x0, rigid, stretched]))
+    assert np.allclose(e, 0.5 * (s * s - 1), rtol=1e-9)
+
+
+def test_ma_by_truth_level_splits_the_ma_by_the_truths_materials():
+    e_true = np.array([1e4] * 6 + [1e5] * 4)
+    e_pred = np.array([1.1e4] * 6 + [0.5e5, 0.5e5, 1e5, 1.1e5])
+    conf = np.array([0.9] * 6 + [0.1] * 4)
+    rows = M.ma_by_truth_level(e_pred, e_true, conf, exposure=np.arange(10.0))
+    assert [r["e_truth"] for r in rows] == [1e4, 1e5]
+    assert [r["share"] for r in rows] == [0.6, 0.4]
+    assert [r["ma"] for r in rows] == [1.0, 0.5]
+    assert rows[1]["ratio_median"] == pytest.approx(0.75)
+    assert rows[0]["confidence"] == pytest.approx(0.9) and rows[1]["exposure"] == pytest.approx(7.5)
+    assert sum(r["share"] * r["ma"] for r in rows) == pytest.approx(M.material_accuracy(e_pred, e_true))
+    # a graded truth (more distinct values than levels) is cut into quantile bins of log E
+    graded = np.exp(np.linspace(np.log(1e4), np.log(5e4), 90))
+    assert len(M.ma_by_truth_level(graded, graded)) == 3
+
+
+def test_confidence_calibration_counts_confident_misses():
+    e_true = np.full(10, 1e5)
+    e_pred = np.array([1e5] * 5 + [2e5] * 5)
+    conf = np.array([0.95] * 8 + [0.1] * 2)               # three of the confident ones are wrong
+    c = M.confidence_calibration(e_pred, e_true, conf)
+    assert c["ma"] == 0.5 and c["confident_wrong"] == pytest.approx(0.3)
+    assert c["claimed"] == pytest.approx(0.78)
+    top = [b for b in c["bins"] if b["lo"] == 0.8][0]
+    assert top["share"] == pytest.approx(0.8) and top["ma"] == pytest.approx(5 / 8)

@@ -20,7 +20,8 @@ from .adapters import hand_masks, load_observations, read_scene, true_hand_masks
 
 def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     """{"ma", "ma_best_uniform", "best_uniform_e", "psnr", "psnr_masked", "ssim", "iou",
-    "position_error_m", "frames": [per-frame metrics]}."""
+    "position_error_m", "frames": [per-frame metrics], "by_truth_level": [where MA is lost, per material
+    of the truth, with the truth's strain there], "calibration": {the fit's confidence against its hits}}."""
     gt_dir = Path(gt_dir)
     for f in ("youngs_modulus.npy", "gaussian_positions.npy"):
         if not (gt_dir / f).exists():
@@ -58,7 +59,12 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
         frames.append(d)
     summary = M.summarize(frames)
     ma_uniform, e_uniform = M.best_uniform_ma(e_gt)
-    return {"ma": M.material_accuracy(anim["youngsModulus"], e_gt), "ma_best_uniform": ma_uniform,
+    e_fit = anim["youngsModulus"]
+    exposure = M.strain_exposure(pos_gt[0], pos_gt)
+    conf = anim["confidence"]
+    return {"by_truth_level": M.ma_by_truth_level(e_fit, e_gt, conf, exposure),
+            "calibration": None if conf is None else M.confidence_calibration(e_fit, e_gt, conf),
+            "ma": M.material_accuracy(anim["youngsModulus"], e_gt), "ma_best_uniform": ma_uniform,
             "best_uniform_e": e_uniform, "psnr": summary["psnr"], "psnr_masked": summary["psnr_masked"],
             "ssim": summary["ssim"], "iou": summary["iou"], "position_error_m": M.position_error_m(pos, pos_gt),
             "frames": frames}
