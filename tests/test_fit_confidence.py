@@ -83,7 +83,7 @@ def test_one_simulation_for_all_probes_same_estimate(problem):
 
     prob.simulate = counted
     try:
-        got = confidence(prob, _field(prob, sd), [], probes=3, seed=0, method="probes")
+        got = confidence(prob, _field(prob, sd), [], probes=3, seed=0, method="probes", exposure_floor=0)
         assert len(calls) == 1
         want = _reference(prob, _field(prob, sd), probes=3, seed=0)
         assert len(calls) == 4
@@ -93,12 +93,13 @@ def test_one_simulation_for_all_probes_same_estimate(problem):
     # float32 simulation: the same up to its rounding (measured: 3.3e-7 relative at most)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
     # the probes are not all alike: another seed gives another (equally valid) estimate
-    other = confidence(prob, _field(prob, sd), [], probes=3, seed=5, method="probes")
+    other = confidence(prob, _field(prob, sd), [], probes=3, seed=5, method="probes", exposure_floor=0)
     assert not np.allclose(other, got, rtol=1e-3, atol=1e-9)
 
 
-def _probe_samples(prob, mat, n, seed=3):
-    """n Hutchinson samples (J^T s)^2 of diag(J^T J), one simulation."""
+def _probe_samples(prob, mat, n, seed=3, outer=False):
+    """n Hutchinson samples (J^T s)^2 of diag(J^T J) (`outer`: (J^T s)(J^T s)^T of the whole J^T J),
+    one simulation."""
     gen = torch.Generator(device="cpu").manual_seed(seed)
     theta = mat.theta.detach().clone().requires_grad_(True)
     mat.theta = theta
@@ -114,7 +115,8 @@ def _probe_samples(prob, mat, n, seed=3):
     for p in range(n):
         acc = sum(((torch.randint(0, 2, r.shape, generator=gen) * 2 - 1).to(r) * r).sum() for r in res)
         g, = torch.autograd.grad(acc, theta, retain_graph=p < n - 1)
-        out.append(g.detach().double().numpy() ** 2)
+        g = g.detach().double().numpy()
+        out.append(np.outer(g, g) if outer else g ** 2)
     return np.array(out)
 
 
@@ -125,13 +127,97 @@ def test_finite_differences_give_the_gauss_newton_diagonal(problem):
     at most, confidences 0.06-0.58; the 4 probes the fit used before scatter more); "auto" picks
     it for 4 coefficients against 4 probes and the probes for 4 coefficients against 1 probe."""
     prob, sd = problem
-    conf_fd, d_fd, used = confidence(prob, _field(prob, sd), [], probes=4, return_diag=True)
+    conf_fd, d_fd, used = confidence(prob, _field(prob, sd), [], probes=4, return_diag=True, exposure_floor=0)
     assert used == "fd"
     samples = _probe_samples(prob, _field(prob, sd), 80)
     mean, se = samples.mean(0), samples.std(0, ddof=1) / np.sqrt(len(samples))
     assert np.all(d_fd > 0)
     assert np.all(np.abs(d_fd - mean) < 4 * se + 0.1 * mean), (d_fd, mean, se)
-    conf_p, d_p, used_p = confidence(prob, _field(prob, sd), [], probes=1, return_diag=True)
+    conf_p, d_p, used_p = confidence(prob, _field(prob, sd), [], probes=1, return_diag=True, exposure_floor=0)
     assert used_p == "probes"
-    conf_many = confidence(prob, _field(prob, sd), [], probes=32, method="probes")
+    conf_fd = confidence(prob, _field(prob, sd), [], probes=4, covariance="diag", exposure_floor=0)  # same rule
+    conf_many = confidence(prob, _field(prob, sd), [], probes=32, method="probes", exposure_floor=0)
     assert np.abs(conf_fd - conf_many).max() < 0.06, np.abs(conf_fd - conf_many).max()
+
+
+def test_the_finite_difference_columns_give_the_whole_gauss_newton_matrix(problem):
+    """The Laplace covariance (#24): J^T J's off-diagonal terms from the finite-difference columns
+    against the mean of 80 Hutchinson outer products (J^T s)(J^T s)^T, within 4 standard errors plus
+    10% of the diagonal's scale; the confidence then follows sigma_p^2 = dlogE_p^2 B_p Sigma B_p^T,
+    Sigma = noise x (J^T J)^-1, recomputed here from the same matrix."""
+    from physinteract_usd.fit import optimize as O
+
+    prob, sd = problem
+    mat = _field(prob, sd)
+    theta = mat.theta.detach().clone()
+    captured = {}
+    lv = O.laplace_variance
+
+    def spy(B, g, *a, **kw):
+        captured["gram"] = g.clone()
+        return lv(B, g, *a, **kw)
+
+    O.laplace_variance = spy
+    try:
+        conf_full, sigma_full = confidence(prob, mat, [], probes=4, return_sigma=True, exposure_floor=0)
+    finally:
+        O.laplace_variance = lv
+    G = captured["gram"].numpy()
+    K = G.shape[0]
+    samples = _probe_samples(prob, _field(prob, sd), 80, outer=True)
+    mean, se = samples.mean(0), samples.std(0, ddof=1) / np.sqrt(len(samples))
+    scale = np.sqrt(np.outer(np.diag(G), np.diag(G)))
+    assert np.abs(G - G.T).max() <= 1e-9 * np.abs(G).max()
+    off = ~np.eye(K, dtype=bool)
+    assert np.abs(G[off]).max() > 0.05 * np.diag(G).min()          # the coefficients do overlap: a real test
+    assert np.all(np.abs(G - mean) < 4 * se + 0.1 * scale), (G, mean, se)
+    # the confidence from that matrix, by hand
+    conf_diag, sigma_diag = confidence(prob, _field(prob, sd), [], probes=4, return_sigma=True, covariance="diag",
+                                        exposure_floor=0)
+    mat.theta = theta
+    with torch.no_grad():
+        s_ = torch.sigmoid(mat.u()).double().numpy()
+    dlog = (mat.hi - mat.lo) * s_ * (1 - s_)
+    B = mat.B.detach().double().numpy()
+    Ginv = np.linalg.inv(G)
+    quad = np.einsum("pk,kl,pl->p", B, Ginv, B)
+    ratio = sigma_full / (np.sqrt(quad) * dlog)
+    assert np.ptp(ratio) < 1e-3 * ratio.mean()                      # sigma_p proportional to the quadratic form
+    assert not np.allclose(sigma_full, sigma_diag, rtol=1e-2)       # and not the diagonal's rule
+    want = np.array([math.erf(math.log(1.2) / (sg * math.sqrt(2.0))) for sg in sigma_full])
+    np.testing.assert_allclose(conf_full, want, rtol=1e-5, atol=1e-7)
+
+
+def test_laplace_variance_treats_an_unpinned_direction_as_unknown():
+    """Two coefficients whose columns are equal: only their sum is pinned. The sum's variance is
+    finite (1 / |column|^2 per unit), each one alone is unknown (a huge variance: confidence 0); an
+    invertible matrix gives b G^-1 b exactly."""
+    from physinteract_usd.fit.optimize import laplace_variance
+
+    G = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    v = laplace_variance(torch.tensor([[1.0, 1.0], [1.0, 0.0]], dtype=torch.float64), G).numpy()
+    assert v[0] == pytest.approx(1.0, rel=1e-6)                    # (b . v1)^2 / lambda1 = 2 / 2
+    assert v[1] > 1e6
+    G = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=torch.float64)
+    B = torch.tensor([[1.0, 0.0], [0.3, -0.7]], dtype=torch.float64)
+    want = np.einsum("pk,kl,pl->p", B.numpy(), np.linalg.inv(G.numpy()), B.numpy())
+    np.testing.assert_allclose(laplace_variance(B, G).numpy(), want, rtol=1e-12)
+
+
+def test_what_the_video_cannot_see_gets_confidence_zero(problem):
+    """The tiny cantilever (clamped at one end, pulled at the other): its clamped particles and the
+    ones that barely strain in the fit's rollout (`select.unconstrained_particles`, the same rollout
+    the estimate simulates) get confidence 0 whatever the curvature says; the others keep the
+    Laplace value exactly; `exposure_floor=0` turns it off."""
+    from physinteract_usd.fit.select import EXPOSURE_FLOOR, strain_exposure, unconstrained_particles
+
+    prob, sd = problem
+    mat = _field(prob, sd)
+    off = confidence(prob, mat, [], probes=4, exposure_floor=0)
+    on = confidence(prob, _field(prob, sd), [], probes=4)
+    held = np.asarray(prob.held_particles(), bool)
+    expo = strain_exposure(prob, mat.youngs().detach().numpy(), mat.poisson().detach().numpy())
+    unseen = unconstrained_particles(expo, held, EXPOSURE_FLOOR)
+    assert held.any() and (unseen & ~held).any() and (~unseen).sum() > len(unseen) // 2
+    assert np.all(on[unseen] == 0.0) and np.all(off[unseen] > 0.0)
+    np.testing.assert_allclose(on[~unseen], off[~unseen], rtol=1e-6)

@@ -782,7 +782,8 @@ FD_LOG_E_STEP = 0.01         # the finite-difference estimator's step: 1% of E w
 
 def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
                tol: float = math.log(1.2), return_sigma: bool = False, effects: dict | None = None,
-               method: str = "auto", return_diag: bool = False):
+               method: str = "auto", return_diag: bool = False, covariance: str = "full",
+               exposure_floor: float | None = None):
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
     the estimate, from the Gauss-Newton diagonal of the current basis coefficients.
 
@@ -801,7 +802,16 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     `residual_correlation`): what is left after a fit is mostly model error (discretisation, missing
     effects), smooth in space and persistent in time, not independent pixel noise, and counting
     every pixel as independent evidence claims a precision the data do not hold.
-    sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
+    With "fd" the columns give the whole Gauss-Newton matrix J^T J (`covariance="full"`, the default):
+    sigma(log E_p)^2 = dlogE_p^2 B_p Sigma B_p^T, Sigma = noise x (J^T J)^-1 (the Laplace covariance: a
+    valley along which two regions' E trade, which the diagonal cannot see, widens both; a direction
+    the video does not pin at all gives sigma -> inf, confidence 0). With the probes (or
+    `covariance="diag"`) only the diagonal is known: sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
+    Where the video cannot see a particle's E the confidence is 0, whatever the curvature says (a
+    smooth basis function shares one coefficient between a strained region and a held or unstrained
+    one, which would lend it the strained region's certainty): a support holds it, or its strain
+    exposure in the same rollout is below `exposure_floor` x the free particles' median
+    (`select.unconstrained_particles`; default `select.EXPOSURE_FLOOR`, 0 turns it off).
     `return_diag`: (confidence, diag(J^T J), the method used) instead.
     """
     theta = mat.theta.detach().clone().requires_grad_(True)
@@ -821,6 +831,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     with torch.set_grad_enabled(not use_fd):
         x, F = prob.simulate(E if not use_fd else E.detach(), nu, tr, eff)
         res = _weighted_residuals(prob, x, F)
+    unseen = _unseen_particles(prob, F, exposure_floor)
     for r, rm in res:
         if rm is not None:
             rss += float((rm.detach() ** 2).sum())
@@ -828,11 +839,12 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
         rss += float((r.detach() ** 2).sum())
         count += r.numel()
         residuals.append(r.detach().float().mean(-1).cpu().numpy())
-    diag = None
+    diag = gram = None
     used = "probes"
     if use_fd:
-        diag = _gn_diag_fd(prob, mat, nu, tr, eff, res)
-        if diag is not None:
+        gram = _gn_gram_fd(prob, mat, nu, tr, eff, res)
+        if gram is not None:
+            diag = torch.diagonal(gram).clone()
             used = "fd"
         else:   # a stepped simulation failed or changed the substep: the probes, on a fresh graph
             E = mat.youngs()
@@ -857,13 +869,37 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     with torch.no_grad():
         s = torch.sigmoid(mat.u())                     # (a nested field's base included)
         dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
-        sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
+        if gram is not None and covariance == "full":
+            var = noise_var * laplace_variance(mat.B.detach().double().cpu(), gram.double().cpu())
+            sigma_p = torch.sqrt(var).to(dlog) * dlog
+        else:
+            sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
         conf = torch.erf(tol / (sigma_p * math.sqrt(2.0)).clamp_min(1e-12))
+        if unseen is not None:
+            conf = torch.where(torch.as_tensor(unseen, device=conf.device), torch.zeros_like(conf), conf)
     if return_diag:
         return conf.cpu().numpy(), diag.detach().cpu().numpy(), used
     if return_sigma:     # and sigma(log E) per particle (the Laplace interval's half-width / 1.96)
         return conf.cpu().numpy(), sigma_p.cpu().numpy()
     return conf.cpu().numpy()
+
+
+def _unseen_particles(prob: FitProblem, F, floor: float | None) -> np.ndarray | None:
+    """(P,) bool: the particles whose E the video cannot see (held by a support, or barely strained
+    in this rollout: `select.unconstrained_particles`); None when off (floor 0) or not known."""
+    from .select import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles
+
+    floor = EXPOSURE_FLOOR if floor is None else float(floor)
+    if floor <= 0 or prob.T < 2:
+        return None
+    try:
+        held = np.asarray(prob.held_particles(), bool)
+    except AttributeError:
+        held = np.zeros(len(prob.x0), bool)
+    expo = exposure_of_rollout(F, list(range(1, prob.T)))
+    if expo is None:
+        return None
+    return unconstrained_particles(expo, held, floor)
 
 
 def _weighted_residuals(prob: FitProblem, x, F) -> list:
@@ -878,21 +914,61 @@ def _weighted_residuals(prob: FitProblem, x, F) -> list:
     return res
 
 
-def _fd_column_sq(prob: FitProblem, base, x, F, h: float) -> float:
-    """|J_k|^2 from one stepped simulation (x, F): the weighted residuals' change from `base` over h."""
-    acc = 0.0
+def _fd_column(prob: FitProblem, base, x, F, h: float) -> torch.Tensor:
+    """J_k from one stepped simulation (x, F): the weighted residuals' change from `base` over h, every
+    frame's RGB and silhouette residual flattened into one vector."""
+    parts = []
     for (r0, rm0), (r, rm) in zip(base, _weighted_residuals(prob, x, F)):
-        acc += float((((r0.detach() - r) / h).double() ** 2).sum())
+        parts.append(((r0.detach() - r) / h).reshape(-1))
         if rm0 is not None:
-            acc += float((((rm0.detach() - rm) / h).double() ** 2).sum())
-    return acc
+            parts.append(((rm0.detach() - rm) / h).reshape(-1))
+    return torch.cat(parts)
 
 
-def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torch.Tensor | None:
+def _fd_column_sq(prob: FitProblem, base, x, F, h: float) -> float:
+    """|J_k|^2 from one stepped simulation (x, F)."""
+    return float((_fd_column(prob, base, x, F, h).double() ** 2).sum())
+
+
+# the whole Gauss-Newton matrix from the finite-difference columns while they fit in this many bytes
+# (the columns are kept until all are simulated); beyond it, the diagonal alone
+GRAM_COLUMNS_BYTES = 2 << 30
+
+
+def laplace_variance(B: torch.Tensor, gram: torch.Tensor, rcond: float = 1e-9) -> torch.Tensor:
+    """Per row b_p of B: b_p (J^T J)^-1 b_p^T, in the eigenbasis of J^T J (sum_i (b_p . v_i)^2 / lambda_i),
+    an eigenvalue floored at rcond x the largest: a direction the video does not pin gets a huge, finite
+    variance, and a row that does not reach it is not swamped by round-off (its projection is squared
+    before it is divided)."""
+    g = 0.5 * (gram + gram.T)
+    w, V = torch.linalg.eigh(g)
+    top = float(w.max()) if w.numel() else 0.0
+    w = w.clamp_min(rcond * max(top, 1e-300))
+    return ((B @ V) ** 2 / w[None, :]).sum(1)
+
+
+def _gn_gram_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torch.Tensor | None:
+    """J^T J (K x K) from the finite-difference columns (`_gn_diag_fd`'s simulations; its columns kept
+    instead of their squared norms); where K columns would not fit `GRAM_COLUMNS_BYTES`, only the
+    diagonal (a diagonal matrix). None as `_gn_diag_fd`."""
+    K = int(mat.theta.numel())
+    n = sum(r.numel() + (rm.numel() if rm is not None else 0) for r, rm in base)
+    if K * n * 4 > GRAM_COLUMNS_BYTES:
+        d = _gn_diag_fd(prob, mat, nu, tr, eff, base)
+        return None if d is None else torch.diag(d)
+    cols = _gn_diag_fd(prob, mat, nu, tr, eff, base, columns=True)
+    if cols is None:
+        return None
+    C = torch.stack(cols).double()
+    return (C @ C.T).to(mat.theta.detach())
+
+
+def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, columns: bool = False):
     """diag(J^T J) from one-sided finite differences of the weighted residuals `base` (at the
     current coefficients): coefficient k stepped down by h_k, h_k such that log E moves by
     FD_LOG_E_STEP where basis function k acts most. None when a stepped simulation fails or the
-    adaptive substep changes (a different rollout: not a derivative)."""
+    adaptive substep changes (a different rollout: not a derivative). `columns`: the list of the
+    columns J_k themselves (`_fd_column`) instead of the diagonal."""
     theta = mat.theta
     with torch.no_grad():
         s_ = torch.sigmoid(mat.u())
@@ -900,9 +976,10 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
         reach = (mat.B.abs() * dlog[:, None]).amax(0)                # (K,) d log E / d theta_k at most
     substeps = getattr(prob.sim, "substeps", None)
     diag = torch.zeros_like(theta.detach())
-    par = _gn_diag_fd_threaded(prob, mat, nu, tr, eff, base, reach, diag)
+    cols: list | None = [] if columns else None
+    par = _gn_diag_fd_threaded(prob, mat, nu, tr, eff, base, reach, diag, cols)
     if par is not False:
-        return par
+        return cols if (columns and par is not None) else par
     for k in range(int(theta.numel())):
         h = float(min(FD_LOG_E_STEP / max(float(reach[k]), 1e-12), 1.0))
         step = torch.zeros_like(theta.detach())
@@ -918,11 +995,14 @@ def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torc
                 mat.theta = theta
             if getattr(prob.sim, "substeps", None) != substeps:
                 return None
-        diag[k] = _fd_column_sq(prob, base, x, F, h)
-    return diag
+        if cols is not None:
+            cols.append(_fd_column(prob, base, x, F, h))
+        else:
+            diag[k] = _fd_column_sq(prob, base, x, F, h)
+    return cols if columns else diag
 
 
-def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, reach, diag):
+def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, reach, diag, cols=None):
     """`_gn_diag_fd`'s simulations as independent jobs on two threads (`Simulation.simulate_each`: the
     second core), the same values; False where that does not apply (a problem whose simulation is not
     a Simulation's, or a stepped field that would move the rung: the sequential loop decides those)."""
@@ -952,5 +1032,8 @@ def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base
             if isinstance(r_, SimulationError):
                 return None
             x, F = r_
-            diag[k] = _fd_column_sq(prob, base, x, F, h)
+            if cols is not None:
+                cols.append(_fd_column(prob, base, x, F, h))
+            else:
+                diag[k] = _fd_column_sq(prob, base, x, F, h)
     return diag

@@ -293,8 +293,12 @@ def strain_exposure(prob, youngs, poisson, trajectories=None, effects=None, fram
             _, F = prob.simulate(t(youngs), t(poisson), trajectories, effects)
         except SimulationError:
             return None
-    ks = list(range(1, prob.T)) if frames is None else list(frames)
-    Fs = torch.stack([F[k] for k in ks]).detach().to("cpu", torch.float64).numpy()
+    return exposure_of_rollout(F, list(range(1, prob.T)) if frames is None else list(frames))
+
+
+def exposure_of_rollout(F, frames) -> np.ndarray | None:
+    """`strain_exposure` of a rollout's deformation gradients F (per frame (P, 3, 3)) over `frames`."""
+    Fs = torch.stack([F[k] for k in frames]).detach().to("cpu", torch.float64).numpy()
     sv = np.linalg.svd(Fs, compute_uv=False)
     h2 = (np.log(np.clip(sv, 1e-6, None)) ** 2).sum(-1)           # (frames, P)
     out = h2.mean(0)
