@@ -16,12 +16,22 @@ from pathlib import Path
 
 
 def rows_of(paths, variant: str | None) -> list[dict]:
-    out = {}
+    out, best = {}, {}
     for p in paths:
         for line in Path(p).read_text().splitlines():
+            if not line.startswith("{"):      # a log's other lines
+                continue
+            r = json.loads(line)
+            if r.get("ma_best_uniform") is not None:
+                best[r["scene"]] = r["ma_best_uniform"]
+    for p in paths:
+        for line in Path(p).read_text().splitlines():
+            if not line.startswith("{"):
+                continue
             r = json.loads(line)
             if r.get("by_truth_level") is None or (variant and r.get("variant", variant) != variant):
                 continue
+            r.setdefault("ma_best_uniform", best.get(r["scene"]))
             out[r["scene"]] = r          # the last row of a scene wins
     return [out[k] for k in sorted(out)]
 
@@ -32,7 +42,9 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         first = True
         for lv in r["by_truth_level"]:
-            head = f"{r['scene']} | {r['ma']:.3f} ({r['ma_best_uniform']:.3f})" if first else " | "
+            bu = r.get("ma_best_uniform")
+            head = (f"{r['scene']} | {r['ma']:.3f} ({bu:.3f})" if bu is not None else f"{r['scene']} | {r['ma']:.3f}") \
+                if first else " | "
             conf = f"{lv['confidence']:.2f}" if lv.get("confidence") is not None else "-"
             lines.append(f"| {head} | {lv['e_truth']:.3g} | {lv['share']:.2f} | {lv['ma']:.2f} | "
                          f"{lv['ratio_median']:.2f} ({lv['ratio_q25']:.2f}-{lv['ratio_q75']:.2f}) | {conf} | "

@@ -33,7 +33,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 VARIANTS = {"damp": {"nuisance_damping": True}, "gn3": {"gn_steps": 3}, "parts0": {"parts_start": 0}, "parts20": {"parts_start": 20}, "parts40": {"parts_start": 40},
-            "lr03": {"lr_material": 0.3}}
+            "lr03": {"lr_material": 0.3},
+            # a finer third level (#24, 21st session: the suite's fits compress the stiff/soft contrast)
+            "lv32": {"levels": (1, 8, 32), "level_share": (0.2, 0.35, 0.45)}}
 
 
 def parse_variant(v: str) -> tuple[str, dict]:
@@ -118,7 +120,12 @@ def variant_worker(a) -> None:
                       settings_overrides={"schedule": "bumps", **over})
         r = out.result
         e_gt = np.asarray(read_gt_array(gt, "youngs_modulus.npy"), np.float64)
-        row.update(ma=M.material_accuracy(np.asarray(r.youngs_gaussian, np.float64), e_gt),
+        e_fit = np.asarray(r.youngs_gaussian, np.float64)
+        conf = np.asarray(r.confidence_gaussian, np.float64)
+        pos = read_gt_array(gt, "gaussian_positions.npy")
+        row.update(by_truth_level=M.ma_by_truth_level(e_fit, e_gt, conf, M.strain_exposure(pos[0], pos)),
+                   calibration=M.confidence_calibration(e_fit, e_gt, conf))
+        row.update(ma=M.material_accuracy(e_fit, e_gt),
                    final_loss=r.final_loss, median_e=float(np.median(r.youngs)),
                    median_e_truth=float(np.median(e_gt)), effect_parameters=r.effect_parameters,
                    levers={k: r.model.get(k) for k in ("parts_start", "gauss_newton") if r.model.get(k)})
