@@ -221,3 +221,52 @@ def test_what_the_video_cannot_see_gets_confidence_zero(problem):
     assert held.any() and (unseen & ~held).any() and (~unseen).sum() > len(unseen) // 2
     assert np.all(on[unseen] == 0.0) and np.all(off[unseen] > 0.0)
     np.testing.assert_allclose(on[~unseen], off[~unseen], rtol=1e-6)
+
+
+def test_the_sandwich_is_zero_where_the_frames_agree_and_their_spread_where_they_do_not():
+    """The frame-clustered sandwich (opt-in `covariance="sandwich"`): G^-1 M G^-1 with M the frames'
+    gradients' spread. Frames that agree (equal gradients) give 0; two halves pulling a coefficient
+    apart by +-a give b G^-1 M G^-1 b with M = T/(T-1) x T a^2 (the sum over the frames), by hand."""
+    from physinteract_usd.fit.optimize import sandwich_variance
+
+    G = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
+    B = torch.tensor([[1.0, 0.0], [0.5, 0.5]], dtype=torch.float64)
+    same = torch.tensor([[0.3, -0.1]] * 6, dtype=torch.float64)
+    assert torch.all(sandwich_variance(B, G, same) < 1e-24)
+    a = 0.7
+    split = torch.tensor([[a, 0.0]] * 3 + [[-a, 0.0]] * 3, dtype=torch.float64)
+    M = np.array([[a * a, 0.0], [0.0, 0.0]]) * 6 * 6 / 5
+    Gi = np.linalg.inv(G.numpy())
+    want = np.einsum("pk,kl,lm,mn,pn->p", B.numpy(), Gi, M, Gi, B.numpy())
+    np.testing.assert_allclose(sandwich_variance(B, G, split).numpy(), want, rtol=1e-12)
+
+
+def test_the_sandwich_option_widens_the_interval_by_the_frames_spread(problem):
+    """On the tiny cantilever off its truth (the frames disagree about E), `covariance="sandwich"`
+    never narrows the Laplace interval, widens it somewhere, and equals the larger of the two."""
+    from physinteract_usd.fit import optimize as O
+
+    prob, sd = problem
+    conf_full, sig_full = confidence(prob, _field(prob, sd), [], probes=4, return_sigma=True, exposure_floor=0)
+    seen = {}
+    sv = O.sandwich_variance
+
+    def spy(B, G, g, *a, **kw):
+        out = sv(B, G, g, *a, **kw)
+        seen["v"] = out.clone()
+        return out
+
+    O.sandwich_variance = spy
+    try:
+        conf_sw, sig_sw = confidence(prob, _field(prob, sd), [], probes=4, return_sigma=True, exposure_floor=0,
+                                     covariance="sandwich")
+    finally:
+        O.sandwich_variance = sv
+    assert np.all(sig_sw >= sig_full * (1 - 1e-6)) and np.any(sig_sw > 1.05 * sig_full)
+    assert np.all(conf_sw <= conf_full + 1e-7)
+    mat = _field(prob, sd)
+    with torch.no_grad():
+        s_ = torch.sigmoid(mat.u()).double().numpy()
+    dlog = (mat.hi - mat.lo) * s_ * (1 - s_)
+    wider = sig_sw > 1.01 * sig_full
+    np.testing.assert_allclose(sig_sw[wider], np.sqrt(seen["v"].numpy()[wider]) * dlog[wider], rtol=1e-5)

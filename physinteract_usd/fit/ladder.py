@@ -371,7 +371,7 @@ def fit_ladder(prob: FitProblem, s: FitSettings, *, progress=True, log=None, sta
     model["regions"] = int(mat.K)
     if s.confidence_probes > 0 and not interrupted:
         conf, sigma = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, return_sigma=True,
-                                  effects=effects)
+                                  effects=effects, covariance=s.confidence_covariance)
         log_e = mat.region_log_e()
         model["region_e"] = [float(np.exp(v)) for v in log_e]
         model["region_particles"] = [int((lad.labels == r).sum()) for r in range(mat.K)]

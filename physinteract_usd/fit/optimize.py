@@ -51,6 +51,9 @@ class FitSettings:
     joint: bool = True
     search_evals: int = 7               # golden-section steps for the uniform E
     confidence_probes: int = 4
+    confidence_covariance: str = "full"  # the confidence's interval (optimize.confidence): "full" (the Laplace
+                                        # covariance), "sandwich" (the larger of it and the frame-clustered sandwich),
+                                        # "diag" (the diagonal's bound). #24
     seed: int = 0
     fit_poisson_levels: int = 2         # nu is fitted while the basis has at most this many levels
     schedule: str = "bumps"             # "ladder": model selection, uniform E -> regions split by score
@@ -606,7 +609,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             # value; what the video says about them alone is what the confidence reports)
             mat.centre_mask = None
             mat.refine(max(levels))
-        conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now())
+        conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now(),
+                          covariance=s.confidence_covariance)
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
     if mat.base is not None:
         model["nested"] = True                    # the field was an offset on a fixed base's E
@@ -802,6 +806,9 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     `residual_correlation`): what is left after a fit is mostly model error (discretisation, missing
     effects), smooth in space and persistent in time, not independent pixel noise, and counting
     every pixel as independent evidence claims a precision the data do not hold.
+    `covariance="sandwich"` (opt-in, `FitSettings.confidence_covariance`): the larger of that and the
+    frame-clustered sandwich (`sandwich_variance`: how far the frames' own gradients disagree), which sees
+    a model error that pulls the frames apart, not one they all share.
     With "fd" the columns give the whole Gauss-Newton matrix J^T J (`covariance="full"`, the default):
     sigma(log E_p)^2 = dlogE_p^2 B_p Sigma B_p^T, Sigma = noise x (J^T J)^-1 (the Laplace covariance: a
     valley along which two regions' E trade, which the diagonal cannot see, widens both; a direction
@@ -842,7 +849,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     diag = gram = None
     used = "probes"
     if use_fd:
-        gram = _gn_gram_fd(prob, mat, nu, tr, eff, res)
+        gram, frame_grads = _gn_gram_fd(prob, mat, nu, tr, eff, res, per_frame=True)
         if gram is not None:
             diag = torch.diagonal(gram).clone()
             used = "fd"
@@ -869,8 +876,11 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     with torch.no_grad():
         s = torch.sigmoid(mat.u())                     # (a nested field's base included)
         dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
-        if gram is not None and covariance == "full":
-            var = noise_var * laplace_variance(mat.B.detach().double().cpu(), gram.double().cpu())
+        if gram is not None and covariance in ("full", "sandwich"):
+            Bd = mat.B.detach().double().cpu()
+            var = noise_var * laplace_variance(Bd, gram.double().cpu())
+            if covariance == "sandwich" and frame_grads is not None:
+                var = torch.maximum(var, sandwich_variance(Bd, gram.double().cpu(), frame_grads.cpu()))
             sigma_p = torch.sqrt(var).to(dlog) * dlog
         else:
             sigma_p = (mat.B * sigma_theta[None, :]).sum(1) * dlog
@@ -947,20 +957,51 @@ def laplace_variance(B: torch.Tensor, gram: torch.Tensor, rcond: float = 1e-9) -
     return ((B @ V) ** 2 / w[None, :]).sum(1)
 
 
-def _gn_gram_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base) -> torch.Tensor | None:
+def sandwich_variance(B: torch.Tensor, gram: torch.Tensor, frame_grads: torch.Tensor,
+                      rcond: float = 1e-9) -> torch.Tensor:
+    """Per row b_p of B: b_p S b_p^T, S = G^-1 M G^-1 the frame-clustered sandwich covariance: G = J^T J,
+    M = T / (T - 1) sum_f (g_f - mean g)(g_f - mean g)^T over the frames' gradients g_f (T, K). Where the
+    frames agree on the coefficients (every g_f alike) it is 0; where they pull apart (the early frames
+    want one E and the late ones another: an error of the model, not of the pixels) it is their spread.
+    G's eigenvalues floored as in `laplace_variance`."""
+    T = int(frame_grads.shape[0])
+    if T < 2:
+        return torch.zeros(B.shape[0], dtype=B.dtype)
+    g = frame_grads.to(B.dtype)
+    d = g - g.mean(0, keepdim=True)
+    M = (d.T @ d) * (T / (T - 1))
+    w, V = torch.linalg.eigh(0.5 * (gram + gram.T))
+    top = float(w.max()) if w.numel() else 0.0
+    w = w.clamp_min(rcond * max(top, 1e-300))
+    A = (B @ V) / w[None, :]                       # b_p V Lambda^-1
+    return ((A @ (V.T @ M @ V)) * A).sum(1).clamp_min(0.0)
+
+
+def _gn_gram_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, per_frame: bool = False):
     """J^T J (K x K) from the finite-difference columns (`_gn_diag_fd`'s simulations; its columns kept
     instead of their squared norms); where K columns would not fit `GRAM_COLUMNS_BYTES`, only the
-    diagonal (a diagonal matrix). None as `_gn_diag_fd`."""
+    diagonal (a diagonal matrix). None as `_gn_diag_fd`. `per_frame`: (J^T J, the frames' gradients
+    (T-1, K) of 0.5 |r_f|^2), the gradients None where only the diagonal is known."""
     K = int(mat.theta.numel())
     n = sum(r.numel() + (rm.numel() if rm is not None else 0) for r, rm in base)
     if K * n * 4 > GRAM_COLUMNS_BYTES:
         d = _gn_diag_fd(prob, mat, nu, tr, eff, base)
-        return None if d is None else torch.diag(d)
+        g = None if d is None else torch.diag(d)
+        return (g, None) if per_frame else g
     cols = _gn_diag_fd(prob, mat, nu, tr, eff, base, columns=True)
     if cols is None:
-        return None
+        return (None, None) if per_frame else None
     C = torch.stack(cols).double()
-    return (C @ C.T).to(mat.theta.detach())
+    gram = (C @ C.T).to(mat.theta.detach())
+    if not per_frame:
+        return gram
+    # each frame's gradient of 0.5 |r_f|^2: g_f = J_f^T r_f (the columns hold the frames in base's order)
+    grads, at = [], 0
+    for r, rm in base:
+        rv = torch.cat([r.detach().reshape(-1)] + ([rm.detach().reshape(-1)] if rm is not None else [])).double()
+        grads.append(C[:, at:at + rv.numel()] @ rv)
+        at += rv.numel()
+    return gram, torch.stack(grads)
 
 
 def _gn_diag_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, columns: bool = False):

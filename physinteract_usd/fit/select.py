@@ -854,7 +854,7 @@ def fit_parts(prob, s: FitSettings, labels: np.ndarray, log_e: np.ndarray, start
     parts = [{"e": float(math.exp(v)), "particles": int((labels == r).sum())} for r, v in enumerate(le)]
     if confidence_probes > 0 and not interrupted:
         conf, sigma = confidence(prob, mat, trajs, confidence_probes, seed=s.seed, return_sigma=True,
-                                 effects=eff_now())
+                                 effects=eff_now(), covariance=s.confidence_covariance)
         for r, p in enumerate(parts):
             sg = float(np.median(sigma[labels == r]))
             p["interval_95"] = [float(math.exp(le[r] - 1.96 * sg)), float(math.exp(le[r] + 1.96 * sg))]
