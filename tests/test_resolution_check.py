@@ -107,6 +107,15 @@ def test_the_extrapolated_error_predicts_the_next_refinements_change(bar):
     lv = est["levels"]
     assert lv[0]["change"] < lv[1]["change"] < c4 < est["error"] * 1.0001
     assert lv[0]["particles"] == [len(prob.x0), 8 * len(prob.x0)]
+    # one refinement at the assumed order (the CPU's default) errs toward the grid: at least the change a
+    # finer grid (cell / 4) makes, and exactly the change over (1 - 2^-1.4)^2
+    from physinteract_usd.diagnose.resolution import ASSUMED_ORDER, one_level
+
+    one = resolution_error(prob, base, res, r0, splits=(2,))
+    assert one["assumed"] and one["cos"] is None and one["order"] == ASSUMED_ORDER
+    assert one["error"] == pytest.approx(lv[0]["change"] / (1 - 2 ** -ASSUMED_ORDER) ** 2, rel=1e-9)
+    assert one["error"] == pytest.approx(one_level(lv[0]["change"], 2)["error"])
+    assert one["error"] >= c4
 
 
 def test_the_verdict_weighs_the_resolution_error():
@@ -135,7 +144,7 @@ def test_diagnose_with_the_resolution_check(bar):
     assert [lv["split"] for lv in rz["levels"]] == [2, 3] and rz["error"] > 0
     assert d["verdict"] == "adequate" and "resolution error" in d["reason"]
     json.dumps(d, allow_nan=False)
-    for bad in ("5,6", "2", "2,2", "a,b"):
+    for bad in ("5,6", "1", "2,2", "a,b", "2,3,4"):
         with pytest.raises(InputError, match="--resolution"):
             api.diagnose(bar["stage"], refit=0, starts=1, progress=False, log=lambda *a: None, write_stage=False,
                           resolution=bad)
@@ -152,3 +161,17 @@ def test_a_failed_or_empty_resolution_check_leaves_the_verdict_to_the_floor():
     d.noise = {"resolution": {"levels": [{"split": 2, "change": 0.0}], "order": None, "error": 0.0}}
     d = conclude(d)
     assert d.verdict == "adequate" and "order -" in d.reason
+
+
+def test_the_cpu_default_is_one_refinement_and_the_reason_says_the_order_was_assumed():
+    from physinteract_usd.app.diagnose import parse_resolution
+    from physinteract_usd.diagnose.core import Diagnosis, conclude
+    from physinteract_usd.diagnose.resolution import one_level
+
+    assert parse_resolution(None, "cpu") == (2,) and parse_resolution(None, "cuda") == (2, 3)
+    assert parse_resolution("3", "cpu") == (3,) and parse_resolution("off", "cuda") == ()
+    d = Diagnosis("adequate", "", [], loss=2.8e-3, floor=1.0e-3)
+    rz = one_level(0.2e-3, 2)                                 # error 0.2e-3 / (1 - 2^-1.4)^2 = 0.52e-3
+    d.noise = {"resolution": {**rz, "levels": [{"split": 2, "change": 0.2e-3}], "cos": None}}
+    d = conclude(d)
+    assert d.verdict == "adequate" and "assumed: one refinement" in d.reason

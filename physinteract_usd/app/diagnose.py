@@ -392,14 +392,15 @@ def region_labels(E: np.ndarray, max_regions: int = 8) -> np.ndarray | None:
     return inv.astype(np.int64) if len(vals) <= max_regions else None
 
 
-RESOLUTION_DEFAULT = {"cuda": (2, 3), "cpu": ()}   # `diagnose --resolution` unless said: on the GPU ~7 s a
-                                                   # diagnosis (foam_bar, H200); on the CPU off (the demo's bar at
-                                                   # cell / 3: 48k particles, 717 substeps a frame: minutes)
+RESOLUTION_DEFAULT = {"cuda": (2, 3), "cpu": (2,)}   # `diagnose --resolution` unless said: on the GPU two
+                                                   # refinements, ~7 s a diagnosis (foam_bar, H200); on the CPU one
+                                                   # (cell / 2 at an assumed order: the demo's bar 146 s, where cell / 3
+                                                   # alone took 753 s)
 
 
 def parse_resolution(spec, device: str = "cpu") -> tuple:
     """`diagnose --resolution`'s splits: None: the device's default (`RESOLUTION_DEFAULT`); False or "off":
-    off; True: (2, 3); else two different whole numbers 2-4."""
+    off; True: (2, 3); else one or two different whole numbers 2-4 (one: `resolution.one_level`, an assumed order)."""
     if spec is None:
         return RESOLUTION_DEFAULT["cuda" if str(device).startswith("cuda") else "cpu"]
     if spec is False or (isinstance(spec, str) and spec.strip().lower() == "off"):
@@ -409,9 +410,9 @@ def parse_resolution(spec, device: str = "cpu") -> tuple:
     try:
         sp = tuple(int(v) for v in (spec.split(",") if isinstance(spec, str) else spec))
     except (TypeError, ValueError):
-        raise InputError("--resolution", f"must be two splits of the cell such as 2,3, got {spec!r}") from None
-    if len(sp) != 2 or len(set(sp)) != 2 or not all(2 <= v <= 4 for v in sp):
-        raise InputError("--resolution", f"must be two different splits of the cell, each 2, 3 or 4, got {spec!r}")
+        raise InputError("--resolution", f"must be one or two splits of the cell such as 2,3, got {spec!r}") from None
+    if len(sp) not in (1, 2) or len(set(sp)) != len(sp) or not all(2 <= v <= 4 for v in sp):
+        raise InputError("--resolution", f"must be one or two different splits of the cell, each 2, 3 or 4, got {spec!r}")
     return tuple(sorted(sp))
 
 

@@ -40,12 +40,12 @@ def add_parser(sub):
     s.add_argument("--gate", type=float, default=None, metavar="SHARE",
                    help="the size gate: the share of the loss a significant candidate must predict (default 0.03, "
                         "0 under --floor-rule where refits confirm)")
-    s.add_argument("--resolution", nargs="?", const="2,3", default=None, metavar="A,B|off",
+    s.add_argument("--resolution", nargs="?", const="2,3", default=None, metavar="A[,B]|off",
                    help="weigh the fit's own resolution error in the verdict: the fitted model simulated on grids A "
                         "and B times finer (2,3 when given alone), Richardson's estimate of what the grid costs the "
-                        "fit added to the rest frame's floor before a residual is called unexplained. Default: on "
-                        "with --device cuda (seconds), off on the CPU (minutes: ~16x and ~80x a forward); 'off' "
-                        "turns it off")
+                        "fit added to the rest frame's floor before a residual is called unexplained; one split A: "
+                        "its change at an assumed order (1.4). Default: 2,3 with --device cuda (seconds), 2 on the "
+                        "CPU (~16x a forward; 2,3 would be ~100x); 'off' turns it off")
     s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--json", action="store_true", help="print the diagnosis as JSON")

@@ -1226,7 +1226,9 @@ __all__ = ["BaseState", "DiagnoseSettings", "Diagnosis", "CandidateResult", "Pro
 def _order(rz: dict) -> str:
     """The resolution check's convergence order as words (None: the finer grids did not move the frames)."""
     p = rz.get("order")
-    return "-" if p is None else f"{p:.2g}" + (", clipped" if rz.get("clipped") else "")
+    if p is None:
+        return "-"
+    return f"{p:.2g}" + (", clipped" if rz.get("clipped") else "") + (" assumed: one refinement" if rz.get("assumed") else "")
 
 
 def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
@@ -1244,8 +1246,8 @@ def conclude(diag: Diagnosis, *, excess_factor: float = 2.0) -> Diagnosis:
     budget = floor + (res_err or 0.0)
     above = floor > 0 and L > excess_factor * budget
     within = (f"; a finer simulation moves the frames by {rz['levels'][0]['change']:.3g} (cell / "
-              f"{rz['levels'][0]['split']}), the fit's own resolution error ~{res_err:.3g} (Richardson, order "
-              f"{_order(rz)}): the residual is {L / budget:.1f}x the floor and that error together"
+              f"{rz['levels'][0]['split']}), the fit's own resolution error ~{res_err:.3g} "
+              f"({'' if rz.get('assumed') else 'Richardson, '}order {_order(rz)}): the residual is {L / budget:.1f}x the floor and that error together"
               if res_err is not None and floor > 0 and rz.get("levels") else "")
     st = (getattr(diag, "_ctx", None) or {}).get("settings")
     confirmed = bool(getattr(st, "confirmed", False))

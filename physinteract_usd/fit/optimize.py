@@ -32,6 +32,7 @@ from .gauss_newton import forwards_to_iterations, gauss_newton_step
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
+from .exposure import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles
 from .search import GOLDEN, UniformProbe, golden_section, no_finite_uniform_probe
 
 
@@ -897,8 +898,6 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
 def _unseen_particles(prob: FitProblem, F, floor: float | None) -> np.ndarray | None:
     """(P,) bool: the particles whose E the video cannot see (held by a support, or barely strained
     in this rollout: `select.unconstrained_particles`); None when off (floor 0) or not known."""
-    from .select import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles
-
     floor = EXPOSURE_FLOOR if floor is None else float(floor)
     if floor <= 0 or prob.T < 2:
         return None

@@ -66,6 +66,7 @@ from .effect_params import effect_parameters, effect_values, fitted_values
 from .substep import kept_rung, pinned_substep  # noqa: F401  (re-exported: select.pinned_substep)
 from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
 from .problem import FitProblem
+from .exposure import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles  # noqa: F401  (re-exported)
 from .search import UniformProbe, golden_section, no_finite_uniform_probe
 # pure Python, in a module free of torch / warp so that `info` imports it in milliseconds (#26); re-exported here
 from ..fit_summary import DETERMINED_RATIO, ROUGH_RATIO, identifiability, model_summary, sweep_interval  # noqa: F401
@@ -294,35 +295,6 @@ def strain_exposure(prob, youngs, poisson, trajectories=None, effects=None, fram
         except SimulationError:
             return None
     return exposure_of_rollout(F, list(range(1, prob.T)) if frames is None else list(frames))
-
-
-def exposure_of_rollout(F, frames) -> np.ndarray | None:
-    """`strain_exposure` of a rollout's deformation gradients F (per frame (P, 3, 3)) over `frames`."""
-    Fs = torch.stack([F[k] for k in frames]).detach().to("cpu", torch.float64).numpy()
-    sv = np.linalg.svd(Fs, compute_uv=False)
-    h2 = (np.log(np.clip(sv, 1e-6, None)) ** 2).sum(-1)           # (frames, P)
-    out = h2.mean(0)
-    return out if np.isfinite(out).all() else None
-
-
-# a particle is "unconstrained" when its strain exposure is below this share of the object's median
-# (mean square strain: a tenth of the median is a third of its RMS strain); chosen before measuring,
-# not fitted (`fit_select(exposure_floor=...)`, benchmarks; `FitSettings.unconstrained_floor`)
-EXPOSURE_FLOOR = 0.1
-
-
-def unconstrained_particles(exposure: np.ndarray, held: np.ndarray, floor: float = EXPOSURE_FLOOR) -> np.ndarray:
-    """The particles whose E the video does not constrain (P,) bool: the held ones (a support moves
-    them whatever their E) and the free ones whose strain exposure is below `floor` x the free
-    particles' median. The rule: a particle's E enters the motion through its stress, E times its
-    strain, so a particle that barely strains moves the picture by the same amount whatever its E;
-    the floor is relative (to this object's median over this clip), not a number of Pa or pixels."""
-    held = np.asarray(held, bool)
-    e = np.asarray(exposure, np.float64)
-    free = ~held & np.isfinite(e)
-    if not free.any():
-        return held.copy()
-    return held | (free & (e < float(floor) * float(np.median(e[free]))))
 
 
 def fill_unconstrained(prob, r: FitResult, s: FitSettings, floor: float | None = None, log=None) -> FitResult:
