@@ -473,8 +473,8 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     model selection). `gate`: the size gate (a share of the loss a significant candidate must predict) in
     place of the rule's (3%, or 0 under a floor rule where refits confirm). `resolution`: the fit's own
     resolution error in the verdict (`DiagnoseSettings.resolution`: True for cell / 2 and / 3, or the
-    splits, False / "off" for none; None: on with CUDA, off on the CPU, `RESOLUTION_DEFAULT`: the base
-    simulated on those finer grids costs ~16x and ~80x a forward). `resolution_column`: the check's change at
+    splits (one: that split at an assumed order), False / "off" for none; None: `RESOLUTION_DEFAULT`, (2, 3) with
+    CUDA and (2,) on the CPU: the base simulated on those finer grids costs ~16x and ~80x a forward). `resolution_column`: the check's change at
     its first split also a base column (`DiagnoseSettings.resolution_column`, opt-in). `pair_signature`: damping vs ground,
     both accepted, decided by the ground's signature at the lowest points (`DiagnoseSettings.pair_signature`,
     opt-in)."""

@@ -179,8 +179,9 @@ class DiagnoseSettings:
     resolution: tuple = ()              # the model's own resolution error (`diagnose.resolution`): the base on grids
                                         # split by these (e.g. (2, 3): cell / 2 and / 3), Richardson's estimate of
                                         # the fit's discretisation error added to the rest frame's floor in the
-                                        # verdict's `unexplained` test (`conclude`); () off (app.diagnose: on by
-                                        # default with CUDA, off on the CPU, `--resolution`; #22)
+                                        # verdict's `unexplained` test (`conclude`); one split: at an assumed
+                                        # order (resolution.one_level); () off (app.diagnose: (2, 3) by default
+                                        # with CUDA, (2,) on the CPU, `--resolution`; #22)
     resolution_column: bool = False     # the resolution check's change at its first split (the finer model less the
                                         # base) as a base column, its amplitude free: a candidate then explains only
                                         # what a finer grid would not (needs `resolution`; opt-in, CPU-measured only:
