@@ -108,7 +108,7 @@ def test_the_extrapolated_error_predicts_the_next_refinements_change(bar):
     assert lv[0]["change"] < lv[1]["change"] < c4 < est["error"] * 1.0001
     assert lv[0]["particles"] == [len(prob.x0), 8 * len(prob.x0)]
     # one refinement at the assumed order (the CPU's default) errs toward the grid: at least the change a
-    # finer grid (cell / 4) makes, and exactly the change over (1 - 2^-1.4)^2
+    # finer grid (cell / 4) makes, and exactly the change over (1 - 2^-p)^2 at the assumed order
     from physinteract_usd.diagnose.resolution import ASSUMED_ORDER, one_level
 
     one = resolution_error(prob, base, res, r0, splits=(2,))
@@ -171,7 +171,7 @@ def test_the_cpu_default_is_one_refinement_and_the_reason_says_the_order_was_ass
     assert parse_resolution(None, "cpu") == (2,) and parse_resolution(None, "cuda") == (2, 3)
     assert parse_resolution("3", "cpu") == (3,) and parse_resolution("off", "cuda") == ()
     d = Diagnosis("adequate", "", [], loss=2.8e-3, floor=1.0e-3)
-    rz = one_level(0.2e-3, 2)                                 # error 0.2e-3 / (1 - 2^-1.4)^2 = 0.52e-3
+    rz = one_level(0.2e-3, 2)                                 # error 0.2e-3 / (1 - 2^-1)^2 = 0.8e-3
     d.noise = {"resolution": {**rz, "levels": [{"split": 2, "change": 0.2e-3}], "cos": None}}
     d = conclude(d)
     assert d.verdict == "adequate" and "assumed: one refinement" in d.reason

@@ -44,7 +44,7 @@ def add_parser(sub):
                    help="weigh the fit's own resolution error in the verdict: the fitted model simulated on grids A "
                         "and B times finer (2,3 when given alone), Richardson's estimate of what the grid costs the "
                         "fit added to the rest frame's floor before a residual is called unexplained; one split A: "
-                        "its change at an assumed order (1.4). Default: 2,3 with --device cuda (seconds), 2 on the "
+                        "its change at an assumed order (first: 1). Default: 2,3 with --device cuda (seconds), 2 on the "
                         "CPU (~16x a forward; 2,3 would be ~100x); 'off' turns it off")
     s.add_argument("--no-stage", action="store_true", help="do not store the diagnosis in the fit layer")
     s.add_argument("--device", default="cpu", help="cpu or cuda")

@@ -124,10 +124,12 @@ def richardson(changes: dict) -> dict:
             "error": ca / (1.0 - a ** -p) ** 2, "clipped": bool(p != raw)}
 
 
-# one refinement alone cannot measure the order: it is assumed. 1.4 is the low end of what two refinements measured
-# on foam_bar's 36 GPU cases (order 1.2-2.3 on most; 20th session, development data): a lower order reads a larger
-# error from the same change, so the one-level check errs toward "the grid explains it", never toward a false alarm
-ASSUMED_ORDER = 1.4
+# one refinement alone cannot measure the order: it is assumed first order, the order of MPM's transfers in practice
+# and at or below what two refinements measured almost everywhere (foam_bar's 36 GPU cases 1.2-2.3 on most, one
+# 0.86; the CPU demo's bar 1.18, bow_tie at grid 16 1.17, the walkthrough's control 2.4; development data). A lower
+# order reads a larger error from the same change (x4 at p = 1, x2.6 at 1.4), so the one-level check errs toward
+# "the grid explains it", never toward a false alarm
+ASSUMED_ORDER = 1.0
 
 
 def one_level(change: float, split: int, order: float = ASSUMED_ORDER) -> dict:
