@@ -792,7 +792,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
                method: str = "auto", return_diag: bool = False, covariance: str = "full",
                exposure_floor: float | None = None):
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
-    the estimate, from the Gauss-Newton diagonal of the current basis coefficients.
+    the estimate, from the Gauss-Newton curvature of the current basis coefficients.
 
     diag(J^T J), J the Jacobian of the weighted pixel residuals (RGB and silhouette) w.r.t. the
     coefficients, comes from one of two estimators (`method`):
@@ -821,7 +821,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     smooth basis function shares one coefficient between a strained region and a held or unstrained
     one, which would lend it the strained region's certainty): a support holds it, or its strain
     exposure in the same rollout is below `exposure_floor` x the free particles' median
-    (`select.unconstrained_particles`; default `select.EXPOSURE_FLOOR`, 0 turns it off).
+    (`exposure.unconstrained_particles`; default `exposure.EXPOSURE_FLOOR`, 0 turns it off).
     `return_diag`: (confidence, diag(J^T J), the method used) instead.
     """
     theta = mat.theta.detach().clone().requires_grad_(True)
@@ -899,7 +899,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
 
 def _unseen_particles(prob: FitProblem, F, floor: float | None) -> np.ndarray | None:
     """(P,) bool: the particles whose E the video cannot see (held by a support, or barely strained
-    in this rollout: `select.unconstrained_particles`); None when off (floor 0) or not known."""
+    in this rollout: `exposure.unconstrained_particles`); None when off (floor 0) or not known."""
     floor = EXPOSURE_FLOOR if floor is None else float(floor)
     if floor <= 0 or prob.T < 2:
         return None
@@ -992,15 +992,20 @@ def _gn_gram_fd(prob: FitProblem, mat: MaterialField, nu, tr, eff, base, per_fra
     cols = _gn_diag_fd(prob, mat, nu, tr, eff, base, columns=True)
     if cols is None:
         return (None, None) if per_frame else None
-    C = torch.stack(cols).double()
-    gram = (C @ C.T).to(mat.theta.detach())
+    # in float64 a column pair at a time (the columns stay float32: a paper-size clip's 8 columns are ~1.5 GB)
+    G = torch.zeros(K, K, dtype=torch.float64, device=cols[0].device)
+    for i in range(K):
+        ci = cols[i].double()
+        for j in range(i + 1):
+            G[i, j] = G[j, i] = ci @ cols[j].double()
+    gram = G.to(mat.theta.detach())
     if not per_frame:
         return gram
     # each frame's gradient of 0.5 |r_f|^2: g_f = J_f^T r_f (the columns hold the frames in base's order)
     grads, at = [], 0
     for r, rm in base:
         rv = torch.cat([r.detach().reshape(-1)] + ([rm.detach().reshape(-1)] if rm is not None else [])).double()
-        grads.append(C[:, at:at + rv.numel()] @ rv)
+        grads.append(torch.stack([c[at:at + rv.numel()].double() @ rv for c in cols]))
         at += rv.numel()
     return gram, torch.stack(grads)
 
