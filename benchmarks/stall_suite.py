@@ -123,7 +123,7 @@ def variant_worker(a) -> None:
         e_fit = np.asarray(r.youngs_gaussian, np.float64)
         conf = np.asarray(r.confidence_gaussian, np.float64)
         pos = read_gt_array(gt, "gaussian_positions.npy")
-        row.update(by_truth_level=M.ma_by_truth_level(e_fit, e_gt, conf, M.strain_exposure(pos[0], pos)),
+        row.update(by_truth_level=M.ma_by_truth_level(e_fit, e_gt, conf, M.peak_green_strain(pos[0], pos)),
                    calibration=M.confidence_calibration(e_fit, e_gt, conf))
         row.update(ma=M.material_accuracy(e_fit, e_gt),
                    final_loss=r.final_loss, median_e=float(np.median(r.youngs)),

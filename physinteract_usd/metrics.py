@@ -9,7 +9,7 @@
 - Material accuracy MA: the share of Gaussians whose predicted E is within 20% of the truth,
   and the MA of the best uniform E (what a single number could at most reach).
 - Where MA is lost (`ma_by_truth_level`): MA, share and E ratio per material of the truth, with the
-  truth's own strain there (`strain_exposure`: a material that never strains is not in the video);
+  truth's own strain there (`peak_green_strain`: a material that never strains is not in the video);
   and whether the fit's per-Gaussian confidence (its claimed probability of being within 20%) holds
   (`confidence_calibration`).
 """
@@ -132,7 +132,7 @@ def truth_levels(e_true, max_levels: int = 4, bins: int = 3) -> np.ndarray:
     return np.searchsorted(edges, key, side="right")
 
 
-def strain_exposure(rest, positions, k: int = 12) -> np.ndarray:
+def peak_green_strain(rest, positions, k: int = 12) -> np.ndarray:
     """Per point, the largest Frobenius norm over frames of the Green strain 0.5 (F^T F - I), F the
     least-squares affine map of its k nearest rest neighbours' offsets (rigid motion reads 0).
     rest (N, 3); positions (T, N, 3)."""

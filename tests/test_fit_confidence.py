@@ -270,3 +270,17 @@ def test_the_sandwich_option_widens_the_interval_by_the_frames_spread(problem):
     dlog = (mat.hi - mat.lo) * s_ * (1 - s_)
     wider = sig_sw > 1.01 * sig_full
     np.testing.assert_allclose(sig_sw[wider], np.sqrt(seen["v"].numpy()[wider]) * dlog[wider], rtol=1e-5)
+
+
+def test_columns_too_large_to_keep_fall_back_to_the_diagonals_rule(problem, monkeypatch):
+    """Where the K columns would not fit `GRAM_COLUMNS_BYTES`, the estimate is the diagonal's (the same
+    as `covariance="diag"`), not a quadratic form of a diagonal matrix."""
+    from physinteract_usd.fit import optimize as O
+
+    prob, sd = problem
+    want = confidence(prob, _field(prob, sd), [], probes=4, covariance="diag", exposure_floor=0)
+    full = confidence(prob, _field(prob, sd), [], probes=4, exposure_floor=0)
+    monkeypatch.setattr(O, "GRAM_COLUMNS_BYTES", 0)
+    got = confidence(prob, _field(prob, sd), [], probes=4, covariance="sandwich", exposure_floor=0)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
+    assert not np.allclose(full, want, rtol=1e-3)

@@ -84,7 +84,7 @@ def test_excluded_hand_pixels_do_not_count():
 
 
 # ------------------------------------------------------------------ where MA is lost (#24)
-def test_strain_exposure_reads_a_known_stretch_and_nothing_for_a_rigid_motion():
+def test_peak_green_strain_reads_a_known_stretch_and_nothing_for_a_rigid_motion():
     rng = np.random.default_rng(0)
     x0 = rng.uniform(-1, 1, (300, 3))
     th = 0.7
@@ -92,9 +92,9 @@ def test_strain_exposure_reads_a_known_stretch_and_nothing_for_a_rigid_motion():
     rigid = x0 @ R.T + np.array([0.3, -2.0, 1.0])
     s = 1.1                                              # 10% stretch along x: Green strain 0.5 (s^2 - 1)
     stretched = x0 * np.array([s, 1.0, 1.0])
-    e = M.strain_exposure(x0, np.stack([x0, rigid]))
+    e = M.peak_green_strain(x0, np.stack([x0, rigid]))
     assert np.max(e) < 1e-9
-    e = M.strain_exposure(x0, np.stack([x0, rigid, stretched]))
+    e = M.peak_green_strain(x0, np.stack([x0, rigid, stretched]))
     assert np.allclose(e, 0.5 * (s * s - 1), rtol=1e-9)
 
 

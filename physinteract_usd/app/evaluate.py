@@ -60,7 +60,7 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     summary = M.summarize(frames)
     ma_uniform, e_uniform = M.best_uniform_ma(e_gt)
     e_fit = anim["youngsModulus"]
-    exposure = M.strain_exposure(pos_gt[0], pos_gt)
+    exposure = M.peak_green_strain(pos_gt[0], pos_gt)
     conf = anim["confidence"]
     return {"by_truth_level": M.ma_by_truth_level(e_fit, e_gt, conf, exposure),
             "calibration": None if conf is None else M.confidence_calibration(e_fit, e_gt, conf),

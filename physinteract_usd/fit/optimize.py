@@ -809,14 +809,14 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     `residual_correlation`): what is left after a fit is mostly model error (discretisation, missing
     effects), smooth in space and persistent in time, not independent pixel noise, and counting
     every pixel as independent evidence claims a precision the data do not hold.
-    `covariance="sandwich"` (the fit's default, `FitSettings.confidence_covariance`): the larger of that and the
-    frame-clustered sandwich (`sandwich_variance`: how far the frames' own gradients disagree), which sees
-    a model error that pulls the frames apart, not one they all share.
-    With "fd" the columns give the whole Gauss-Newton matrix J^T J (`covariance="full"`, the default):
-    sigma(log E_p)^2 = dlogE_p^2 B_p Sigma B_p^T, Sigma = noise x (J^T J)^-1 (the Laplace covariance: a
-    valley along which two regions' E trade, which the diagonal cannot see, widens both; a direction
-    the video does not pin at all gives sigma -> inf, confidence 0). With the probes (or
-    `covariance="diag"`) only the diagonal is known: sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
+    With "fd" the columns give the whole Gauss-Newton matrix J^T J (`covariance="full"`, this function's
+    default): sigma(log E_p)^2 = dlogE_p^2 B_p Sigma B_p^T, Sigma = noise x (J^T J)^-1 (the Laplace
+    covariance: a valley along which two regions' E trade, which the diagonal cannot see, widens both; a
+    direction the video does not pin at all gives sigma -> inf, confidence 0). `covariance="sandwich"` (the
+    fit's default, `FitSettings.confidence_covariance`): the larger of that and the frame-clustered sandwich
+    (`sandwich_variance`: how far the frames' own gradients disagree), which sees a model error that pulls
+    the frames apart, not one they all share. With the probes, columns over `GRAM_COLUMNS_BYTES`, or
+    `covariance="diag"`, only the diagonal: sigma(log E_p) = sum_k |B_pk dlogE/dtheta_k| sigma_k.
     Where the video cannot see a particle's E the confidence is 0, whatever the curvature says (a
     smooth basis function shares one coefficient between a strained region and a held or unstrained
     one, which would lend it the strained region's certainty): a support holds it, or its strain
@@ -849,7 +849,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
         rss += float((r.detach() ** 2).sum())
         count += r.numel()
         residuals.append(r.detach().float().mean(-1).cpu().numpy())
-    diag = gram = None
+    diag = gram = frame_grads = None
     used = "probes"
     if use_fd:
         gram, frame_grads = _gn_gram_fd(prob, mat, nu, tr, eff, res, per_frame=True)
@@ -879,7 +879,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     with torch.no_grad():
         s = torch.sigmoid(mat.u())                     # (a nested field's base included)
         dlog = (mat.hi - mat.lo) * s * (1 - s)          # d logE_p / d u_p
-        if gram is not None and covariance in ("full", "sandwich"):
+        if frame_grads is not None and covariance in ("full", "sandwich"):   # the columns kept: J^T J whole
             Bd = mat.B.detach().double().cpu()
             var = noise_var * laplace_variance(Bd, gram.double().cpu())
             if covariance == "sandwich" and frame_grads is not None:
