@@ -272,6 +272,12 @@ CASES = [
      lambda w: _e_values(w, float("nan"))),
     ("evaluate-nan-splat-e", ["evaluate", "{fitted}", "--gt", "{w}/gt"], 2,
      ["fitted/scene.usda", SPLATS, "not finite"], lambda w: _e_values(w, float("nan"), "fitted", SPLATS)),
+    ("evaluate-corrupt-gt-array", ["evaluate", "{fitted}", "--gt", "{w}/gt"], 2,
+     ["gaussian_positions.npy", "not a readable .npy array"],
+     lambda w: (w / "gt" / "gaussian_positions.npy").write_text("not an array")),
+    ("evaluate-gt-array-of-objects", ["evaluate", "{fitted}", "--gt", "{w}/gt"], 2,
+     ["youngs_modulus.npy", "not a readable .npy array"],
+     lambda w: np.save(w / "gt" / "youngs_modulus.npy", np.array([{"E": 1}], dtype=object), allow_pickle=True)),
     ("simulate-negative-e", ["simulate", "{stage}", "--interaction", "{w}/pull.json"], 2, ["youngsModulus"],
      lambda w: (_e_values(w, -1.0), _spec(w, json.dumps({"contacts": [{"type": "fixed", "select": {"indices": [0]}}]})))),
     # export

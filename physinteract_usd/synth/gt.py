@@ -57,7 +57,13 @@ def read_gt_array(gt_dir, name: str) -> np.ndarray:
     p = Path(gt_dir) / name
     if not p.exists():
         raise InputError(p, "file not found (is this a synth capture's gt/ folder?)")
-    return np.load(p).astype(np.float64)
+    try:
+        a = np.load(p, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(p, f"not a readable .npy array ({str(exc).split('.')[0]})") from None
+    if not np.issubdtype(a.dtype, np.number):
+        raise InputError(p, f"holds {a.dtype} values, not numbers")
+    return a.astype(np.float64)
 
 
 def read_gt_contacts(gt_dir, x0: np.ndarray, n_frames: int) -> list[ContactSet]:
