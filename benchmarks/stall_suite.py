@@ -170,7 +170,7 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--size", default="small")
     ap.add_argument("--frames", type=int, default=14)
-    ap.add_argument("--synth-fit-grid", type=int, default=None)
+    ap.add_argument("--synth-fit-grid", default=None, help="suite.py's: N cells or auto")
     ap.add_argument("--grid", default=None)
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--work", default="out/stall_suite")

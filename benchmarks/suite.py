@@ -58,6 +58,44 @@ def device_name(device: str) -> str:
     return machine()
 
 
+def init_args(sug: dict) -> list[str]:
+    """init's flags for a capture's suggested settings (gt.json's suggested_init), the grid aside."""
+    return ["--padding", str(sug["padding"]), "--youngs-range", ",".join(str(v) for v in sug["youngs_range"]),
+            "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"])]
+
+
+def auto_fit_grid(scene: str, a, work: Path, log) -> int | None:
+    """The grid `init --grid auto` (with this run's caps) chooses for the scene's object: a 3-frame probe capture
+    at the size's suggested grid (the object does not depend on the frames), init, its recorded grid choice;
+    the probe's files removed. With `synth --fit-grid` that grid the truth is simulated on a cell 0.7x the
+    fit's at `--grid auto`, as docs/synth.md means it (finer than the fit's): at the size's suggested grid
+    (24 small) a scene whose thinnest part makes auto choose 44-59 cells got a truth coarser than its fit
+    (22nd session, docs/benchmarks/fit.md)."""
+    probe = work / f".{scene}.gridprobe"
+    st = work / f".{scene}.gridprobe.usda"
+    try:
+        rc, _ = run(["synth", scene, str(probe), "--size", a.size, "--device", a.device, "--force", "--frames", "3"],
+                    log)
+        if rc:
+            return None
+        caps = ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
+            ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
+        sug = json.loads((probe / "gt" / "gt.json").read_text())["suggested_init"]
+        rc, _ = run(["init", str(st), "--capture", str(probe), "--grid", "auto", "--force", *init_args(sug), *caps], log)
+        if rc:
+            return None
+        info = json.loads(subprocess.run([sys.executable, "-m", "physinteract_usd", "info", str(st), "--json"],
+                                         capture_output=True, text=True).stdout)
+        n = int((info["simulation"].get("grid_choice") or {})["grid"])
+        log.write(f"synth --fit-grid auto: init --grid auto chooses {n} cells for {scene}\n")
+        return n
+    finally:
+        shutil.rmtree(probe, ignore_errors=True)
+        for suffix in (".usda", ".init.usdc", ".fit.usdc"):
+            (work / f".{scene}.gridprobe{suffix}").unlink(missing_ok=True)
+        shutil.rmtree(work / f".{scene}.gridprobe.versions", ignore_errors=True)
+
+
 def one(scene: str, a, work: Path) -> dict:
     cap = work / scene
     st = work / f"{scene}.usda"
@@ -68,13 +106,19 @@ def one(scene: str, a, work: Path) -> dict:
             cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
             if a.frames:
                 cmd += ["--frames", str(a.frames)]
-            if a.synth_fit_grid:
+            if a.synth_fit_grid == "auto":
+                n = auto_fit_grid(scene, a, work, log)
+                if n is None:
+                    return {**row, "error": "synth --fit-grid auto: the probe capture failed (see log)"}
+                cmd += ["--fit-grid", str(n)]
+            elif a.synth_fit_grid:
                 cmd += ["--fit-grid", str(a.synth_fit_grid)]
             rc, t = run(cmd, log)
             if rc:
                 return {**row, "error": "synth failed"}
         gt = json.loads((cap / "gt" / "gt.json").read_text())
         sug = gt["suggested_init"]
+        row["synth_fit_grid"] = sug["grid"]      # the grid the truth was made for (its cell 0.7x that grid's)
         grid = a.grid or sug["grid"]
         caps = ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
             ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
@@ -88,9 +132,7 @@ def one(scene: str, a, work: Path) -> dict:
                 shutil.rmtree(hidden)
             shutil.move(str(gt_dir), str(hidden))
             gt_dir = hidden
-        rc, _ = run(["init", str(st), "--capture", str(cap), "--grid", str(grid), "--padding", str(sug["padding"]),
-                     "--youngs-range", ",".join(str(v) for v in sug["youngs_range"]),
-                     "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"]), *caps], log)
+        rc, _ = run(["init", str(st), "--capture", str(cap), "--grid", str(grid), *init_args(sug), *caps], log)
         if rc:
             return {**row, "error": "init failed"}
         info = json.loads(subprocess.run([sys.executable, "-m", "physinteract_usd", "info", str(st), "--json"],
@@ -165,6 +207,15 @@ def chosen_model(stage: Path) -> dict:
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
+def _synth_grid(v: str):
+    if v == "auto":
+        return v
+    try:
+        return int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number of cells or auto, got {v!r}") from None
+
+
 def grid_key(a) -> str:
     """Which grid a row was made with: "suggested" (the capture's), a number, or "auto"."""
     return "suggested" if a.grid is None else str(a.grid)
@@ -210,9 +261,10 @@ def main(argv=None):
     ap.add_argument("--scenes", default=None, help="comma-separated (default: every scene)")
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--frames", type=int, default=None)
-    ap.add_argument("--synth-fit-grid", type=int, default=None,
+    ap.add_argument("--synth-fit-grid", type=_synth_grid, default=None,
                     help="synth --fit-grid for captures it makes: the truth simulated on a cell 0.7x that grid's "
-                         "(use a separate --out: the captures differ)")
+                         "(use a separate --out: the captures differ); auto: the grid init --grid auto chooses "
+                         "for the scene's object (a 3-frame probe capture), so the truth is finer than that fit")
     ap.add_argument("--grid", type=grid_arg, default=None,
                     help="override the suggested init grid: N cells, or auto (rows are kept per grid too)")
     ap.add_argument("--max-grid", type=int, default=None, help="init's cap with --grid auto (default init's, 128)")
