@@ -169,6 +169,7 @@ def one(scene: str, a, work: Path) -> dict:
         ev = json.loads(p.stdout)
         row.update({k: ev[k] for k in ("ma", "ma_best_uniform", "psnr", "psnr_masked", "ssim", "iou",
                                         "position_error_m", "by_truth_level", "calibration")})
+        row["truth_resolution"] = ev.get("truth_resolution")
         row["hidden_effect"] = gt.get("hidden_effect")
         row.update(uniform_mas(row.get("model") or {}, cap / "gt"))
     return row

@@ -199,3 +199,21 @@ def confidence_calibration(e_pred, e_true, confidence, edges=(0.0, 0.2, 0.5, 0.8
                          "ma": float(ok[m].mean())})
     return {"claimed": float(c.mean()), "ma": float(ok.mean()), "confident_wrong": float(((c >= 0.8) & ~ok).mean()),
             "bins": bins}
+
+
+def truth_resolution(truth_cell: float | None, fit_cell: float) -> dict | None:
+    """Whether a synthetic truth was simulated finer than the fit it scores (docs/synth.md: its cell 0.7x the
+    suggested fit's). A truth on a cell as coarse as the fit's or coarser is another discretisation, not the
+    continuum the fit approximates: its own discretisation error reads as material error (the 22nd session's
+    suite: bow_tie's truth on 14 mm cells scored a fit on 9.4 mm at MA 0.22; the same scene's truth made for the
+    fit's grid, 0.79; docs/benchmarks/fit.md). None when the truth's cell is not known (an older gt.json)."""
+    if truth_cell is None or not truth_cell > 0 or not fit_cell > 0:
+        return None
+    ratio = float(truth_cell) / float(fit_cell)
+    finer = ratio < 0.95
+    note = None if finer else (
+        f"the ground truth was simulated on a {truth_cell * 1000:.3g} mm cell, {'as coarse as' if ratio < 1.05 else 'coarser than'} "
+        f"this fit's {fit_cell * 1000:.3g} mm: MA also measures the truth's discretisation (make the capture for "
+        f"the fit's grid: synth --fit-grid N, N >= the stage's grid)")
+    return {"truth_cell_m": float(truth_cell), "fit_cell_m": float(fit_cell), "ratio": ratio, "finer": finer,
+            "note": note}

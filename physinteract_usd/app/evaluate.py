@@ -4,6 +4,7 @@ re-rendering the stage's animation, and the Gaussians' 3D position error."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +19,20 @@ from ..usd.fit_io import read_splat_animation
 from .adapters import hand_masks, load_observations, read_scene, true_hand_masks
 
 
+def _truth_cell(gt_dir: Path) -> float | None:
+    """The truth simulation's grid cell from gt.json's gt_sim (None where the file or the field is missing or
+    unreadable: only the resolution note depends on it)."""
+    try:
+        return float(json.loads((gt_dir / "gt.json").read_text())["gt_sim"]["dx"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     """{"ma", "ma_best_uniform", "best_uniform_e", "psnr", "psnr_masked", "ssim", "iou",
     "position_error_m", "frames": [per-frame metrics], "by_truth_level": [where MA is lost, per material
-    of the truth, with the truth's strain there], "calibration": {the fit's confidence against its hits}}."""
+    of the truth, with the truth's strain there], "calibration": {the fit's confidence against its hits},
+    "truth_resolution": {whether the truth was simulated finer than this fit (`metrics.truth_resolution`)}}."""
     gt_dir = Path(gt_dir)
     for f in ("youngs_modulus.npy", "gaussian_positions.npy"):
         if not (gt_dir / f).exists():
@@ -62,7 +73,8 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     e_fit = anim["youngsModulus"]
     exposure = M.peak_green_strain(pos_gt[0], pos_gt)
     conf = anim["confidence"]
-    return {"by_truth_level": M.ma_by_truth_level(e_fit, e_gt, conf, exposure),
+    return {"truth_resolution": M.truth_resolution(_truth_cell(gt_dir), float(sd.settings.cell_size)),
+            "by_truth_level": M.ma_by_truth_level(e_fit, e_gt, conf, exposure),
             "calibration": None if conf is None else M.confidence_calibration(e_fit, e_gt, conf),
             "ma": M.material_accuracy(anim["youngsModulus"], e_gt), "ma_best_uniform": ma_uniform,
             "best_uniform_e": e_uniform, "psnr": summary["psnr"], "psnr_masked": summary["psnr_masked"],

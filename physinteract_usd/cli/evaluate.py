@@ -21,7 +21,8 @@ def run(a) -> int:
     keys = ("ma", "psnr", "psnr_masked", "ssim", "iou", "position_error_m")
     if a.json:
         print(json.dumps({**{k: d[k] for k in keys}, "ma_best_uniform": d["ma_best_uniform"],
-                          "by_truth_level": d["by_truth_level"], "calibration": d["calibration"]}, indent=2))
+                          "by_truth_level": d["by_truth_level"], "calibration": d["calibration"],
+                          "truth_resolution": d["truth_resolution"]}, indent=2))
     else:
         print(f"{'metric':22s} value")
         print(f"{'MA':22s} {d['ma']:.3f}   (best uniform E: {d['ma_best_uniform']:.3f} at {d['best_uniform_e']:.3g} Pa)")
@@ -41,4 +42,7 @@ def run(a) -> int:
         if c is not None:
             print(f"confidence: the fit expects MA {c['claimed']:.2f}, finds {c['ma']:.2f}; "
                   f"confident (>= 0.8) and wrong: {c['confident_wrong']:.2f} of the Gaussians")
+        tr = d["truth_resolution"]
+        if tr is not None and tr["note"]:
+            print(f"note: {tr['note']}")
     return 0
