@@ -16,6 +16,11 @@ name:key=value,key=value).
     python benchmarks/stall_suite.py --scenes foam_bar,hemp_rope,balloon_dog,toy_rope --device cuda \
         --size small --frames 14 --synth-fit-grid 128 --grid auto --iterations 20 --work /tmp/ss \
         --out $OUT/stall_suite.jsonl --jobs 4
+
+The suite's standard since the 22nd session (every truth finer than its fit; docs/benchmarks/fit.md, top): the
+first half as above (`foam_bar,hemp_rope,balloon_dog,toy_rope,telephone_cable,tow_rope`, `--synth-fit-grid 128`), the
+second half (`balloon,bow_tie,glove,flower,basketball,knit_cap`) with `--synth-fit-grid auto` (the truth made for the
+grid init's auto chooses; at the size's 24, bow_tie's, glove's and flower's truths were coarser than their fits).
 """
 
 from __future__ import annotations
