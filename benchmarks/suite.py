@@ -102,20 +102,34 @@ def one(scene: str, a, work: Path) -> dict:
     row = {"scene": scene, "size": a.size, "device": device_name(a.device), "schedule": a.schedule,
            "grid_arg": grid_key(a), "tag": a.tag}
     with open(work / f"{scene}.log", "a") as log:
-        if not (cap / "gt" / "gt.json").exists():
-            cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
-            if a.frames:
-                cmd += ["--frames", str(a.frames)]
-            if a.synth_fit_grid == "auto":
+        # the truth's grid: as asked; with --grid auto and none asked, auto's (a truth finer than the fit)
+        want = a.synth_fit_grid if a.synth_fit_grid is not None else ("auto" if a.grid == "auto" else None)
+        gj = cap / "gt" / "gt.json"
+        marker = cap / ".synth_fit_grid_auto"        # a capture made for auto's grid (its number inside)
+        have = json.loads(gj.read_text())["suggested_init"]["grid"] if gj.exists() else None
+        n = None
+        if want == "auto":
+            if have is not None and marker.exists() and marker.read_text().strip() == str(have):
+                n = have
+            else:
                 n = auto_fit_grid(scene, a, work, log)
                 if n is None:
                     return {**row, "error": "synth --fit-grid auto: the probe capture failed (see log)"}
+        elif want is not None:
+            n = int(want)
+        if have is None or (n is not None and n != have):
+            if have is not None:
+                log.write(f"the capture was made for grid {have}, this run's truth is for {n}: made again\n")
+            cmd = ["synth", scene, str(cap), "--size", a.size, "--device", a.device, "--force"]
+            if a.frames:
+                cmd += ["--frames", str(a.frames)]
+            if n is not None:
                 cmd += ["--fit-grid", str(n)]
-            elif a.synth_fit_grid:
-                cmd += ["--fit-grid", str(a.synth_fit_grid)]
             rc, t = run(cmd, log)
             if rc:
                 return {**row, "error": "synth failed"}
+        if want == "auto":
+            marker.write_text(str(n))
         gt = json.loads((cap / "gt" / "gt.json").read_text())
         sug = gt["suggested_init"]
         row["synth_fit_grid"] = sug["grid"]      # the grid the truth was made for (its cell 0.7x that grid's)
@@ -263,9 +277,10 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--synth-fit-grid", type=_synth_grid, default=None,
-                    help="synth --fit-grid for captures it makes: the truth simulated on a cell 0.7x that grid's "
-                         "(use a separate --out: the captures differ); auto: the grid init --grid auto chooses "
-                         "for the scene's object (a 3-frame probe capture), so the truth is finer than that fit")
+                    help="synth --fit-grid for captures it makes: the truth simulated on a cell 0.7x that grid's; "
+                         "auto: the grid init --grid auto chooses for the scene's object (a 3-frame probe capture), "
+                         "so the truth is finer than that fit (the default with --grid auto; else the size's grid). "
+                         "A capture in --out made for another grid is made again")
     ap.add_argument("--grid", type=grid_arg, default=None,
                     help="override the suggested init grid: N cells, or auto (rows are kept per grid too)")
     ap.add_argument("--max-grid", type=int, default=None, help="init's cap with --grid auto (default init's, 128)")

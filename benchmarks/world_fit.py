@@ -118,7 +118,7 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
     ev = api.evaluate(stage, gt, device=device)
     row = {"scene": n, "ma": ev["ma"], "ma_best_uniform": ev.get("ma_best_uniform"), "psnr": ev["psnr"],
            "psnr_masked": ev["psnr_masked"], "ssim": ev.get("ssim"), "iou": ev.get("iou"),
-           "position_error_m": ev.get("position_error_m"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
+           "position_error_m": ev.get("position_error_m"), "truth_resolution": ev.get("truth_resolution"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
            "device": device, "true_contacts": bool(true_contacts), "effects": effects, "settings": dict(overrides or {}), "stopped_by": out.stopped_by,
            "interaction_check": [m for m in said if m.startswith(("interaction check", "the interaction may",
                                                                   "the contact may", "the fitted"))]}

@@ -213,7 +213,8 @@ def truth_resolution(truth_cell: float | None, fit_cell: float) -> dict | None:
     finer = ratio < 0.95
     note = None if finer else (
         f"the ground truth was simulated on a {truth_cell * 1000:.3g} mm cell, {'as coarse as' if ratio < 1.05 else 'coarser than'} "
-        f"this fit's {fit_cell * 1000:.3g} mm: MA also measures the truth's discretisation (make the capture for "
-        f"the fit's grid: synth --fit-grid N, N >= the stage's grid)")
+        f"this fit's {fit_cell * 1000:.3g} mm: MA also measures the truth's discretisation (score a fit on a cell at "
+        f"least {truth_cell / 0.7 * 1000:.3g} mm, or, for a named scene, make the capture for this grid: "
+        f"synth NAME --fit-grid N)")
     return {"truth_cell_m": float(truth_cell), "fit_cell_m": float(fit_cell), "ratio": ratio, "finer": finer,
             "note": note}
