@@ -15,7 +15,8 @@
 # Env: OUT (default out/gpu_world), WORK (default /tmp/world_<split>), ITER (fit iterations, 25),
 # JOBS (4), DEVICE (cuda; cpu for a local smoke test), FIT_SETTINGS (FitSettings overrides for
 # world_fit.py, e.g. search_evals=2,confidence_probes=0 for a smoke test, schedule=select), GRID (init's
-# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules, model or hybrid: extract's
+# --grid for every capture, e.g. auto; default the capture's suggested grid), MAX_PARTICLES (its cap), TRUTH_FOR_AUTO (synth
+# --truth-for-auto N: the truth finer than that auto fit too; use with GRID=auto and MAX_PARTICLES=N), TRUTH_SWEEP (1: world_fit.py --truth-sweep), TIMING (rules, model or hybrid: extract's
 # timing method, world_suite.py --timing; default the code's), NOFIT (1: generate and
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # TRUE_CONTACTS (1: world_fit.py --true-contacts: the fit from the truth's interaction and floor, the material
@@ -36,6 +37,7 @@ DEVICE="${DEVICE:-cuda}"
 FIT_SETTINGS="${FIT_SETTINGS:-}"
 GRID="${GRID:-}"
 MAX_PARTICLES="${MAX_PARTICLES:-}"
+TRUTH_FOR_AUTO="${TRUTH_FOR_AUTO:-}"   # synth --truth-for-auto N: the truth finer than init --grid auto's fit at that cap
 TRUTH_SWEEP="${TRUTH_SWEEP:-}"
 NOFIT="${NOFIT:-}"
 TIMING="${TIMING:-}"
@@ -68,7 +70,8 @@ worker() {
   [ "${NGPUS:-1}" -gt 1 ] && export CUDA_VISIBLE_DEVICES=$(( s % NGPUS ))
   {
     t0=$(date +%s)
-    step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" || return
+    step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" \
+      ${TRUTH_FOR_AUTO:+--truth-for-auto "$TRUTH_FOR_AUTO"} || return
     t1=$(date +%s)
     step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
       --json "$ROWS/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
@@ -83,7 +86,7 @@ worker() {
   grep -E "^$n|Error|error" "$ROWS/$n.log" | head -5
 }
 export -f worker step
-export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING
+export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING TRUTH_FOR_AUTO
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time

@@ -98,7 +98,7 @@ def guard(work: Path, split: str, final: bool, tool: str) -> None:
         mark_validation(work)
 
 
-def generate(work: Path, split: str, seeds: list[int], device: str, log=print) -> None:
+def generate(work: Path, split: str, seeds: list[int], device: str, log=print, truth_for_auto=None) -> None:
     work.mkdir(parents=True, exist_ok=True)
     if split == "validation":
         mark_validation(work)
@@ -110,7 +110,8 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print) -
             continue
         t0 = time.perf_counter()
         try:
-            api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None)
+            api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None,
+                      truth_for_auto=truth_for_auto)
             log(f"{n}: {time.perf_counter() - t0:.0f} s", flush=True)
         except Exception as exc:
             log(f"{n}: FAILED {type(exc).__name__}: {exc}", flush=True)
@@ -332,6 +333,9 @@ def main(argv=None):
     ap.add_argument("--grid", default=None, type=grid_arg,
                     help="init's --grid for every capture (e.g. auto) instead of the capture's suggested grid")
     ap.add_argument("--max-particles", type=int, default=None, help="init's --max-particles (a cap on grid auto)")
+    ap.add_argument("--truth-for-auto", type=int, default=None, metavar="N",
+                    help="generate: synth --truth-for-auto N (the truth finer than init --grid auto --max-particles "
+                         "N's fit too; a GPU's work on thin objects; docs/benchmarks/world_fits.md)")
     ap.add_argument("--timing", choices=["rules", "model", "hybrid"], default=None,
                     help="extract's timing: the passes' rules, the ninth pass's model, or the model's grasp with "
                          "the rules' release (timing.METHOD; default: the code's)")
@@ -344,7 +348,7 @@ def main(argv=None):
     tool = f"world_suite.py {a.command} --split dev"
     try:
         if a.command == "generate":
-            generate(work, a.split, parse_seeds(a.seeds), a.device)
+            generate(work, a.split, parse_seeds(a.seeds), a.device, truth_for_auto=a.truth_for_auto)
             return 0
         guard(work, a.split, a.final, tool)
         names = [name_of(a.split, s) for s in parse_seeds(a.seeds)] if a.seeds else captures(work, a.split)

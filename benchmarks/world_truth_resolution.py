@@ -8,10 +8,10 @@ measures the truth's own discretisation (`metrics.truth_resolution`; the 22nd se
 against a coarse truth, 0.79 against one finer than its fit).
 
 Per development seed, without simulating anything: the generator's truth cell (`World`: 2 x its particle
-spacing) against the cell init's auto rule would choose (CELLS_ACROSS cells across the shape's thinnest part,
-the floor of 24 cells, --max-grid, the particle cap at 8 particles a cell): an estimate of init's measured
-thickness by the shape's own (checked on dev seeds 2, 5, 22 with real captures and `init`: 1.31 / 1.46 / 0.62
-measured against 1.35 / 1.50 / 0.62 estimated). Development seeds only.
+spacing) against the cell init's auto rule (`thickness.auto_grid`) gives the shape's own thinnest part (init
+measures it from the Gaussians: checked on dev seeds 2, 5, 22 with real captures and `init`: 1.31 / 1.46 / 0.62
+measured against 1.35 / 1.50 / 0.62 estimated), and what `synth --truth-for-auto N` (the truth finer than that
+fit too) costs in particle-substeps against today's truth. Development seeds only.
 
     python benchmarks/world_truth_resolution.py [--seeds 0-119] [--max-particles 15000] [--max-grid 128]
 """
@@ -30,17 +30,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def auto_cell(thinnest: float, extent: float, volume: float, padding: float, max_grid: int,
-              max_particles: int, cells_across: float, floor_grid: int = 24) -> float:
-    """The cell init's auto rule would choose for a shape (module doc: an estimate)."""
-    span = (1 + 2 * padding) * extent
-    cell = min(thinnest / cells_across, span / floor_grid)
-    cell = max(cell, span / max_grid)
-    if volume / (cell / 2) ** 3 > max_particles:
-        cell = 2 * (volume / max_particles) ** (1 / 3)
-    return cell
-
-
 def seeds_of(text: str) -> list[int]:
     out = []
     for part in text.split(","):
@@ -56,32 +45,38 @@ def main(argv=None):
     ap.add_argument("--max-grid", type=int, default=128)
     a = ap.parse_args(argv)
 
-    from physinteract_usd.app.init import CELLS_ACROSS
     from physinteract_usd.synth.world import FIT_PADDING, World, draw_world
+    from physinteract_usd.thickness import auto_grid
 
     rows = []
     for seed in seeds_of(a.seeds):
         w = draw_world(seed, "dev")
         W = World(w)
-        cell = auto_cell(W._thinnest(), W.extent, W._volume(), FIT_PADDING, a.max_grid, a.max_particles, CELLS_ACROSS)
+        n, _ = auto_grid(W._thinnest(), W._volume(), W.extent, FIT_PADDING, a.max_grid, a.max_particles)
+        cell = (1 + 2 * FIT_PADDING) * W.extent / n
+        # the same capture with `synth --truth-for-auto`: its truth's particle-substeps against today's
+        F = World(draw_world(seed, "dev", {"truth_for_auto": a.max_particles}))
+        e = float(w["e_max"])
+        cost = len(F.x0) * F._substeps(2 * F.h, e) / (len(W.x0) * W._substeps(2 * W.h, e))
         rows.append({"seed": seed, "shape": w["shape"], "scenario": w["scenario"], "ratio": 2 * W.h / cell,
-                     "truth_across": W._thinnest() / (2 * W.h)})
+                     "truth_across": W._thinnest() / (2 * W.h), "cost": cost, "ratio_fine": 2 * F.h / cell})
     r = np.array([x["ratio"] for x in rows])
     print(f"{len(rows)} development seeds, init --grid auto --max-particles {a.max_particles} --max-grid {a.max_grid}: "
           f"the truth's cell / the fit's: median {np.median(r):.2f}; not finer (>= 0.95) on {np.mean(r >= 0.95):.0%}, "
-          f">= 1.5x on {np.mean(r >= 1.5):.0%}; a truth at 0.85x the fit's cell would cost (particles x substeps) "
-          f"{np.median(np.maximum(r / 0.85, 1.0) ** 4):.1f}x today's at the median\n")
+          f">= 1.5x on {np.mean(r >= 1.5):.0%}; with synth --truth-for-auto {a.max_particles}: at most "
+          f"{max(x['ratio_fine'] for x in rows):.2f}, at {np.median([x['cost'] for x in rows]):.1f}x today's "
+          f"particle-substeps (median)\n")
     by = defaultdict(list)
     for x in rows:
         by[x["shape"]].append(x)
     print("| shape | captures | truth cell / fit cell: median (min-max) | truth not finer | truth's cells across the thinnest "
-          "part (median) | cost of a truth at 0.85x the fit's cell, x today's (median) |")
+          "part (median) | --truth-for-auto: particle-substeps x today's, median (max) |")
     print("|---|---:|---|---:|---:|---:|")
     for shape, xs in sorted(by.items()):
         q = np.array([x["ratio"] for x in xs])
         t = np.array([x["truth_across"] for x in xs])
         print(f"| {shape} | {len(xs)} | {np.median(q):.2f} ({q.min():.2f}-{q.max():.2f}) | {np.mean(q >= 0.95):.0%} | "
-              f"{np.median(t):.1f} | {np.median(np.maximum(q / 0.85, 1.0) ** 4):.1f} |")
+              f"{np.median(t):.1f} | {np.median([x['cost'] for x in xs]):.1f} ({max(x['cost'] for x in xs):.1f}) |")
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ Accuracy: +-0.5 voxel on a voxelised slab or rod; the caller resolves the part b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,3 +182,30 @@ def thinnest_part(occ: np.ndarray, voxel: float, min_thickness: float = 0.0, res
             part = lab2 == lab2[tuple(np.argwhere(seed)[0])]
             return Thickness(float(np.median(tmap[part])), median, float(voxel), int(len(pairs)), False)
     return Thickness(max(ball, voxel), median, float(voxel), int(len(pairs)), True)
+
+
+# `init --grid auto`: MPM's quadratic B-spline spreads a particle over 3 cells, so a part 1-2 cells thick
+# has its whole thickness in one kernel footprint: the grid velocity varies too little across it to
+# carry the linear strain of bending, and its bending stiffness is off by far more than MA's 20%
+# (the suite's ropes at grid 24; the clamped cantilever in tests/test_known_answers.py). Four cells
+# across is the fewest that leave two kernel footprints' worth of independent nodes through the
+# thickness (docs/init.md has the measured cantilever frequencies).
+CELLS_ACROSS = 4
+MIN_AUTO_GRID = 24          # never coarser than the synthetic captures' suggestion (motion, contact)
+MAX_AUTO_GRID = 128         # cells along the longest side: a GPU's budget (--max-grid lowers it)
+MAX_AUTO_PARTICLES = 60_000  # ~1 min per fit iteration on an H100 at 128 cells (--max-particles)
+
+
+def auto_grid(thick: "Thickness | float", volume: float, extent: float, padding: float = 0.5,
+              max_grid: int = MAX_AUTO_GRID, max_particles: int = MAX_AUTO_PARTICLES) -> tuple[int, str | None]:
+    """(Cells along the longest side, which cap bound it or None): CELLS_ACROSS cells across the
+    thinnest part, at least MIN_AUTO_GRID, at most `max_grid` and about `max_particles` particles
+    (a fill at half a cell holds volume / (dx / 2)^3). `thick`: a measured Thickness or the thinnest part in
+    metres (a generator that knows its shape's)."""
+    side = extent * (1 + 2 * padding)
+    thinnest = float(getattr(thick, "thinnest", thick))
+    want = max(int(math.ceil(side * CELLS_ACROSS / thinnest - 1e-9)), MIN_AUTO_GRID)
+    by_particles = int(math.floor(side / (2.0 * (volume / max_particles) ** (1 / 3))))
+    grid = min(want, max_grid, by_particles)
+    limit = None if grid >= want else ("grid" if max_grid <= by_particles else "particles")
+    return max(grid, 8), limit

@@ -18,7 +18,8 @@ from ..errors import InputError
 from ..fill import drop_stray_particles, fill_from_gaussians, fill_from_mesh
 from ..scene import SimSettings
 from ..sim.cfl import substeps_per_frame
-from ..thickness import Thickness, occupancy, thinnest_part
+from ..thickness import (CELLS_ACROSS, MAX_AUTO_GRID, MAX_AUTO_PARTICLES, MIN_AUTO_GRID, Thickness,  # noqa: F401
+                         auto_grid, occupancy, thinnest_part)
 from ..usd.layout import LayerPaths, check_our_root, check_owned, check_writable_dir
 from ..usd.stage import write_init_stage
 from ..usd.versions import discard_versions, fit_history
@@ -26,16 +27,8 @@ from . import budget
 
 DEFAULT_GRID = 32
 AUTO = "auto"
-# `--grid auto`: MPM's quadratic B-spline spreads a particle over 3 cells, so a part 1-2 cells thick
-# has its whole thickness in one kernel footprint: the grid velocity varies too little across it to
-# carry the linear strain of bending, and its bending stiffness is off by far more than MA's 20%
-# (the suite's ropes at grid 24; the clamped cantilever in tests/test_known_answers.py). Four cells
-# across is the fewest that leave two kernel footprints' worth of independent nodes through the
-# thickness (docs/init.md has the measured cantilever frequencies).
-CELLS_ACROSS = 4
-MIN_AUTO_GRID = 24          # never coarser than the synthetic captures' suggestion (motion, contact)
-MAX_AUTO_GRID = 128         # cells along the longest side: a GPU's budget (--max-grid lowers it)
-MAX_AUTO_PARTICLES = 60_000  # ~1 min per fit iteration on an H100 at 128 cells (--max-particles)
+# `--grid auto`'s rule (CELLS_ACROSS cells across the thinnest part, its floor and caps) lives beside the
+# thickness it reads (`thickness.auto_grid`: the synthetic generators make their truths finer than it too)
 MEASURE_VOXELS_ACROSS = 10  # the thickness is measured on a fill with ~10 voxels across the thinnest part
 MAX_MEASURE_VOXELS = 4_000_000
 FIRST_PASS_VOXELS = 96      # the first measurement: the extent in 96 voxels
@@ -138,19 +131,6 @@ def splat_floor(g, mesh=None) -> float:
     if mesh is not None or g is None or not len(g):
         return 0.0
     return SPLAT_BUMPS * float(np.median(g.scales.max(axis=1)))
-
-
-def auto_grid(thick: Thickness, volume: float, extent: float, padding: float = DEFAULT_PADDING,
-              max_grid: int = MAX_AUTO_GRID, max_particles: int = MAX_AUTO_PARTICLES) -> tuple[int, str | None]:
-    """(Cells along the longest side, which cap bound it or None): CELLS_ACROSS cells across the
-    thinnest part, at least MIN_AUTO_GRID, at most `max_grid` and about `max_particles` particles
-    (a fill at half a cell holds volume / (dx / 2)^3)."""
-    side = extent * (1 + 2 * padding)
-    want = max(int(math.ceil(side * CELLS_ACROSS / thick.thinnest - 1e-9)), MIN_AUTO_GRID)
-    by_particles = int(math.floor(side / (2.0 * (volume / max_particles) ** (1 / 3))))
-    grid = min(want, max_grid, by_particles)
-    limit = None if grid >= want else ("grid" if max_grid <= by_particles else "particles")
-    return max(grid, 8), limit
 
 
 def choose_sim_settings(points: np.ndarray, fps: float, grid: int = DEFAULT_GRID,
