@@ -205,7 +205,7 @@ def truth_resolution(truth_cell: float | None, fit_cell: float) -> dict | None:
     """Whether a synthetic truth was simulated finer than the fit it scores (docs/synth.md: its cell 0.7x the
     suggested fit's). A truth on a cell as coarse as the fit's or coarser is another discretisation, not the
     continuum the fit approximates: its own discretisation error reads as material error (the 22nd session's
-    suite: bow_tie's truth on 14 mm cells scored a fit on 9.4 mm at MA 0.22; the same scene's truth made for the
+    suite: bow_tie's truth on 12.2 mm cells scored a fit on 9.4 mm at MA 0.22; the same scene's truth made for the
     fit's grid, 0.79; docs/benchmarks/fit.md). None when the truth's cell is not known (an older gt.json)."""
     if truth_cell is None or not truth_cell > 0 or not fit_cell > 0:
         return None

@@ -19,9 +19,9 @@ from version_helpers import fake_fit
 def test_truth_resolution_known_answers():
     r = M.truth_resolution(0.007, 0.010)                    # synth's rule: the truth's cell 0.7x the fit's
     assert r["finer"] and r["note"] is None and r["ratio"] == pytest.approx(0.7)
-    r = M.truth_resolution(0.014, 0.0094)                   # bow_tie's old truth against its auto fit
-    assert not r["finer"] and r["ratio"] == pytest.approx(1.489, abs=1e-3)
-    assert "14 mm" in r["note"] and "9.4 mm" in r["note"] and "coarser than" in r["note"] and "20 mm" in r["note"]
+    r = M.truth_resolution(0.0122, 0.0094)                  # bow_tie's old truth against its auto fit
+    assert not r["finer"] and r["ratio"] == pytest.approx(1.298, abs=1e-3)
+    assert "12.2 mm" in r["note"] and "9.4 mm" in r["note"] and "coarser than" in r["note"] and "17.4 mm" in r["note"]
     assert "as coarse as" in M.truth_resolution(0.010, 0.010)["note"]
     assert M.truth_resolution(None, 0.01) is None and M.truth_resolution(0.0, 0.01) is None
 
