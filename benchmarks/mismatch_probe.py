@@ -27,7 +27,6 @@ import json
 import sys
 import tempfile
 import time
-import types
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +86,7 @@ def main(argv=None):
     from physinteract_usd.app.init import init
     from physinteract_usd.fit.select import frame_losses
     from physinteract_usd.synth.gt import read_gt_array
+    from truth_loss import fixed_result      # benchmarks/: the same record truth_loss.py scores
 
     cap = Path(a.capture)
     gt = cap / "gt"
@@ -108,11 +108,6 @@ def main(argv=None):
     fit_tree = cKDTree(x0_fit)
     base_grid = int(max(base_job.scene.settings.grid_resolution))
     ma_best, e_best = M.best_uniform_ma(e_gt)
-
-    def model(E, nu, traj, P):
-        return types.SimpleNamespace(youngs=np.asarray(E, np.float64), poisson=np.asarray(nu, np.float64),
-                                     trajectories=traj, effect_parameters={}, confidence=np.ones(P), model={},
-                                     interrupted=False)
 
     tmp = Path(tempfile.mkdtemp(prefix="mismatch_"))
     default_cfl = simulation.CFL
@@ -141,10 +136,10 @@ def main(argv=None):
             fit_traj = {k: np.asarray(start["trajectories"][k]) if k in start.get("trajectories", {}) else init_traj[k]
                         for k in names}
             models = {
-                "truth, true path": model(e_gt[nn_g], nu_gt[nn_g], init_traj, P),
-                "truth x 1.2, true path": model(1.2 * e_gt[nn_g], nu_gt[nn_g], init_traj, P),
-                "truth, fit's path": model(e_gt[nn_g], nu_gt[nn_g], fit_traj, P),
-                "fit, fit's path": model(fit_E[nn_f], fit_nu[nn_f], fit_traj, P),
+                "truth, true path": fixed_result(e_gt[nn_g], nu_gt[nn_g], init_traj),
+                "truth x 1.2, true path": fixed_result(1.2 * e_gt[nn_g], nu_gt[nn_g], init_traj),
+                "truth, fit's path": fixed_result(e_gt[nn_g], nu_gt[nn_g], fit_traj),
+                "fit, fit's path": fixed_result(fit_E[nn_f], fit_nu[nn_f], fit_traj),
             }
             e_top = max(float(np.max(m.youngs)) for m in models.values())
             frames = list(range(1, prob.T))

@@ -64,6 +64,12 @@ def init_args(sug: dict) -> list[str]:
             "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"])]
 
 
+def init_caps(a) -> list[str]:
+    """init's caps on --grid auto from this run's flags."""
+    return ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
+        ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
+
+
 def auto_fit_grid(scene: str, a, work: Path, log) -> int | None:
     """The grid `init --grid auto` (with this run's caps) chooses for the scene's object: a 3-frame probe capture
     at the size's suggested grid (the object does not depend on the frames), init, its recorded grid choice;
@@ -78,8 +84,7 @@ def auto_fit_grid(scene: str, a, work: Path, log) -> int | None:
                     log)
         if rc:
             return None
-        caps = ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
-            ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
+        caps = init_caps(a)
         sug = json.loads((probe / "gt" / "gt.json").read_text())["suggested_init"]
         rc, _ = run(["init", str(st), "--capture", str(probe), "--grid", "auto", "--force", *init_args(sug), *caps], log)
         if rc:
@@ -134,8 +139,7 @@ def one(scene: str, a, work: Path) -> dict:
         sug = gt["suggested_init"]
         row["synth_fit_grid"] = sug["grid"]      # the grid the truth was made for (its cell 0.7x that grid's)
         grid = a.grid or sug["grid"]
-        caps = ([] if a.max_grid is None else ["--max-grid", str(a.max_grid)]) + \
-            ([] if a.max_particles is None else ["--max-particles", str(a.max_particles)])
+        caps = init_caps(a)
         for suffix in (".usda", ".init.usdc", ".fit.usdc"):
             (work / f"{scene}{suffix}").unlink(missing_ok=True)
         shutil.rmtree(work / f"{scene}.versions", ignore_errors=True)   # a fresh stage: its old versions go too

@@ -28,6 +28,14 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
+def fixed_result(E, nu, traj, effects=None):
+    """A FitResult-like record of a given field and hand paths, for `select.frame_losses` (no optimiser)."""
+    E = np.asarray(E, np.float64)
+    return types.SimpleNamespace(youngs=E, poisson=np.asarray(nu, np.float64), trajectories=traj,
+                                 effect_parameters=effects or {}, confidence=np.ones(len(E)), model={},
+                                 interrupted=False)
+
+
 def _compress(e, k):
     """E with its log-contrast scaled by k about its geometric mean (k < 1: less contrast, the same mean log E)."""
     le = np.log(np.asarray(e, np.float64))
@@ -78,10 +86,7 @@ def main(argv=None):
     fit_traj = {n: np.asarray(start["trajectories"][n]) if n in start.get("trajectories", {}) else init_traj[n]
                 for n in names}
 
-    def model(E, nu, traj, effects=None):
-        return types.SimpleNamespace(youngs=np.asarray(E, np.float64), poisson=np.asarray(nu, np.float64),
-                                     trajectories=traj, effect_parameters=effects or {}, confidence=np.ones(P),
-                                     model={}, interrupted=False)
+    model = fixed_result
 
     ma_best, e_best = M.best_uniform_ma(e_gt)
     fit_E = np.asarray(start["youngs"], np.float64)

@@ -4,7 +4,6 @@ re-rendering the stage's animation, and the Gaussians' 3D position error."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ from .. import metrics as M
 from ..devices import torch_device
 from ..errors import InputError
 from ..render import covariance_from_scales_quats, estimate_background, render
-from ..synth.gt import read_gt_array
+from ..synth.gt import read_ground_truth, read_gt_array
 from ..usd.fit_io import read_splat_animation
 from .adapters import hand_masks, load_observations, read_scene, true_hand_masks
 
@@ -23,8 +22,8 @@ def _truth_cell(gt_dir: Path) -> float | None:
     """The truth simulation's grid cell from gt.json's gt_sim (None where the file or the field is missing or
     unreadable: only the resolution note depends on it)."""
     try:
-        return float(json.loads((gt_dir / "gt.json").read_text())["gt_sim"]["dx"])
-    except (OSError, ValueError, KeyError, TypeError):
+        return float(read_ground_truth(gt_dir)["gt_sim"]["dx"])
+    except (InputError, KeyError, TypeError, ValueError):
         return None
 
 

@@ -882,7 +882,7 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
         if frame_grads is not None and covariance in ("full", "sandwich"):   # the columns kept: J^T J whole
             Bd = mat.B.detach().double().cpu()
             var = noise_var * laplace_variance(Bd, gram.double().cpu())
-            if covariance == "sandwich" and frame_grads is not None:
+            if covariance == "sandwich":
                 var = torch.maximum(var, sandwich_variance(Bd, gram.double().cpu(), frame_grads.cpu()))
             sigma_p = torch.sqrt(var).to(dlog) * dlog
         else:
