@@ -60,5 +60,11 @@ def test_evaluate_reports_a_coarser_truth(fitted, capsys):
     assert api.evaluate(root / "scene.usda", gt)["truth_resolution"]["finer"] is True
     assert main(["evaluate", str(root / "scene.usda"), "--gt", str(gt)]) == 0
     assert "note:" not in capsys.readouterr().out
-    (gt / "gt.json").write_text("{not json")                 # no gt_sim to read: no note, no error
+    (gt / "gt.json").write_text("{not json")                 # no gt_sim to read: no error, but said
     assert api.evaluate(root / "scene.usda", gt)["truth_resolution"] is None
+    d = api.evaluate(root / "scene.usda", gt)
+    assert "gt.json" in d["truth_resolution_unchecked"] and "not checked" in d["truth_resolution_unchecked"]
+    assert main(["evaluate", str(root / "scene.usda"), "--gt", str(gt)]) == 0
+    assert "the truth's resolution was not checked" in capsys.readouterr().out
+    _gt_json(gt, 0.7 * cell)
+    assert api.evaluate(root / "scene.usda", gt)["truth_resolution_unchecked"] is None

@@ -18,20 +18,24 @@ from ..usd.fit_io import read_splat_animation
 from .adapters import hand_masks, load_observations, read_scene, true_hand_masks
 
 
-def _truth_cell(gt_dir: Path) -> float | None:
-    """The truth simulation's grid cell from gt.json's gt_sim (None where the file or the field is missing or
-    unreadable: only the resolution note depends on it)."""
+def _truth_cell(gt_dir: Path) -> tuple[float | None, str | None]:
+    """(The truth simulation's grid cell from gt.json's gt_sim, why it could not be read or None). Only the
+    resolution note depends on it, so an unreadable gt.json is said, not fatal; an older capture's gt.json
+    without gt_sim.dx is silently unchecked."""
     try:
-        return float(read_ground_truth(gt_dir)["gt_sim"]["dx"])
-    except (InputError, KeyError, TypeError, ValueError):
-        return None
+        return float(read_ground_truth(gt_dir)["gt_sim"]["dx"]), None
+    except InputError as exc:
+        return None, f"{exc}: the truth's resolution was not checked"
+    except (KeyError, TypeError, ValueError):
+        return None, None
 
 
 def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     """{"ma", "ma_best_uniform", "best_uniform_e", "psnr", "psnr_masked", "ssim", "iou",
     "position_error_m", "frames": [per-frame metrics], "by_truth_level": [where MA is lost, per material
     of the truth, with the truth's strain there], "calibration": {the fit's confidence against its hits},
-    "truth_resolution": {whether the truth was simulated finer than this fit (`metrics.truth_resolution`)}}."""
+    "truth_resolution": {whether the truth was simulated finer than this fit (`metrics.truth_resolution`)},
+    "truth_resolution_unchecked": why gt.json could not say it, or None}."""
     gt_dir = Path(gt_dir)
     for f in ("youngs_modulus.npy", "gaussian_positions.npy"):
         if not (gt_dir / f).exists():
@@ -72,7 +76,9 @@ def evaluate(stage_path, gt_dir, device="cpu") -> dict:
     e_fit = anim["youngsModulus"]
     exposure = M.peak_green_strain(pos_gt[0], pos_gt)
     conf = anim["confidence"]
-    return {"truth_resolution": M.truth_resolution(_truth_cell(gt_dir), float(sd.settings.cell_size)),
+    truth_cell, unchecked = _truth_cell(gt_dir)
+    return {"truth_resolution": M.truth_resolution(truth_cell, float(sd.settings.cell_size)),
+            "truth_resolution_unchecked": unchecked,
             "by_truth_level": M.ma_by_truth_level(e_fit, e_gt, conf, exposure),
             "calibration": None if conf is None else M.confidence_calibration(e_fit, e_gt, conf),
             "ma": M.material_accuracy(anim["youngsModulus"], e_gt), "ma_best_uniform": ma_uniform,

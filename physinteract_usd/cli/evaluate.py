@@ -22,7 +22,8 @@ def run(a) -> int:
     if a.json:
         print(json.dumps({**{k: d[k] for k in keys}, "ma_best_uniform": d["ma_best_uniform"],
                           "by_truth_level": d["by_truth_level"], "calibration": d["calibration"],
-                          "truth_resolution": d["truth_resolution"]}, indent=2))
+                          "truth_resolution": d["truth_resolution"],
+                          "truth_resolution_unchecked": d["truth_resolution_unchecked"]}, indent=2))
     else:
         print(f"{'metric':22s} value")
         print(f"{'MA':22s} {d['ma']:.3f}   (best uniform E: {d['ma_best_uniform']:.3f} at {d['best_uniform_e']:.3g} Pa)")
@@ -45,4 +46,6 @@ def run(a) -> int:
         tr = d["truth_resolution"]
         if tr is not None and tr["note"]:
             print(f"note: {tr['note']}")
+        if d.get("truth_resolution_unchecked"):
+            print(f"note: {d['truth_resolution_unchecked']}")
     return 0
