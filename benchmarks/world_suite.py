@@ -53,6 +53,7 @@ import physinteract_usd  # noqa: F401
 from physinteract_usd import api
 from physinteract_usd.errors import InputError
 from physinteract_usd.frames import read_mask
+from physinteract_usd.synth.gt import read_ground_truth
 from physinteract_usd.synth.splits import log_validation_read, mark_validation, refuse_validation
 from physinteract_usd.cli.init import grid_arg  # N cells or "auto", as init takes it
 
@@ -98,6 +99,12 @@ def guard(work: Path, split: str, final: bool, tool: str) -> None:
         mark_validation(work)
 
 
+def made_for(gt_json: Path):
+    """The --truth-for-auto cap a generated capture's truth was made for (None: today's default truth)."""
+    ft = (read_ground_truth(gt_json.parent).get("gt_sim") or {}).get("finer_than")
+    return None if not ft else int(ft["max_particles"])
+
+
 def generate(work: Path, split: str, seeds: list[int], device: str, log=print, truth_for_auto=None) -> None:
     work.mkdir(parents=True, exist_ok=True)
     if split == "validation":
@@ -106,8 +113,15 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print, t
         refuse_validation(work, "world_suite.py generate --split dev")
     for s in seeds:
         n = name_of(split, s)
-        if (work / f"{n}.gt" / "gt.json").exists() or (work / n / "gt" / "gt.json").exists():
-            continue
+        made = next((p for p in (work / f"{n}.gt" / "gt.json", work / n / "gt" / "gt.json") if p.exists()), None)
+        if made is not None:
+            if made_for(made) == truth_for_auto:
+                continue
+            # a capture this script made for another truth (--truth-for-auto changed): made again, the stage too
+            log(f"{n}: its truth was made for --truth-for-auto {made_for(made)}, not {truth_for_auto}: made again",
+                flush=True)
+            for d in (work / n, work / f"{n}.gt", work / f"{n}.stage"):
+                shutil.rmtree(d, ignore_errors=True)
         t0 = time.perf_counter()
         try:
             api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None,

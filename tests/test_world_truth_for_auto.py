@@ -72,3 +72,35 @@ def test_a_tiny_capture_records_it_and_evaluate_reads_a_finer_truth(tmp_path):
     r = M.truth_resolution(gt["gt_sim"]["dx"], stage_cell)
     assert r["finer"], r
     assert np.isclose(ft["cell"], stage_cell, rtol=0.15)    # the estimate of init's auto cell, from the shape
+
+
+def test_world_suite_generate_makes_again_a_capture_made_for_another_truth(tmp_path, monkeypatch):
+    """gpu_world.sh now makes the truth finer by default (GRID=auto): a capture already in WORK made for another
+    --truth-for-auto is made again (with its stage), one made for this one is reused."""
+    import importlib.util
+    from pathlib import Path
+    p = Path(__file__).resolve().parents[1] / "benchmarks" / "world_suite.py"
+    spec = importlib.util.spec_from_file_location("world_suite_t", p)
+    ws = importlib.util.module_from_spec(spec)
+    monkeypatch.syspath_prepend(str(p.parent))
+    spec.loader.exec_module(ws)
+    made = []
+
+    def fake_synth(scene, out, random=None, truth_for_auto=None, **kw):
+        made.append((out.name, truth_for_auto))
+        (out / "gt").mkdir(parents=True)
+        ft = None if truth_for_auto is None else {"init_grid": "auto", "max_particles": truth_for_auto}
+        (out / "gt" / "gt.json").write_text(json.dumps({"split": "dev", "gt_sim": {"finer_than": ft}}))
+
+    monkeypatch.setattr(ws.api, "synth", fake_synth)
+    work = tmp_path / "w"
+    ws.generate(work, "dev", [1], "cpu", log=lambda *a, **k: None)                 # today's truth
+    (work / "dev_0001.stage").mkdir()                                              # a stage made from it
+    ws.generate(work, "dev", [1], "cpu", log=lambda *a, **k: None)                 # reused
+    assert made == [("dev_0001", None)]
+    lines = []
+    ws.generate(work, "dev", [1], "cpu", log=lambda *a, **k: lines.append(a[0]), truth_for_auto=15000)
+    assert made[-1] == ("dev_0001", 15000) and not (work / "dev_0001.stage").exists()
+    assert "made for --truth-for-auto None, not 15000" in lines[0]
+    ws.generate(work, "dev", [1], "cpu", log=lambda *a, **k: None, truth_for_auto=15000)   # reused
+    assert len(made) == 2 and ws.made_for(work / "dev_0001" / "gt" / "gt.json") == 15000
