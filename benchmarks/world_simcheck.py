@@ -54,9 +54,10 @@ FORCE = {"substeps": None, "blend": "rate"}
 
 
 @contextlib.contextmanager
-def forced(substeps=None, blend="rate"):
-    """Within it, `simulation`'s models take `substeps` a frame (None: the adaptive step) and, with blend
-    "substep", the partial blends once per substep (blend_dt 0, the generator's); the class is restored after."""
+def forced(substeps=None, blend="rate", cfl=None):
+    """Within it, `simulation`'s models take `substeps` a frame (None: the adaptive step, at CFL number `cfl`
+    when given) and, with blend "substep", the partial blends once per substep (blend_dt 0, the generator's);
+    the class and the CFL are restored after."""
     create = simulation.SimModel.__dict__["create"]
     orig = create.__func__
 
@@ -69,10 +70,14 @@ def forced(substeps=None, blend="rate"):
 
     FORCE.update({"substeps": substeps, "blend": blend})
     simulation.SimModel.create = classmethod(_create)
+    cfl0 = simulation.CFL
+    if cfl is not None:
+        simulation.CFL = cfl
     try:
         yield
     finally:
         simulation.SimModel.create = create
+        simulation.CFL = cfl0
         FORCE.update({"substeps": None, "blend": "rate"})
 
 
@@ -114,7 +119,10 @@ def one(work: Path, n: str, cap_n: int, factors: list[float], rules: list[str], 
             grid = int(round(gs * n_auto))
         for stp in steps:
             for bl in blends:
-                with forced(int(g["gt_sim"]["substeps_per_frame"]) if stp == "truth" else None, bl):
+                # fit: the adaptive step; cflC: the adaptive step at CFL number C; truth: the truth's; N: N a frame
+                cfl = float(stp[3:]) if stp.startswith("cfl") else None
+                n_sub = None if stp == "fit" or cfl else g["gt_sim"]["substeps_per_frame"] if stp == "truth" else stp
+                with forced(int(n_sub) if n_sub else None, bl, cfl):
                     rs = one_variant(work, n, cap_n, factors, rules, device, scratch, log, grid=grid)
                 for r in rs:
                     r.update({"grid_scale": gs, "step": stp, "blend": bl})
@@ -248,7 +256,8 @@ def main(argv=None) -> int:
     ap.add_argument("--factors", default="0.125,0.25,0.5,1,2")
     ap.add_argument("--rules", default="default,band")
     ap.add_argument("--grid-scales", default="1", help="our grid: 1 = init --grid auto within --cap; 1.5 = 1.5x its cells")
-    ap.add_argument("--steps", default="fit", help="fit (adaptive substep, CFL 0.6) and/or truth (the truth's substeps)")
+    ap.add_argument("--steps", default="fit", help="fit (adaptive substep, CFL 0.6), cflC (adaptive at CFL C, e.g. "
+                                                   "cfl0.3), truth (the truth's substeps) and/or N (N a frame)")
     ap.add_argument("--blends", default="rate", help="rate (the fit's partial blends per unit time) and/or substep (the generator's)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
@@ -262,8 +271,17 @@ def main(argv=None) -> int:
         return 2
     steps = [t for t in a.steps.split(",") if t]
     blends = [t for t in a.blends.split(",") if t]
-    for flag, vals, ok in (("--steps", steps, ("fit", "truth")), ("--blends", blends, ("rate", "substep"))):
-        if any(v not in ok for v in vals):
+    def _step_ok(v):
+        if v.isdigit():
+            return int(v) > 0
+        try:
+            return v.startswith("cfl") and 0 < float(v[3:]) <= 1
+        except ValueError:
+            return False
+
+    for flag, vals, ok in (("--steps", [v for v in steps if not _step_ok(v)], ("fit", "truth", "N", "cflC")),
+                           ("--blends", blends, ("rate", "substep"))):
+        if any(v not in ok or v in ("N", "cflC") for v in vals):
             print(f"world_simcheck.py: error: {flag}: unknown {[v for v in vals if v not in ok][0]!r} ({', '.join(ok)})",
                   file=sys.stderr)
             return 2

@@ -1,0 +1,19 @@
+"""PHYSINTERACT_CFL (read by `simulation` at import): the adaptive substep's CFL number for measurements (#24:
+dev floor captures are far from step-converged at the default after a release; docs/benchmarks/world_fits.md)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from physinteract_usd import simulation as S
+
+
+def test_the_cfl_setting_reads_a_number_in_0_1_and_refuses_others():
+    assert S.cfl_number(None) == S.cfl_number("") == S.cfl_number("  ") == S.DEFAULT_CFL == 0.6
+    assert S.cfl_number("0.3") == 0.3 and S.cfl_number(" 1 ") == 1.0
+    for bad in ("fast", "0", "-0.3", "1.5", "nan"):
+        with pytest.raises(ValueError, match="PHYSINTERACT_CFL"):
+            S.cfl_number(bad)
+    assert S.CFL == S.cfl_number(os.environ.get("PHYSINTERACT_CFL"))
