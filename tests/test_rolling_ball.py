@@ -1,0 +1,60 @@
+"""A ball launched along the floor: the known answer for a rigid solid sphere is that friction slows its slide and
+spins it up until it rolls, at t_s = 2 v0 / (7 mu g), at v = 5/7 v0, and it then rolls on at that speed (no rolling
+resistance). Our MPM gets the slide right and the roll wrong: the ground acts on grid nodes, and a rolling ball's
+nodes about its contact move into the plane (ahead of it) and out (behind), so the ground's projection brakes
+the roll, more on a coarser grid. This is why, on the world suite's floor captures, our simulator does not
+reproduce the truth's motion at any E and the fits' E wanders (23rd session, docs/benchmarks/world_fits.md:
+"Floor objects"). The roll is a strict xfail until the ground contact is mended."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from physinteract_usd.sim import GridSpec, MPMSolver, SimModel, SimState
+
+G, RHO = 9.81, 1000.0
+H, V0, MU, R, E, FPS = 0.1, 0.5, 0.3, 0.05, 1e5, 20
+
+
+def _roll(dx: float, frames: int = 12) -> np.ndarray:
+    """The ball's mean velocity along x over the frames (frame 0 = launch), a 5 cm ball of E 1e5 Pa, particles at dx/2."""
+    sp = dx / 2
+    g = np.arange(-R, R + 1e-9, sp) + sp / 2
+    p = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    p = p[np.linalg.norm(p, axis=1) < R]
+    pts = p + np.array([0.1 + R, H - p[:, 1].min() + 0.5 * sp, 0.1 + R])
+    grid = GridSpec.around(pts, dx, lower=(0.05, H - 0.04, 0.05),
+                           upper=(0.1 + 2 * R + 1.1 * V0 * frames / FPS, H + 2 * R + 0.05, 0.15 + 2 * R))
+    m = SimModel.create(pts, sp ** 3, RHO, E, 0.3, grid=grid, fps=FPS, E_max=E, max_speed=V0,
+                        effects={"ground": {"height": H, "friction": MU}})
+    out = MPMSolver(m).simulate(frames, SimState.rest(m, v0=(V0, 0, 0)))
+    return out["v"][:, :, 0].mean(1)
+
+
+@pytest.fixture(scope="module")
+def rolls():
+    return {dx: _roll(dx) for dx in (0.02, 0.01)}
+
+
+def test_the_slide_ends_at_five_sevenths_of_the_launch_speed(rolls):
+    """t_s = 2 v0 / (7 mu g) = 0.049 s: at the first frame (0.05 s) the ball has just stopped slipping, v = 5/7 v0
+    (within 4%, at 5 and 10 cells across): the ground's Coulomb friction and the ball's spin-up are right."""
+    assert 2 * V0 / (7 * MU * G) < 1 / FPS
+    for dx, v in rolls.items():
+        assert v[1] / V0 == pytest.approx(5 / 7, rel=0.04), dx
+
+
+def test_the_roll_is_braked_less_on_a_finer_grid(rolls):
+    """The braking is the grid's: 10 cells across the ball keep it rolling longer than 5 (the world captures' finer
+    truths roll further than their fits)."""
+    coarse, fine = rolls[0.02], rolls[0.01]
+    assert fine[4] > 2 * coarse[4] and fine[6] > 3 * coarse[6]
+
+
+@pytest.mark.xfail(strict=True, reason="the ground acts on grid nodes: a rolling ball is braked (10 cells across: "
+                                       "0.51 v0 at 0.15 s, 0.27 v0 at 0.3 s, 0.05 v0 at 0.6 s, where a rigid ball rolls "
+                                       "on at 0.71 v0); the ground contact is to be mended (#24)")
+def test_a_rolling_ball_rolls_on(rolls):
+    v = rolls[0.01]
+    assert np.all(v[1:7] / V0 > 0.6)
