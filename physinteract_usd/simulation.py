@@ -18,6 +18,7 @@ import torch
 
 from .contacts import ContactSet, check_disjoint
 from .devices import torch_device
+from .errors import InputError
 from .render import GaussianBinding, covariance_from_scales_quats
 from .scene import SceneData, SimSettings
 from .sim import Contact, Control, GridSpec, Rollout, SimModel
@@ -339,10 +340,10 @@ def pin_rule(value: str | None) -> tuple[float, float]:
     try:
         gain, floor = (float(t) for t in v.split(","))
     except ValueError:
-        raise ValueError(f"PHYSINTERACT_PIN_RULE={value!r}: expected 'default', 'band' or 'GAIN,FLOOR' "
+        raise InputError("PHYSINTERACT_PIN_RULE", f"{value!r}: expected 'default', 'band' or 'GAIN,FLOOR' "
                          "(e.g. '5,0.4')") from None
     if not (gain > 0 and 0 <= floor < 1):
-        raise ValueError(f"PHYSINTERACT_PIN_RULE={value!r}: the gain must be > 0 and the floor in [0, 1)")
+        raise InputError("PHYSINTERACT_PIN_RULE", f"{value!r}: the gain must be > 0 and the floor in [0, 1)")
     return gain, floor
 
 
@@ -365,9 +366,9 @@ def cfl_number(value: str | None) -> float:
     try:
         c = float(v)
     except ValueError:
-        raise ValueError(f"PHYSINTERACT_CFL={value!r}: expected a number in (0, 1], e.g. 0.3") from None
+        raise InputError("PHYSINTERACT_CFL", f"{value!r}: expected a number in (0, 1], e.g. 0.3") from None
     if not 0 < c <= 1:
-        raise ValueError(f"PHYSINTERACT_CFL={value!r}: the CFL number must be in (0, 1] (1 is the stability bound)")
+        raise InputError("PHYSINTERACT_CFL", f"{value!r}: the CFL number must be in (0, 1] (1 is the stability bound)")
     return c
 
 

@@ -17,3 +17,14 @@ def test_the_cfl_setting_reads_a_number_in_0_1_and_refuses_others():
         with pytest.raises(ValueError, match="PHYSINTERACT_CFL"):
             S.cfl_number(bad)
     assert S.CFL == S.cfl_number(os.environ.get("PHYSINTERACT_CFL"))
+
+
+def test_a_bad_setting_is_one_line_from_the_cli(tmp_path):
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PHYSINTERACT_CFL="fast")
+    r = subprocess.run([sys.executable, "-m", "physinteract_usd", "fit", str(tmp_path / "scene.usda")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and "Warp" not in ln]
+    assert r.returncode == 2 and len(lines) == 1 and "PHYSINTERACT_CFL" in lines[0] and "'fast'" in lines[0], r.stderr
