@@ -411,6 +411,23 @@ def interaction_notes(job: FitJob, result: FitResult) -> list[str]:
                             "frames, nor at the contact"]
 
 
+def ground_notes(job: FitJob, result: FitResult) -> list[str]:
+    """A note when the fitted motion rolls or tips on the ground (`fit.ground_roll`: our ground brakes a roll, so
+    the E of such a clip is likely biased; #24)."""
+    from ..fit.ground_roll import roll_note
+
+    sim = getattr(job.problem, "sim", None)
+    ground = (getattr(sim, "effects", None) or {}).get("ground")
+    if ground is None or result.positions is None or not len(result.positions):
+        return []
+    height = (result.effect_parameters or {}).get("ground", {}).get("height", ground.get("height", 0.0))
+    try:
+        note = roll_note(result.positions, float(height), float(sim.grid.dx))
+    except Exception as exc:  # noqa: BLE001 - a check never costs the fit
+        return [f"ground roll check skipped ({type(exc).__name__}: {exc})"]
+    return [note] if note else []
+
+
 def _finish_from(job: FitJob, tracker: FitTracker, log) -> FitResult | None:
     """A stop that landed outside the optimiser's loop (in its last pass or its confidence
     estimate): the tracker's best iterate, through the optimiser's last pass alone."""
@@ -474,7 +491,7 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
                 raise KeyboardInterrupt from None
         stopped_by = stopping.requested()
         if not late and not stopped_by:
-            for line in interaction_notes(job, result):
+            for line in interaction_notes(job, result) + ground_notes(job, result):
                 log(line)
         conf_ok = probes > 0 and not late and int(result.settings.get("confidence_probes", 0)) > 0
         result.settings["confidence_probes"] = probes   # what was asked; confidenceEstimated says what ran
