@@ -291,7 +291,29 @@ def table(rows: list[dict]) -> str:
             f"{np.mean([r['hand_iou'] for r in ok]):.2f} | **{sum(r['ok'] for r in ok)}/{n}** "
             f"(timing {t}/{n}) | {fmt(float(np.mean([f['ma'] for f in fits])) if fits else None, '.3f')} | "
             f"{fmt(float(np.mean([f['psnr_masked'] for f in fits])) if fits else None, '.1f')} |")
+        by = ma_by_scenario(ok)
+        if by:
+            lines += ["", by]
     return "\n".join(lines)
+
+
+def ma_by_scenario(rows: list[dict]) -> str:
+    """One line: the fits' mean MA per scenario (floor objects apart: our ground brakes a roll, so their E is biased
+    where they roll or tip; docs/sim.md, Limitations); "" without fits."""
+    groups: dict[str, list[float]] = {}
+    for r in rows:
+        f = r.get("fit") or {}
+        if "error" not in r and f.get("ma") is not None:
+            groups.setdefault(r["scenario"], []).append(float(f["ma"]))
+    if not groups:
+        return ""
+    order = [s for s in ("hanging", "clamped", "anchored", "floor") if s in groups] + sorted(
+        set(groups) - {"hanging", "clamped", "anchored", "floor"})
+    parts = [f"{s} {np.mean(groups[s]):.3f} ({len(groups[s])})" for s in order]
+    held = [m for s in order if s != "floor" for m in groups[s]]
+    tail = f"; all but floor {np.mean(held):.3f} ({len(held)})" if held and "floor" in groups else ""
+    return "MA by scenario (fits): " + ", ".join(parts) + tail + \
+        (" (floor: our ground brakes a roll, docs/sim.md Limitations)" if "floor" in groups else "")
 
 
 def run_extract(work: Path, split: str, names: list[str], json_path: Path | None, redo: bool, device: str,

@@ -104,3 +104,21 @@ def test_world_suite_generate_makes_again_a_capture_made_for_another_truth(tmp_p
     assert "made for --truth-for-auto None, not 15000" in lines[0]
     ws.generate(work, "dev", [1], "cpu", log=lambda *a, **k: None, truth_for_auto=15000)   # reused
     assert len(made) == 2 and ws.made_for(work / "dev_0001" / "gt" / "gt.json") == 15000
+
+
+def test_world_suite_table_says_ma_by_scenario_with_floor_apart(monkeypatch):
+    import importlib.util
+    from pathlib import Path
+    p = Path(__file__).resolve().parents[1] / "benchmarks" / "world_suite.py"
+    spec = importlib.util.spec_from_file_location("world_suite_t2", p)
+    ws = importlib.util.module_from_spec(spec)
+    monkeypatch.syspath_prepend(str(p.parent))
+    spec.loader.exec_module(ws)
+    rows = [{"scene": "a", "scenario": "hanging", "fit": {"ma": 1.0}}, {"scene": "b", "scenario": "hanging", "fit": {"ma": 0.5}},
+            {"scene": "c", "scenario": "floor", "fit": {"ma": 0.0}}, {"scene": "d", "scenario": "clamped", "fit": None},
+            {"scene": "e", "error": "generation failed"}]
+    line = ws.ma_by_scenario(rows)
+    assert line.startswith("MA by scenario (fits): hanging 0.750 (2), floor 0.000 (1); all but floor 0.750 (2)")
+    assert "ground brakes a roll" in line
+    assert ws.ma_by_scenario(rows[:2]) == "MA by scenario (fits): hanging 0.750 (2)"
+    assert ws.ma_by_scenario(rows[3:]) == ""
