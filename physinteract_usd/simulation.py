@@ -353,7 +353,8 @@ PIN_RULE = pin_rule(os.environ.get("PHYSINTERACT_PIN_RULE"))
 # the same MA and masked PSNR (0.927 / 34.4 dB vs 0.931 / 34.4); the rollout is stable up to 1.0
 # there, and its max deviation from a half-step rollout is 3.2 mm of 44 mm of motion (1.7 mm at
 # 0.4): docs/benchmarks/cpu.md. The environment's PHYSINTERACT_CFL (read once at import) sets another, for
-# measurements (#24: on dev floor captures the rollout at 0.6 is far from step-converged after a release).
+# measurements (#24: on a dev bar on the floor the rollout at 0.6 is far from step-converged after its release, yet
+# fits at 0.3 found the floor objects' E no closer: docs/benchmarks/world_fits.md, "Floor objects").
 DEFAULT_CFL = 0.6
 
 
@@ -373,6 +374,7 @@ def cfl_number(value: str | None) -> float:
 
 
 CFL = cfl_number(os.environ.get("PHYSINTERACT_CFL"))
+
 
 class Simulation:
     """A scene's simulation under its contacts for `n_frames` frames (frame 0 = rest).
