@@ -115,11 +115,11 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print, t
         n = name_of(split, s)
         made = next((p for p in (work / f"{n}.gt" / "gt.json", work / n / "gt" / "gt.json") if p.exists()), None)
         if made is not None:
-            if made_for(made) == truth_for_auto:
+            was = made_for(made)
+            if was == truth_for_auto:
                 continue
             # a capture this script made for another truth (--truth-for-auto changed): made again, the stage too
-            log(f"{n}: its truth was made for --truth-for-auto {made_for(made)}, not {truth_for_auto}: made again",
-                flush=True)
+            log(f"{n}: its truth was made for --truth-for-auto {was}, not {truth_for_auto}: made again", flush=True)
             for d in (work / n, work / f"{n}.gt", work / f"{n}.stage"):
                 shutil.rmtree(d, ignore_errors=True)
         t0 = time.perf_counter()

@@ -30,14 +30,6 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 
-def seeds_of(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out.extend(range(int(a), int(b or a) + 1))
-    return out
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="0-119", help="development seeds (N-M,K)")
@@ -47,9 +39,10 @@ def main(argv=None):
 
     from physinteract_usd.synth.world import FIT_PADDING, World, draw_world
     from physinteract_usd.thickness import auto_grid
+    from world_suite import parse_seeds         # benchmarks/: the world suite's seed lists (N-M,K)
 
     rows = []
-    for seed in seeds_of(a.seeds):
+    for seed in parse_seeds(a.seeds):
         w = draw_world(seed, "dev")
         W = World(w)
         n, _ = auto_grid(W._thinnest(), W._volume(), W.extent, FIT_PADDING, a.max_grid, a.max_particles)
