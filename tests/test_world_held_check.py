@@ -27,4 +27,7 @@ def test_a_held_object_that_stays_passes_and_one_that_falls_is_refused():
     with pytest.raises(HeldObjectFell, match="tore the object off its clamped support") as e:
         World.check_held(_world(), _frames(3.0 * 0.2))                    # fell 0.6 m, three times its size
     assert isinstance(e.value, SimulationError) and "take another seed" in str(e.value)
+    # the CLI keeps the generator's advice (the simulator's "unstable" advice, a shorter step, would mislead)
+    from physinteract_usd.cli import CLI_ADVICE
+    assert "take another seed" in e.value.message(CLI_ADVICE.get(e.value.kind))
     World.check_held(_world(supports=False), _frames(3.0 * 0.2))          # a free object may go where it goes

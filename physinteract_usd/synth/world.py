@@ -660,7 +660,7 @@ class World:
                 f"tore the object off its {self.w['scenario']} support (its particles end {moved * 1000:.0f} mm from "
                 f"rest on average, more than its size {self.extent * 1000:.0f} mm)",
                 frame=len(x) - 1, advice="a world seed whose object falls off its support is not generated: take "
-                                         "another seed", kind="unstable")
+                                         "another seed", kind="held_fell")
 
     def cost(self) -> float:
         """Particles x substeps x frames of the ground truth (set by `run`)."""
