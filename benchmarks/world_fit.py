@@ -129,6 +129,7 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
 
     row["pin_rule"] = list(simulation.PIN_RULE)
     row["cfl"] = simulation.CFL
+    row["ground_contact"] = simulation.GROUND_CONTACT
     e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))
     row.update({"e_true": e_true, "e_fit": summ["youngs_modulus_pa"]["median"],
                 "e_ratio": summ["youngs_modulus_pa"]["median"] / e_true, "best_uniform_e": ev.get("best_uniform_e"),

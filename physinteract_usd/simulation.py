@@ -23,6 +23,7 @@ from .render import GaussianBinding, covariance_from_scales_quats
 from .scene import SceneData, SimSettings
 from .sim import Contact, Control, GridSpec, Rollout, SimModel
 from .sim.cfl import rung
+from .sim.model import GROUND_CONTACTS
 
 # Independent forwards without gradients (the start search's probes, the confidence's finite differences, the
 # interaction check's counterfactuals: `sim_threads`) on this many threads: Warp's CPU kernels run inside ctypes
@@ -376,6 +377,24 @@ def cfl_number(value: str | None) -> float:
 CFL = cfl_number(os.environ.get("PHYSINTERACT_CFL"))
 
 
+# Where the ground effect's plane acts (`SimModel.ground_contact`): "nodes", the grid nodes' projection (the default,
+# which every stage and table so far used; it brakes a rolling body: docs/sim.md), or "penalty", an elastic push at the
+# particles with friction at their contact points (a ball rolls on; it sinks a little). The environment's
+# PHYSINTERACT_GROUND (read once at import) picks it for measurements (#24): the synthetic truths and the fits both read
+# it, so a world capture and its fit share it.
+def ground_contact(value: str | None) -> str:
+    """The ground contact a setting names (the environment's PHYSINTERACT_GROUND): unset or empty: "nodes"."""
+    v = (value or "").strip().lower()
+    if not v:
+        return "nodes"
+    if v not in GROUND_CONTACTS:
+        raise InputError("PHYSINTERACT_GROUND", f"{value!r}: expected one of {', '.join(GROUND_CONTACTS)}")
+    return v
+
+
+GROUND_CONTACT = ground_contact(os.environ.get("PHYSINTERACT_GROUND"))
+
+
 class Simulation:
     """A scene's simulation under its contacts for `n_frames` frames (frame 0 = rest).
 
@@ -463,7 +482,7 @@ class Simulation:
             effects=self.effects, dtype=self.dtype, device=self.device,
             # the contacts' partial blends keep the rate they have at the stage's substep
             blend_dt=1.0 / (self.scene.fps * st.substeps) if self.adaptive else 0.0,
-            pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1], transfer_tau=st.transfer_tau)
+            pin_gain=PIN_RULE[0], pin_floor=PIN_RULE[1], transfer_tau=st.transfer_tau, ground_contact=GROUND_CONTACT)
 
     def _use_bound(self, bound: float) -> None:
         if bound not in self._rollouts:

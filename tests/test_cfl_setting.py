@@ -28,3 +28,24 @@ def test_a_bad_setting_is_one_line_from_the_cli(tmp_path):
                        capture_output=True, text=True, env=env, timeout=300)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip() and "Warp" not in ln]
     assert r.returncode == 2 and len(lines) == 1 and "PHYSINTERACT_CFL" in lines[0] and "'fast'" in lines[0], r.stderr
+
+
+def test_the_ground_setting_names_where_the_ground_acts_and_refuses_others():
+    """PHYSINTERACT_GROUND: the ground effect at the grid nodes (unset: today's) or at the particles (#24)."""
+    assert S.ground_contact(None) == S.ground_contact("") == S.ground_contact("nodes") == "nodes"
+    assert S.ground_contact(" Penalty ") == "penalty"
+    for bad in ("particles", "1"):
+        with pytest.raises(ValueError, match="PHYSINTERACT_GROUND"):
+            S.ground_contact(bad)
+    assert S.GROUND_CONTACT == S.ground_contact(os.environ.get("PHYSINTERACT_GROUND"))
+
+
+def test_a_bad_ground_setting_is_one_line_from_the_cli(tmp_path):
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PHYSINTERACT_GROUND="particles")
+    r = subprocess.run([sys.executable, "-m", "physinteract_usd", "fit", str(tmp_path / "scene.usda")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and "Warp" not in ln]
+    assert r.returncode == 2 and len(lines) == 1 and "PHYSINTERACT_GROUND" in lines[0], r.stderr

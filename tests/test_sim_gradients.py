@@ -21,6 +21,7 @@ what would catch an input overwritten in place.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 import warp as wp
 
@@ -78,14 +79,19 @@ def _run_checks(ro, E0, nu0, effects, trajs, seed=0):
     return report
 
 
-def test_grad_pull_on_ground_fixed_corotated():
-    """Fixed corotated, damping + ground (sliding, kinetic friction), a grasp that pulls and a clamp."""
-    pts = block((5, 3, 3), SP, (0.2, 0.1, 0.25))
+@pytest.mark.parametrize("ground_contact", ["nodes", "penalty"])
+def test_grad_pull_on_ground_fixed_corotated(ground_contact):
+    """Fixed corotated, damping + ground (sliding, kinetic friction), a grasp that pulls and a clamp; the ground at
+    the grid nodes and at the particles (kernels.ground_impulse: its adjoint is Warp's, fed by p2g's)."""
+    # the particles' ground is push-only at each particle's contact height (a kink): the block starts a fifth of its
+    # spacing into it, so that no bottom particle sits on the switch or crosses it
+    pts = block((5, 3, 3), SP, (0.2, 0.1 - (0.2 * SP if ground_contact == "penalty" else 0.0), 0.25))
     P = len(pts)
     T = 3
     eff = {"damping": {"coefficient": 3.0}, "ground": {"height": 0.1, "friction": 0.3}}
     m = SimModel.create(pts, SP ** 3, 1000.0, 3e3, 0.3, grid=GridSpec((0, 0, 0), DX, (14, 10, 14)), fps=15,
-                        substeps=20, E_max=2e4, dtype="float64", effects=eff, blend_dt=1.0 / (15 * 50))
+                        substeps=20, E_max=2e4, dtype="float64", effects=eff, blend_dt=1.0 / (15 * 50),
+                        ground_contact=ground_contact)
     right = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
     left = np.nonzero(pts[:, 0] < pts[:, 0].min() + 1e-9)[0]
     traj = np.repeat(pts[right].mean(0)[None], T + 1, 0)

@@ -6,6 +6,8 @@ gradients also pass test_sim_gradients' finite-difference checks in float64 on t
 
 from __future__ import annotations
 
+import functools
+
 import pytest
 import torch
 
@@ -29,9 +31,9 @@ def _close(a, b, rtol):
             assert float((u - v).abs().max()) <= rtol * scale, (u, v)
 
 
-@pytest.mark.parametrize("tape", [True, False])
-def test_two_lanes_give_the_one_lane_gradients(tape):
-    m, ctrl, pts, traj = _scene("float64")
+@pytest.mark.parametrize("tape,ground_contact", [(True, "nodes"), (False, "nodes"), (True, "penalty")])
+def test_two_lanes_give_the_one_lane_gradients(tape, ground_contact):
+    m, ctrl, pts, traj = _scene("float64", ground_contact=ground_contact)
     ro1, g1 = _with_lanes(1, _run, m, ctrl, pts, traj, tape)
     assert ro1.solver.lanes is None
     ro2, g2 = _with_lanes(2, _run, m, ctrl, pts, traj, tape)
@@ -63,8 +65,10 @@ def test_two_lanes_forward_float32_within_summation_order():
     assert torch.allclose(F2, F1, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("case", [tsg.test_grad_pull_on_ground_fixed_corotated,
-                                  tsg.test_grad_plasticity_viscoelasticity_sphere_release])
+@pytest.mark.parametrize("case", [functools.partial(tsg.test_grad_pull_on_ground_fixed_corotated, "nodes"),
+                                  functools.partial(tsg.test_grad_pull_on_ground_fixed_corotated, "penalty"),
+                                  tsg.test_grad_plasticity_viscoelasticity_sphere_release],
+                         ids=["ground_nodes", "ground_penalty", "plasticity_visco"])
 def test_two_lanes_gradients_match_finite_differences(case, monkeypatch):
     """test_sim_gradients' FD checks (float64, relative error < 1e-4), run on two lanes."""
     made = []

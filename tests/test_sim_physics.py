@@ -131,8 +131,10 @@ def test_plasticity_permanent_set(strain, yield_strain):
         assert abs(set_) < 1e-3
 
 
-def test_sliding_block_stops_where_coulomb_says():
-    """A block launched along the ground at v0 stops after v0^2 / (2 mu g) (within 5%)."""
+@pytest.mark.parametrize("ground_contact", ["nodes", "penalty"])
+def test_sliding_block_stops_where_coulomb_says(ground_contact):
+    """A block launched along the ground at v0 stops after v0^2 / (2 mu g) (within 5%), the ground at the grid nodes
+    or at the particles."""
     dx = 0.025
     sp = dx / 2
     h, v0, mu = 0.1, 1.0, 0.3
@@ -141,11 +143,13 @@ def test_sliding_block_stops_where_coulomb_says():
     grid = GridSpec.around(pts, dx, lower=(0.1, h - 0.03, 0.1), upper=(0.2 + 1.5 * d_exp, h + 0.1, 0.2))
     T = int(np.ceil(v0 / (mu * G) * 1.3 * 20)) + 2
     m = SimModel.create(pts, sp ** 3, RHO, 1e5, 0.3, grid=grid, fps=20, E_max=1e5, max_speed=v0,
-                        effects={"ground": {"height": h, "friction": mu}}, dtype="float64")
-    out = MPMSolver(m).simulate(T, SimState.rest(m, v0=(v0, 0, 0)))
+                        effects={"ground": {"height": h, "friction": mu}}, dtype="float64", ground_contact=ground_contact)
+    out = MPMSolver(m).simulate(T + 4, SimState.rest(m, v0=(v0, 0, 0)))
     xc = out["x"][:, :, 0].mean(1)
-    assert abs(out["v"][-1][:, 0].mean()) < 0.01 * v0      # stopped
-    assert xc[-1] - xc[0] == pytest.approx(d_exp, rel=0.05)
+    # stopped: its mean velocity over the last 0.2 s (the particles' ground is elastic: the stopped block, undamped,
+    # rocks on it at +-2% v0 about rest)
+    assert abs(out["v"][T:][:, :, 0].mean()) < 0.01 * v0
+    assert xc[T] - xc[0] == pytest.approx(d_exp, rel=0.05)
     # frictionless: keeps sliding at v0
     m0 = m.replace(effects={"ground": {"height": h, "friction": 0.0}})
     out0 = MPMSolver(m0).simulate(3, SimState.rest(m0, v0=(v0, 0, 0)))

@@ -153,7 +153,8 @@ def tile(model: SimModel, control: Control, copies: int, axis: int | None = None
         material=model.material, grid=grid, fps=model.fps, substeps=model.substeps, gravity=model.gravity,
         effects=model.effects, dtype=model.dtype, device=model.device, E_max=model.E_max, nu_max=model.nu_max,
         contact_band=model.contact_band, pin_gain=model.pin_gain, blend_dt=model.blend_dt,
-        pin_floor=model.pin_floor, transfer_tau=model.transfer_tau)
+        pin_floor=model.pin_floor, transfer_tau=model.transfer_tau, stencil_check=model.stencil_check,
+        ground_contact=model.ground_contact)
     contacts = []
     for b in range(B):
         for c in control.contacts:

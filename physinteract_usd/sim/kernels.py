@@ -47,6 +47,14 @@ F_DAMPING = 1
 F_PLASTICITY = 2
 F_GROUND = 4
 F_VISCO = 8
+F_GROUND_PENALTY = 16   # the ground acts at the particles (ground_impulse), not at the grid nodes (SimModel.ground_contact)
+# the particle ground's push: the share of a particle's depth below its contact height that one substep's velocity change
+# would remove (a penalty of stiffness GROUND_BETA / dt^2 per unit mass: with dt from the CFL bound, a floor about as
+# stiff as the model's stiffest material). Stiffer brakes a roll, softer sinks deeper (tests/test_rolling_ball.py: at
+# 0.02 a 5 cm ball of E 1e5 Pa at rest sinks ~5 mm below its contact height at 5 and 10 cells across, as much as the
+# ball's own Hertz flattening, and rolls on, losing 2-6% of its speed in 0.5 s; made 5x stiffer at depth (a quadratic
+# term) it sinks 0.3-0.45 of that and loses 10-30%: docs/sim.md)
+GROUND_BETA = 0.02
 
 # slots of the effect parameter vector (see effects.py)
 I_DAMP_C = 0
@@ -749,7 +757,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if pm > T(0.0):
             wpin = rate_weight(wp.clamp(pin_gain * (pm / m - pin_floor), T(0.0), T(1.0)), blend_r)
             vel = vel * (T(1.0) - wpin) + (wpin / pm) * pmv
-        if (flags & 4) != 0:
+        if (flags & 20) == 4:     # the ground at the nodes (F_GROUND without F_GROUND_PENALTY)
             wg = rate_weight(soft_weight(xn[1] - eff[2], band), blend_r)
             if wg > T(0.0):
                 vel = collide(vel, vec3(), vec3(T(0.0), T(1.0), T(0.0)), eff[3], wg)
@@ -873,6 +881,35 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     wp.atomic_add(adj_gv, base[0] + i, base[1] + j, base[2] + k, w * (a + Ce))
                     g_fx = g_fx + (wp.dot(a, g) + wp.dot(g, Ce)) * gw - w * (CbT * g)
         adj_x[p] = adj_x[p] + inv_dx * g_fx
+
+    @wp.kernel(module=module)
+    def ground_impulse(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
+                       vol: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int, dt: T, beta: T,
+                       vout: wp.array(dtype=vec3)):
+        # the ground at the particles (F_GROUND_PENALTY): a particle whose centre lies less than half its spacing above
+        # the plane y = h (depth u > 0) is pushed up by beta u / dt, and its contact point's tangential velocity
+        # (v + C (0, -r, 0): APIC's field at the particle's foot) is cut by Coulomb's mu times that push, to zero at
+        # most. The result is the velocity p2g scatters (the push reaches the grid, so F sees it). The normal push
+        # depends on position only: a rolling body's contact is symmetric and a rolling contact point does not slip,
+        # so neither brakes a roll (the grid nodes' projection does: docs/sim.md).
+        p = wp.tid()
+        nv = v[p]
+        if (flags & 20) == 20:
+            r = T(0.5) * wp.pow(vol[p], T(1.0 / 3.0))
+            u = eff[2] + r - x[p][1]
+            if u > T(0.0):
+                Cp = C[p]
+                dvn = beta * u / dt
+                nv = nv + vec3(T(0.0), dvn, T(0.0))
+                vc = nv - r * vec3(Cp[0, 1], Cp[1, 1], Cp[2, 1])
+                vt = vec3(vc[0], T(0.0), vc[2])
+                lt2 = wp.dot(vt, vt)
+                lim = eff[3] * dvn
+                if lt2 > lim * lim:
+                    nv = nv - vt * (lim / wp.sqrt(lt2))
+                else:
+                    nv = nv - vt
+        vout[p] = nv
 
     @wp.func
     def update_particle(p: int, x: wp.array(dtype=vec3), F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33),
@@ -1164,7 +1201,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         p2g_scatter=p2g_scatter, p2g_scatter_adj=p2g_scatter_adj, p2g_fused=p2g_fused, g2p_fused=g2p_fused,
         grid_update=grid_update, g2p_gather=g2p_gather, g2p_gather_adj=g2p_gather_adj, g2p_update=g2p_update,
         check=check, zero_grid=zero_grid, zero_grid_adj=zero_grid_adj, zero_particle_adj=zero_particle_adj,
-        grid_update_box=grid_update_box,
+        grid_update_box=grid_update_box, ground_impulse=ground_impulse,
         p2g_scatter_old=p2g_scatter_old, p2g_scatter_old_adj=p2g_scatter_old_adj, grid_old=grid_old,
         grid_old_adj=grid_old_adj, rate_update=rate_update, rate_update_adj=rate_update_adj,
         zero_vec3=zero_vec3,

@@ -12,6 +12,7 @@ from . import cfl as _cfl
 from .effects import Effects, PARAMETERS, validate_values
 
 MATERIALS = {"fixedCorotated": 0, "neoHookean": 1}
+GROUND_CONTACTS = ("nodes", "penalty")   # SimModel.ground_contact
 
 
 def _np_dtype(dtype: str):
@@ -101,6 +102,11 @@ class SimModel:
                                         # error ("left the grid", even when the state then goes non-finite); False:
                                         # only the frame's end is checked, as before #24 (the synthetic truths keep
                                         # their retries, so captures generated before regenerate the same)
+    ground_contact: str = "nodes"       # how the ground effect's plane acts (GROUND_CONTACTS): "nodes", a projection of
+                                        # the grid nodes' velocity (today's; it brakes a rolling body: docs/sim.md), or
+                                        # "penalty", an elastic push at each particle within its half spacing of the plane
+                                        # with Coulomb friction at its contact point, scattered through the grid (a ball
+                                        # rolls on: tests/test_rolling_ball.py)
     _dev: dict = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ construction
@@ -111,7 +117,8 @@ class SimModel:
                cfl: float = 0.4, max_speed: float = 0.0, gravity=(0.0, -9.81, 0.0),
                effects: Effects | dict | None = None, dtype: str = "float32", device: str = "cpu",
                contact_band: float | None = None, pin_gain: float = 4.0, blend_dt: float = 0.0,
-               pin_floor: float = 0.0, transfer_tau: float | None = 0.0, stencil_check: bool = True) -> "SimModel":
+               pin_floor: float = 0.0, transfer_tau: float | None = 0.0, stencil_check: bool = True,
+               ground_contact: str = "nodes") -> "SimModel":
         x0 = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         P = x0.shape[0]
         if P == 0:
@@ -134,6 +141,8 @@ class SimModel:
         for eff, vals in effects.params.items():
             for p, v in vals.items():
                 validate_values(eff, p, v)
+        if ground_contact not in GROUND_CONTACTS:
+            raise ValueError(f"ground_contact must be one of {', '.join(GROUND_CONTACTS)}, not {ground_contact!r}")
         tau_t = float(transfer_tau or 0.0)
         if not (np.isfinite(tau_t) and tau_t >= 0.0):
             raise ValueError(f"transfer_tau must be >= 0 s (0: APIC), not {transfer_tau!r}")
@@ -152,7 +161,8 @@ class SimModel:
                 fps=float(fps), substeps=int(substeps), gravity=tuple(float(g) for g in gravity),
                 effects=effects, dtype=dtype, device=str(wp.get_device(device)), E_max=E_max, nu_max=nu_max,
                 contact_band=band, pin_gain=float(pin_gain), blend_dt=float(blend_dt),
-                pin_floor=float(pin_floor), transfer_tau=tau_t, stencil_check=bool(stencil_check))
+                pin_floor=float(pin_floor), transfer_tau=tau_t, stencil_check=bool(stencil_check),
+                ground_contact=ground_contact)
         lo, hi = grid.valid_lower, grid.valid_upper
         if np.any(x0 < lo) or np.any(x0 >= hi):
             raise ValueError(f"particles at rest lie outside the grid's valid box [{lo}, {hi}); "

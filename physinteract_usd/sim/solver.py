@@ -39,7 +39,7 @@ import warp as wp
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS
-from .kernels import F_VISCO, N_STATUS, get_kernels
+from .kernels import F_GROUND, F_GROUND_PENALTY, F_VISCO, GROUND_BETA, N_STATUS, get_kernels
 from .state import SimState
 
 # how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
@@ -131,6 +131,8 @@ class MPMSolver:
         self.fps = model.fps
         self.S = model.substeps
         self.flags = model.effects.flags
+        if getattr(model, "ground_contact", "nodes") == "penalty" and self.flags & F_GROUND:
+            self.flags |= F_GROUND_PENALTY      # the ground at the particles (kernels.ground_impulse), not the nodes
         self.material = model.material_id
         self.gravity = K.vec3(*model.gravity)
         self.band = model.contact_band
@@ -182,6 +184,13 @@ class MPMSolver:
         # its grid mass, also from a tape's: tapes do not keep them); 0: APIC, none of it launched
         tau_t = float(getattr(model, "transfer_tau", 0.0) or 0.0)
         self.rate_f = float(np.exp(-self.dt / tau_t)) if tau_t > 0 else 0.0
+        if self.rate_f > 0 and self.flags & F_GROUND_PENALTY:
+            raise ValueError("the rate transfer (transfer_tau > 0) and the particles' ground (ground_contact='penalty') "
+                             "do not go together: take one")
+        # the particles' ground (F_GROUND_PENALTY): the velocity p2g scatters (each particle's own plus the ground's
+        # push and friction, kernels.ground_impulse) and its adjoint; None: p2g scatters the state's velocity
+        self.vgr = wp.zeros(P, dtype=K.vec3, device=d) if self.flags & F_GROUND_PENALTY else None
+        self._a_vgr = wp.zeros(P, dtype=K.vec3, device=d) if self.flags & F_GROUND_PENALTY else None
         if self.rate_f > 0:
             self.gmo = wp.zeros(self.res, dtype=K.vec3, device=d)
             self.gvo = wp.zeros(self.res, dtype=K.vec3, device=d)
@@ -289,8 +298,21 @@ class MPMSolver:
         return [s.F, s.Fv, s.C, self.dev["mass"], self.dev["volume"], p.E, p.nu, p.eff, self.flags, self.material,
                 self.inv_dx, self.dt]
 
-    def _scatter_args(self, s: SimState, frame: int, c: ControlArrays):
-        return [s.x, s.v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
+    def _ground_args(self, s: SimState, p: SimParams, S=None):
+        S = S or (lambda a: a)
+        return [S(s.x), S(s.v), S(s.C), S(self.dev["volume"]), p.eff, self.flags, self.dt, GROUND_BETA]
+
+    def _scatter_v(self, s: SimState, p: SimParams):
+        """The velocity p2g scatters: the state's, or with the particles' ground its push and friction added
+        (kernels.ground_impulse into self.vgr)."""
+        if self.vgr is None:
+            return s.v
+        wp.launch(self.K.ground_impulse, s.x.shape[0], self._ground_args(s, p), [self.vgr], device=self.device,
+                  record_tape=False, block_dim=self.block_dim)
+        return self.vgr
+
+    def _scatter_args(self, s: SimState, frame: int, c: ControlArrays, v=None):
+        return [s.x, s.v if v is None else v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
                 self.inv_dx, self.res3]     # p2g_scatter: + whether the box is on, the box, dt, F (and box_flag, clamped out)
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
@@ -322,17 +344,18 @@ class MPMSolver:
         P = s.x.shape[0]
         if clear:
             self._clear_grid()
+        v = self._scatter_v(s, p)
         if self.fused_kernels:
             sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
-                                       s.x, s.v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
+                                       s.x, v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
                                        self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
                       [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d,
                       record_tape=False, block_dim=self.block_dim)
         else:
             wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False,
                       block_dim=self.block_dim)
-            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c) + [int(self.grid_box), self.box, self.dt, s.F],
+            wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c, v) + [int(self.grid_box), self.box, self.dt, s.F],
                       [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d, record_tape=False,
                       block_dim=self.block_dim)
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
@@ -511,10 +534,18 @@ class MPMSolver:
         gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
                   adj_grid, [af["gv"]], adjoint=True, device=d, record_tape=False, block_dim=self.block_dim)
-        # scatter (hand-written adjoint) -> adj x, v, A, pins
-        wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c) + [ag["gm"], ag["gmv"], ag["gpm"],
-                  ag["gpmv"]], [adj_in.x, adj_in.v, ap["A"], adj_ctrl.pin_pos], device=d, record_tape=False,
-                  block_dim=self.block_dim)
+        # scatter (hand-written adjoint) -> adj x, v, A, pins; with the particles' ground, adj of the scattered
+        # velocity, then the ground's (Warp autodiff; its velocity recomputed from s_in: tapes do not keep it)
+        v = self._scatter_v(s_in, p)
+        if self.vgr is not None:
+            self._a_vgr.zero_()
+        wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c, v) + [ag["gm"], ag["gmv"], ag["gpm"],
+                  ag["gpmv"]], [adj_in.x, adj_in.v if self.vgr is None else self._a_vgr, ap["A"], adj_ctrl.pin_pos],
+                  device=d, record_tape=False, block_dim=self.block_dim)
+        if self.vgr is not None:
+            wp.launch(K.ground_impulse, P, self._ground_args(s_in, p), [self.vgr],
+                      [adj_in.x, adj_in.v, adj_in.C, None, adj_params.eff, 0, 0.0, 0.0], [self._a_vgr], adjoint=True,
+                      device=d, record_tape=False, block_dim=self.block_dim)
         # stress: equilibrium branch by hand -> adj F, C, E, nu; Maxwell branch (Warp autodiff) -> adj Fv, nu, E_v
         wp.launch(K.p2g_stress_adj, P, [s_in.F, self.dev["mass"], self.dev["volume"], p.E, p.nu, self.material,
                                         self.inv_dx, self.dt, ap["A"]],
@@ -545,7 +576,9 @@ class MPMSolver:
             R.launch(lane, K.p2g_stress, n, [S(s.F), S(s.Fv), S(s.C), S(self.dev["mass"]), S(self.dev["volume"]),
                                              S(p.E), S(p.nu), p.eff, self.flags, self.material, self.inv_dx, self.dt],
                      [S(self.A)], block_dim=bd)
-            R.launch(lane, K.p2g_scatter, n, [S(s.x), S(s.v), S(self.A), S(self.dev["mass"]), S(c.pin_id), c.pin_active,
+            if self.vgr is not None:
+                R.launch(lane, K.ground_impulse, n, self._ground_args(s, p, S), [S(self.vgr)], block_dim=bd)
+            R.launch(lane, K.p2g_scatter, n, [S(s.x), S(s.v if self.vgr is None else self.vgr), S(self.A), S(self.dev["mass"]), S(c.pin_id), c.pin_active,
                                               c.pin_pos, frame, self.fps, self.lo, self.inv_dx, self.res3, 0, self.box,
                                               self.dt, S(s.F)],
                      grid + [self.box_flag if lane == 0 else L.box_flag, S(self.clamped)], block_dim=bd)
@@ -640,10 +673,19 @@ class MPMSolver:
             n, S = self._half(lane)
             a_eff = adj_params.eff if lane == 0 else L.a_eff
             a_pin = adj_ctrl.pin_pos if lane == 0 else L.a_pin
-            R.launch(lane, K.p2g_scatter_adj, n, [S(s_in.x), S(s_in.v), S(self.A), S(self.dev["mass"]), S(c.pin_id),
+            v, a_v = s_in.v, adj_in.v
+            if self.vgr is not None:     # the particles' ground: recomputed (tapes do not keep it), then its adjoint
+                v, a_v = self.vgr, self._a_vgr
+                R.launch(lane, K.ground_impulse, n, self._ground_args(s_in, p, S), [S(v)], block_dim=bd)
+                R.zero(lane, S(a_v))
+            R.launch(lane, K.p2g_scatter_adj, n, [S(s_in.x), S(v), S(self.A), S(self.dev["mass"]), S(c.pin_id),
                                                   c.pin_active, c.pin_pos, frame, self.fps, self.lo, self.inv_dx,
                                                   self.res3, ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"]],
-                     [S(adj_in.x), S(adj_in.v), S(ap["A"]), a_pin], block_dim=bd)
+                     [S(adj_in.x), S(a_v), S(ap["A"]), a_pin], block_dim=bd)
+            if self.vgr is not None:
+                R.launch(lane, K.ground_impulse, n, self._ground_args(s_in, p, S), [S(v)],
+                         adj_inputs=[S(adj_in.x), S(adj_in.v), S(adj_in.C), None, a_eff, 0, 0.0, 0.0],
+                         adj_outputs=[S(a_v)], adjoint=True, block_dim=bd)
             R.launch(lane, K.p2g_stress_adj, n, [S(s_in.F), S(self.dev["mass"]), S(self.dev["volume"]), S(p.E), S(p.nu),
                                                  self.material, self.inv_dx, self.dt, S(ap["A"])],
                      [S(adj_in.F), S(adj_in.C), S(adj_params.E), S(adj_params.nu)], block_dim=bd)

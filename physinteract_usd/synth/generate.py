@@ -142,6 +142,17 @@ def frame_camera(spec: SceneSpec, gt: "GroundTruth", sz: Size) -> Camera:
 
 
 # ------------------------------------------------------------------------------ ground truth sim
+def truth_ground_contact() -> str:
+    """Where the ground truth's ground acts (`SimModel.ground_contact`): the environment's PHYSINTERACT_GROUND, the
+    fits' own setting (`simulation.GROUND_CONTACT`), read at each call, so that a capture and its fit share it;
+    unset: "nodes", every capture made before the 24th session."""
+    import os
+
+    from ..simulation import ground_contact
+
+    return ground_contact(os.environ.get("PHYSINTERACT_GROUND"))
+
+
 def truth_pin_rule() -> tuple[float, float]:
     """The pin rule of the ground truth's simulation (a grid node's blend clamp(gain (pinned share - floor), 0, 1),
     docs/sim.md): the environment's PHYSINTERACT_TRUTH_PIN_RULE ("default", "band" or "GAIN,FLOOR", as
@@ -244,6 +255,7 @@ class GroundTruth:
                                     grid=self.grid, fps=self.size.fps, substeps=self.substeps,
                                     E_max=float(self.E.max()), effects=effects or {}, device=self.device,
                                     transfer_tau=getattr(self, "transfer_tau", 0.0), pin_gain=gain, pin_floor=floor,
+                                    ground_contact=truth_ground_contact(),
                                     # the truth checks its frames' ends only, as before #24: the captures
                                     # generated before regenerate the same (sim/model.py stencil_check)
                                     stencil_check=False)
@@ -609,7 +621,7 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         "gt_sim": {"particles": int(len(gt.x0)), "spacing": gt.spacing, "dx": gt.grid.dx,
                    "substeps_per_frame": gt.substeps, "dt": 1.0 / (sz.fps * gt.substeps),
                    "fit_dt_suggested": gt.fit_dt, "transfer_tau": transfer_tau,
-                   "pin_rule": list(truth_pin_rule())},
+                   "pin_rule": list(truth_pin_rule()), "ground_contact": truth_ground_contact()},
         "suggested_init": {"grid": sz.fit_grid, "padding": sz.fit_padding,
                            "youngs_range": list(sz.fit_youngs), "max_poisson": sz.fit_poisson_max,
                            "density": spec.density, **({"transfer_tau": transfer_tau} if transfer_tau else {})},

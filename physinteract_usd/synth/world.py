@@ -47,6 +47,7 @@ from ..thickness import auto_grid
 from .geometry import Box, Capsule, Ellipsoid, Shape, Torus, Tube
 from . import outdir
 from .gt import write_ground_truth
+from .generate import truth_ground_contact
 from .scenes import pattern_color
 from .splits import SPLITS, mark_validation, seed_sequence
 
@@ -621,7 +622,7 @@ class World:
                                             upper=pts.max(0) + pad + np.array([ext[0], 0.0, ext[2]]))
             m = SimModel.create(self.x0, np.full(len(self.x0), self.h ** 3), self.density, self.E, self.nu,
                                 grid=self.grid, fps=self.fps, substeps=self.substeps, E_max=float(self.E.max()),
-                                effects=effects, device=self.device, pin_gain=1.0,
+                                effects=effects, device=self.device, pin_gain=1.0, ground_contact=truth_ground_contact(),
                                 # the frames' ends only, as before #24: the retries below (and so the captures
                                 # generated before) stay as they were (sim/model.py stencil_check)
                                 stencil_check=False)
@@ -1076,7 +1077,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
                    "substeps_per_frame": world.substeps, "dt": 1.0 / (world.fps * world.substeps),
                    "sampling": "lattice jittered by up to 0.35 spacing", "pin_gain": 1.0,
                    "held_particles": int(len(world.contact_indices)),
-                   "finer_than": world.finer_than},
+                   "finer_than": world.finer_than, "ground_contact": truth_ground_contact()},
         "suggested_init": suggested,
         "world": w,
         "generation_seconds": None,
