@@ -48,13 +48,12 @@ F_PLASTICITY = 2
 F_GROUND = 4
 F_VISCO = 8
 F_GROUND_PENALTY = 16   # the ground acts at the particles (ground_impulse), not at the grid nodes (SimModel.ground_contact)
-# the particle ground's push: the share of a particle's depth below its contact height that one substep's velocity change
-# would remove (a penalty of stiffness GROUND_BETA / dt^2 per unit mass: with dt from the CFL bound, a floor about as
-# stiff as the model's stiffest material). Stiffer brakes a roll, softer sinks deeper (tests/test_rolling_ball.py: at
-# 0.02 a 5 cm ball of E 1e5 Pa at rest sinks ~5 mm below its contact height at 5 and 10 cells across, as much as the
-# ball's own Hertz flattening, and rolls on, losing 2-6% of its speed in 0.5 s; made 5x stiffer at depth (a quadratic
-# term) it sinks 0.3-0.45 of that and loses 10-30%: docs/sim.md)
-GROUND_BETA = 0.02
+# the particle ground's push (kernels.ground_impulse): an acceleration GROUND_K g u / sp at depth u for a particle of
+# spacing sp (a Winkler floor of modulus GROUND_K rho g: a column of height H sinks H / GROUND_K, whatever the grid and
+# the substep, so a truth and its coarser fit sink alike), at most GROUND_BETA u / dt^2 (stability: the share of the
+# depth one substep's push would remove). Stiffer brakes a roll, softer sinks deeper: tests/test_rolling_ball.py, docs/sim.md
+GROUND_K = 100.0
+GROUND_BETA = 0.05
 
 # slots of the effect parameter vector (see effects.py)
 I_DAMP_C = 0
@@ -884,7 +883,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     @wp.kernel(module=module)
     def ground_impulse(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
-                       vol: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int, dt: T, beta: T,
+                       vol: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int, dt: T, k_g: T, beta: T,
                        vout: wp.array(dtype=vec3)):
         # the ground at the particles (F_GROUND_PENALTY): a particle whose centre lies less than half its spacing above
         # the plane y = h (depth u > 0) is pushed up by beta u / dt, and its contact point's tangential velocity
@@ -899,7 +898,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
             u = eff[2] + r - x[p][1]
             if u > T(0.0):
                 Cp = C[p]
-                dvn = beta * u / dt
+                dvn = wp.min(k_g * dt / (T(2.0) * r), beta / dt) * u
                 nv = nv + vec3(T(0.0), dvn, T(0.0))
                 vc = nv - r * vec3(Cp[0, 1], Cp[1, 1], Cp[2, 1])
                 vt = vec3(vc[0], T(0.0), vc[2])

@@ -39,7 +39,7 @@ import warp as wp
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS
-from .kernels import F_GROUND, F_GROUND_PENALTY, F_VISCO, GROUND_BETA, N_STATUS, get_kernels
+from .kernels import F_GROUND, F_GROUND_PENALTY, F_VISCO, GROUND_BETA, GROUND_K, N_STATUS, get_kernels
 from .state import SimState
 
 # how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
@@ -190,6 +190,7 @@ class MPMSolver:
         # the particles' ground (F_GROUND_PENALTY): the velocity p2g scatters (each particle's own plus the ground's
         # push and friction, kernels.ground_impulse) and its adjoint; None: p2g scatters the state's velocity
         self.vgr = wp.zeros(P, dtype=K.vec3, device=d) if self.flags & F_GROUND_PENALTY else None
+        self.ground_k = GROUND_K * float(np.linalg.norm(model.gravity) or 9.81)   # kernels.GROUND_K, in g
         self._a_vgr = wp.zeros(P, dtype=K.vec3, device=d) if self.flags & F_GROUND_PENALTY else None
         if self.rate_f > 0:
             self.gmo = wp.zeros(self.res, dtype=K.vec3, device=d)
@@ -300,7 +301,7 @@ class MPMSolver:
 
     def _ground_args(self, s: SimState, p: SimParams, S=None):
         S = S or (lambda a: a)
-        return [S(s.x), S(s.v), S(s.C), S(self.dev["volume"]), p.eff, self.flags, self.dt, GROUND_BETA]
+        return [S(s.x), S(s.v), S(s.C), S(self.dev["volume"]), p.eff, self.flags, self.dt, self.ground_k, GROUND_BETA]
 
     def _scatter_v(self, s: SimState, p: SimParams):
         """The velocity p2g scatters: the state's, or with the particles' ground its push and friction added
@@ -544,7 +545,7 @@ class MPMSolver:
                   device=d, record_tape=False, block_dim=self.block_dim)
         if self.vgr is not None:
             wp.launch(K.ground_impulse, P, self._ground_args(s_in, p), [self.vgr],
-                      [adj_in.x, adj_in.v, adj_in.C, None, adj_params.eff, 0, 0.0, 0.0], [self._a_vgr], adjoint=True,
+                      [adj_in.x, adj_in.v, adj_in.C, None, adj_params.eff, 0, 0.0, 0.0, 0.0], [self._a_vgr], adjoint=True,
                       device=d, record_tape=False, block_dim=self.block_dim)
         # stress: equilibrium branch by hand -> adj F, C, E, nu; Maxwell branch (Warp autodiff) -> adj Fv, nu, E_v
         wp.launch(K.p2g_stress_adj, P, [s_in.F, self.dev["mass"], self.dev["volume"], p.E, p.nu, self.material,
@@ -684,7 +685,7 @@ class MPMSolver:
                      [S(adj_in.x), S(a_v), S(ap["A"]), a_pin], block_dim=bd)
             if self.vgr is not None:
                 R.launch(lane, K.ground_impulse, n, self._ground_args(s_in, p, S), [S(v)],
-                         adj_inputs=[S(adj_in.x), S(adj_in.v), S(adj_in.C), None, a_eff, 0, 0.0, 0.0],
+                         adj_inputs=[S(adj_in.x), S(adj_in.v), S(adj_in.C), None, a_eff, 0, 0.0, 0.0, 0.0],
                          adj_outputs=[S(a_v)], adjoint=True, block_dim=bd)
             R.launch(lane, K.p2g_stress_adj, n, [S(s_in.F), S(self.dev["mass"]), S(self.dev["volume"]), S(p.E), S(p.nu),
                                                  self.material, self.inv_dx, self.dt, S(ap["A"])],
