@@ -298,8 +298,9 @@ def table(rows: list[dict]) -> str:
 
 
 def ma_by_scenario(rows: list[dict]) -> str:
-    """One line: the fits' mean MA per scenario (floor objects apart: our ground brakes a roll, so their E is biased
-    where they roll or tip; docs/sim.md, Limitations); "" without fits."""
+    """One line: the fits' mean MA per scenario (floor objects apart: the grid nodes' ground brakes a roll, so their E
+    is biased where they roll or tip; docs/sim.md, Limitations; the fits' rows say which ground they ran on); ""
+    without fits."""
     groups: dict[str, list[float]] = {}
     for r in rows:
         f = r.get("fit") or {}
@@ -312,8 +313,14 @@ def ma_by_scenario(rows: list[dict]) -> str:
     parts = [f"{s} {np.mean(groups[s]):.3f} ({len(groups[s])})" for s in order]
     held = [m for s in order if s != "floor" for m in groups[s]]
     tail = f"; all but floor {np.mean(held):.3f} ({len(held)})" if held and "floor" in groups else ""
-    return "MA by scenario (fits): " + ", ".join(parts) + tail + \
-        (" (floor: our ground brakes a roll, docs/sim.md Limitations)" if "floor" in groups else "")
+    grounds = {(r.get("fit") or {}).get("ground_contact") or "nodes" for r in rows
+               if r.get("scenario") == "floor" and "error" not in r and (r.get("fit") or {}).get("ma") is not None}
+    note = ""
+    if "nodes" in grounds:
+        note = " (floor: our ground at the grid nodes brakes a roll, docs/sim.md Limitations)"
+    elif grounds:
+        note = " (floor: the ground at the particles, PHYSINTERACT_GROUND=penalty)"
+    return "MA by scenario (fits): " + ", ".join(parts) + tail + note
 
 
 def run_extract(work: Path, split: str, names: list[str], json_path: Path | None, redo: bool, device: str,

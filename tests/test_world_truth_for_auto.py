@@ -119,6 +119,9 @@ def test_world_suite_table_says_ma_by_scenario_with_floor_apart(monkeypatch):
             {"scene": "e", "error": "generation failed"}]
     line = ws.ma_by_scenario(rows)
     assert line.startswith("MA by scenario (fits): hanging 0.750 (2), floor 0.000 (1); all but floor 0.750 (2)")
-    assert "ground brakes a roll" in line
+    assert "nodes brakes a roll" in line
+    pen = [dict(r, fit=dict(r["fit"] or {}, ground_contact="penalty")) if r.get("scenario") == "floor" else r for r in rows]
+    line = ws.ma_by_scenario(pen)
+    assert "brakes" not in line and "the ground at the particles" in line
     assert ws.ma_by_scenario(rows[:2]) == "MA by scenario (fits): hanging 0.750 (2)"
     assert ws.ma_by_scenario(rows[3:]) == ""
