@@ -80,3 +80,21 @@ def test_the_fit_says_it_with_the_ground_it_fitted():
     assert ground_notes(job({"ground": {"height": lo - 1.0}}), res) == []                   # far below: no touch
     fitted = NS(positions=x, effect_parameters={"ground": {"height": lo}})                 # the fitted height wins
     assert len(ground_notes(job({"ground": {"height": lo - 1.0}}), fitted)) == 1
+    assert "PHYSINTERACT_GROUND=penalty" in ground_notes(job({"ground": {"height": lo}}), res)[0]
+
+
+def test_the_fit_says_nothing_of_a_roll_with_the_ground_at_the_particles(monkeypatch):
+    """With PHYSINTERACT_GROUND=penalty the ground does not brake a roll (tests/test_rolling_ball.py): no note."""
+    from types import SimpleNamespace as NS
+
+    from physinteract_usd import simulation
+    from physinteract_usd.app.fit import ground_notes
+
+    rest = _cloud()
+    c, lo = rest.mean(0), rest[:, 1].min()
+    x = np.stack([rest, Rotation.from_rotvec((0, 0, np.radians(30))).apply(rest - c) + c])
+    job = NS(problem=NS(sim=NS(effects={"ground": {"height": lo}}, grid=NS(dx=0.01))))
+    res = NS(positions=x, effect_parameters={})
+    assert len(ground_notes(job, res)) == 1
+    monkeypatch.setattr(simulation, "GROUND_CONTACT", "penalty")
+    assert ground_notes(job, res) == []

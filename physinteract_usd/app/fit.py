@@ -412,10 +412,14 @@ def interaction_notes(job: FitJob, result: FitResult) -> list[str]:
 
 
 def ground_notes(job: FitJob, result: FitResult) -> list[str]:
-    """A note when the fitted motion rolls or tips on the ground (`fit.ground_roll`: our ground brakes a roll, so
-    the E of such a clip is likely biased; #24)."""
+    """A note when the fitted motion rolls or tips on the ground (`fit.ground_roll`: the grid nodes' ground, the
+    default, brakes a roll, so the E of such a clip is likely biased; #24). None with the ground at the particles
+    (PHYSINTERACT_GROUND=penalty: `simulation.GROUND_CONTACT`), which lets a ball roll on."""
+    from .. import simulation
     from ..fit.ground_roll import roll_note
 
+    if simulation.GROUND_CONTACT == "penalty":
+        return []
     sim = getattr(job.problem, "sim", None)
     ground = (getattr(sim, "effects", None) or {}).get("ground")
     if ground is None or result.positions is None or not len(result.positions):

@@ -55,5 +55,6 @@ def roll_note(positions: np.ndarray, height: float, cell: float) -> str | None:
     if r is None or r["degrees"] < ROLL_NOTE_DEG:
         return None
     return (f"ground: the fitted motion rolls or tips on the ground ({r['degrees']:.0f} degrees about a horizontal "
-            f"axis by frame {r['frame']}); our simulator's ground brakes a roll, more on a coarser grid, so the "
-            f"fitted E is likely biased: trust it less, or fit at a finer grid (init --grid)")
+            f"axis by frame {r['frame']}); our simulator's ground at the grid nodes brakes a roll, more on a coarser "
+            f"grid, so the fitted E is likely biased: trust it less, fit at a finer grid (init --grid), or put the "
+            f"ground at the particles (PHYSINTERACT_GROUND=penalty, docs/sim.md)")
