@@ -33,7 +33,7 @@ from .effect_params import effect_parameters, effect_values, fitted_values, sear
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
 from .problem import FitProblem
 from .exposure import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles
-from .search import GOLDEN, UniformProbe, golden_section, no_finite_uniform_probe
+from .search import GOLDEN, UniformProbe, golden_section, has_ground, no_finite_uniform_probe
 
 
 @dataclass
@@ -231,7 +231,7 @@ def golden_uniform_search(prob: FitProblem, mat: MaterialField, evals: int, log=
         seen.update({f"{math.exp(k):.5g}": (round(v, 7) if math.isfinite(v) else None) for k, v in sorted(cache.items())})
     fin = [k for k in cache if math.isfinite(cache[k])]
     if not fin:
-        raise no_finite_uniform_probe()
+        raise no_finite_uniform_probe(f.errors, has_ground(prob))
     best = min(fin, key=cache.get)
     return (math.exp(best), cache[best]) if with_loss else math.exp(best)
 

@@ -74,12 +74,37 @@ def _likely_next(known: dict, a, b, c, d, fc, fd, left: bool) -> float:
     return a + GOLDEN * (b - a)
 
 
-def no_finite_uniform_probe() -> SimulationError:
-    """The error of a start-up whose every uniform-E probe went unstable or left the grid."""
+def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> SimulationError:
+    """The error of a start-up whose every uniform-E probe went unstable or left the grid. `errors`: the probes'
+    SimulationError messages (`UniformProbe.errors`), `ground`: whether the model has the ground effect (None:
+    unknown). Where most probes left through the grid's bottom (the object falls) it says so, and with no ground
+    that nothing holds the object up (#23: world dev_0505 / dev_0510, floor objects whose floor extract did not
+    find, fell at every E)."""
+    errors = [str(e) for e in errors]
+    down = sum("nearest the -y face" in e for e in errors)
+    if errors and 2 * down >= len(errors):
+        what = f"went unstable or left the grid at every uniform E tried ({down} of {len(errors)} fell out of its bottom)"
+        if ground is False:
+            return SimulationError(what, frame=None, advice=(
+                "nothing holds the object up: the stage has no ground. If it rests on a floor in the video, switch the "
+                "ground on (physinteract-usd effects add SCENE ground; extract looks for it) and fit again; else check "
+                "the supports extract found"))
+        return SimulationError(what, frame=None, advice=(
+            "it falls through its support or the ground: check the supports (extract) and the ground's height "
+            "(physinteract-usd effects list SCENE); a deeper grid below it (init --padding) if it sags that far"))
     return SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
                            advice="check the contacts (extract) and the Young's modulus range (init "
                                   "--youngs-range); a wider grid padding (init --padding) if the object "
                                   "leaves the domain")
+
+
+def has_ground(prob) -> bool | None:
+    """Whether a fit problem's simulation has the ground effect (None: it cannot tell)."""
+    eff = getattr(getattr(prob, "sim", None), "effects", None)
+    try:
+        return None if eff is None else "ground" in eff
+    except TypeError:
+        return None
 
 
 class UniformProbe:
@@ -101,6 +126,7 @@ class UniformProbe:
         self._ahead: dict = {}         # log E -> the callable `many` gave for it, in the order asked
         self.ahead_used = 0            # probes answered from what `many` computed
         self.ahead_wasted = 0          # guesses computed ahead and not asked for
+        self.errors: list[str] = []    # the SimulationError messages of the probes that failed
 
     def _E(self, le: float):
         import torch
@@ -147,6 +173,7 @@ class UniformProbe:
                 why = f"loss {v}"
         except SimulationError as exc:
             v, why = float("inf"), exc.kind or "unstable"
+            self.errors.append(str(exc))
         if why:
             v = float("inf")
             if self.skipped is not None:

@@ -67,7 +67,7 @@ from .substep import kept_rung, pinned_substep  # noqa: F401  (re-exported: sele
 from .optimize import FitResult, FitSettings, _level_params, _restore_in_place, clean_gradients, cosine_lr, fit_bumps
 from .problem import FitProblem
 from .exposure import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles  # noqa: F401  (re-exported)
-from .search import UniformProbe, golden_section, no_finite_uniform_probe
+from .search import UniformProbe, golden_section, has_ground, no_finite_uniform_probe
 # pure Python, in a module free of torch / warp so that `info` imports it in milliseconds (#26); re-exported here
 from ..fit_summary import DETERMINED_RATIO, ROUGH_RATIO, identifiability, model_summary, sweep_interval  # noqa: F401
 
@@ -170,7 +170,7 @@ def uniform_stage(prob, frames, s: FitSettings, nu: float, log=None, progress: b
     if vals is None:
         vals = np.array([f(le) for le in it])
     if not np.isfinite(vals).any():
-        raise no_finite_uniform_probe()
+        raise no_finite_uniform_probe(f.errors, has_ground(prob))
     n = len(grid)
     minima = [i for i in range(n) if np.isfinite(vals[i]) and (i == 0 or vals[i] <= vals[i - 1])
               and (i == n - 1 or vals[i] <= vals[i + 1])]

@@ -1,0 +1,44 @@
+"""A fit whose every uniform-E probe fails says why where it can (#23: world dev_0505 / dev_0510, floor objects whose
+floor extract did not find, failed with "unstable or left the grid at every uniform E tried" and advice about the
+E range): the probes' errors are kept, and where most fell out of the grid's bottom with no ground on, the error says
+that nothing holds the object up and how to switch the ground on."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from physinteract_usd.errors import SimulationError
+from physinteract_usd.fit.search import UniformProbe, golden_section, has_ground, no_finite_uniform_probe
+
+FELL = ("left the grid domain (40 particles past the edge of the grid's valid box by up to 1.20 cells (10.0 mm), "
+        "e.g. particle 7, nearest the -y face; valid box [0, 0, 0] - [1, 1, 1] m)")
+SIDE = FELL.replace("-y face", "+x face")
+
+
+def test_the_probes_keep_their_errors_and_the_search_says_the_object_fell():
+    def loss_of(E):
+        raise SimulationError(FELL, frame=3)
+
+    f = UniformProbe(loss_of, 4, torch.float64, "cpu")
+    golden_section(f, math.log(1e3), math.log(1e6), 4)
+    assert len(f.errors) == len(f.cache) >= 3 and all("-y face" in e for e in f.errors)
+    err = no_finite_uniform_probe(f.errors, ground=False)
+    msg = str(err)
+    assert "fell out of its bottom" in msg and "no ground" in msg and "effects add SCENE ground" in msg
+
+
+def test_the_message_names_the_ground_only_where_it_is_off_and_most_probes_fell():
+    with_ground = str(no_finite_uniform_probe([FELL, FELL, SIDE], ground=True))
+    assert "fell out of its bottom" in with_ground and "ground's height" in with_ground and "no ground" not in with_ground
+    sideways = str(no_finite_uniform_probe([SIDE, SIDE, FELL], ground=False))
+    assert "fell" not in sideways and "--youngs-range" in sideways
+    assert "--youngs-range" in str(no_finite_uniform_probe())
+
+
+@pytest.mark.parametrize("sim,expected", [(None, None), (type("S", (), {"effects": {"ground": {}}})(), True),
+                                          (type("S", (), {"effects": {}})(), False)])
+def test_has_ground(sim, expected):
+    assert has_ground(type("P", (), {"sim": sim})()) is expected
