@@ -101,10 +101,7 @@ def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> Simulation
 def has_ground(prob) -> bool | None:
     """Whether a fit problem's simulation has the ground effect (None: it cannot tell)."""
     eff = getattr(getattr(prob, "sim", None), "effects", None)
-    try:
-        return None if eff is None else "ground" in eff
-    except TypeError:
-        return None
+    return None if eff is None else "ground" in eff
 
 
 class UniformProbe:

@@ -885,8 +885,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def ground_impulse(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), C: wp.array(dtype=mat33),
                        vol: wp.array(dtype=T), eff: wp.array(dtype=T), flags: int, dt: T, k_g: T, beta: T,
                        vout: wp.array(dtype=vec3)):
-        # the ground at the particles (F_GROUND_PENALTY): a particle whose centre lies less than half its spacing above
-        # the plane y = h (depth u > 0) is pushed up by beta u / dt, and its contact point's tangential velocity
+        # the ground at the particles (F_GROUND_PENALTY): a particle whose centre lies less than half its spacing r above
+        # the plane y = h (depth u > 0) is pushed up by dt k_g u / (2 r) (the Winkler floor GROUND_K: k_g = GROUND_K g),
+        # at most beta u / dt (GROUND_BETA: stability), and its contact point's tangential velocity
         # (v + C (0, -r, 0): APIC's field at the particle's foot) is cut by Coulomb's mu times that push, to zero at
         # most. The result is the velocity p2g scatters (the push reaches the grid, so F sees it). The normal push
         # depends on position only: a rolling body's contact is symmetric and a rolling contact point does not slip,

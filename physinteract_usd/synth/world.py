@@ -56,8 +56,12 @@ SCENARIOS = ("hanging", "clamped", "anchored", "floor")
 HELD_FALL = 1.0   # a held object whose particles end farther than this x its size from rest fell off its support
 
 
+
+
 class HeldObjectFell(SimulationError):
     """The truth's held object tore off its supports and fell (World.check_held): not retried."""
+
+
 SHAPES = {"hanging": ("bar", "rope", "sheet", "ball", "plush", "ring"),
           "clamped": ("bar", "sheet", "block"),
           "anchored": ("bar", "rope", "sheet"),
