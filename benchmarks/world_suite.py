@@ -183,6 +183,7 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
         gf = min(row["grasp_true"], sd.n_frames - 1)
         p = mine.trajectory[gf] if mine.trajectory is not None else mine.point(x0)
         row["contact_cm"] = float(abs(np.dot(true.trajectory[gf] - p, n)) * 100)
+    row.update(path_error(true, mine, row["grasp_true"], rt, sd.n_frames))
     # supports
     fixed_true = set(gtc[-1].indices.tolist()) if gtc[-1].type == "fixed" else set()
     fixed_mine = set(np.concatenate([c.indices for c in result.supports]).tolist()) if result.supports else set()
@@ -204,6 +205,27 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
     row["ok"] = bool(row["ok_timing"] and row["ok_contact"] and not row["invented_support"])
     row["notes"] = list(result.notes)
     return row
+
+
+def path_error(true, mine, grasp: int, release, T: int) -> dict:
+    """How far the extracted toucher's path strays from the truth's while the truth's toucher acts
+    (its grasp frame to its release, or the end): the largest distance between the two paths'
+    displacements from that grasp frame (cm; where the contact is is `contact_cm`'s), that distance
+    over the truth's largest displacement (`path_rel`), and the truth's and the extraction's height
+    change (cm): a lift read as a move toward the camera shows here. Empty where either side has no
+    trajectory (a fixed contact)."""
+    if true.trajectory is None or mine.trajectory is None:
+        return {}
+    a = min(int(grasp), T - 1)
+    b = T - 1 if release is None else min(int(release), T - 1)
+    tt = np.asarray(true.trajectory, float)[a:b + 1]
+    tm = np.asarray(mine.trajectory, float)[a:b + 1]
+    dt, dm = tt - tt[0], tm - tm[0]
+    err = float(np.linalg.norm(dt - dm, axis=1).max())
+    span = float(np.linalg.norm(dt, axis=1).max())
+    return {"path_cm": err * 100, "path_rel": err / span if span > 0 else None,
+            "lift_true_cm": float(dt[:, 1].max() * 100), "lift_cm": float(dm[:, 1].max() * 100),
+            "drop_cm": float(-dm[:, 1].min() * 100)}
 
 
 def collider_left(gt_dir: Path, g: dict) -> int | None:
@@ -254,11 +276,12 @@ def _rel(r):
 
 def table(rows: list[dict]) -> str:
     head = ("| capture | object | toucher | px, fps | type (true) | type | grasp err | release err | contact [cm] | "
+            "path [cm] | "
             "support recall | support precision | free: invented / floor found | hand IoU | ok | MA | masked PSNR |")
-    lines = [head, "|" + "---|" * 16]
+    lines = [head, "|" + "---|" * 17]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['scene']} | failed: {r['error']} |" + " |" * 14)
+            lines.append(f"| {r['scene']} | failed: {r['error']} |" + " |" * 15)
             continue
         typ = r["type"] if r["type_ok"] else f"**{r['type']}**"
         g = str(r["grasp_err"]) if r["grasp_err"] <= 1 else f"**{r['grasp_err']}**"
@@ -268,7 +291,8 @@ def table(rows: list[dict]) -> str:
         fit = r.get("fit") or {}
         lines.append(
             f"| {r['scene']} | {r['shape']} {r['scenario']} | {r['look']} | {r['width']}, {r['fps']:g} | "
-            f"{r['type_true']} | {typ} | {g} | {_rel(r)} | {c} | {fmt(r['support_recall'])} | "
+            f"{r['type_true']} | {typ} | {g} | {_rel(r)} | {c} | {fmt(r.get('path_cm'), '.1f')} | "
+            f"{fmt(r['support_recall'])} | "
             f"{fmt(r['support_precision'])} | {free} | {r['hand_iou']:.2f} | {'yes' if r['ok'] else '**no**'} | "
             f"{fmt(fit.get('ma'), '.3f')} | {fmt(fit.get('psnr_masked'), '.1f')} |")
     ok = [r for r in rows if "error" not in r]
@@ -281,11 +305,13 @@ def table(rows: list[dict]) -> str:
         rec = [r["support_recall"] for r in ok if r["support_recall"] is not None]
         prec = [r["support_precision"] for r in ok if r["support_precision"] is not None and not r["free"]]
         fits = [r["fit"] for r in ok if r.get("fit") and r["fit"].get("ma") is not None]
+        paths = [r["path_cm"] for r in ok if r.get("path_cm") is not None]
         lines.append(
             f"| **all ({n})** | | | | | type {np.mean([r['type_ok'] for r in ok]):.2f} | "
             f"grasp <= 1: {sum(r['grasp_err'] <= 1 for r in ok)}/{n} | "
             f"release <= 1: {sum(r['release_err'] is not None and r['release_err'] <= 1 for r in ok)}/{n} | "
             f"<= 3 cm: {c}/{n} (median {np.median([r['contact_cm'] for r in ok]):.1f}) | "
+            f"median {fmt(float(np.median(paths)) if paths else None, '.1f')} | "
             f"{fmt(float(np.mean(rec)) if rec else None)} | {fmt(float(np.mean(prec)) if prec else None)} | "
             f"invented {inv}/{len(free)}, floor {sum(r['floor_found'] for r in free)}/{len(free)} | "
             f"{np.mean([r['hand_iou'] for r in ok]):.2f} | **{sum(r['ok'] for r in ok)}/{n}** "

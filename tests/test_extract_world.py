@@ -245,3 +245,23 @@ def test_a_truth_that_keeps_leaving_its_grid_gets_a_box_it_can_hang_in(monkeypat
     assert lows[1] < lows[0] and lows[2] < lows[1]            # the pad doubled, as before
     pts_low = min(world.x0[:, 1].min(), world.trajectory[:, 1].min())
     assert lows[3] <= pts_low - world.extent                    # room to hang by its whole length
+
+
+def test_path_error_tells_a_lift_read_as_a_move_toward_the_camera():
+    """world_suite's path metric: a grasp lifted 5 cm that the extraction moved 5 cm along z strays
+    sqrt(2) x 5 cm from the truth's path, lifts nothing, and it only counts the acting frames."""
+    from types import SimpleNamespace as NS
+
+    ws = _bench("world_suite")
+    T = 10
+    true = np.zeros((T, 3))
+    mine = np.zeros((T, 3)) + 0.3                 # where it is does not count, how it moves does
+    true[2:7, 1] = np.linspace(0, 0.05, 5)
+    mine[2:7, 2] += np.linspace(0, 0.05, 5)
+    true[7:, 1], mine[7:] = 0.05, [0.3, 0.3, 0.35]
+    mine[8:, 0] += 1.0                            # after the release: not the toucher's acting path
+    r = ws.path_error(NS(trajectory=true), NS(trajectory=mine), 2, 7, T)
+    assert r["path_cm"] == pytest.approx(5 * np.sqrt(2), rel=1e-9)
+    assert r["path_rel"] == pytest.approx(np.sqrt(2), rel=1e-9)
+    assert (r["lift_true_cm"], r["lift_cm"]) == (pytest.approx(5.0), pytest.approx(0.0))
+    assert ws.path_error(NS(trajectory=None), NS(trajectory=mine), 2, 7, T) == {}
