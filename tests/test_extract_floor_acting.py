@@ -80,3 +80,27 @@ def test_a_grasp_counts_from_its_grasp_to_its_release():
     assert abs(low + 0.02) < 1e-12 and resting_base(BLOCK, H, [], low) is None
     assert toucher_acting(tr, "pointAdherent", 0.0, BLOCK, H, 2, None)[2:].all()   # never released: to the end
     assert not toucher_acting(tr, "pointAdherent", 0.0, BLOCK, H, 2, 3)[4:].any()
+
+
+def test_a_grasp_read_below_the_base_only_by_its_scale_still_stands_on_its_floor():
+    """A pinch lifts the block's top edge 3 cm; the hand's apparent scale misread (a tool leaving the
+    frame: dev_0510) puts the path 2 cm under the base at its end. At the grasp depth the path
+    rises: the test (c) takes the higher reading and the block rests on a floor; where both
+    readings go under the base (a grasp pulling the object down), it is held."""
+    from physinteract_usd.extract.supports import toucher_low
+
+    T = 6
+    flat = np.zeros((T, 3))
+    flat[:, 1] = 0.04 + np.linspace(0, 0.03, T)
+    scaled = flat.copy()
+    scaled[:, 1] = 0.04 - np.linspace(0, 0.06, T)
+    act = toucher_acting(scaled, "pointAdherent", 0.0, BLOCK, H, 1, 4)
+    ev = {}
+    low = toucher_low(scaled, flat, 0.0, "pointAdherent", 0.0, act, ev)
+    assert abs(low - flat[1, 1]) < 1e-12 and ev["toucher_low_m"]["scaled"] < -0.005
+    assert resting_base(BLOCK, H, [], low) is not None
+    assert resting_base(BLOCK, H, [], lowest_toucher_y(scaled, 0.0, "pointAdherent", 0.0, act)) is None
+    down = flat.copy()
+    down[:, 1] = 0.04 - np.linspace(0, 0.07, T)
+    assert resting_base(BLOCK, H, [], toucher_low(scaled, down, 0.0, "pointAdherent", 0.0, act)) is None
+    assert toucher_low(scaled, None, 0.0, "pointAdherent", 0.0, act) == lowest_toucher_y(scaled, 0.0, "pointAdherent", 0.0, act)

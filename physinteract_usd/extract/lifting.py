@@ -33,6 +33,9 @@ class Lifted:
     push_dir: np.ndarray | None        # (3,) a collider's push direction (None for a grasp)
     track_uv: np.ndarray               # (T, 2) the 2D track lifted (a grasp's held after its release)
     release: int | None                # the release frame: a grasp lets go, a collider leaves (None: never)
+    # a grasp's path lifted at its grasp depth throughout (the apparent scale left out): what the
+    # image alone says of its height (None for a collider)
+    trajectory_flat: np.ndarray | None = None
 
 
 def track_hand(timing: Timing, c2) -> HandTrack:
@@ -87,18 +90,23 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
         scale = hand_scale(an, g, end, track)
         depth = z_c / scale
         evidence["hand_scale"] = np.round(scale, 4).tolist()
-    traj = np.empty((T, 3))
     base = scene.camera.at(g).unproject(c2[None], np.array([z_c]))[0]
-    for k in range(T):
-        traj[k] = c3 + (scene.camera.at(k).unproject(track[k][None], np.array([depth[k]]))[0] - base)
+
+    def lift(d):
+        return np.stack([c3 + (scene.camera.at(k).unproject(track[k][None], np.array([d[k]]))[0] - base)
+                         for k in range(T)])
+
+    traj = lift(depth)
     # the simulation's domain bounds every lifted path (scene_bounds)
     bounds = scene_bounds(scene)
+    flat = None
     if itype == "pointAdherent":
         kept = keep_on_ray_in_box(scene.camera, traj, bounds)
         moved = np.linalg.norm(kept - traj, axis=1)
         if moved.max() > 0:
             evidence["lift_kept_in_domain"] = {"frames": int((moved > 0).sum()), "max_m": round(float(moved.max()), 4)}
         traj = kept
+        flat = keep_on_ray_in_box(scene.camera, lift(np.full(T, z_c)), bounds)
     users = hint is not None and (not hint.is_empty or hint.has_timing)
     contact = ContactSet(CONTACT_NAMES[itype], itype, np.zeros(0, np.int64), grasp_frame=g,
                          release_frame=r, trajectory=traj, contact_point=c3,
@@ -108,6 +116,7 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
         contact.indices = idx
         contact.contact_point = an.x0[idx].mean(0)
         contact.trajectory = traj - c3 + contact.contact_point
+        flat = flat - c3 + contact.contact_point
     else:
         outward = outward_normal(an, c3, idx)
         lateral = unit(traj[first_main] - traj[g])
@@ -155,7 +164,7 @@ def lift_trajectory(an: Analysis, hint, itype: str, timing: Timing, grasp: Grasp
                 contact.grasp_frame = g
             if hint.release_frame is not None:
                 r = contact.release_frame = timing.release
-    return Lifted(contact, push3, track, r)
+    return Lifted(contact, push3, track, r, flat)
 
 
 # ------------------------------------------------------------------------------ pieces

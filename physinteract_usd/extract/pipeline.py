@@ -51,7 +51,7 @@ from .interaction_type import classify
 from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
-from .supports import lowest_toucher_y, support_contacts, toucher_acting, unpin
+from .supports import support_contacts, toucher_acting, toucher_low, unpin
 from . import timing as _timing
 from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing, ramp_start,
                      timing_confidence)
@@ -128,10 +128,11 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     held = c3d.particles if itype == "pointAdherent" else np.zeros(0, np.int64)
     low = None
     if lifted.contact.trajectory is not None:
-        tr = np.asarray(lifted.contact.trajectory)
         # (c) of the floor's test: the toucher only where it acts on the object
-        acting = toucher_acting(tr, itype, lifted.contact.radius, an.x0, an.spacing, g, lifted.release)
-        low = lowest_toucher_y(tr, lifted.contact.radius, itype, float(an.x0[:, 1].min()), acting)
+        acting = toucher_acting(np.asarray(lifted.contact.trajectory), itype, lifted.contact.radius, an.x0,
+                                an.spacing, g, lifted.release)
+        low = toucher_low(lifted.contact.trajectory, lifted.trajectory_flat, lifted.contact.radius, itype,
+                          float(an.x0[:, 1].min()), acting, evidence)
         evidence["toucher_acting_frames"] = int(acting.sum())
     supports, motion_p = support_contacts(an, hint, held, acting_motion(hand, g, lifted.release, itype),  # 8: supports
                                           lifted.push_dir, evidence, notes, lowest_contact_y=low)

@@ -225,6 +225,21 @@ def lowest_toucher_y(trajectory, radius: float, itype: str, base_y: float, actin
     return low
 
 
+def toucher_low(trajectory, flat, radius: float, itype: str, base_y: float, acting, evidence=None) -> float | None:
+    """`lowest_toucher_y` of a grasp's path read both ways, the higher of the two: its depth follows
+    the hand's apparent scale, which a tool leaving the frame or turning misreads (#23: dev_0510's
+    tongs lifting a rope off its floor read 13% smaller, the path put 9 cm away and 4 mm under the
+    rope's base, the true lift 5 cm up), so it is below the base only where its path at the grasp
+    depth (`flat`, the image alone; None for a collider) says so too. `evidence` gets both."""
+    low = lowest_toucher_y(trajectory, radius, itype, base_y, acting)
+    if flat is None or low is None:
+        return low
+    low_flat = lowest_toucher_y(flat, radius, itype, base_y, acting)
+    if evidence is not None:
+        evidence["toucher_low_m"] = {"scaled": round(low, 4), "at_grasp_depth": round(low_flat, 4)}
+    return max(low, low_flat)
+
+
 def toucher_acting(trajectory, itype: str, radius: float, x0: np.ndarray, h: float, grasp: int,
                    release: int | None) -> np.ndarray:
     """(T,) bool: the frames in which the toucher acts on the object, the only ones whose T0 says
