@@ -132,3 +132,43 @@ def test_on_the_particles_ground_a_resting_ball_sinks_about_as_far_as_on_the_nod
         assert pen[2:].mean() < 1.25 * nodes[2:].mean(), (dx, pen, nodes)
         assert pen.max() > 0.0
         assert np.abs(drift).max() < 0.05 * dx / 2
+
+
+def _standing_cylinder(contact: str) -> tuple[float, float]:
+    """A round bar (radius 19 mm, 10 cm long, E 3.6e4 Pa: dev_0518's) set down at rest, its particles on a lattice a
+    quarter spacing off its axis: the bottom is a flat row of 4 particles (16 mm wide) and the centre of mass lies 1.25
+    mm to one side of that row's middle, inside it. A rigid body so made stands; a soft one tilts a little toward its
+    centre of mass and stays. Returns (its largest rotation about its axis [deg], its largest sideways shift [m]) over
+    0.4 s."""
+    rad, length, sp, e = 0.019, 0.1, 0.004, 3.6e4
+    n = int(2 * rad / sp) + 1
+    g = (np.arange(n) - (n - 1) / 2) * sp + 0.25 * sp
+    gx = np.arange(0, length, sp)
+    p = np.stack(np.meshgrid(gx, g, g, indexing="ij"), -1).reshape(-1, 3)
+    p = p[np.hypot(p[:, 1], p[:, 2]) < rad]
+    p = p + np.array([0.1, H - p[:, 1].min() + 0.5 * sp, 0.15])
+    grid = GridSpec.around(p, 2 * sp, lower=(0.05, H - 0.03, 0.05), upper=(0.25, H + 0.08, 0.25))
+    m = SimModel.create(p, sp ** 3, RHO, e, 0.3, grid=grid, fps=30, E_max=e,
+                        effects={"ground": {"height": H, "friction": 0.7}}, ground_contact=contact)
+    x = MPMSolver(m).simulate(12, SimState.rest(m))["x"]
+    r0 = p - p.mean(0)
+    rot, shift = [], []
+    for xk in x:
+        d = xk - xk.mean(0)
+        a = np.arctan2(d[:, 1], d[:, 2]) - np.arctan2(r0[:, 1], r0[:, 2])
+        rot.append(abs(np.degrees(np.median((a + np.pi) % (2 * np.pi) - np.pi))))
+        shift.append(abs((xk - p).mean(0)[2]))
+    return max(rot), max(shift)
+
+
+def test_a_round_bar_whose_weight_lies_over_its_bottom_stands_on_the_nodes_ground():
+    """Measured: it rocks to 5.9 deg and back, shifting 2.4 mm at most (a rigid one would not move at all)."""
+    rot, shift = _standing_cylinder("nodes")
+    assert rot < 10.0 and shift < 0.004, (rot, shift)
+
+
+@pytest.mark.xfail(strict=True, reason="the particles' ground is too soft against tipping: the bar rolls 29 deg and "
+                   "shifts 9.5 mm in 0.33 s (docs/sim.md; dev_0518's truth rolled 40 deg before its grasp)")
+def test_a_round_bar_whose_weight_lies_over_its_bottom_stands_on_the_particles_ground():
+    rot, shift = _standing_cylinder("penalty")
+    assert rot < 10.0 and shift < 0.004, (rot, shift)
