@@ -26,12 +26,13 @@ class SimulationError(RuntimeError):
     """The simulation became unstable (non-finite state) or a particle left the grid domain."""
 
     def __init__(self, problem: str, frame: int | None = None, substep: int | None = None,
-                 advice: str = "", kind: str = ""):
+                 advice: str = "", kind: str = "", face: str = ""):
         self.problem = problem
         self.frame = frame
         self.substep = substep
         self.advice = advice
         self.kind = kind          # "unstable" | "domain" | "": lets a front end give its own advice
+        self.face = face          # "domain": the grid face the first particle out was nearest ("-y": it fell), or ""
         super().__init__(self.message())
 
     def message(self, advice: str | None = None) -> str:

@@ -70,6 +70,7 @@ def test_a_bar_pinned_at_one_end_swings_down_inside_the_automatic_domain():
     e = ei.value
     assert e.kind == "domain" and e.frame == k and "left the grid" in str(e) and f"at frame {k}" in str(e)
     assert "face" in e.problem and "cells" in e.problem and "non-finite" not in e.problem
+    assert e.face and f"nearest the {e.face} face" in e.problem
 
 
 def test_a_block_let_go_falls_half_g_t2_inside_the_automatic_domain():
@@ -89,6 +90,7 @@ def test_a_block_let_go_falls_half_g_t2_inside_the_automatic_domain():
     with pytest.raises(SimulationError) as ei:                      # the hand's rule alone: left at frame 5
         rollout(x0, [hand], grid_covering(st, x0, [hand.trajectory]), fps, T, 1e4)
     assert ei.value.kind == "domain" and "left the grid" in str(ei.value) and ei.value.frame is not None
+    assert ei.value.face == "-y" and "nearest the -y face" in str(ei.value)     # it fell: the bottom, said and kept
 
 
 def test_the_ground_bounds_the_fall_and_a_hanging_bar_pulled_a_little_keeps_its_grid():

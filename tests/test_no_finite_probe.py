@@ -1,5 +1,5 @@
-"""A fit whose every uniform-E probe fails says why where it can (#23: world dev_0505 / dev_0510, floor objects whose
-floor extract did not find, failed with "unstable or left the grid at every uniform E tried" and advice about the
+"""A fit whose every uniform-E probe fails says why where it can (#23: world dev_0510, a rope on a floor that extract
+did not find, failed with "unstable or left the grid at every uniform E tried" and advice about the
 E range): the probes' errors are kept, and where most fell out of the grid's bottom with no ground on, the error says
 that nothing holds the object up and how to switch the ground on."""
 
@@ -18,22 +18,26 @@ FELL = ("left the grid domain (40 particles past the edge of the grid's valid bo
 SIDE = FELL.replace("-y face", "+x face")
 
 
+def _err(text, face):
+    return SimulationError(text, frame=3, kind="domain", face=face)
+
+
 def test_the_probes_keep_their_errors_and_the_search_says_the_object_fell():
     def loss_of(E):
-        raise SimulationError(FELL, frame=3)
+        raise _err(FELL, "-y")
 
     f = UniformProbe(loss_of, 4, torch.float64, "cpu")
     golden_section(f, math.log(1e3), math.log(1e6), 4)
-    assert len(f.errors) == len(f.cache) >= 3 and all("-y face" in e for e in f.errors)
+    assert len(f.errors) == len(f.cache) >= 3 and all(e.face == "-y" and "-y face" in str(e) for e in f.errors)
     err = no_finite_uniform_probe(f.errors, ground=False)
     msg = str(err)
     assert "fell out of its bottom" in msg and "no ground" in msg and "effects add SCENE ground" in msg
 
 
 def test_the_message_names_the_ground_only_where_it_is_off_and_most_probes_fell():
-    with_ground = str(no_finite_uniform_probe([FELL, FELL, SIDE], ground=True))
+    with_ground = str(no_finite_uniform_probe([_err(FELL, "-y"), _err(FELL, "-y"), _err(SIDE, "+x")], ground=True))
     assert "fell out of its bottom" in with_ground and "ground's height" in with_ground and "no ground" not in with_ground
-    sideways = str(no_finite_uniform_probe([SIDE, SIDE, FELL], ground=False))
+    sideways = str(no_finite_uniform_probe([_err(SIDE, "+x"), _err(SIDE, "+x"), _err(FELL, "-y")], ground=False))
     assert "fell" not in sideways and "--youngs-range" in sideways
     assert "--youngs-range" in str(no_finite_uniform_probe())
 

@@ -76,12 +76,12 @@ def _likely_next(known: dict, a, b, c, d, fc, fd, left: bool) -> float:
 
 def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> SimulationError:
     """The error of a start-up whose every uniform-E probe went unstable or left the grid. `errors`: the probes'
-    SimulationError messages (`UniformProbe.errors`), `ground`: whether the model has the ground effect (None:
-    unknown). Where most probes left through the grid's bottom (the object falls) it says so, and with no ground
-    that nothing holds the object up (#23: world dev_0505 / dev_0510, floor objects whose floor extract did not
+    SimulationErrors (`UniformProbe.errors`), `ground`: whether the model has the ground effect (None: unknown).
+    Where most probes left through the grid's bottom (`SimulationError.face` "-y": the object falls) it says so, and
+    with no ground that nothing holds the object up (#23: world dev_0510, a rope on a floor that extract did not
     find, fell at every E)."""
-    errors = [str(e) for e in errors]
-    down = sum("nearest the -y face" in e for e in errors)
+    errors = list(errors)
+    down = sum(getattr(e, "face", "") == "-y" for e in errors)
     if errors and 2 * down >= len(errors):
         what = f"went unstable or left the grid at every uniform E tried ({down} of {len(errors)} fell out of its bottom)"
         if ground is False:
@@ -123,7 +123,7 @@ class UniformProbe:
         self._ahead: dict = {}         # log E -> the callable `many` gave for it, in the order asked
         self.ahead_used = 0            # probes answered from what `many` computed
         self.ahead_wasted = 0          # guesses computed ahead and not asked for
-        self.errors: list[str] = []    # the SimulationError messages of the probes that failed
+        self.errors: list = []         # the SimulationErrors of the probes that failed
 
     def _E(self, le: float):
         import torch
@@ -170,7 +170,7 @@ class UniformProbe:
                 why = f"loss {v}"
         except SimulationError as exc:
             v, why = float("inf"), exc.kind or "unstable"
-            self.errors.append(str(exc))
+            self.errors.append(exc)
         if why:
             v = float("inf")
             if self.skipped is not None:

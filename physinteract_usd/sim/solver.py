@@ -804,7 +804,7 @@ class MPMSolver:
         n_clamped, past, p = int(row[4]), (int(row[5]) - 1) / 1000.0, int(row[6])
         if n_clamped == 0:                       # seen outside only at the frame's end
             n_clamped, p, past = int(row[1]), int(row[3]), None
-        face = ""
+        face, face_name = "", ""
         if positions is not None:
             try:
                 x = np.asarray(positions(r), dtype=np.float64)[p]
@@ -812,11 +812,12 @@ class MPMSolver:
                 d = np.concatenate([lo - x, x - hi])          # > 0: past that face
                 if np.all(np.isfinite(d)):
                     i = int(np.argmax(d))
-                    face = f", nearest the {'-+'[i // 3]}{'xyz'[i % 3]} face"
+                    face_name = f"{'-+'[i // 3]}{'xyz'[i % 3]}"
+                    face = f", nearest the {face_name} face"
                     if past is None:
                         past = max(float(d[i]) / g.dx, 0.0)
             except Exception:  # noqa: BLE001 - the face is a courtesy; the error stands without it
-                face = ""
+                face, face_name = "", ""
         how = "" if past is None else f" by up to {past:.2f} cells ({1e3 * past * g.dx:.1f} mm)"
         lone, near = "", self._nearest_other_cells(p, states(r) if states is not None else None)
         if near is not None and near > 1.5:
@@ -833,7 +834,7 @@ class MPMSolver:
                     + "enlarge the grid: give the object more room (init --padding, or a GridSpec with a larger box); the "
                     "simulation's automatic domain covers the object's reach about its supports, the hand's path and a "
                     "fall after a release (simulation.grid_covering); or check the trajectory, the ground and gravity"),
-            kind="domain")
+            kind="domain", face=face_name)
 
     def _nearest_other_cells(self, p: int, state: dict | None) -> float | None:
         """Particle p's distance to its nearest other (finite) particle at `state`'s positions, in cells; None

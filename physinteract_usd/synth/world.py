@@ -56,8 +56,6 @@ SCENARIOS = ("hanging", "clamped", "anchored", "floor")
 HELD_FALL = 1.0   # a held object whose particles end farther than this x its size from rest fell off its support
 
 
-
-
 class HeldObjectFell(SimulationError):
     """The truth's held object tore off its supports and fell (World.check_held): not retried."""
 
