@@ -78,6 +78,7 @@ def one_scene(scene: str, a) -> None:
            "particles": old.get("particles"), "error": old.get("error"), "wall_s": round(time.perf_counter() - t, 1),
            "by_truth_level": old.get("by_truth_level"), "calibration": old.get("calibration"),
            "pin_rule": __import__("os").environ.get("PHYSINTERACT_PIN_RULE") or "default",
+           "support_rule": __import__("os").environ.get("PHYSINTERACT_SUPPORT_RULE") or "the pin rule",
            # the synth's truth's rule (synth.generate.truth_pin_rule): PHYSINTERACT_PIN_RULE never reached it (#24)
            "truth_pin_rule": __import__("os").environ.get("PHYSINTERACT_TRUTH_PIN_RULE") or "default"}
     with open(a.out, "a") as fh:

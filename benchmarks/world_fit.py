@@ -128,6 +128,7 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
     from physinteract_usd import simulation   # the pin rule this process fitted with (PHYSINTERACT_PIN_RULE; #24 A/B rows)
 
     row["pin_rule"] = list(simulation.PIN_RULE)
+    row["support_rule"] = None if simulation.SUPPORT_RULE is None else list(simulation.SUPPORT_RULE)
     row["cfl"] = simulation.CFL
     row["ground_contact"] = simulation.GROUND_CONTACT
     e_true = float(np.median(np.load(gt / "youngs_modulus.npy")))

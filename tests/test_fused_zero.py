@@ -98,9 +98,9 @@ def test_fused_kernels_clear_every_buffer_the_memsets_cleared():
     ro = _rollout(m, ctrl, True, False)
     _loss_and_grads(ro, pts, eff, trajs, scales=(1.0,))      # allocates the adjoint buffers
     sol = ro.solver
-    bufs = [sol.gm, sol.gmv, sol.gpm, sol.gpmv, *sol._adj_grid.values(), *sol._adj_part.values()]
+    bufs = [sol.gm, sol.gmv, sol.gpm, sol.gpmv, sol.gsm, *sol._adj_grid.values(), *sol._adj_part.values()]
     bufs += [getattr(a, f) for a in ro._adj for f in ("x", "v", "C", "F", "Fv")]
-    assert len(bufs) == 4 + 5 + 3 + 10
+    assert len(bufs) == 5 + 6 + 3 + 10
     orig_backward = ro.run_backward
 
     def poisoned_backward(*a, **kw):
@@ -116,9 +116,9 @@ def test_fused_kernels_clear_every_buffer_the_memsets_cleared():
 
 
 def test_fused_backward_substep_has_no_memsets_and_three_clearing_launches():
-    """What the profile counts: memsets per backward substep (eager, replay path) 21 -> 0, replaced
+    """What the profile counts: memsets per backward substep (eager, replay path) 24 -> 0, replaced
     by 3 clearing launches (the replayed forward's grid, the backward's grid + grid adjoints, its
-    particle adjoints); forward substeps 4 memsets -> 1 launch."""
+    particle adjoints); forward substeps 5 memsets -> 1 launch."""
     m, ctrl, pts, eff, trajs = _scene(T=1)
     counts = {}
     for fused in (False, True):
@@ -148,12 +148,12 @@ def test_fused_backward_substep_has_no_memsets_and_three_clearing_launches():
                 per[phase] = dict(n)
         counts[fused] = per
     S = m.substeps
-    # the memset path: 4 per forward substep; per backward substep 4 (replay) + 4 + 5 + 3 + 5 (the
-    # replay skips the last substep's step, so S - 1 replayed substeps); plus per-pass fixed costs
+    # the memset path: 5 per forward substep (the scatter targets); per backward substep 5 (replay) + 5 + 6 + 3 + 5
+    # (the replay skips the last substep's step, so S - 1 replayed substeps); plus per-pass fixed costs
     old, new = counts[False], counts[True]
-    assert old["forward"]["memset"] - new["forward"]["memset"] == 4 * S
+    assert old["forward"]["memset"] - new["forward"]["memset"] == 5 * S
     assert new["forward"]["clear"] == S and old["forward"]["clear"] == 0
-    assert old["backward"]["memset"] - new["backward"]["memset"] == 17 * S + 4 * (S - 1)
+    assert old["backward"]["memset"] - new["backward"]["memset"] == 19 * S + 5 * (S - 1)
     assert new["backward"]["clear"] == 2 * S + (S - 1)
 
 

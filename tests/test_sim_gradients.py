@@ -105,6 +105,29 @@ def test_grad_pull_on_ground_fixed_corotated(ground_contact):
     _run_checks(ro, E0, np.full(P, 0.3), eff, {0: traj})
 
 
+def test_grad_pin_rule_per_contact_kind():
+    """The supports' own pin rule (SimModel.support_rule, the band; the grasp's the default): a short block held by a
+    clamp at one end and pulled at the other, so that a node between them takes both pins' mass and mixes the two
+    rules by the clamp's share of it (the supports' mass, gsm, and its hand-written adjoint in p2g_scatter_adj). The
+    clamp takes hold after a frame of the grasp's pull: where it holds its particles then depends on E (a clamp held
+    from rest would hold them where they were, and gsm's adjoint would not matter)."""
+    pts = block((5, 3, 3), SP, (0.2, 0.1, 0.25))
+    P = len(pts)
+    T = 3
+    m = SimModel.create(pts, SP ** 3, 1000.0, 3e3, 0.3, grid=GridSpec((0, 0, 0), DX, (14, 10, 14)), fps=15,
+                        substeps=20, E_max=2e4, dtype="float64", support_rule=(2.0, 0.15), blend_dt=1.0 / (15 * 50))
+    right = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
+    left = np.nonzero(pts[:, 0] < pts[:, 0].min() + 1e-9)[0]
+    traj = np.repeat(pts[right].mean(0)[None], T + 1, 0)
+    traj[:, 0] += np.linspace(0.0, 0.03, T + 1)
+    traj[:, 2] += np.linspace(0.0, -0.01, T + 1)
+    ctrl = Control([Contact("pointAdherent", indices=right, trajectory=traj),
+                    Contact("fixed", indices=left, grasp_frame=1)], n_frames=T)
+    ro = Rollout(m, ctrl)
+    E0 = np.full(P, 3e3) * np.linspace(0.8, 1.2, P)
+    _run_checks(ro, E0, np.full(P, 0.3), {}, {0: traj})
+
+
 def test_grad_plasticity_viscoelasticity_sphere_release():
     """Plasticity (yielding) + viscoelasticity, a sphere pushing down, a grasp released mid-rollout, a clamp."""
     pts = block((4, 4, 4), SP, (0.25, 0.15, 0.25))

@@ -154,7 +154,7 @@ def tile(model: SimModel, control: Control, copies: int, axis: int | None = None
         effects=model.effects, dtype=model.dtype, device=model.device, E_max=model.E_max, nu_max=model.nu_max,
         contact_band=model.contact_band, pin_gain=model.pin_gain, blend_dt=model.blend_dt,
         pin_floor=model.pin_floor, transfer_tau=model.transfer_tau, stencil_check=model.stencil_check,
-        ground_contact=model.ground_contact)
+        ground_contact=model.ground_contact, support_gain=model.support_gain, support_floor=model.support_floor)
     contacts = []
     for b in range(B):
         for c in control.contacts:

@@ -173,8 +173,10 @@ class ControlArrays:
                 raise ValueError(f"contact {i} ({c.type}) shares particles with another adherent/fixed contact")
             pin_id[idx] = r
         pin_active = np.zeros((max(1, len(pins)), T), dtype=np.int32)
+        pin_kind = np.zeros(max(1, len(pins)), dtype=np.int32)     # 1: a support (fixed), 0: a grasp
         for r, i in enumerate(pins):
             pin_active[r] = control.contacts[i].active_mask(T)
+            pin_kind[r] = int(control.contacts[i].type == "fixed")
         cols = control.colliders
         n = max(1, len(cols))
         shape = np.zeros(n, np.int32)
@@ -198,6 +200,7 @@ class ControlArrays:
         self.pin_id = wp.array(pin_id, dtype=wp.int32, device=d)
         self.pin_active = wp.array(pin_active, dtype=wp.int32, device=d)
         self.pin_pos = wp.array(control.pin_positions().astype(nd), dtype=K.vec3, device=d)
+        self.pin_kind = wp.array(pin_kind, dtype=wp.int32, device=d)
         self.col_shape = wp.array(shape, dtype=wp.int32, device=d)
         self.col_active = wp.array(col_active, dtype=wp.int32, device=d)
         self.col_pos = wp.array(control.collider_positions().astype(nd), dtype=K.vec3, device=d)

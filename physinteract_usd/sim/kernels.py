@@ -75,6 +75,10 @@ S_PLANE = 2
 
 MAX_COLLIDERS = 4  # non-adherent contacts per scene (unrolled in the grid kernel)
 
+# the grid's scatter targets (p2g's outputs, zeroed per substep): mass, momentum, the pinned particles' mass and
+# momentum, the mass of those a support (a fixed contact) holds (its share picks the support's pin rule)
+SCATTERED = ("gm", "gmv", "gpm", "gpmv", "gsm")
+
 # status columns written by the check kernel, per frame
 ST_NONFINITE = 0
 ST_OUTSIDE = 1
@@ -579,13 +583,22 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 return 1, (pin_pos[cid, frame + 1] - pin_pos[cid, frame]) * fps
         return 0, vec3()
 
+    @wp.func
+    def pin_support(p: int, pinned: int, pin_id: wp.array(dtype=int), pin_kind: wp.array(dtype=int)):
+        # 1 where particle p is held this frame by a support (a fixed contact: its mass also goes to the
+        # grid's support mass, which picks the support's pin rule at a node: node_velocity)
+        if pinned != 0:
+            return pin_kind[pin_id[p]]
+        return 0
+
     @wp.kernel(module=module, enable_backward=False)
     def p2g_scatter(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                     mass: wp.array(dtype=T),
                     pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                    pin_kind: wp.array(dtype=int),
                     frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                     dt: T, F: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int),
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T), box_flag: wp.array(dtype=int),
                     clamped: wp.array(dtype=int)):
         p = wp.tid()
         m = mass[p]
@@ -599,6 +612,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         mv = m * v[p]
         Ap = A[p]
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        support = pin_support(p, pinned, pin_id, pin_kind)
         for i in range(3):
             for j in range(3):
                 for k in range(3):
@@ -609,6 +623,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     if pinned != 0:
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
+                        if support != 0:
+                            wp.atomic_add(gsm, base[0] + i, base[1] + j, base[2] + k, w * m)
 
     @wp.kernel(module=module_cuda, enable_backward=False)
     def p2g_fused(F: wp.array(dtype=mat33), Fv: wp.array(dtype=mat33), C: wp.array(dtype=mat33),
@@ -616,9 +632,10 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                   eff: wp.array(dtype=T), flags: int, material: int, dt: T,
                   x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), mass: wp.array(dtype=T),
                   pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int), pin_pos: wp.array2d(dtype=vec3),
+                  pin_kind: wp.array(dtype=int),
                   frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                   A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), box_flag: wp.array(dtype=int),
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T), box_flag: wp.array(dtype=int),
                   clamped: wp.array(dtype=int)):
         # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
         # reads it). The scatter's loop is p2g_scatter's, written out again: as a wp.func taking the
@@ -637,6 +654,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         fx = xp - vec3(T(float(base[0])), T(float(base[1])), T(float(base[2])))
         mv = m * v[p]
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        support = pin_support(p, pinned, pin_id, pin_kind)
         for i in range(3):
             for j in range(3):
                 for k in range(3):
@@ -647,15 +665,17 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     if pinned != 0:
                         wp.atomic_add(gpm, base[0] + i, base[1] + j, base[2] + k, w * m)
                         wp.atomic_add(gpmv, base[0] + i, base[1] + j, base[2] + k, (w * m) * pv)
+                        if support != 0:
+                            wp.atomic_add(gsm, base[0] + i, base[1] + j, base[2] + k, w * m)
 
     @wp.kernel(module=module_adj, enable_backward=False)
     def p2g_scatter_adj(x: wp.array(dtype=vec3), v: wp.array(dtype=vec3), A: wp.array(dtype=mat33),
                         mass: wp.array(dtype=T),
                         pin_id: wp.array(dtype=int), pin_active: wp.array2d(dtype=int),
-                        pin_pos: wp.array2d(dtype=vec3),
+                        pin_pos: wp.array2d(dtype=vec3), pin_kind: wp.array(dtype=int),
                         frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i,
                         adj_gm: wp.array3d(dtype=T), adj_gmv: wp.array3d(dtype=vec3),
-                        adj_gpm: wp.array3d(dtype=T), adj_gpmv: wp.array3d(dtype=vec3),
+                        adj_gpm: wp.array3d(dtype=T), adj_gpmv: wp.array3d(dtype=vec3), adj_gsm: wp.array3d(dtype=T),
                         adj_x: wp.array(dtype=vec3), adj_v: wp.array(dtype=vec3), adj_A: wp.array(dtype=mat33),
                         adj_pin_pos: wp.array2d(dtype=vec3)):
         # hand-written adjoint of p2g_scatter (a gather of the grid adjoints): accumulates into
@@ -670,6 +690,7 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         Ap = A[p]
         AT = wp.transpose(Ap)
         pinned, pv = pin_velocity(p, pin_id, pin_active, pin_pos, frame, fps)
+        support = pin_support(p, pinned, pin_id, pin_kind)
         g_v = vec3()
         g_A = mat33()
         g_fx = vec3()
@@ -691,6 +712,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     if pinned != 0:
                         e = adj_gpmv[base[0] + i, base[1] + j, base[2] + k]
                         dLdw = dLdw + m * (adj_gpm[base[0] + i, base[1] + j, base[2] + k] + wp.dot(e, pv))
+                        if support != 0:
+                            dLdw = dLdw + m * adj_gsm[base[0] + i, base[1] + j, base[2] + k]
                         g_pv = g_pv + (w * m) * e
                     g_fx = g_fx + dLdw * gw
         adj_v[p] = adj_v[p] + g_v
@@ -744,8 +767,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         return T(1.0) - wp.exp(r * wp.log(T(1.0) - w))
 
     @wp.func
-    def node_velocity(m: T, mv: vec3, pm: T, pmv: vec3, xn: vec3,
+    def node_velocity(m: T, mv: vec3, pm: T, pmv: vec3, sm: T, xn: vec3,
                       eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, band: T, pin_gain: T, pin_floor: T,
+                      sup_gain: T, sup_floor: T,
                       n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                       col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                       col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
@@ -754,7 +778,15 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
         if (flags & 1) != 0:
             vel = vel * wp.exp(-eff[0] * dt)
         if pm > T(0.0):
-            wpin = rate_weight(wp.clamp(pin_gain * (pm / m - pin_floor), T(0.0), T(1.0)), blend_r)
+            # the pin rule: a grasp's (pin_gain, pin_floor), a support's (sup_gain, sup_floor), mixed by the
+            # share of the node's pinned mass that supports hold (sm / pm; 0 or 1 but where both reach a node)
+            gain = pin_gain
+            floor = pin_floor
+            if sm > T(0.0):
+                ks = sm / pm
+                gain = gain + ks * (sup_gain - gain)
+                floor = floor + ks * (sup_floor - floor)
+            wpin = rate_weight(wp.clamp(gain * (pm / m - floor), T(0.0), T(1.0)), blend_r)
             vel = vel * (T(1.0) - wpin) + (wpin / pm) * pmv
         if (flags & 20) == 4:     # the ground at the nodes (F_GROUND without F_GROUND_PENALTY)
             wg = rate_weight(soft_weight(xn[1] - eff[2], band), blend_r)
@@ -769,9 +801,9 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
 
     @wp.kernel(module=module)
     def grid_update(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
-                    gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
+                    gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3), gsm: wp.array(dtype=T),
                     eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
-                    pin_gain: T, pin_floor: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                    pin_gain: T, pin_floor: T, sup_gain: T, sup_floor: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
                     frame: int, alpha: T, fps: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i), nthr: int,
@@ -794,16 +826,16 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 j = (t / res[2]) % res[1]
                 k = t % res[2]
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
-                vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
-                                    pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
+                vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], gsm[t], xn, eff, flags, gravity, dt, band,
+                                    pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
                                     frame, alpha, fps, blend_r)
             gv[t] = vel
 
     @wp.kernel(module=module_cuda)
     def grid_update_box(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
-                        gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
+                        gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3), gsm: wp.array(dtype=T),
                         eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
-                        pin_gain: T, pin_floor: T, n_col: int, col_shape: wp.array(dtype=int),
+                        pin_gain: T, pin_floor: T, sup_gain: T, sup_floor: T, n_col: int, col_shape: wp.array(dtype=int),
                         col_active: wp.array2d(dtype=int),
                         col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                         col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
@@ -821,8 +853,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 vel = vec3()
                 if m > m_eps:
                     xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
-                    vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], xn, eff, flags, gravity, dt, band,
-                                        pin_gain, pin_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius,
+                    vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], gsm[t], xn, eff, flags, gravity, dt, band,
+                                        pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius,
                                         col_mu, frame, alpha, fps, blend_r)
                 gv[t] = vel
 
@@ -998,38 +1030,42 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     # substep's graph; at small sizes a substep is bound by the number of nodes, not their bytes)
     @wp.func
     def clear_scatter_node(t: int, gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
-                           gpmv: wp.array(dtype=vec3)):
-        # one node of the grid's scatter targets: mass, momentum, pinned mass and momentum
+                           gpmv: wp.array(dtype=vec3), gsm: wp.array(dtype=T)):
+        # one node of the grid's scatter targets: mass, momentum, pinned mass and momentum, supports' mass
         gm[t] = T(0.0)
         gmv[t] = vec3()
         gpm[t] = T(0.0)
         gpmv[t] = vec3()
+        gsm[t] = T(0.0)
 
     @wp.kernel(module=module_cuda, enable_backward=False)
     def zero_grid(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
-                  gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3)):
+                  gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3),
+                  gsm: wp.array(dtype=T)):
         # the grid's scatter targets (flat views) over the grid box, nthr threads (`box_span`)
         start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
         for q in range(start, stop, step):
             i, j, k, t, inside = box_node(q, contig, box, res)
             if inside:
-                clear_scatter_node(t, gm, gmv, gpm, gpmv)
+                clear_scatter_node(t, gm, gmv, gpm, gpmv, gsm)
 
     @wp.kernel(module=module_cuda, enable_backward=False)
     def zero_grid_adj(box: wp.array(dtype=wp.vec3i), nthr: int, contig: int, res: wp.vec3i, gm: wp.array(dtype=T),
                       gmv: wp.array(dtype=vec3), gpm: wp.array(dtype=T),
-                      gpmv: wp.array(dtype=vec3), a_gm: wp.array(dtype=T), a_gmv: wp.array(dtype=vec3),
-                      a_gpm: wp.array(dtype=T), a_gpmv: wp.array(dtype=vec3), a_gv: wp.array(dtype=vec3)):
-        # the scatter targets and the five grid adjoints of a backward substep, over the grid box
+                      gpmv: wp.array(dtype=vec3), gsm: wp.array(dtype=T), a_gm: wp.array(dtype=T),
+                      a_gmv: wp.array(dtype=vec3), a_gpm: wp.array(dtype=T), a_gpmv: wp.array(dtype=vec3),
+                      a_gsm: wp.array(dtype=T), a_gv: wp.array(dtype=vec3)):
+        # the scatter targets and the six grid adjoints of a backward substep, over the grid box
         start, stop, step = box_span(wp.tid(), nthr, contig, box, res)
         for q in range(start, stop, step):
             i, j, k, t, inside = box_node(q, contig, box, res)
             if inside:
-                clear_scatter_node(t, gm, gmv, gpm, gpmv)
+                clear_scatter_node(t, gm, gmv, gpm, gpmv, gsm)
                 a_gm[t] = T(0.0)
                 a_gmv[t] = vec3()
                 a_gpm[t] = T(0.0)
                 a_gpmv[t] = vec3()
+                a_gsm[t] = T(0.0)
                 a_gv[t] = vec3()
 
     @wp.kernel(module=module_cuda, enable_backward=False)

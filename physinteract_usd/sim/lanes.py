@@ -35,6 +35,7 @@ from types import SimpleNamespace
 import warp as wp
 
 from ..errors import SimulationError
+from .kernels import SCATTERED
 
 LANES: int | None = int(os.environ["PHYSINTERACT_SIM_LANES"]) if os.environ.get("PHYSINTERACT_SIM_LANES") else None
 # where LANES is None: True, two lanes where this process may run on >= 2 cores and the machine has a core to spare
@@ -114,13 +115,16 @@ def _build(dtype: str) -> SimpleNamespace:
 
     @wp.kernel(module=module, enable_backward=False)
     def add_grid(m: wp.array(dtype=T), mv: wp.array(dtype=vec3), pm: wp.array(dtype=T), pmv: wp.array(dtype=vec3),
-                 bm: wp.array(dtype=T), bmv: wp.array(dtype=vec3), bpm: wp.array(dtype=T), bpmv: wp.array(dtype=vec3)):
-        # lane B's four scatter targets added into lane A's, one launch (each launch costs a capture ~0.3 ms)
+                 sm: wp.array(dtype=T),
+                 bm: wp.array(dtype=T), bmv: wp.array(dtype=vec3), bpm: wp.array(dtype=T), bpmv: wp.array(dtype=vec3),
+                 bsm: wp.array(dtype=T)):
+        # lane B's five scatter targets added into lane A's, one launch (each launch costs a capture ~0.3 ms)
         i = wp.tid()
         m[i] = m[i] + bm[i]
         mv[i] = mv[i] + bmv[i]
         pm[i] = pm[i] + bpm[i]
         pmv[i] = pmv[i] + bpmv[i]
+        sm[i] = sm[i] + bsm[i]
 
     return SimpleNamespace(barrier=barrier, add_T=add_T, add_grid=add_grid, module=module)
 
@@ -202,8 +206,9 @@ class Lanes:
         self.gmv = wp.zeros(res, dtype=K.vec3, device=d)
         self.gpm = wp.zeros(res, dtype=K.T, device=d)
         self.gpmv = wp.zeros(res, dtype=K.vec3, device=d)
+        self.gsm = wp.zeros(res, dtype=K.T, device=d)
         self.box_flag = wp.zeros(1, dtype=wp.int32, device=d)
-        self.flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv")}
+        self.flat = {k: getattr(self, k).flatten() for k in SCATTERED}
         # lane B's adjoint accumulators: the grid velocity's, the effect parameters' (N_PARAMS), the pins'
         # trajectories' (the shape of the solver's controls). Allocated here, never in a capture: on the CPU a
         # capture records an allocation's memset into the graph (it would run at every replay, racing the lane)

@@ -95,6 +95,9 @@ class SimModel:
     blend_dt: float = 0.0               # partial pin / collider blends act at their weight once per this
                                         # time [s] (a rate, whatever the substep); 0: once per substep
     pin_floor: float = 0.0              # nodes with a pinned share below this are free (see pin_gain)
+    support_gain: float | None = None   # the pin rule of the supports (fixed contacts): (support_gain, support_floor)
+    support_floor: float | None = None  # where a node's pinned mass is a support's; None: the grasps' (pin_gain,
+                                        # pin_floor). A node both reach mixes the two by its supports' share
     transfer_tau: float = 0.0           # the rate transfer's time constant [s] (docs/sim.md): free particles keep
                                         # exp(-dt / tau) of the velocity the grid could not carry each substep, so the
                                         # transfer's dissipation is a rate per second; 0: APIC (today's, bit for bit)
@@ -118,7 +121,7 @@ class SimModel:
                effects: Effects | dict | None = None, dtype: str = "float32", device: str = "cpu",
                contact_band: float | None = None, pin_gain: float = 4.0, blend_dt: float = 0.0,
                pin_floor: float = 0.0, transfer_tau: float | None = 0.0, stencil_check: bool = True,
-               ground_contact: str = "nodes") -> "SimModel":
+               ground_contact: str = "nodes", support_rule: tuple[float, float] | None = None) -> "SimModel":
         x0 = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         P = x0.shape[0]
         if P == 0:
@@ -157,12 +160,16 @@ class SimModel:
         if substeps is None:
             substeps = _cfl.substeps_per_frame(fps, grid.dx, stiff, nu_max, density, cfl=cfl, max_speed=max_speed)
         band = grid.dx if contact_band is None else float(contact_band)
+        sg, sf = (None, None) if support_rule is None else (float(support_rule[0]), float(support_rule[1]))
+        for name, (g_, f_) in (("pin rule", (pin_gain, pin_floor)), ("support rule", (sg, sf))):
+            if g_ is not None and not (float(g_) > 0 and 0 <= float(f_) < 1):
+                raise ValueError(f"{name}: the gain must be > 0 and the floor in [0, 1), not ({g_}, {f_})")
         m = cls(x0=x0, volume=vol, density=float(density), E=Ea, nu=nua, material=material, grid=grid,
                 fps=float(fps), substeps=int(substeps), gravity=tuple(float(g) for g in gravity),
                 effects=effects, dtype=dtype, device=str(wp.get_device(device)), E_max=E_max, nu_max=nu_max,
                 contact_band=band, pin_gain=float(pin_gain), blend_dt=float(blend_dt),
                 pin_floor=float(pin_floor), transfer_tau=tau_t, stencil_check=bool(stencil_check),
-                ground_contact=ground_contact)
+                ground_contact=ground_contact, support_gain=sg, support_floor=sf)
         lo, hi = grid.valid_lower, grid.valid_upper
         if np.any(x0 < lo) or np.any(x0 >= hi):
             raise ValueError(f"particles at rest lie outside the grid's valid box [{lo}, {hi}); "
@@ -177,6 +184,13 @@ class SimModel:
     @property
     def mass(self) -> np.ndarray:
         return self.volume * self.density
+
+    @property
+    def support_rule(self) -> tuple[float, float]:
+        """(gain, floor) of the supports' pin rule (the grasps' where none was set)."""
+        if self.support_gain is None:
+            return self.pin_gain, self.pin_floor
+        return self.support_gain, self.support_floor
 
     @property
     def dt(self) -> float:

@@ -39,7 +39,7 @@ import warp as wp
 from ..errors import SimulationError
 from .control import Control, ControlArrays
 from .effects import N_PARAMS
-from .kernels import F_GROUND, F_GROUND_PENALTY, F_VISCO, GROUND_BETA, GROUND_K, N_STATUS, get_kernels
+from .kernels import F_GROUND, F_GROUND_PENALTY, F_VISCO, GROUND_BETA, GROUND_K, N_STATUS, SCATTERED, get_kernels
 from .state import SimState
 
 # how new solvers clear their grid / adjoint buffers: True fused kernels, False memsets, None (default)
@@ -138,6 +138,8 @@ class MPMSolver:
         self.band = model.contact_band
         self.pin_gain = model.pin_gain
         self.pin_floor = model.pin_floor
+        # a support's pin rule (a fixed contact's; grasps: pin_gain, pin_floor)
+        self.sup_gain, self.sup_floor = model.support_rule
         # the pins' and colliders' partial blends are rates per `model.blend_dt` (0: per substep)
         self.blend_r = float(self.dt / model.blend_dt) if model.blend_dt > 0 else 1.0
         self.m_eps = float(1e-9 * np.min(model.mass))  # grid nodes lighter than this are empty
@@ -151,6 +153,7 @@ class MPMSolver:
         self.gmv = wp.zeros(self.res, dtype=K.vec3, device=d)
         self.gpm = wp.zeros(self.res, dtype=K.T, device=d)
         self.gpmv = wp.zeros(self.res, dtype=K.vec3, device=d)
+        self.gsm = wp.zeros(self.res, dtype=K.T, device=d)
         self.gv = wp.zeros(self.res, dtype=K.vec3, device=d)
         P = model.n_particles
         self.A = wp.zeros(P, dtype=K.mat33, device=d)     # affine matrices (stress + APIC)
@@ -172,7 +175,7 @@ class MPMSolver:
         self.clamped = wp.zeros(model.n_particles, dtype=wp.int32, device=d)
         self.box_lo = (0, 0, 0)
         self.box_hi = tuple(self.res)
-        self._flat = {k: getattr(self, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
+        self._flat = {k: getattr(self, k).flatten() for k in SCATTERED + ("gv",)}
         self._adj_grid = None
         self._adj_flat = None
         # read when launching: set it before a rollout captures its graphs
@@ -256,12 +259,12 @@ class MPMSolver:
     # ------------------------------------------------------------------ substep tapes
     # what a substep computes from its input state that its adjoint reads: the grid (mass, momentum,
     # the pins' mass and momentum, the updated velocity) and the particles' A, vg, Cg
-    _TAPED = ("A", "vg", "Cg", "gm", "gmv", "gpm", "gpmv", "gv")
+    _TAPED = ("A", "vg", "Cg") + SCATTERED + ("gv",)
 
     def tape_bytes(self, n_substeps: int) -> int:
         """Bytes of a tape of n_substeps substeps (`new_tape`)."""
         b = 4 if self.model.dtype == "float32" else 8
-        return int(n_substeps) * b * (21 * self.model.n_particles + 11 * self.n_nodes)
+        return int(n_substeps) * b * (21 * self.model.n_particles + 12 * self.n_nodes)
 
     def new_tape(self, n_substeps: int) -> list:
         """n_substeps `SubstepSave`s (namespaces of the `_TAPED` arrays and the grid's flat views), rows of
@@ -269,13 +272,13 @@ class MPMSolver:
         K, d = self.K, self.device
         P = self.model.n_particles
         types = dict(A=(K.mat33, P), vg=(K.vec3, P), Cg=(K.mat33, P), gm=(K.T, self.res), gmv=(K.vec3, self.res),
-                     gpm=(K.T, self.res), gpmv=(K.vec3, self.res), gv=(K.vec3, self.res))
+                     gpm=(K.T, self.res), gpmv=(K.vec3, self.res), gsm=(K.T, self.res), gv=(K.vec3, self.res))
         rows = {k: wp.zeros((n_substeps,) + (shape if isinstance(shape, tuple) else (shape,)), dtype=t, device=d)
                 for k, (t, shape) in types.items()}
         out = []
         for s in range(n_substeps):
             sv = SimpleNamespace(**{k: a[s] for k, a in rows.items()})
-            sv._flat = {k: getattr(sv, k).flatten() for k in ("gm", "gmv", "gpm", "gpmv", "gv")}
+            sv._flat = {k: getattr(sv, k).flatten() for k in SCATTERED + ("gv",)}
             out.append(sv)
         return out
 
@@ -313,14 +316,18 @@ class MPMSolver:
         return self.vgr
 
     def _scatter_args(self, s: SimState, frame: int, c: ControlArrays, v=None):
-        return [s.x, s.v if v is None else v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame, self.fps, self.lo,
+        return [s.x, s.v if v is None else v, self.A, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, c.pin_kind,
+                frame, self.fps, self.lo,
                 self.inv_dx, self.res3]     # p2g_scatter: + whether the box is on, the box, dt, F (and box_flag, clamped out)
+
+    # where `_grid_args` puts the grid kernel's thread count (the lanes' `_grid_args_lane` rewrites it)
+    GRID_NTHR = 28
 
     def _grid_args(self, frame: int, substep: int, p: SimParams, c: ControlArrays):
         alpha = (substep + 1) / self.S
         f = self._flat
-        return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], p.eff, self.flags, self.gravity, self.dt, self.lo,
-                self.dx, self.band, self.pin_gain, self.pin_floor, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
+        return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], f["gsm"], p.eff, self.flags, self.gravity, self.dt, self.lo,
+                self.dx, self.band, self.pin_gain, self.pin_floor, self.sup_gain, self.sup_floor, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
                 c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.box, self.n_grid_threads, self.contig,
                 self.m_eps, self.blend_r]
 
@@ -349,15 +356,16 @@ class MPMSolver:
         if self.fused_kernels:
             sa = self._stress_args(s, p)     # F, Fv, C, mass, vol, E, nu, eff, flags, material, inv_dx, dt
             wp.launch(K.p2g_fused, P, [sa[0], sa[1], sa[2], sa[4], sa[5], sa[6], sa[7], sa[8], sa[9], sa[11],
-                                       s.x, v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
-                                       self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
-                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d,
+                                       s.x, v, self.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, c.pin_kind,
+                                       frame, self.fps, self.lo, self.inv_dx, self.res3, int(self.grid_box), self.box],
+                      [self.A, self.gm, self.gmv, self.gpm, self.gpmv, self.gsm, self.box_flag, self.clamped], device=d,
                       record_tape=False, block_dim=self.block_dim)
         else:
             wp.launch(K.p2g_stress, P, self._stress_args(s, p), [self.A], device=d, record_tape=False,
                       block_dim=self.block_dim)
             wp.launch(K.p2g_scatter, P, self._scatter_args(s, frame, c, v) + [int(self.grid_box), self.box, self.dt, s.F],
-                      [self.gm, self.gmv, self.gpm, self.gpmv, self.box_flag, self.clamped], device=d, record_tape=False,
+                      [self.gm, self.gmv, self.gpm, self.gpmv, self.gsm, self.box_flag, self.clamped], device=d,
+                      record_tape=False,
                       block_dim=self.block_dim)
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [self._flat["gv"]],
                   device=d, record_tape=False, block_dim=self.block_dim)
@@ -368,13 +376,11 @@ class MPMSolver:
     def _clear_grid(self):
         if self.fused_zero or self.grid_box:
             f = self._flat
-            wp.launch(self.K.zero_grid, self.n_grid_threads, self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"]],
+            wp.launch(self.K.zero_grid, self.n_grid_threads, self._box_args() + [f[k] for k in SCATTERED],
                       device=self.device, record_tape=False, block_dim=self.block_dim)
         else:
-            self.gm.zero_()
-            self.gmv.zero_()
-            self.gpm.zero_()
-            self.gpmv.zero_()
+            for k in SCATTERED:
+                getattr(self, k).zero_()
 
     def step(self, s_in: SimState, s_out: SimState, frame: int, substep: int, params=None, ctrl=None, save=None):
         """Advance one substep: s_out <- step(s_in). s_in and s_out must be different states. `save`: a
@@ -427,7 +433,7 @@ class MPMSolver:
             self._adj_grid = dict(
                 gm=wp.zeros(self.res, dtype=K.T, device=d), gmv=wp.zeros(self.res, dtype=K.vec3, device=d),
                 gpm=wp.zeros(self.res, dtype=K.T, device=d), gpmv=wp.zeros(self.res, dtype=K.vec3, device=d),
-                gv=wp.zeros(self.res, dtype=K.vec3, device=d))
+                gsm=wp.zeros(self.res, dtype=K.T, device=d), gv=wp.zeros(self.res, dtype=K.vec3, device=d))
             self._adj_flat = {k: a.flatten() for k, a in self._adj_grid.items()}
             self._adj_part = dict(A=wp.zeros(P, dtype=K.mat33, device=d), vg=wp.zeros(P, dtype=K.vec3, device=d),
                                   Cg=wp.zeros(P, dtype=K.mat33, device=d))
@@ -484,8 +490,8 @@ class MPMSolver:
             # the scatter targets and the grid adjoints in one launch over the box, then the grid
             f = self._flat
             wp.launch(K.zero_grid_adj, self.n_grid_threads,
-                      self._box_args() + [f["gm"], f["gmv"], f["gpm"], f["gpmv"], af["gm"], af["gmv"], af["gpm"],
-                                          af["gpmv"], af["gv"]], device=d, record_tape=False, block_dim=self.block_dim)
+                      self._box_args() + [f[k] for k in SCATTERED] + [af[k] for k in SCATTERED + ("gv",)], device=d,
+                      record_tape=False, block_dim=self.block_dim)
             self.grid(s_in, frame, substep, p, c, clear=False)
             self._zero_particle_adj(P, adj_in, clear_adj_in)
         else:
@@ -529,8 +535,9 @@ class MPMSolver:
         wp.launch(K.g2p_gather_adj, P, [s_in.x, self.gv, self.lo, self.inv_dx, self.res3, ap["vg"], ap["Cg"]],
                   [adj_in.x, ag["gv"]], device=d, record_tape=False, block_dim=self.block_dim)
         # grid update (Warp autodiff) -> adj grid mass / momentum, effects, colliders
-        adj_grid = [af["gm"], af["gmv"], af["gpm"], af["gpmv"], adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0,
-                    None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
+        adj_grid = [af[k] for k in SCATTERED] + [adj_params.eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0,
+                                                 None, None, adj_ctrl.col_pos, None, None, None, 0, 0.0, 0.0, None, None,
+                                                 0, 0, 0.0, 0.0]
         # (a taped adjoint replays the forward's outputs into scratch: the tape stays as its forward wrote it)
         gv_out = self._own["_flat"]["gv"] if taped else self._flat["gv"]
         wp.launch(self.grid_kernel, self.n_grid_threads, self._grid_args(frame, substep, p, c), [gv_out],
@@ -540,8 +547,8 @@ class MPMSolver:
         v = self._scatter_v(s_in, p)
         if self.vgr is not None:
             self._a_vgr.zero_()
-        wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c, v) + [ag["gm"], ag["gmv"], ag["gpm"],
-                  ag["gpmv"]], [adj_in.x, adj_in.v if self.vgr is None else self._a_vgr, ap["A"], adj_ctrl.pin_pos],
+        wp.launch(K.p2g_scatter_adj, P, self._scatter_args(s_in, frame, c, v) + [ag[k] for k in SCATTERED],
+                  [adj_in.x, adj_in.v if self.vgr is None else self._a_vgr, ap["A"], adj_ctrl.pin_pos],
                   device=d, record_tape=False, block_dim=self.block_dim)
         if self.vgr is not None:
             wp.launch(K.ground_impulse, P, self._ground_args(s_in, p), [self.vgr],
@@ -572,7 +579,7 @@ class MPMSolver:
         bd = self.block_dim
         for lane in (0, 1):
             n, S = self._half(lane)
-            grid = [self.gm, self.gmv, self.gpm, self.gpmv] if lane == 0 else [L.gm, L.gmv, L.gpm, L.gpmv]
+            grid = [getattr(self if lane == 0 else L, k) for k in SCATTERED]
             R.zero(lane, *grid)
             R.launch(lane, K.p2g_stress, n, [S(s.F), S(s.Fv), S(s.C), S(self.dev["mass"]), S(self.dev["volume"]),
                                              S(p.E), S(p.nu), p.eff, self.flags, self.material, self.inv_dx, self.dt],
@@ -580,7 +587,7 @@ class MPMSolver:
             if self.vgr is not None:
                 R.launch(lane, K.ground_impulse, n, self._ground_args(s, p, S), [S(self.vgr)], block_dim=bd)
             R.launch(lane, K.p2g_scatter, n, [S(s.x), S(s.v if self.vgr is None else self.vgr), S(self.A), S(self.dev["mass"]), S(c.pin_id), c.pin_active,
-                                              c.pin_pos, frame, self.fps, self.lo, self.inv_dx, self.res3, 0, self.box,
+                                              c.pin_pos, c.pin_kind, frame, self.fps, self.lo, self.inv_dx, self.res3, 0, self.box,
                                               self.dt, S(s.F)],
                      grid + [self.box_flag if lane == 0 else L.box_flag, S(self.clamped)], block_dim=bd)
         R.barrier()
@@ -588,9 +595,9 @@ class MPMSolver:
         for lane in (0, 1):
             a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
             N = L.nodes
-            R.launch(lane, LK.add_grid, b - a, [N(f[k], lane) for k in ("gm", "gmv", "gpm", "gpmv")]
-                     + [N(L.flat[k], lane) for k in ("gm", "gmv", "gpm", "gpmv")], block_dim=bd)
-            R.launch(lane, self.grid_kernel, args[25], args, [N(f["gv"], lane)], block_dim=bd)
+            R.launch(lane, LK.add_grid, b - a, [N(f[k], lane) for k in SCATTERED]
+                     + [N(L.flat[k], lane) for k in SCATTERED], block_dim=bd)
+            R.launch(lane, self.grid_kernel, args[self.GRID_NTHR], args, [N(f["gv"], lane)], block_dim=bd)
         R.barrier()
         for lane in (0, 1):
             n, S = self._half(lane)
@@ -603,12 +610,14 @@ class MPMSolver:
         lo + (i, j, k) dx, and the slab offset is all a slice changes)."""
         a, b = self.lanes.node_ranges[lane]
         args = self._grid_args(frame, substep, p, c)
-        for i in range(4):
+        assert args[self.GRID_NTHR] == self.n_grid_threads, "GRID_NTHR is not the thread count's place in _grid_args"
+        ng = len(SCATTERED)
+        for i in range(ng):
             args[i] = self.lanes.nodes(args[i], lane)
         i0 = self.lanes.slab0[lane]
         if i0:
-            args[8] = self.K.vec3(float(self.lo[0]) + i0 * self.dx, float(self.lo[1]), float(self.lo[2]))
-        args[25] = max((b - a + self.chunk - 1) // self.chunk, 1)
+            args[ng + 4] = self.K.vec3(float(self.lo[0]) + i0 * self.dx, float(self.lo[1]), float(self.lo[2]))
+        args[self.GRID_NTHR] = max((b - a + self.chunk - 1) // self.chunk, 1)
         return a, b, args
 
     def _update_args_lane(self, s: SimState, frame: int, p, c, S):
@@ -661,12 +670,11 @@ class MPMSolver:
             a, b, args = self._grid_args_lane(lane, frame, substep, p, c)
             N = L.nodes
             R.launch(lane, self.K.add_vec3, b - a, [N(af["gv"], lane), N(L.a_gv_flat, lane)], block_dim=bd)
-            R.zero(lane, N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane))
-            adj_grid = [N(af["gm"], lane), N(af["gmv"], lane), N(af["gpm"], lane), N(af["gpmv"], lane),
-                        adj_params.eff if lane == 0 else L.a_eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0, None, None,
-                        adj_ctrl.col_pos if lane == 0 else L.a_col, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0,
-                        0.0]
-            R.launch(lane, self.grid_kernel, args[25], args, [N(gv_out, lane)], adj_inputs=adj_grid,
+            R.zero(lane, *(N(af[k], lane) for k in SCATTERED))
+            adj_grid = [N(af[k], lane) for k in SCATTERED] + [
+                adj_params.eff if lane == 0 else L.a_eff, 0, None, 0.0, None, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, None, None,
+                adj_ctrl.col_pos if lane == 0 else L.a_col, None, None, None, 0, 0.0, 0.0, None, None, 0, 0, 0.0, 0.0]
+            R.launch(lane, self.grid_kernel, args[self.GRID_NTHR], args, [N(gv_out, lane)], adj_inputs=adj_grid,
                      adj_outputs=[N(af["gv"], lane)], adjoint=True, block_dim=bd)
         R.barrier()
         A_fwd = self._own["A"] if taped else self.A
@@ -680,8 +688,8 @@ class MPMSolver:
                 R.launch(lane, K.ground_impulse, n, self._ground_args(s_in, p, S), [S(v)], block_dim=bd)
                 R.zero(lane, S(a_v))
             R.launch(lane, K.p2g_scatter_adj, n, [S(s_in.x), S(v), S(self.A), S(self.dev["mass"]), S(c.pin_id),
-                                                  c.pin_active, c.pin_pos, frame, self.fps, self.lo, self.inv_dx,
-                                                  self.res3, ag["gm"], ag["gmv"], ag["gpm"], ag["gpmv"]],
+                                                  c.pin_active, c.pin_pos, c.pin_kind, frame, self.fps, self.lo,
+                                                  self.inv_dx, self.res3] + [ag[k] for k in SCATTERED],
                      [S(adj_in.x), S(a_v), S(ap["A"]), a_pin], block_dim=bd)
             if self.vgr is not None:
                 R.launch(lane, K.ground_impulse, n, self._ground_args(s_in, p, S), [S(v)],
