@@ -48,6 +48,19 @@ from world_fit import add_ground  # noqa: E402
 
 # "gain1": the world generator's own blend (a node moves with the held share of its mass, pin_gain 1)
 RULES = {"default": simulation.PIN_RULE, "band": simulation.CLAMP_BAND, "gain1": (1.0, 0.0)}
+# a rule per contact kind (simulation.SUPPORT_RULE, #24): (the grasps' rule, the supports' rule)
+KIND_RULES = {"supband": (simulation.DEFAULT_PIN_RULE, simulation.CLAMP_BAND),
+              "graspband": (simulation.CLAMP_BAND, simulation.DEFAULT_PIN_RULE),
+              "supgain1": (simulation.DEFAULT_PIN_RULE, (1.0, 0.0)),
+              "graspgain1": ((1.0, 0.0), simulation.DEFAULT_PIN_RULE)}
+
+
+def set_rule(rule: str) -> None:
+    """`simulation`'s pin rules for a rule's name (RULES: every pin; KIND_RULES: grasps and supports apart)."""
+    if rule in KIND_RULES:
+        simulation.PIN_RULE, simulation.SUPPORT_RULE = KIND_RULES[rule]
+    else:
+        simulation.PIN_RULE, simulation.SUPPORT_RULE = RULES[rule], None
 
 # what our SimModel.create is given, per variant: a forced substep count, the blend once per substep
 FORCE = {"substeps": None, "blend": "rate"}
@@ -149,7 +162,7 @@ def one_variant(work: Path, n: str, cap_n: int, factors: list[float], rules: lis
     grasp, release = it.get("grasp_frame"), it.get("release_frame")
     rows = []
     for rule in rules:
-        simulation.PIN_RULE = RULES[rule]
+        set_rule(rule)
         job = prepare_fit(stage, iterations=1, contact_from=gt, device=device, log=lambda *a: None, warm=False)
         prob = make_problem(job)
         x0 = np.asarray(prob.x0)
@@ -186,7 +199,7 @@ def one_variant(work: Path, n: str, cap_n: int, factors: list[float], rules: lis
             row["sim_s"] = time.perf_counter() - t0
             rows.append(row)
             log(json.dumps({k: v for k, v in row.items() if k != "err_per_frame_m"}), flush=True)
-    simulation.PIN_RULE = RULES["default"]
+    set_rule("default")
     return rows
 
 
@@ -265,9 +278,10 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     factors = [float(f) for f in a.factors.split(",")]
     rules = [r for r in a.rules.split(",") if r]
-    bad = [r for r in rules if r not in RULES]
+    bad = [r for r in rules if r not in RULES and r not in KIND_RULES]
     if bad:
-        print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} (default, band, gain1)", file=sys.stderr)
+        print(f"world_simcheck.py: error: --rules: unknown {bad[0]!r} ({', '.join([*RULES, *KIND_RULES])})",
+              file=sys.stderr)
         return 2
     steps = [t for t in a.steps.split(",") if t]
     blends = [t for t in a.blends.split(",") if t]

@@ -127,7 +127,7 @@ def test_effect_inputs_helper_and_memory_layout():
     assert all(len(st) == m.substeps + 1 for st in stored._states)
     grid_arrays = [a for a in vars(ro.solver).values() if hasattr(a, "shape") and tuple(a.shape) == m.grid.resolution]
     adj_grid = list(ro.solver._adj_grid.values())
-    assert len(grid_arrays) == 5 and len(adj_grid) == 5
+    assert len(grid_arrays) == 6 and len(adj_grid) == 6        # kernels.SCATTERED and the velocity
 
 
 def test_cfl_substeps():
