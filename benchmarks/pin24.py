@@ -141,6 +141,18 @@ def held_rows(scene: str, a) -> list[dict]:
     return rows
 
 
+def set_fit_rule(rule: str) -> None:
+    """The fit's pin rules (`simulation.PIN_RULE`, `SUPPORT_RULE`) for a --rules name: a `pin_rule` name for every pin,
+    or one of world_simcheck's per contact kind (supband: the band at the supports only, graspband, ...)."""
+    from physinteract_usd import simulation
+    from world_simcheck import KIND_RULES
+
+    if rule in KIND_RULES:
+        simulation.PIN_RULE, simulation.SUPPORT_RULE = KIND_RULES[rule]
+    else:
+        simulation.PIN_RULE, simulation.SUPPORT_RULE = simulation.pin_rule(rule), None
+
+
 def one(scene: str, truth_rule: str, a) -> list[dict]:
     import torch
 
@@ -169,7 +181,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
                                 simulation.pin_rule(truth_rule)) for f in range(len(pos))]
                   for k, idx in pins_truth.items()}
     for rule in a.rules.split(","):
-        simulation.PIN_RULE = simulation.pin_rule(rule)
+        set_fit_rule(rule)
         job = prepare_fit(stage, iterations=1, contact_from=gt, device=a.device, log=lambda *x: None, warm=False,
                           progress=False)
         prob = make_problem(job)
@@ -187,6 +199,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
             c0 = time.process_time()
             row = {"scene": scene, "truth_rule": truth_rule, "fit_rule": rule, "factor": f,
                    "truth_pin_rule": g["gt_sim"].get("pin_rule", [4.0, 0.0]), "fit_pin_rule": list(simulation.PIN_RULE),
+                   "fit_support_rule": list(simulation.SUPPORT_RULE or simulation.PIN_RULE),
                    "grid": a.grid, "resolution": list(prob.sim.grid.resolution), "dx": float(prob.sim.grid.dx), "truth_dx": g["gt_sim"]["dx"],
                    "particles": int(len(x0)), "n": {k: int(m.sum()) for k, m in reg.items()},
                    "truth_disp_m": scale, "grasp": g["interaction"]["grasp_frame"],
@@ -205,7 +218,8 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
                     row["held_fit_frame"] = {
                         ("grasp" if c.type == "pointAdherent" else "support"):
                         [round(held_mass(xs[k], vol, np.isin(np.arange(len(x0)), c.indices), prob.sim.grid.lower,
-                                         prob.sim.grid.dx, simulation.PIN_RULE), 3) for k in range(T)]
+                                         prob.sim.grid.dx, (simulation.SUPPORT_RULE or simulation.PIN_RULE)
+                                         if c.type == "fixed" else simulation.PIN_RULE), 3) for k in range(T)]
                         for c in prob.sim.contacts if c.type in ("pointAdherent", "fixed")}
                     row["held_truth_frame"] = {k: [round(v, 3) for v in vs[:T]] for k, vs in held_truth.items()}
                 row["err_region_m"] = {k: float(err[1:, m].mean()) if m.any() else None for k, m in reg.items()}
@@ -225,7 +239,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
             row["best_loss_factor"] = bl
         rows += per
         append_rows(a.out, per)
-    simulation.PIN_RULE = simulation.DEFAULT_PIN_RULE
+    set_fit_rule("default")
     return rows
 
 
