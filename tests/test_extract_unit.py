@@ -1251,3 +1251,18 @@ def test_a_still_speck_off_the_floor_holds_nothing_up_a_hook_region_does():
     assert resting_base(block, h, [hook]) is None
     # the share is the lever: at 0 every region counts, as before
     assert resting_base(block, h, [corner, speck], hold_share=0.0) is None
+
+
+def test_the_image_windows_do_not_shrink_with_a_finer_particle_cap():
+    """`window_radius`: 2.5 particle spacings, but no finer than the spacing at WINDOW_PARTICLES: the same object
+    (volume P h^3 fixed) sampled at 1500, 12000 and 96000 particles keeps one window; at 190 particles (twice the
+    spacing of 1500) the window is twice as wide; the quarter-object cap and the 4 px floor still bound it."""
+    from physinteract_usd.extract.analysis import WINDOW_PARTICLES, window_radius
+
+    size = 400.0
+    h1500 = 8.0                                   # px at WINDOW_PARTICLES
+    r = [window_radius(h1500 * (WINDOW_PARTICLES / P) ** (1 / 3), P, size) for P in (1500, 12000, 96000)]
+    assert r[0] == pytest.approx(20.0) and r[1] == pytest.approx(r[0]) and r[2] == pytest.approx(r[0])
+    assert window_radius(2 * h1500, WINDOW_PARTICLES // 8, size) == pytest.approx(40.0)
+    assert window_radius(60.0, 100, size) == pytest.approx(0.25 * size + 4.0)
+    assert window_radius(0.5, 100, size) == 4.0

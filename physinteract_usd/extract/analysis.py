@@ -39,6 +39,17 @@ def unit(v):
     return v / n if n > 1e-12 else np.zeros_like(v)
 
 
+# the particle count whose spacing sets the finest image window (`window_radius`)
+WINDOW_PARTICLES = 1500
+
+
+def window_radius(spacing_px: float, n_particles: int, obj_size_px: float) -> float:
+    """The radius [px] of the image windows about the contact: 2.5 particle spacings, but no finer than the spacing
+    the object would have at WINDOW_PARTICLES particles (at 4 px and a quarter of the object at least and most)."""
+    window_px = spacing_px * max(1.0, (n_particles / WINDOW_PARTICLES) ** (1.0 / 3.0))
+    return float(np.clip(2.5 * window_px, 4.0, 0.25 * obj_size_px + 4.0))
+
+
 class Analysis:
     """Per-frame quantities shared by the steps."""
 
@@ -71,7 +82,12 @@ class Analysis:
         self.tracker = models.tracker
         ys, xs = np.nonzero(self.rest.silhouette)
         self.obj_size_px = float(max(np.ptp(xs), np.ptp(ys)) + 1)
-        self.R = float(np.clip(2.5 * self.spacing_px, 4.0, 0.25 * self.obj_size_px + 4.0))
+        # the image windows about the contact (flows, the toucher's and the object's motion) scale with the object's
+        # particle spacing, but no finer than the spacing the object would have at WINDOW_PARTICLES particles: the
+        # windows are the image's, and a finer particle cap (init --grid auto --max-particles) is not a sharper video
+        # (dev_0505 at 7571 particles: windows of 2.5 spacings saw the hand alone in 14 of 22 contact frames, and the
+        # grasp read 8 frames early)
+        self.R = window_radius(self.spacing_px, len(self.x0), self.obj_size_px)
         self.eps = 0.35  # px per frame: below this, "not moving"
         self.clear = max(2, int(round(0.4 * self.R)))  # px kept clear of the hand when measuring the object
 
