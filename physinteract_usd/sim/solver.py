@@ -327,9 +327,9 @@ class MPMSolver:
         alpha = (substep + 1) / self.S
         f = self._flat
         return [f["gm"], f["gmv"], f["gpm"], f["gpmv"], f["gsm"], p.eff, self.flags, self.gravity, self.dt, self.lo,
-                self.dx, self.band, self.pin_gain, self.pin_floor, self.sup_gain, self.sup_floor, c.n_col, c.col_shape, c.col_active, c.col_pos, c.col_geom,
-                c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.box, self.n_grid_threads, self.contig,
-                self.m_eps, self.blend_r]
+                self.dx, self.band, self.pin_gain, self.pin_floor, self.sup_gain, self.sup_floor, c.n_col, c.col_shape,
+                c.col_active, c.col_pos, c.col_geom, c.col_radius, c.col_mu, frame, alpha, self.fps, self.res3, self.box,
+                self.n_grid_threads, self.contig, self.m_eps, self.blend_r]
 
     def _update_args(self, s: SimState, frame: int, p: SimParams, c: ControlArrays):
         return [s.x, s.F, s.Fv, self.vg, self.Cg, p.E, p.nu, p.eff, self.flags, c.pin_id, c.pin_active, c.pin_pos,
