@@ -70,7 +70,7 @@ class RateTransfer:
         self.f = math.exp(-m.dt / tau) if tau > 0 else 0.0
         if self.f > 0:
             self.An = wp.zeros(P, dtype=K.mat33, device=d)
-            self.g = [wp.zeros(sol.res, dtype=t, device=d) for t in (K.T, K.vec3, K.T, K.vec3)]
+            self.g = [wp.zeros(sol.res, dtype=t, device=d) for t in (K.T, K.vec3, K.T, K.vec3, K.T)]   # SCATTERED
             self.gvo = wp.zeros(sol.res, dtype=K.vec3, device=d)
             self.vgo = wp.zeros(P, dtype=K.vec3, device=d)
             self.Cgo = wp.zeros(P, dtype=K.mat33, device=d)
@@ -87,8 +87,8 @@ class RateTransfer:
         for arr in self.g:
             arr.zero_()
         c = sol.ctrl
-        wp.launch(K.p2g_scatter, P, [a.x, a.v, self.An, sol.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, frame,
-                                     sol.fps, sol.lo, sol.inv_dx, sol.res3, 0, sol.box, sol.dt, a.F],
+        wp.launch(K.p2g_scatter, P, [a.x, a.v, self.An, sol.dev["mass"], c.pin_id, c.pin_active, c.pin_pos, c.pin_kind,
+                                     frame, sol.fps, sol.lo, sol.inv_dx, sol.res3, 0, sol.box, sol.dt, a.F],
                   self.g + [sol.box_flag, sol.clamped], device=d)
         gm, gmv = self.g[0].numpy(), self.g[1].numpy()
         self.gvo.assign(np.where(gm[..., None] > sol.m_eps, gmv / np.maximum(gm, 1e-300)[..., None], 0.0))
