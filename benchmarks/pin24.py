@@ -141,18 +141,6 @@ def held_rows(scene: str, a) -> list[dict]:
     return rows
 
 
-def set_fit_rule(rule: str) -> None:
-    """The fit's pin rules (`simulation.PIN_RULE`, `SUPPORT_RULE`) for a --rules name: a `pin_rule` name for every pin,
-    or one of world_simcheck's per contact kind (supband: the band at the supports only, graspband, ...)."""
-    from physinteract_usd import simulation
-    from world_simcheck import KIND_RULES
-
-    if rule in KIND_RULES:
-        simulation.PIN_RULE, simulation.SUPPORT_RULE = KIND_RULES[rule]
-    else:
-        simulation.PIN_RULE, simulation.SUPPORT_RULE = simulation.pin_rule(rule), None
-
-
 def one(scene: str, truth_rule: str, a) -> list[dict]:
     import torch
 
@@ -163,7 +151,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
     from physinteract_usd.app.fit import make_problem, prepare_fit
     from physinteract_usd.errors import SimulationError
     from traj_pin import make_stage
-    from world_simcheck import best_factor
+    from world_simcheck import best_factor, set_rule
 
     work = Path(a.work) / f"truth_{truth_rule}"
     work.mkdir(parents=True, exist_ok=True)
@@ -181,7 +169,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
                                 simulation.pin_rule(truth_rule)) for f in range(len(pos))]
                   for k, idx in pins_truth.items()}
     for rule in a.rules.split(","):
-        set_fit_rule(rule)
+        set_rule(rule)
         job = prepare_fit(stage, iterations=1, contact_from=gt, device=a.device, log=lambda *x: None, warm=False,
                           progress=False)
         prob = make_problem(job)
@@ -239,7 +227,7 @@ def one(scene: str, truth_rule: str, a) -> list[dict]:
             row["best_loss_factor"] = bl
         rows += per
         append_rows(a.out, per)
-    set_fit_rule("default")
+    set_rule("default")
     return rows
 
 

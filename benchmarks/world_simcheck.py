@@ -56,11 +56,12 @@ KIND_RULES = {"supband": (simulation.DEFAULT_PIN_RULE, simulation.CLAMP_BAND),
 
 
 def set_rule(rule: str) -> None:
-    """`simulation`'s pin rules for a rule's name (RULES: every pin; KIND_RULES: grasps and supports apart)."""
+    """`simulation`'s pin rules for a rule's name: KIND_RULES (grasps and supports apart), RULES or any name
+    `simulation.pin_rule` reads (every pin)."""
     if rule in KIND_RULES:
         simulation.PIN_RULE, simulation.SUPPORT_RULE = KIND_RULES[rule]
     else:
-        simulation.PIN_RULE, simulation.SUPPORT_RULE = RULES[rule], None
+        simulation.PIN_RULE, simulation.SUPPORT_RULE = RULES.get(rule) or simulation.pin_rule(rule), None
 
 # what our SimModel.create is given, per variant: a forced substep count, the blend once per substep
 FORCE = {"substeps": None, "blend": "rate"}

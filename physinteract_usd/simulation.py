@@ -351,12 +351,11 @@ def pin_rule(value: str | None) -> tuple[float, float]:
 PIN_RULE = pin_rule(os.environ.get("PHYSINTERACT_PIN_RULE"))
 
 
-# The supports' pin rule (a fixed contact's nodes; sim.model.SimModel.support_rule): None, the grasps' (PIN_RULE). On
-# world captures the default rule holds a hanging ball's support ~0.75 cell too far, so a fit of its swing comes out
-# 4-8x too soft (dev_0508 from the true interaction: 0.23x under the default, 1.09x under the band for every pin:
-# docs/benchmarks/world_fits.md), while the band everywhere loses the small grasps' hold (the 19th session's named
-# suite). The environment's PHYSINTERACT_SUPPORT_RULE (read once at import; the values PHYSINTERACT_PIN_RULE takes,
-# unset: None) sets it for measurements first (#24).
+# The supports' pin rule (a fixed contact's nodes; sim.model.SimModel.support_rule): None, the grasps' (PIN_RULE).
+# The environment's PHYSINTERACT_SUPPORT_RULE (read once at import; the values PHYSINTERACT_PIN_RULE takes, unset:
+# None) sets it, for measurements (#24). Not a default: the band at the supports only kept the world captures' hanging
+# balls 0.15-0.34x too soft and lost the named suite as the band everywhere did (0.507 -> 0.331), whose truths hold
+# their supports as the default rule does (docs/benchmarks/world_fits.md and fit.md, 26th session).
 def support_rule(value: str | None) -> tuple[float, float] | None:
     """The supports' pin rule a setting names (the environment's PHYSINTERACT_SUPPORT_RULE): unset or empty: None
     (the grasps' rule); else as `pin_rule` reads it."""

@@ -6,7 +6,7 @@
 module whole, at its first launch). One substep is five launches:
 
     p2g_stress(state_s)           -> A = -dt V0 (4/dx^2) tau + m C per particle (tau: Kirchhoff stress)
-    p2g_scatter(state_s, A)       -> grid mass / momentum (+ mass and momentum of pinned particles)
+    p2g_scatter(state_s, A)       -> grid mass / momentum (+ mass and momentum of pinned particles, supports' mass)
     grid_update(grid)             -> grid velocity (gravity, damping, pins, ground, moving colliders)
     g2p_gather(state_s, grid v)   -> v, C at the particles (APIC)
     g2p_update(state_s, v, C)     -> state_{s+1} (x, F, plasticity, Maxwell branch, pinned particles)
@@ -598,8 +598,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                     pin_kind: wp.array(dtype=int),
                     frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                     dt: T, F: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T), box_flag: wp.array(dtype=int),
-                    clamped: wp.array(dtype=int)):
+                    gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T),
+                    box_flag: wp.array(dtype=int), clamped: wp.array(dtype=int)):
         p = wp.tid()
         m = mass[p]
         dx = T(1.0) / inv_dx
@@ -635,8 +635,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                   pin_kind: wp.array(dtype=int),
                   frame: int, fps: T, lo: vec3, inv_dx: T, res: wp.vec3i, box_on: int, box: wp.array(dtype=wp.vec3i),
                   A: wp.array(dtype=mat33), gm: wp.array3d(dtype=T), gmv: wp.array3d(dtype=vec3),
-                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T), box_flag: wp.array(dtype=int),
-                  clamped: wp.array(dtype=int)):
+                  gpm: wp.array3d(dtype=T), gpmv: wp.array3d(dtype=vec3), gsm: wp.array3d(dtype=T),
+                  box_flag: wp.array(dtype=int), clamped: wp.array(dtype=int)):
         # p2g_stress and p2g_scatter in one launch (A is still stored: the backward's scatter adjoint
         # reads it). The scatter's loop is p2g_scatter's, written out again: as a wp.func taking the
         # grid arrays it ran ~1.8x slower on the CPU backend. The two must stay the same arithmetic
@@ -803,7 +803,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
     def grid_update(gm: wp.array(dtype=T), gmv: wp.array(dtype=vec3),
                     gpm: wp.array(dtype=T), gpmv: wp.array(dtype=vec3), gsm: wp.array(dtype=T),
                     eff: wp.array(dtype=T), flags: int, gravity: vec3, dt: T, lo: vec3, dx: T, band: T,
-                    pin_gain: T, pin_floor: T, sup_gain: T, sup_floor: T, n_col: int, col_shape: wp.array(dtype=int), col_active: wp.array2d(dtype=int),
+                    pin_gain: T, pin_floor: T, sup_gain: T, sup_floor: T, n_col: int, col_shape: wp.array(dtype=int),
+                    col_active: wp.array2d(dtype=int),
                     col_pos: wp.array2d(dtype=vec3), col_geom: wp.array(dtype=vec3),
                     col_radius: wp.array(dtype=T), col_mu: wp.array(dtype=T),
                     frame: int, alpha: T, fps: T, res: wp.vec3i, box: wp.array(dtype=wp.vec3i), nthr: int,
@@ -827,8 +828,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 k = t % res[2]
                 xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                 vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], gsm[t], xn, eff, flags, gravity, dt, band,
-                                    pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius, col_mu,
-                                    frame, alpha, fps, blend_r)
+                                    pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active, col_pos,
+                                    col_geom, col_radius, col_mu, frame, alpha, fps, blend_r)
             gv[t] = vel
 
     @wp.kernel(module=module_cuda)
@@ -854,8 +855,8 @@ def _build(name: str) -> SimpleNamespace:  # noqa: C901  (one closure per dtype)
                 if m > m_eps:
                     xn = lo + vec3(T(float(i)), T(float(j)), T(float(k))) * dx
                     vel = node_velocity(m, gmv[t], gpm[t], gpmv[t], gsm[t], xn, eff, flags, gravity, dt, band,
-                                        pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active, col_pos, col_geom, col_radius,
-                                        col_mu, frame, alpha, fps, blend_r)
+                                        pin_gain, pin_floor, sup_gain, sup_floor, n_col, col_shape, col_active,
+                                        col_pos, col_geom, col_radius, col_mu, frame, alpha, fps, blend_r)
                 gv[t] = vel
 
     @wp.func
