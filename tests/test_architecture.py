@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent / "physinteract_usd"
 # lower imports nothing above it; a package may import itself freely
 RANKS = {
     "errors": 0,
-    "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1,
+    "devices": 1, "gaussians": 1, "frames": 1, "camera": 1, "contacts": 1, "metrics": 1, "stopping": 1, "workers": 1,
     "thickness": 1,  # the thinnest part of a voxelised solid (numpy / scipy)
     "resolution": 1,  # the MPM's apparent stiffness by cells across a thin part (numpy)
     "fit_summary": 1,  # what a fit said about E, in short (pure Python: `info` reads it without torch, #26)

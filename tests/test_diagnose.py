@@ -447,3 +447,27 @@ def test_a_hidden_viscoelastic_bar_is_named_viscoelasticity_or_within_its_confus
         assert d["reason"].startswith(f"{cf['pair'][0]} or {cf['pair'][1]}: the frames cannot tell them apart")
         assert "held still" in cf["to_separate"] or "held load" in cf["to_separate"]
     assert "camera:depth_scale" not in [c["effect"] for c in d["candidates"]]
+
+
+def test_the_refits_in_worker_processes_give_the_diagnosis_of_one_process(damped, monkeypatch):
+    """The base starts and the candidates' refits run in forked processes where the CPU has the cores
+    (`workers.fork_map`, PHYSINTERACT_WORKERS): the diagnosis is the one a single process gives, number for number
+    (each refit starts from the state the sequential one starts from: the rival's own estimate, the base's substep)."""
+    import sys
+
+    from physinteract_usd import api
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("worker processes are forked on Linux only")
+    out = {}
+    for n in ("1", "2"):
+        monkeypatch.setenv("PHYSINTERACT_WORKERS", n)
+        out[n] = api.diagnose(damped["stage"], refit=2, refit_iterations=2, starts=2, progress=False,
+                              log=lambda *a: None, candidates="damping,ground,camera:time_offset", write_stage=False)
+    one, two = out["1"], out["2"]
+    assert [s["loss"] for s in one["base_starts"]["starts"]] == [s["loss"] for s in two["base_starts"]["starts"]]
+    drop = lambda d: [(t["effect"], t.get("accepted"), t.get("held_back_drop"), t.get("held_back_p"))  # noqa: E731
+                      for t in d["tested"]]
+    assert drop(one) == drop(two)
+    assert any(t[2] is not None for t in drop(one))          # something was refitted
+    assert one["verdict"] == two["verdict"] and one["candidates"] == two["candidates"]

@@ -86,9 +86,15 @@ def _best_start(prob, base, settings, starts: int, iterations: int, log):
                                                                        iterations, log=log)):
             refits.append({"factor": float(f), "E": g["E"], "nu": g["nu"], "loss": math.inf,
                            "fit_loss": g["fit_loss"], **({"note": f"refit {g['note']}"} if "note" in g else {})})
-    for f in START_FACTORS[:starts] if not refits else ():
-        log(f"base refit from the E field x {f:g} ({iterations} iterations)")
-        refits.append(refit_base(prob, base, f, iterations=iterations, res=res))
+    if not refits:
+        # on the CPU each start in its own process where the machine has the cores (`workers.fork_map`)
+        from ..workers import fork_map
+
+        def one(f):
+            log(f"base refit from the E field x {f:g} ({iterations} iterations)")
+            return refit_base(prob, base, f, iterations=iterations, res=res)
+
+        refits = fork_map(one, START_FACTORS[:starts], device=prob.tdev, log=log)
     best, own = None, None
     for r in refits:             # judged after all of them, each at its own substep
         if r["E"] is not None:
@@ -138,7 +144,7 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
 
     ctx = diag._ctx
     prob = ctx["prob"]
-    groups = []
+    groups, jobs = [], []
     for cr in [c for c in diag.significant][: int(refit)]:
         group = [cr]
         for b in cr.rivals:                      # a rival is refitted from its own (marginal) estimate
@@ -158,13 +164,14 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
             null = refit_null(diag, val, iterations=iterations)
         for c in group:
             if c.effect in PHYSICAL:
-                log(f"refitting with {c.effect} ({iterations} iterations, warm-started)")
-                refit_effect(diag, c, iterations=iterations, log=None, frames=val, null=null)
+                # refitted below, from where it stands now (a rival's start was just set from its own estimate)
+                jobs.append((c, val, null, {"best": c.best, "step": c.step, "estimate": dict(c.estimate or {})}))
             elif c.rest_only:
                 judge_on_rest(diag, c)
             else:
                 judge_probe(diag, c, frames=val)
         groups.append(group)
+    _refit_all(diag, jobs, iterations, log)
     for c in diag.significant[int(refit):]:
         # a camera cause tested on the rest frames costs no refit: judged whatever its rank (its drop, on those
         # frames alone, is small beside the moving frames' candidates and would rarely reach the top N)
@@ -213,6 +220,24 @@ def refit_confusable(diag, refit: int, iterations: int, log=print) -> None:
         sig = [c for c in res if c.significant]
         res[:] = ([c for c in sig if c.accepted] + [c for c in sig if not c.accepted]
                   + [c for c in res if not c.significant])
+
+
+def _refit_all(diag, jobs: list, iterations: int, log=print) -> None:
+    """The physical candidates' refits (`refit.refit_effect`), each independent of the others: on the CPU each in
+    its own process where the machine has the cores (`workers.fork_map`), their results set on the candidates
+    here, in order, as if refitted one after another."""
+    from ..workers import fork_map
+
+    def one(job):
+        c, val, null, start = job
+        for k, v in start.items():
+            setattr(c, k, v)
+        log(f"refitting with {c.effect} ({iterations} iterations, warm-started)")
+        refit_effect(diag, c, iterations=iterations, log=None, frames=val, null=null)
+        return {k: v for k, v in vars(c).items() if k not in ("rivals", "probes")}
+
+    for (c, *_), got in zip(jobs, fork_map(one, jobs, device=diag._ctx["prob"].tdev, log=log)):
+        c.__dict__.update(got)
 
 
 CONFUSABLE_VERDICT = True   # a confusable pair both accepted and told apart by nothing measured: one verdict for the
@@ -498,6 +523,9 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     sd = read_scene(stage_path)
     if not sd.reports or sd.current_report is None:
         raise InputError(stage_path, "has no fit to diagnose: run `physinteract-usd fit` first")
+    from ..devices import cpu_threads
+
+    cpu_threads(device)     # one torch thread on the CPU, as the fit (and its worker processes: `workers`)
     version = int(sd.current_version or sd.current_report["version"])
     present = effects_with_fitted(sd)
     skipped = [e for e in cands if e in present]

@@ -379,16 +379,18 @@ def refit_joint(diag: Diagnosis, crs: list, frames: list, *, iterations: int = 8
     None when the simulation fails."""
     ctx = diag._ctx
     res = ctx["res"]
+    from ..workers import fork_map
+
     effs = tuple(c.effect for c in crs)
     start = {c.effect: dict(c.estimate) for c in crs}
-    held, states = [], []
-    for val in as_folds(frames):
-        try:
-            r1, _, state = _refit(diag, effs, start, val, iterations, holdout_every, log)
-        except SimulationError:
-            return None
-        held.append((_frame_mask(res, val) if val else np.ones(len(r1), bool), r1))
-        states.append(state)
+    folds = as_folds(frames)
+    try:        # the folds are independent: on the CPU each in its own process where there are the cores
+        got = fork_map(lambda val: _refit(diag, effs, start, val, iterations, holdout_every, log)[::2], folds,
+                       device=ctx["prob"].tdev)
+    except SimulationError:
+        return None
+    held = [(_frame_mask(res, val) if val else np.ones(len(r1), bool), r1) for val, (r1, _) in zip(folds, got)]
+    states = [state for _, state in got]
     return {"effects": effs, "held": held, "states": states,
             "estimate": {e: dict(states[0]["effects"].get(e, {})) for e in effs}}
 
