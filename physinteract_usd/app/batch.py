@@ -681,6 +681,8 @@ def batch(manifest, *, out=None, workers=None, ray=None, device=None, iterations
                     # each spinning on all of them
                     threads = str(max(1, _cores() // n))
                     env = {k: threads for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+                    # ... and a diagnosis's worker processes too (`workers.fork_map`), unless the user set them
+                    env.setdefault("PHYSINTERACT_WORKERS", os.environ.get("PHYSINTERACT_WORKERS") or threads)
                     result.not_started = run_pool(tasks, run_item, workers=n, events=ev, retries=int(retries),
                                                   env=env)
         finally:

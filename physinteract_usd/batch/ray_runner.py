@@ -78,7 +78,9 @@ def run_ray(tasks, fn, *, address: str | None, events: Events, gpus=lambda paylo
     try:
         with stopping.graceful():
             for name, payload in tasks:
+                # one CPU a task: its diagnosis forks no worker processes of its own (`workers.fork_map`)
                 ref = remote.options(num_cpus=1, num_gpus=float(gpus(payload)), max_retries=int(retries),
+                                     runtime_env={"env_vars": {"PHYSINTERACT_WORKERS": "1"}},
                                      name=f"physinteract-batch:{name}").remote(payload)
                 refs[ref] = name
                 if len(refs) <= slots:
