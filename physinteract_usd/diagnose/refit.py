@@ -384,9 +384,13 @@ def refit_joint(diag: Diagnosis, crs: list, frames: list, *, iterations: int = 8
     effs = tuple(c.effect for c in crs)
     start = {c.effect: dict(c.estimate) for c in crs}
     folds = as_folds(frames)
+
+    def one(val):
+        r1, _, state = _refit(diag, effs, start, val, iterations, holdout_every, log)
+        return r1, state
+
     try:        # the folds are independent: on the CPU each in its own process where there are the cores
-        got = fork_map(lambda val: _refit(diag, effs, start, val, iterations, holdout_every, log)[::2], folds,
-                       device=ctx["prob"].tdev)
+        got = fork_map(one, folds, device=ctx["prob"].tdev)
     except SimulationError:
         return None
     held = [(_frame_mask(res, val) if val else np.ones(len(r1), bool), r1) for val, (r1, _) in zip(folds, got)]
