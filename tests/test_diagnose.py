@@ -227,6 +227,15 @@ def test_cli_json_exit_codes_and_errors(damped, tmp_path, capsys):
     assert "--starts" in err[-3] and "--trajectory-sigma" in err[-2] and "--refit-folds" in err[-1]
 
 
+def test_a_bad_worker_count_stops_diagnose_at_once(damped, monkeypatch, capsys):
+    from physinteract_usd.cli import main
+
+    monkeypatch.setenv("PHYSINTERACT_WORKERS", "0")
+    assert main(["diagnose", str(damped["stage"]), "--no-stage"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "PHYSINTERACT_WORKERS" in err[0] and "'0'" in err[0]
+
+
 @pytest.fixture(scope="module")
 def plastic(tmp_path_factory):
     return ds.build(tmp_path_factory.mktemp("plastic"), hidden={"plasticity": {"yieldStress": 400.0}}, noise=0.015)

@@ -524,8 +524,10 @@ def diagnose(stage_path, *, refit: int = 3, refit_iterations: int = 8, candidate
     if not sd.reports or sd.current_report is None:
         raise InputError(stage_path, "has no fit to diagnose: run `physinteract-usd fit` first")
     from ..devices import cpu_threads
+    from ..workers import workers_for
 
     cpu_threads(device)     # one torch thread on the CPU, as the fit (and its worker processes: `workers`)
+    workers_for(1)          # a bad PHYSINTERACT_WORKERS said now, not after the first minutes
     version = int(sd.current_version or sd.current_report["version"])
     present = effects_with_fitted(sd)
     skipped = [e for e in cands if e in present]
