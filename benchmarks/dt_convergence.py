@@ -64,13 +64,15 @@ class RateTransfer:
     def __init__(self, sol, tau: float):
         import warp as wp
 
+        from physinteract_usd.sim.kernels import SCATTERED
+
         self.sol, self.wp = sol, wp
         m = sol.model
         K, d, P = sol.K, m.device, m.n_particles
         self.f = math.exp(-m.dt / tau) if tau > 0 else 0.0
         if self.f > 0:
             self.An = wp.zeros(P, dtype=K.mat33, device=d)
-            self.g = [wp.zeros(sol.res, dtype=t, device=d) for t in (K.T, K.vec3, K.T, K.vec3, K.T)]   # SCATTERED
+            self.g = [wp.zeros_like(getattr(sol, k)) for k in SCATTERED]   # the solver's scattered grid arrays
             self.gvo = wp.zeros(sol.res, dtype=K.vec3, device=d)
             self.vgo = wp.zeros(P, dtype=K.vec3, device=d)
             self.Cgo = wp.zeros(P, dtype=K.mat33, device=d)
