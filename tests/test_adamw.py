@@ -1,5 +1,4 @@
-"""The fit's AdamW and Rprop (fit/adamw.py) are torch's, bitwise, without torch._dynamo's import (#26); the
-chained optimiser of a level (the material's Rprop beside the rest's AdamW) steps each as alone (#24)."""
+"""The fit's AdamW (fit/adamw.py) is torch's, bitwise, without torch._dynamo's import (#26)."""
 
 import pathlib
 import subprocess
@@ -8,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from physinteract_usd.fit.adamw import AdamW, Chained, Rprop, forget_direction, make_optimizer, shrink_steps
+from physinteract_usd.fit.adamw import AdamW
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -44,83 +43,6 @@ def test_iterates_and_state_are_torchs_bitwise(foreach):
             assert torch.equal(s1["state"][k][name], s2["state"][k][name]), (k, name)
     assert isinstance(o1, torch.optim.AdamW)
 
-
-
-def _run_rprop(cls, foreach):
-    g = torch.Generator().manual_seed(5)
-    a = torch.randn(7, generator=g, dtype=torch.float64, requires_grad=True)
-    b = torch.randn(2, 3, generator=g, dtype=torch.float32, requires_grad=True)
-    opt = cls([{"params": [a], "lr": 0.1}, {"params": [b], "lr": 0.02}], step_sizes=(1e-3, 1.0), foreach=foreach)
-    for i in range(30):
-        opt.zero_grad(set_to_none=True)
-        ((a - 2.0) ** 2 * torch.arange(7.0, dtype=torch.float64)).sum().backward() if i % 4 else None
-        (b.sin() * b).sum().backward()
-        opt.step()
-    return [p.detach().clone() for p in (a, b)], opt
-
-
-@pytest.mark.parametrize("foreach", [None, True, False])
-def test_rprop_is_torchs_bitwise(foreach):
-    (mine, o1), (theirs, o2) = _run_rprop(Rprop, foreach), _run_rprop(torch.optim.Rprop, foreach)
-    for x, y in zip(mine, theirs):
-        assert torch.equal(x, y)
-    for k, st in o2.state_dict()["state"].items():
-        for name in ("prev", "step_size"):
-            assert torch.equal(o1.state_dict()["state"][k][name], st[name]), (k, name)
-    assert isinstance(o1, torch.optim.Rprop)
-
-
-def test_rprop_travels_where_adam_is_capped():
-    # a coefficient 3 logit units from its optimum on a shallow slope: Adam moves ~its rate an iteration
-    # (0.1 x 15 = 1.5 at most), Rprop's steps grow while the gradient keeps its sign (#24, foam_bar stops short)
-    def travel(kind):
-        p = torch.zeros(2, dtype=torch.float64, requires_grad=True)
-        opt = make_optimizer([{"params": [p], "lr": 0.1}], kind)
-        for _ in range(15):
-            opt.zero_grad()
-            (1e-3 * ((p - torch.tensor([3.0, -0.5], dtype=torch.float64)) ** 2).sum()).backward()
-            opt.step()
-        return p.detach()
-    adam, rprop = travel("adam"), travel("rprop")
-    assert float(adam[0]) < 1.6
-    assert abs(float(rprop[0]) - 3.0) < 0.2 and abs(float(rprop[1]) + 0.5) < 0.2
-
-
-def test_chained_steps_each_as_alone_and_the_level_helpers():
-    def parts(seed):
-        g = torch.Generator().manual_seed(seed)
-        return (torch.randn(4, generator=g, dtype=torch.float64, requires_grad=True),
-                torch.randn(3, generator=g, dtype=torch.float64, requires_grad=True))
-
-    def loss(m, t):
-        return (m.sin() * m).sum() + ((t - 1.0) ** 4).sum()
-
-    m1, t1 = parts(1)
-    ch = make_optimizer([{"params": [m1], "lr": 0.1}, {"params": [t1], "lr": 0.01}], "rprop")
-    assert isinstance(ch, Chained) and len(ch.param_groups) == 2
-    m2, t2 = parts(1)
-    r = Rprop([{"params": [m2], "lr": 0.1}], lr=0.1, step_sizes=(1e-3, 1.0))
-    a = AdamW([{"params": [t2], "lr": 0.01}], weight_decay=0.0)
-    for _ in range(12):
-        ch.zero_grad()
-        loss(m1, t1).backward()
-        ch.step()
-        r.zero_grad(); a.zero_grad()
-        loss(m2, t2).backward()
-        r.step(); a.step()
-    assert torch.equal(m1, m2) and torch.equal(t1, t2)
-    st = ch.state
-    assert set(map(id, st)) == {id(m1), id(t1)}
-    shrink_steps(ch, 0.5)
-    assert ch.param_groups[1]["lr"] == 0.005
-    assert torch.equal(st[m1]["step_size"], r.state[m2]["step_size"] * 0.5)
-    forget_direction(ch)
-    assert not st[m1]["prev"].any() and not st[t1]["exp_avg"].any()
-    assert torch.equal(st[m1]["step_size"], r.state[m2]["step_size"] * 0.25)
-    with pytest.raises(ValueError, match="material_optimizer"):
-        make_optimizer([{"params": [m1], "lr": 0.1}], "lbfgs")
-    # the material alone: Rprop with nothing chained
-    assert isinstance(make_optimizer([{"params": [m1], "lr": 0.1}], "rprop"), Chained)
 
 def test_no_dynamo_import_and_the_fit_uses_it():
     code = ("import sys, torch\nfrom physinteract_usd.fit.adamw import AdamW\n"

@@ -26,7 +26,7 @@ from .. import metrics as M
 from .. import stopping
 from ..devices import device_name
 from ..errors import SimulationError
-from .adamw import forget_direction, make_optimizer, shrink_steps
+from .adamw import AdamW
 from .converge import improved, level_patience, lr_scale, plateaued
 from .gauss_newton import forwards_to_iterations, gauss_newton_step
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
@@ -41,13 +41,7 @@ class FitSettings:
     iterations: int = 60
     levels: tuple = (1, 8)              # basis sizes, coarse to fine (foam_bar: (1, 8) MA 0.45 vs
     level_share: tuple = (0.25, 0.75)   # (1, 8, 32) 0.33 and (1, 4, 8) 0.26: finer bases fit discretisation error)
-    lr_material: float = 0.1            # on the basis coefficients (logit space); Rprop's first step
-    material_optimizer: str = "adam"    # schedule bumps: "adam" (AdamW, every parameter) or "rprop" (Rprop on the
-                                        # material's coefficients: steps grow while the gradient keeps its sign, so
-                                        # they travel as far as the loss slopes; AdamW on the rest). #24: Adam moves a
-                                        # coefficient ~its rate an iteration (foam_bar stops short, fit.md)
-    rprop_max_step: float = 1.0         # ... Rprop's largest step (logit units)
-    rprop_growth: float = 1.2           # ... its step's factor while a gradient keeps its sign (torch's 1.2)
+    lr_material: float = 0.1            # on the basis coefficients (logit space)
     lr_poisson: float = 0.03
     lr_trajectory: float = 3e-4         # metres per step (Adam)
     basis_width: float = 0.6            # bump sigma / centre spacing (smaller: sharper material edges)
@@ -527,7 +521,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 groups.append({"params": trajs, "lr": s.lr_trajectory})
             if eff_raw:   # the effects' parameters at every level
                 groups.append({"params": [v for ps in eff_raw.values() for v in ps.values()], "lr": s.lr_effects})
-            opt = make_optimizer(groups, s.material_optimizer, s.weight_decay, s.rprop_max_step, s.rprop_growth)
+            opt = AdamW(groups, weight_decay=s.weight_decay)
             base = [g["lr"] for g in opt.param_groups]
             level_losses, tail, stop_at = [], None, n_it
             patience = level_patience(s.plateau_patience, start is None and li == 0 and mat.K == 1,
@@ -546,7 +540,8 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 except SimulationError as exc:
                     if log:
                         log(f"iteration {it}: {exc}; halving the step")
-                    shrink_steps(opt, 0.5)
+                    for g in opt.param_groups:
+                        g["lr"] *= 0.5
                     _restore(mat, trajs, best, s.joint, eff_raw)
                     it += 1
                     continue
@@ -576,8 +571,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                     n_tail = s.plateau_tail if improved(level_losses, s.plateau_tol) else 0
                     tail, stop_at = (j + 1, scale, n_tail), min(n_it, j + 1 + n_tail)
                     _restore_in_place(mat, trajs, level_best, eff_raw)
-                    forget_direction(opt)   # no momentum back into the overshoot; the step sizes Adam learnt
-                                            # stay (a cleared state's first step is a full-LR one everywhere)
+                    for st_ in opt.state.values():   # no momentum back into the overshoot; the
+                        if "exp_avg" in st_:         # step sizes Adam learnt stay (a cleared state's
+                            st_["exp_avg"].zero_()   # first step is a full-LR one in every coordinate)
                     if log and stop_at < n_it:
                         log(f"level {li + 1} (K={mat.K}) plateaued at iteration {j + 1} of {n_it}: "
                             + (f"{n_tail} annealed iterations more" if n_tail else
