@@ -459,9 +459,10 @@ def test_a_hidden_viscoelastic_bar_is_named_viscoelasticity_or_within_its_confus
 
 
 def test_the_refits_in_worker_processes_give_the_diagnosis_of_one_process(damped, monkeypatch):
-    """The base starts and the candidates' refits run in forked processes where the CPU has the cores
+    """The base starts, the candidates' probes and their refits run in forked processes where the CPU has the cores
     (`workers.fork_map`, PHYSINTERACT_WORKERS): the diagnosis is the one a single process gives, number for number
-    (each refit starts from the state the sequential one starts from: the rival's own estimate, the base's substep)."""
+    (each refit starts from the state the sequential one starts from: the rival's own estimate, the base's substep;
+    each probe is a forward from the base), and its cost counts the workers' forwards."""
     import sys
 
     from physinteract_usd import api
@@ -472,8 +473,10 @@ def test_the_refits_in_worker_processes_give_the_diagnosis_of_one_process(damped
     for n in ("1", "2"):
         monkeypatch.setenv("PHYSINTERACT_WORKERS", n)
         out[n] = api.diagnose(damped["stage"], refit=2, refit_iterations=2, starts=2, progress=False,
-                              log=lambda *a: None, candidates="damping,ground,camera:time_offset", write_stage=False)
+                              log=lambda *a: None, candidates="damping,ground,camera:time_offset,interaction:timing",
+                              write_stage=False)
     one, two = out["1"], out["2"]
+    assert one["cost"]["forwards"] == two["cost"]["forwards"] > 20, (one["cost"], two["cost"])
     assert [s["loss"] for s in one["base_starts"]["starts"]] == [s["loss"] for s in two["base_starts"]["starts"]]
     drop = lambda d: [(t["effect"], t.get("accepted"), t.get("held_back_drop"), t.get("held_back_p"))  # noqa: E731
                       for t in d["tested"]]

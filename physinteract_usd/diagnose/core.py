@@ -1071,13 +1071,30 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
         noise["camera_rest_frames"] = [k for k in rest_frames(prob) if k in res.frames]
     results = []
     cands = [c for c in s.candidates if c in CANDIDATES and not (c == "camera:depth_scale" and s.depth_scale_in_base)]
-    it = progress(cands, "candidates") if progress else cands
-    for eff in it:
+
+    def probe_one(eff):
+        # one candidate's probes (independent forwards at the base): a list of Probe, a failure, the forwards
+        before = run.forwards
         try:
-            probes = probes_for(eff, run, r0, x0, F0, s, log)
+            return probes_for(eff, run, r0, x0, F0, s, log), None, run.forwards - before
         except SimulationError as exc:
-            log(f"{eff}: probe failed ({exc})")
-            probes = []
+            return [], str(exc), run.forwards - before
+
+    # on the CPU each candidate's probes in a worker process where the machine has the cores (`workers.fork_map`:
+    # every worker forks from this state, so each probe is the forward it is in one process); the tests after them
+    # (and the few probes that depend on a test: a secant to the estimate, a threshold's search) stay here, in order
+    from ..workers import can_fork, fork_map, workers_for
+
+    f_before = run.forwards
+    if progress and not (can_fork(prob.tdev) and workers_for(len(cands)) > 1):
+        probed = [probe_one(eff) for eff in progress(cands, "candidates")]   # one process: a bar as each is probed
+    else:
+        probed = fork_map(probe_one, cands, device=prob.tdev, log=log)
+    if run.forwards == f_before:                    # the workers' forwards, counted here
+        run.forwards += sum(n for _, _, n in probed)
+    for eff, (probes, failed, _) in zip(cands, probed):
+        if failed is not None:
+            log(f"{eff}: probe failed ({failed})")
         if rows is not None and eff in CAMERA:
             cr = test_on_rows(eff, probes, r0a, Ja, blocks, s, rows, n_img)
         else:
