@@ -387,6 +387,43 @@ def test_drop_still_props_keeps_a_resting_hand_and_drops_a_prop_the_hand_never_m
     assert (out == (hand & ~prop[None])).all()       # nothing else taken away
 
 
+
+def test_a_fixed_piece_apart_from_the_toucher_at_the_start_is_dropped_though_the_toucher_passes_over_it():
+    """#23, dev_0542: a drawn support's foot of the hand's colour beside the object, "hand" in every frame; the toucher
+    starts away, passes over it while it pokes and leaves. `drop_still_props` keeps a still place the moving toucher
+    meets, so the foot stayed hand and the grasp was read at frame 0; `fixed_pieces` drops it (a piece of the first
+    frame's hand that is not its largest and is there in nearly every frame). A hand resting from the first frame
+    (its largest piece) stays."""
+    from physinteract_usd.extract.segmentation import drop_still_props, fixed_pieces
+
+    T, H, W = 10, 30, 40
+    hand = np.zeros((T, H, W), bool)
+    seeds = np.zeros((T, H, W), bool)
+    hand[:, 12:16, 14:18] = True                    # the foot, in every frame
+    for k in range(T):                              # the toucher: away, over the foot in frames 3..6, away again
+        x = 30 if k < 3 or k > 6 else 12
+        hand[k, 10:20, x:x + 8] = True
+        seeds[k, 10:20, x:x + 8] = True
+    foot = np.zeros((H, W), bool)
+    foot[12:16, 14:18] = True
+    assert (fixed_pieces(hand) == foot).all()
+    out = drop_still_props(hand, seeds)
+    assert not out[:, 12:16, 14:18].any()
+    assert out[0, 10:20, 30:38].all() and out[4, 10:20, 12:14].all()   # the toucher stays, less the foot's pixels
+    # a hand resting on the object from the first frame is its largest piece: kept
+    rest = np.zeros((T, H, W), bool)
+    rest[:, 5:15, 5:20] = True
+    rest[:, 20:23, 30:33] = True                     # and a fixed speck apart from it: dropped
+    speck = np.zeros((H, W), bool)
+    speck[20:23, 30:33] = True
+    assert (fixed_pieces(rest) == speck).all()
+    moved = np.zeros_like(rest)
+    moved[-1, 5:15, 5:20] = True                     # (the hand moves off at the end)
+    kept = drop_still_props(rest, moved)
+    assert kept[:, 5:15, 5:20].all() and not kept[:, 20:23, 30:33].any()
+    # one piece in the first frame: nothing to tell apart, nothing dropped
+    assert not fixed_pieces(hand[:, :, 25:]).any()
+
 def test_a_colliders_retreat_is_not_the_motion_supports_are_judged_against():
     """A palm presses a still sheet by a pixel and then lifts off 20 px: the supports' stillness is
     judged against the pixel it moved while acting, not the retreat (#23, dev_0009: the whole sheet

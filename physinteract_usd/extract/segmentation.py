@@ -331,7 +331,28 @@ def drop_still_props(hand: np.ndarray, seeds: np.ndarray, share: float = 0.5) ->
     n, lab = cv2.connectedComponents(still.astype(np.uint8), connectivity=8)
     met = np.unique(lab[dilate(seeds.any(0), 2) & still])
     drop = still & ~np.isin(lab, met)
+    drop |= fixed_pieces(hand)
     return hand & ~drop[None] if drop.any() else hand
+
+
+def fixed_pieces(hand: np.ndarray, presence: float = 0.9) -> np.ndarray:
+    """(H, W) the pieces of the first frame's "hand" that are not its largest piece and are "hand" in nearly every
+    frame (`presence`): a fixed thing of the hand's colour apart from the toucher when the video starts (#23: dev_0542's
+    drawn support's foot beside the ring, which the toucher passes over later, so `drop_still_props` kept it and the
+    grasp was read at frame 0). A hand resting from the first frame is its largest piece and stays."""
+    cv2 = _cv2()
+    n0, lab0 = cv2.connectedComponents(hand[0].astype(np.uint8), connectivity=8)
+    out = np.zeros(hand.shape[1:], bool)
+    if n0 <= 2:
+        return out
+    area = np.bincount(lab0.ravel(), minlength=n0)
+    main = 1 + int(np.argmax(area[1:]))
+    here = hand.mean(0)
+    for q in range(1, n0):
+        piece = lab0 == q
+        if q != main and here[piece].mean() >= presence:
+            out |= piece
+    return out
 
 
 def _inpaint(img: np.ndarray, holes: np.ndarray) -> np.ndarray:
