@@ -323,7 +323,7 @@ def drop_still_props(hand: np.ndarray, seeds: np.ndarray, share: float = 0.5) ->
     meet the moving toucher (`seeds`, its moving pixels, in any frame): a prop of the hand's colour
     that stays put (a brown post the object hangs on, joined to the hand through the object's
     moving rim) is background. A hand that rests in one place is kept: it moved there, next to
-    where it rests."""
+    where it rests. `fixed_pieces` are dropped too (a fixed thing the toucher passes over later)."""
     cv2 = _cv2()
     still = hand.mean(0) >= share
     if not still.any():
