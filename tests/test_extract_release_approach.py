@@ -46,3 +46,32 @@ def test_without_a_seen_approach_the_push_is_the_first_main_motion():
     assert approach(tm) is None
     assert collider_release(tm, np.array([0.0, -1.0])) == 17
     assert collider_release(tm, np.array([0.0, 1.0])) == 13
+
+
+def test_a_fingertip_back_out_past_where_it_touched_presses_nothing():
+    """(#23, 28th session, dev_0543) A fingertip presses into the object (pairs 2..5), comes back out with the object
+    springing back after it (6..10), moves off fast while the object stays (11: the release), and on its way out makes
+    one pair down and aside (13) before it is out of contact (14). That pair points along the push, but the toucher
+    is already farther out than where it first touched: it presses nothing, and must not hide the parting at 11 (it
+    did: read as pressing on, the parting's window lost its majority and the release went to 14, the contact's end)."""
+    T1 = 16
+    vh = np.zeros((T1, 2))
+    vo = np.zeros((T1, 2))
+    vh[2:6] = [0.0, 1.5]
+    vo[2:6] = [0.0, 0.5]
+    vh[6:11] = [0.0, -1.5]
+    vo[6:11] = [0.0, -0.6]
+    vh[11] = [0.0, -3.0]
+    vh[12] = [0.0, -1.0]
+    vo[12] = [0.0, -0.3]
+    vh[13] = [1.0, 1.4]
+    near = np.zeros(T1 + 1, bool)
+    near[0:14] = True
+    c = coupling(vh, vo, 0.35)
+    assert c[11] < 0 and c[13] < 0
+    speed = np.linalg.norm(vh, axis=1)
+    g = 2
+    r = release(c, near, g, speed, vh=vh, vo=vo, eps=0.35)
+    assert r is not None and 9 <= r <= 11
+    tm = Timing(vh, vo, c, near, (0, 13), speed, g, r)
+    assert collider_release(tm, np.array([0.0, 1.0])) == r

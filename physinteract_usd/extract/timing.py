@@ -311,10 +311,19 @@ def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
         # reads its departure as its first main motion once the release is read late), and a
         # leaving is no pressing on (dev_0322: released at 24, truly 23..24, read held to the end)
         d = a / float(np.linalg.norm(a))
+    depth = 0.0      # how far the toucher has gone into the object along the push since the grasp, in pixels
     for k in range(timing.grasp, len(c)):
-        if c[k] >= 0 or not (np.isfinite(vh[k]).all() and np.isfinite(vo[k]).all()):
+        if not np.isfinite(vh[k]).all():
             continue
-        ih, io = float(vh[k] @ d), float(vo[k] @ d)
+        ih = float(vh[k] @ d)
+        # (#23, 28th session) a toucher already back out past where it first touched (it came back more than it
+        # pushed in) presses nothing: its next move along the push is no pressing on (dev_0543: a fingertip's press
+        # and its way back out, then a pair down and aside as it left read as pressing, the release 18 -> 21)
+        inside = depth > -max(eps, 1.0)
+        depth += ih
+        if c[k] >= 0 or not np.isfinite(vo[k]).all() or not inside:
+            continue
+        io = float(vo[k] @ d)
         if ih > max(eps, 0.5 * float(np.linalg.norm(vh[k]))) and io < ih:
             c[k] = 0
     return release(c, timing.near, timing.grasp, timing.speed, vh=vh, vo=vo, share=timing.share, eps=eps)
