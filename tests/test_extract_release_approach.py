@@ -75,3 +75,32 @@ def test_a_fingertip_back_out_past_where_it_touched_presses_nothing():
     assert r is not None and 9 <= r <= 11
     tm = Timing(vh, vo, c, near, (0, 13), speed, g, r)
     assert collider_release(tm, np.array([0.0, 1.0])) == r
+
+
+def test_a_collider_acts_from_when_the_object_gives_aside():
+    """(#23, 28th session, dev_0545) A fingertip rests on a rope lying on its floor (pairs 11..12), then presses down
+    and aside (13..): the rope next to it is squeezed out sideways, 60-70 deg off the fingertip's way, so `coupling`
+    reads those pairs decoupled and the grasp went to the first coupled pair (15, truly 12). The object giving within
+    90 deg of the push is the press's start; an object moving against the toucher, or a still one, is not."""
+    from physinteract_usd.extract.timing import collider_start, gives
+
+    T1 = 18
+    vh = np.zeros((T1, 2))
+    vo = np.zeros((T1, 2))
+    vh[13:16] = [0.7, 0.9]
+    vo[13:15] = [0.5, -0.05]
+    vo[15] = [0.7, 0.8]
+    near = np.ones(T1 + 1, bool)
+    c = coupling(vh, vo, 0.35)
+    assert c[13] < 0 and c[14] < 0 and c[15] > 0
+    speed = np.linalg.norm(vh, axis=1)
+    tm = Timing(vh, vo, c, near, (0, T1 - 1), speed, 12, None)
+    assert collider_start(tm) == 13
+    assert gives(np.array([0.7, 0.9]), np.array([0.5, -0.05]))
+    assert not gives(np.array([0.7, 0.9]), np.array([-0.5, -0.3]))      # against the push
+    assert not gives(np.array([0.7, 0.9]), np.array([0.1, 0.0]))        # the object barely moves
+    assert not gives(np.array([0.1, 0.1]), np.array([0.5, 0.0]))        # the toucher at rest
+    vo2 = vo.copy()
+    vo2[13:15] = [-0.5, 0.05]                                          # squeezed the other way: not the press
+    tm2 = Timing(vh, vo2, coupling(vh, vo2, 0.35), near, (0, T1 - 1), speed, 12, None)
+    assert collider_start(tm2) == 15
