@@ -64,6 +64,12 @@ def can_fork(device="cpu") -> bool:
     return sys.platform.startswith("linux") and hasattr(os, "fork") and not str(device).startswith("cuda")
 
 
+def forks(n_items: int, device="cpu") -> bool:
+    """Whether `fork_map` would run `n_items` items in worker processes here (else in this process, in order: a
+    caller that shows progress item by item can then do so itself)."""
+    return n_items > 1 and can_fork(device) and workers_for(n_items) > 1
+
+
 class WorkerError(RuntimeError):
     """An item failed in its worker with an exception that could not be handed back as it was."""
 
@@ -74,7 +80,7 @@ def fork_map(fn: Callable, items: Iterable, *, device="cpu", workers: int | None
     first such item in order. `log(message)` hears when the items go to several processes."""
     items = list(items)
     w = workers if workers is not None and not _IN_WORKER else workers_for(len(items))
-    if w <= 1 or len(items) <= 1 or not can_fork(device):
+    if w <= 1 or len(items) <= 1 or not can_fork(device):     # (`forks`' test, with `workers` given or not)
         return [fn(x) for x in items]
     if log is not None:
         log(f"({len(items)} independent runs on {w} processes)")
@@ -186,4 +192,4 @@ def _collect(path: str, status: int):
     return rec, True
 
 
-__all__ = ["ENV", "cores", "workers_for", "can_fork", "fork_map", "WorkerError"]
+__all__ = ["ENV", "cores", "workers_for", "can_fork", "forks", "fork_map", "WorkerError"]

@@ -79,6 +79,10 @@ def test_one_process_when_asked_or_on_cuda(monkeypatch):
     assert workers.workers_for(1) == 1
     monkeypatch.setenv(workers.ENV, "4")
     assert workers.workers_for(9) == 4 and workers.workers_for(2) == 2
+    # `forks` says beforehand what fork_map will do (diagnose shows its own progress bar when it runs in one process)
+    assert workers.forks(3) is sys.platform.startswith("linux") and not workers.forks(1) and not workers.forks(3, "cuda")
+    monkeypatch.setenv(workers.ENV, "1")
+    assert not workers.forks(3)
 
 
 @pytest.mark.parametrize("bad", ["0", "two", "-3"])

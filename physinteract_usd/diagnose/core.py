@@ -1083,10 +1083,10 @@ def diagnose_problem(prob, base: BaseState, settings: DiagnoseSettings | None = 
     # on the CPU each candidate's probes in a worker process where the machine has the cores (`workers.fork_map`:
     # every worker forks from this state, so each probe is the forward it is in one process); the tests after them
     # (and the few probes that depend on a test: a secant to the estimate, a threshold's search) stay here, in order
-    from ..workers import can_fork, fork_map, workers_for
+    from ..workers import fork_map, forks
 
     f_before = run.forwards
-    if progress and not (can_fork(prob.tdev) and workers_for(len(cands)) > 1):
+    if progress and not forks(len(cands), prob.tdev):
         probed = [probe_one(eff) for eff in progress(cands, "candidates")]   # one process: a bar as each is probed
     else:
         probed = fork_map(probe_one, cands, device=prob.tdev, log=log)

@@ -272,7 +272,7 @@ def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
 
 def gives(vh_k: np.ndarray, vo_k: np.ndarray, eps: float = 0.35) -> bool:
     """Whether the object next to the contact gives to a pushing toucher in a frame pair: both move (>= `eps`) and
-    the object's way is within 90 deg of the toucher's, though not within the 45 deg `coupling` asks (#23, 28th
+    the object's way is within 90 deg of the toucher's (`coupling` asks ~45 deg to call it following) (#23, 28th
     session: dev_0545, a fingertip pressing a rope on its floor from above and aside, the rope squeezed out sideways
     at 0.5-0.8 px a frame while the fingertip goes down at 1 px: read decoupled, the grasp 3 frames late)."""
     if not (np.isfinite(vh_k).all() and np.isfinite(vo_k).all()):
@@ -299,6 +299,9 @@ def ramp_start(timing: Timing, eps: float = 0.35, rest: float = 0.25) -> int:
            and sp[k] > rest * eps):
         k -= 1
     return k + 1 if k < g else g
+
+
+BACK_OUT_PX = 1.0   # a collider this far back out past where it first touched (along its push) presses nothing
 
 
 def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
@@ -331,7 +334,7 @@ def collider_release(timing: Timing, push_uv, eps: float = 0.35) -> int | None:
         # (#23, 28th session) a toucher already back out past where it first touched (it came back more than it
         # pushed in) presses nothing: its next move along the push is no pressing on (dev_0543: a fingertip's press
         # and its way back out, then a pair down and aside as it left read as pressing, the release 18 -> 21)
-        inside = depth > -max(eps, 1.0)
+        inside = depth > -BACK_OUT_PX
         depth += ih
         if c[k] >= 0 or not np.isfinite(vo[k]).all() or not inside:
             continue
