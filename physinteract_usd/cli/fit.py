@@ -77,6 +77,10 @@ def add_parser(sub):
                         "parts, stopped early when it stalls; on a GPU all N; charged to the iteration budget when "
                         "taken; 0 turns it off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.40 -> 0.51, "
                         "none lower), off on the CPU (the demo's fit ~+16-20 CPU s for no MA); #24)")
+    s.add_argument("--trend-start", type=int, default=None, metavar="N",
+                   help="bumps schedule: where the parts start was not taken, start the finest level from E graded "
+                        "log-linearly along one of the object's axes (gravity's, principal ones), its two ends found "
+                        "by a short screen per axis and a simplex of at most N forward probes (default 0: off; #24)")
     s.add_argument("--nuisance-damping", action="store_true",
                    help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "
                         "dissipation the video has and the model lacks goes into c, not E; recorded in the version's "
@@ -123,6 +127,10 @@ def run(a) -> int:
         if a.parts_start < 0:
             raise InputError("--parts-start", f"must be >= 0, got {a.parts_start}")
         over["parts_start"] = a.parts_start
+    if a.trend_start is not None:
+        if a.trend_start < 0:
+            raise InputError("--trend-start", f"must be >= 0, got {a.trend_start}")
+        over["trend_start"] = a.trend_start
     if a.nuisance_damping:
         over["nuisance_damping"] = True
     over = over or None

@@ -36,8 +36,9 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
         r = fit_guarded(prob, s, **kw)
     else:
-        if s.schedule == "bumps" and int(getattr(s, "parts_start", 0) or 0) > 0 and kw.get("start") is None:
-            kw = {**kw, "before_finest": parts_start_hook(int(s.parts_start))}   # #24, foam_bar
+        ps, ts = int(getattr(s, "parts_start", 0) or 0), int(getattr(s, "trend_start", 0) or 0)
+        if s.schedule == "bumps" and (ps > 0 or ts > 0) and kw.get("start") is None:
+            kw = {**kw, "before_finest": parts_start_hook(ps, ts)}   # #24: foam_bar's parts, balloon's trend
         r = SCHEDULES[s.schedule](prob, s, **kw)
     if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
         # what the video does not constrain (#24; not on a stop's zero-iteration last pass)

@@ -118,29 +118,12 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
         r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, kw.pop("evals"), kw.pop("step"), **kw)
     out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
                stalled=bool(r.get("stalled", False)))
-    theta0 = mat.theta.detach().clone()
-    try:
-        loss0 = float(total_fn())
-        mat.set_values(np.exp(np.asarray(r["log_e"]))[labels])
-        loss1 = float(total_fn())
-    except SimulationError:
-        loss0, loss1 = float("nan"), float("inf")
-    out["forwards"] += 2
-    out.update(loss0=loss0, loss=loss1)
     gain_parts = f(start) - float(r["loss"])          # what the parts' own field gained (reconstruction)
     out["parts_gain"] = gain_parts
-    # a simplex that found nothing (gain within the plateau tolerance: the H200's toy_rope, tow_rope and basketball
-    # all ended at their start, 0.00000) gives no start, though the bumps' projection of the uniform E may render a
-    # hair better: "taken", it was charged 6 of the level's iterations for nothing (basketball MA 0.294 -> 0.290)
-    if gain_parts > STALL_TOL * abs(f(start)) and loss1 < loss0 and (loss0 - loss1) >= KEEP_SHARE * gain_parts:
-        out["used"] = True
-    else:
-        with torch.no_grad():
-            mat.theta = theta0.clone().requires_grad_(True)
-        # the probes simulated stiffer fields, and the substep's hysteresis may keep their rung: leave the simulator
-        # as it was, or the fit goes on at another step (the H200's hemp_rope: a start not taken, MA 0.801 -> 0.485)
-        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
-            sim._use_bound(bound0)
+    taken = accept(prob, mat, total_fn, np.exp(np.asarray(r["log_e"]))[labels], gain_parts, f(start), bound0)
+    out["forwards"] += 2
+    out.update(taken)
+    loss0, loss1 = taken["loss0"], taken["loss"]
     if log:
         es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
         log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes"
@@ -150,11 +133,50 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     return out
 
 
-def parts_start_hook(probes: int):
-    """`fit_bumps(before_finest=...)`: the parts start with at most `probes` probes."""
+def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bound0=None) -> dict:
+    """Put the per-particle E `values` (a start's own field, which gained `gain` over its start's loss `ref`) on
+    `mat`'s basis and keep it if the total loss falls by at least KEEP_SHARE of `gain`; else restore the field and
+    the adaptive substep's rung (`bound0`, as before the probes). Returns {"used", "loss0", "loss"}."""
+    sim = getattr(prob, "sim", None)
+    theta0 = mat.theta.detach().clone()
+    try:
+        loss0 = float(total_fn())
+        mat.set_values(np.asarray(values, np.float64))
+        loss1 = float(total_fn())
+    except SimulationError:
+        loss0, loss1 = float("nan"), float("inf")
+    # a search that found nothing (gain within the plateau tolerance: the H200's toy_rope, tow_rope and basketball
+    # all ended at their start, 0.00000) gives no start, though the bumps' projection of the uniform E may render a
+    # hair better: "taken", it was charged 6 of the level's iterations for nothing (basketball MA 0.294 -> 0.290)
+    used = bool(gain > STALL_TOL * abs(ref) and loss1 < loss0 and (loss0 - loss1) >= KEEP_SHARE * gain)
+    if not used:
+        with torch.no_grad():
+            mat.theta = theta0.clone().requires_grad_(True)
+        # the probes simulated stiffer fields, and the substep's hysteresis may keep their rung: leave the simulator
+        # as it was, or the fit goes on at another step (the H200's hemp_rope: a start not taken, MA 0.801 -> 0.485)
+        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
+            sim._use_bound(bound0)
+    return {"used": used, "loss0": loss0, "loss": loss1}
+
+
+def parts_start_hook(probes: int, trend: int = 0):
+    """`fit_bumps(before_finest=...)`: the parts start with at most `probes` probes (0: none), then, where it was
+    not taken, the trend start (fit/trend_start.py) with at most `trend` (0: none). The record is the one taken (else
+    the last tried), its "forwards" both searches'."""
     def hook(prob, mat, s, trajs, eff, total_fn, log=None):
-        return parts_start(prob, mat, s, trajs, eff, total_fn, probes, log)
+        from .trend_start import trend_start
+
+        rec = {"forwards": 0, "used": False, "parts": 0}
+        if probes > 0:
+            rec = parts_start(prob, mat, s, trajs, eff, total_fn, probes, log)
+        if trend > 0 and not rec["used"]:
+            t = trend_start(prob, mat, s, trajs, eff, total_fn, trend, log)
+            t["forwards"] += rec["forwards"]
+            if probes > 0:
+                t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
+            rec = t
+        return rec
     return hook
 
 
-__all__ = ["parts_start", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "accept", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

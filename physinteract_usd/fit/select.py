@@ -509,16 +509,21 @@ def part_score(prob, r: FitResult, s: FitSettings, frames) -> np.ndarray | None:
 class PartProbe:
     """The reconstruction loss on `frames` of a piecewise-constant E (one log E per part), the
     nu, trajectories and effects held; no gradients, cached per log-E vector. A probe that goes
-    unstable or leaves the grid is inf."""
+    unstable or leaves the grid is inf. `weights` (P, m) instead of `labels`: log E = weights @ le (a
+    trend's two ends, fit/trend_start.py)."""
 
-    def __init__(self, prob, frames, labels, nu, trajs, effects, batch: str = "cuda"):
-        self.prob, self.frames, self.labels = prob, list(frames), np.asarray(labels, np.int64)
+    def __init__(self, prob, frames, labels, nu, trajs, effects, batch: str = "cuda", weights=None):
+        self.prob, self.frames = prob, list(frames)
+        self.weights = None if weights is None else np.asarray(weights, np.float64)
+        self.labels = (np.asarray(labels, np.int64) if weights is None
+                       else np.argmax(self.weights, axis=1).astype(np.int64))
         self.nu, self.trajs, self.effects, self.batch = nu, trajs, effects, batch
         self.cache: dict[tuple, float] = {}
 
     def _E(self, le) -> torch.Tensor:
-        return torch.as_tensor(np.exp(np.asarray(le, np.float64))[self.labels], dtype=self.prob.tdtype,
-                               device=self.prob.tdev)
+        le = np.asarray(le, np.float64)
+        e = np.exp(self.weights @ le) if self.weights is not None else np.exp(le)[self.labels]
+        return torch.as_tensor(e, dtype=self.prob.tdtype, device=self.prob.tdev)
 
     def __call__(self, le) -> float:
         key = tuple(round(float(v), 10) for v in le)

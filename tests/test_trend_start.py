@@ -1,0 +1,109 @@
+"""The trend start (fit/trend_start.py): the axes it tries, its field's weights, and on a problem whose loss is a known
+bowl about a graded field (log E linear along gravity's axis, 5x from end to end: the balloon's kind) that it finds that
+axis and the ends, and starts the field there; where the bowl's minimum is uniform it finds nothing and leaves the
+field as it was."""
+
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+import torch
+
+from physinteract_usd.fit import trend_start as ts
+
+
+def test_axes_gravity_first_then_principal_axes_apart():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(400, 3)) * np.array([0.3, 0.1, 0.02])     # longest along x
+    axes = ts.trend_axes(pts, gravity=(0.0, -9.81, 0.0))
+    assert len(axes) == 3
+    assert np.allclose(np.abs(axes[0]), [0, 1, 0])
+    assert abs(axes[1][0]) > 0.99                                    # the long axis next
+    assert abs(axes[2][2]) > 0.99                                    # y's principal axis left out: within 30 deg of gravity
+    # a long object along gravity: its first principal axis is gravity's, so x and z follow
+    pts2 = rng.normal(size=(400, 3)) * np.array([0.05, 0.4, 0.1])
+    axes2 = ts.trend_axes(pts2, gravity=(0.0, -9.81, 0.0))
+    assert abs(axes2[1][2]) > 0.99 and abs(axes2[2][0]) > 0.99
+
+
+def test_weights_run_from_the_free_particles_low_end_to_their_high_end():
+    pts = np.array([[0, -0.2, 0], [0, 0.0, 0], [0, 0.1, 0], [0, 0.2, 0], [0, 0.3, 0]], float)
+    free = np.array([False, True, True, True, False])     # the ends held: t clipped beyond the free extent
+    w = ts.trend_weights(pts, np.array([0, 1.0, 0]), free)
+    assert np.allclose(w[:, 1], [0, 0, 0.5, 1, 1]) and np.allclose(w.sum(1), 1)
+
+
+class _Mat:
+    """A field on one coefficient per particle (the level's basis: set_values is exact)."""
+
+    lo, hi = math.log(1e3), math.log(1e6)
+
+    def __init__(self, le):
+        self.theta = torch.tensor(le, dtype=torch.float64, requires_grad=True)
+
+    def log_e(self):
+        return self.theta
+
+    def youngs(self):
+        return torch.exp(self.theta)
+
+    def poisson(self):
+        return torch.full_like(self.theta, 0.3)
+
+    def set_values(self, e, nu=None):
+        with torch.no_grad():
+            self.theta = torch.as_tensor(np.log(e), dtype=torch.float64).requires_grad_(True)
+
+
+def _problem(truth_le, x, cuda=False):
+    """A fake FitProblem whose reconstruction loss is the mean square log-E error against `truth_le` (the bowl)."""
+    truth = torch.as_tensor(truth_le)
+    calls = []
+
+    def loss(E, nu, trajs, eff, frames=None):
+        calls.append(1)
+        return {"rec": torch.mean((torch.log(E) - truth) ** 2)}
+
+    prob = types.SimpleNamespace(x0=x, T=5, tdtype=torch.float64, tdev="cuda" if cuda else "cpu", loss=loss,
+                                 held_particles=lambda: np.zeros(len(x), bool),
+                                 scene=types.SimpleNamespace(settings=types.SimpleNamespace(gravity=(0, -9.81, 0))),
+                                 sim=None)
+    return prob, calls
+
+
+def _grid():
+    g = np.linspace(-1, 1, 7)
+    return np.array([[a * 0.05, b * 0.15, c * 0.05] for a in g for b in g for c in g])   # a tall block
+
+
+def test_a_graded_object_starts_from_its_trend():
+    x = _grid()
+    t = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    truth = math.log(3.75e4) * t + math.log(7.5e3) * (1 - t)     # soft bottom, stiff top: 5x
+    prob, calls = _problem(truth, x)
+    mat = _Mat(np.full(len(x), math.log(3.1e4)))                   # the uniform optimum near the stiff end
+    s = types.SimpleNamespace(select_sweep_batch="never")
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    out = ts.trend_start(prob, mat, s, None, None, total, 20)
+    assert out["used"] and out["kind"] == "trend"
+    assert abs(abs(out["axis"][1]) - 1) < 1e-9                     # gravity's axis chosen
+    lo_end, hi_end = sorted(math.exp(v) for v in out["log_e"])
+    assert abs(lo_end / 7.5e3 - 1) < 0.25 and abs(hi_end / 3.75e4 - 1) < 0.25, (lo_end, hi_end)
+    assert out["loss"] < 0.1 * out["loss0"]
+    assert out["forwards"] == len(calls) - 2 + 2                 # the probes and the acceptance's two (total's own calls)
+    e = mat.youngs().detach().numpy()
+    assert e[np.argmin(x[:, 1])] < 1.3e4 and e[np.argmax(x[:, 1])] > 2.8e4
+
+
+def test_a_uniform_object_keeps_its_start():
+    x = _grid()
+    truth = np.full(len(x), math.log(2e4))
+    prob, _ = _problem(truth, x)
+    mat = _Mat(np.full(len(x), math.log(2e4)))
+    s = types.SimpleNamespace(select_sweep_batch="never")
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    out = ts.trend_start(prob, mat, s, None, None, total, 20)
+    assert not out["used"]
+    assert np.allclose(mat.log_e().detach().numpy(), math.log(2e4))
