@@ -36,18 +36,23 @@ def test_weights_run_from_the_free_particles_low_end_to_their_high_end():
 
 
 class _Mat:
-    """A field on one coefficient per particle (the level's basis: set_values is exact)."""
+    """A field on one coefficient per particle (the level's basis: set_values is exact); set_base nests it."""
 
     lo, hi = math.log(1e3), math.log(1e6)
 
     def __init__(self, le):
         self.theta = torch.tensor(le, dtype=torch.float64, requires_grad=True)
+        self.base = None
 
     def log_e(self):
-        return self.theta
+        return self.theta if self.base is None else self.base + self.theta
+
+    def set_base(self, e):
+        self.base = torch.as_tensor(np.log(e), dtype=torch.float64)
+        self.theta = torch.zeros_like(self.base).requires_grad_(True)
 
     def youngs(self):
-        return torch.exp(self.theta)
+        return torch.exp(self.log_e())
 
     def poisson(self):
         return torch.full_like(self.theta, 0.3)
@@ -61,12 +66,22 @@ def _problem(truth_le, x, cuda=False):
     """A fake FitProblem whose reconstruction loss is the mean square log-E error against `truth_le` (the bowl)."""
     truth = torch.as_tensor(truth_le)
     calls = []
+    T = 10
+
+    def err(E):
+        return torch.mean((torch.log(E) - truth) ** 2)
 
     def loss(E, nu, trajs, eff, frames=None):
         calls.append(1)
-        return {"rec": torch.mean((torch.log(E) - truth) ** 2)}
+        return {"rec": err(E)}
 
-    prob = types.SimpleNamespace(x0=x, T=5, tdtype=torch.float64, tdev="cuda" if cuda else "cpu", loss=loss,
+    def simulate(E, nu, trajs, eff):         # frame k's "image": the bowl's value, growing with k
+        calls.append(1)
+        return [err(E) * (1 + 0.1 * k) for k in range(T)], [None] * T
+
+    prob = types.SimpleNamespace(x0=x, T=T, tdtype=torch.float64, tdev="cuda" if cuda else "cpu", loss=loss,
+                                 simulate=simulate, render_frame=lambda k, xk, Fk: xk,
+                                 frame_loss=lambda k, img: {"total": img}, contacts=[],
                                  held_particles=lambda: np.zeros(len(x), bool),
                                  scene=types.SimpleNamespace(settings=types.SimpleNamespace(gravity=(0, -9.81, 0))),
                                  sim=None)
@@ -84,7 +99,7 @@ def test_a_graded_object_starts_from_its_trend():
     truth = math.log(3.75e4) * t + math.log(7.5e3) * (1 - t)     # soft bottom, stiff top: 5x
     prob, calls = _problem(truth, x)
     mat = _Mat(np.full(len(x), math.log(3.1e4)))                   # the uniform optimum near the stiff end
-    s = types.SimpleNamespace(select_sweep_batch="never")
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002)
     total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
     out = ts.trend_start(prob, mat, s, None, None, total, 20)
     assert out["used"] and out["kind"] == "trend"
@@ -92,7 +107,8 @@ def test_a_graded_object_starts_from_its_trend():
     lo_end, hi_end = sorted(math.exp(v) for v in out["log_e"])
     assert abs(lo_end / 7.5e3 - 1) < 0.25 and abs(hi_end / 3.75e4 - 1) < 0.25, (lo_end, hi_end)
     assert out["loss"] < 0.1 * out["loss0"]
-    assert out["forwards"] == len(calls) - 2 + 2                 # the probes and the acceptance's two (total's own calls)
+    assert out["forwards"] == len(calls)                  # the probes, the held-back pair and the acceptance's two
+    assert mat.base is not None and float(mat.theta.abs().max()) == 0.0     # nested on the trend, offsets zero
     e = mat.youngs().detach().numpy()
     assert e[np.argmin(x[:, 1])] < 1.3e4 and e[np.argmax(x[:, 1])] > 2.8e4
 
@@ -102,8 +118,24 @@ def test_a_uniform_object_keeps_its_start():
     truth = np.full(len(x), math.log(2e4))
     prob, _ = _problem(truth, x)
     mat = _Mat(np.full(len(x), math.log(2e4)))
-    s = types.SimpleNamespace(select_sweep_batch="never")
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002)
     total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
     out = ts.trend_start(prob, mat, s, None, None, total, 20)
-    assert not out["used"]
+    assert not out["used"] and mat.base is None
     assert np.allclose(mat.log_e().detach().numpy(), math.log(2e4))
+
+
+def test_a_trend_that_does_not_carry_to_the_held_back_frames_is_refused():
+    """The training frames' bowl is graded, the held-back frames' uniform: the slope fits what does not carry over."""
+    x = _grid()
+    t = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    graded = torch.as_tensor(math.log(3.75e4) * t + math.log(7.5e3) * (1 - t))
+    flat = torch.full((len(x),), math.log(3.1e4), dtype=torch.float64)
+    prob, _ = _problem(graded.numpy(), x)
+    prob.simulate = lambda E, nu, trajs, eff: ([torch.mean((torch.log(E) - flat) ** 2)] * prob.T, [None] * prob.T)
+    mat = _Mat(np.full(len(x), math.log(3.1e4)))
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002)
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    out = ts.trend_start(prob, mat, s, None, None, total, 20)
+    assert out["trend_gain"] > 0 and not out["used"] and mat.base is None
+    assert "lower on 0 of" in out["heldback"]

@@ -441,7 +441,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
 
     def snapshot(loss_value, sim=None):
         best.update(loss=loss_value, sim=sim, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
-                    B=mat.B, nu_basis=mat.nu_basis, trajs=[t.detach().clone() for t in trajs],
+                    B=mat.B, nu_basis=mat.nu_basis, base=mat.base, trajs=[t.detach().clone() for t in trajs],
                     effects={e: {p: v.detach().clone() for p, v in ps.items()} for e, ps in eff_raw.items()})
 
     budget = max(int(s.iterations), 0)
@@ -465,6 +465,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             if li > 0:
                 if "theta" in best:  # refine from the best iterate so far
                     mat.B, mat.nu_basis = best["B"], best["nu_basis"]
+                    mat.base = best.get("base", mat.base)    # (a start may have nested the field: trend_start.py)
                     with torch.no_grad():
                         mat.theta = best["theta"].clone().requires_grad_(True)
                         mat.w_nu = best["w_nu"].clone().requires_grad_(True)
@@ -687,6 +688,7 @@ def _restore(mat, trajs, best, joint, eff_raw=None):
             with torch.no_grad():
                 eff_raw[e][p].copy_(v)
     mat.B, mat.nu_basis = best["B"], best["nu_basis"]
+    mat.base = best.get("base", mat.base)
     mat.K = mat.B.shape[1]
     with torch.no_grad():
         mat.theta = best["theta"].clone().requires_grad_(True)

@@ -133,15 +133,19 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     return out
 
 
-def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bound0=None) -> dict:
+def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bound0=None, nest: bool = False) -> dict:
     """Put the per-particle E `values` (a start's own field, which gained `gain` over its start's loss `ref`) on
-    `mat`'s basis and keep it if the total loss falls by at least KEEP_SHARE of `gain`; else restore the field and
-    the adaptive substep's rung (`bound0`, as before the probes). Returns {"used", "loss0", "loss"}."""
+    `mat`'s basis (`nest`: as the fixed base of a nested field, the bumps' offsets zero: exact) and keep it if the
+    total loss falls by at least KEEP_SHARE of `gain`; else restore the field and the adaptive substep's rung
+    (`bound0`, as before the probes). Returns {"used", "loss0", "loss"}."""
     sim = getattr(prob, "sim", None)
-    theta0 = mat.theta.detach().clone()
+    theta0, base0 = mat.theta.detach().clone(), getattr(mat, "base", None)
     try:
         loss0 = float(total_fn())
-        mat.set_values(np.asarray(values, np.float64))
+        if nest:
+            mat.set_base(np.asarray(values, np.float64))
+        else:
+            mat.set_values(np.asarray(values, np.float64))
         loss1 = float(total_fn())
     except SimulationError:
         loss0, loss1 = float("nan"), float("inf")
@@ -150,6 +154,8 @@ def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bou
     # hair better: "taken", it was charged 6 of the level's iterations for nothing (basketball MA 0.294 -> 0.290)
     used = bool(gain > STALL_TOL * abs(ref) and loss1 < loss0 and (loss0 - loss1) >= KEEP_SHARE * gain)
     if not used:
+        if nest:
+            mat.base = base0
         with torch.no_grad():
             mat.theta = theta0.clone().requires_grad_(True)
         # the probes simulated stiffer fields, and the substep's hysteresis may keep their rung: leave the simulator

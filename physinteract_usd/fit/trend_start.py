@@ -10,18 +10,23 @@ finer grid all stayed in that basin (soft end 2.5-3.1x), while the truth's own f
 What: before the finest level, when the parts start was not taken, a field whose log E runs linearly from one end of
 the object to the other, log E = (1 - t) a + t b with t in [0, 1] the particle's place along the axis (free particles'
 extent), is searched along each candidate axis: gravity's and the free particles' principal axes more than
-AXIS_APART off the ones before (at most 3). Each axis first gets its two ends' one-sided probes (an end x2, else x0.5:
-the parts simplex's two-sided vertices); the axis whose best probe renders best gets the simplex
-(`select.part_refine`, the parts start's rule: its probes so far reused). The result, projected onto the level's bumps,
-is the start under the parts start's acceptance rule (`parts_start.accept`): it must render better than the current
-start by at least KEEP_SHARE of what the trend's own field gained; else nothing changes (the field and the substep's
-rung restored).
+AXIS_APART off the ones before (at most 3). The search sees the training frames only (`select.holdout_frames`, as the
+select schedule and the guard hold frames back). Each axis first gets its two ends' one-sided probes (an end x2, else
+x0.5: the parts simplex's two-sided vertices); the axis whose best probe renders best gets the simplex
+(`select.part_refine`, the parts start's rule: its probes so far reused). The trend must then beat the uniform E on
+the held-back frames by more than its one added coefficient predicts (`select.select_rule`; 2 forwards): a slope
+that fits the training frames' noise (the H200's hemp_rope, 2026-11-28: a trend across the rope gaining 2%, MA 0.80
+-> 0.24) does not carry over. Kept, it becomes the fixed base of a nested field (`MaterialField.set_base`), the
+level's bumps adding offsets from zero, under the parts start's acceptance rule (`parts_start.accept`: the total
+loss must fall by KEEP_SHARE of the trend's gain). Not projected onto the bumps: they are near piecewise constant
+(width 0.6 of their spacing) and hold a ramp as a staircase (the CPU's balloon at grid 24: a 7x trend at 0.0081
+became 0.0138 on them, against 0.0184 uniform: refused). Else nothing changes (the field and the substep's rung
+restored).
 """
 
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
@@ -63,11 +68,26 @@ def trend_weights(points: np.ndarray, axis: np.ndarray, free: np.ndarray | None 
     return np.stack([1.0 - t, t], axis=1)
 
 
+def heldback_losses(prob, E: torch.Tensor, nu, trajs, eff, frames, e_bound: float) -> list[float]:
+    """Each of `frames`' reconstruction loss for the field `E` (one forward, no gradients), simulated at the adaptive
+    substep of stiffness `e_bound` (`pinned_substep`: two fields compared at one step); inf where it fails."""
+    from ..errors import SimulationError
+    from .substep import pinned_substep
+
+    with torch.no_grad(), pinned_substep(prob, e_bound):
+        try:
+            x, F = prob.simulate(E, nu, trajs, eff)
+        except SimulationError:
+            return [float("inf")] * len(frames)
+        return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]
+
+
 def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
-    """Start the field (`mat`, on the level's basis) from the best log-linear trend along one axis when it lowers the
-    total loss. `total_fn()`: the fit's total loss at the current field (a forward). Returns the parts start's kind of
-    record: {"forwards", "used", "kind": "trend", "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain"}."""
-    from .select import PartProbe, part_refine
+    """Start the field (`mat`, nested on the trend: `MaterialField.set_base`) from the best log-linear trend along one
+    axis when it renders better on held-back frames and lowers the total loss. `total_fn()`: the fit's total loss at
+    the current field (a forward). Returns the parts start's kind of record: {"forwards", "used", "kind": "trend",
+    "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain", "heldback"}."""
+    from .select import PartProbe, holdout_frames, part_refine, select_rule
 
     out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
     sim = getattr(prob, "sim", None)
@@ -76,7 +96,12 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     free = ~np.asarray(prob.held_particles(), bool)
     grav = getattr(getattr(prob.scene, "settings", None), "gravity", None)
     axes = trend_axes(x0[free] if free.sum() >= 3 else x0, grav)
-    if not axes:
+    after_release = [c.release_frame + 1 for c in getattr(prob, "contacts", None) or []
+                     if getattr(c, "release_frame", None) is not None]
+    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+    if not axes or not val:
+        if log:
+            log("trend start: " + ("no axis" if not axes else "too few frames to hold any back") + "; not tried")
         return out
     with torch.no_grad():
         le_now = mat.log_e().detach().cpu().numpy()
@@ -84,14 +109,13 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     u = float(np.mean(le_now))
     start = np.array([u, u])
     tr = [t.detach() for t in trajs] if trajs else None
-    kw = refine_kwargs(2, probes, cheap=(not forwards_are_cheap(prob)) and os.environ.get("PHYSINTERACT_TREND_UNCUT") != "1")
-    step = float(kw["step"])
+    kw = refine_kwargs(2, probes, cheap=not forwards_are_cheap(prob))
+    step = float(kw.pop("step"))
     lo, hi = mat.lo + 1e-3, mat.hi - 1e-3
-    probes_of: list = []
+    screened: list = []
     with kept_rung(prob):
         for ax in axes:
-            f = PartProbe(prob, list(range(1, prob.T)), None, nu, tr, eff, batch=s.select_sweep_batch,
-                          weights=trend_weights(x0, ax, free))
+            f = PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
             f0 = f(start)
             best = f0
             for j in range(2):     # the simplex's two-sided vertices: an end x2, else x0.5
@@ -100,22 +124,35 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
                 if v >= f0:
                     v = min(v, f(np.clip(start - step * e, lo, hi)))
                 best = min(best, v)
-            probes_of.append((best, f, ax))
-        best_screen, f, ax = min(probes_of, key=lambda r: r[0])
-        kw.pop("step")
+            screened.append((best, f, ax))
+        _, f, ax = min(screened, key=lambda r: r[0])
         r = part_refine(f, start, lo, hi, kw.pop("evals"), step, **kw)   # (its first vertices: the screen's, cached)
-    n_probes = sum(len(g.cache) for _, g, _ in probes_of)
+    n_probes = sum(len(g.cache) for _, g, _ in screened)
+    w = trend_weights(x0, ax, free)
     gain = f(start) - float(r["loss"])
-    values = np.exp(trend_weights(x0, ax, free) @ np.asarray(r["log_e"]))
-    taken = accept(prob, mat, total_fn, values, gain, f(start), bound0)
+    values = np.exp(w @ np.asarray(r["log_e"]))
+    E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
+    bound = float(max(np.max(values), math.exp(u)))
+    h0 = heldback_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
+    h1 = heldback_losses(prob, E_of(values), nu, tr, eff, val, bound)
+    rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
     out.update(forwards=n_probes + 2, axis=[float(v) for v in ax], log_e=[float(v) for v in r["log_e"]],
-               sweep_loss=float(r["loss"]), trend_gain=float(gain), axes=len(axes), **taken)
+               sweep_loss=float(r["loss"]), trend_gain=float(gain), axes=len(axes), heldback=rule["why"])
+    if rule["keep_field"]:
+        taken = accept(prob, mat, total_fn, values, gain, f(start), bound0, nest=True)
+        out["forwards"] += 2
+    else:
+        taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
+        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
+            sim._use_bound(bound0)
+    out.update(taken)
     if log:
         ea, eb = (math.exp(v) for v in r["log_e"])
+        tail = (f"on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
+                f"{'started there' if taken['used'] else 'not taken'}" if rule["keep_field"] else "not taken")
         log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) from {ea:.4g} to {eb:.4g} Pa "
-            f"({len(axes)} axes, {n_probes} probes); on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
-            f"{'started there' if taken['used'] else 'not taken'} (the trend's own gain {gain:.5f})")
+            f"({len(axes)} axes, {n_probes} probes on {len(train)} frames, its gain {gain:.5f}); {rule['why']}; {tail}")
     return out
 
 
-__all__ = ["trend_start", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
