@@ -11,12 +11,16 @@ What: before the finest level, when the parts start was not taken, a field whose
 the object to the other, log E = (1 - t) a + t b with t in [0, 1] the particle's place along the axis (free particles'
 extent), is searched along each candidate axis: gravity's and the free particles' principal axes more than
 AXIS_APART off the ones before (at most 3). The search sees the training frames only (`select.holdout_frames`, as the
-select schedule and the guard hold frames back). Each axis first gets its two ends' one-sided probes (an end x2, else
-x0.5: the parts simplex's two-sided vertices); the axis whose best probe renders best gets the simplex
-(`select.part_refine`, the parts start's rule: its probes so far reused). The trend must then beat the uniform E on
-the held-back frames by more than its one added coefficient predicts (`select.select_rule`; 2 forwards): a slope
-that fits the training frames' noise (the H200's hemp_rope, 2026-11-28: a trend across the rope gaining 2%, MA 0.80
--> 0.24) does not carry over. Kept, it becomes the fixed base of a nested field (`MaterialField.set_base`), the
+select schedule and the guard hold frames back). The search runs in the coordinates (mean, tilt) about the uniform E,
+which the start search has already pinned: each axis is first tilted both ways (ends x2 and / 2, the mean held: 2
+probes), and the axis whose tilt renders best gets the simplex (`select.part_refine`, the parts start's rule; its
+first vertices a mean 1.19x up or down and that tilt, cached). Moving one end alone (the first version) changes the
+mean the uniform loss is sharp about, so it rendered worse along the true axis and picked another (the H200's
+paper-size hemp_rope, 2026-11-28: a trend across the rope). The trend must then beat the uniform E on the held-back
+frames by more than its one added coefficient predicts (`select.select_rule`; 2 forwards) and on so many of them
+that a coin would not (sign test, SIGN_P): a slope that fits the training frames' noise, or one or two frames the
+uniform E misses, does not carry over (the H200's small hemp_rope: a trend across the rope gaining 2%, MA 0.80 ->
+0.24, before the held-back test). Kept, it becomes the fixed base of a nested field (`MaterialField.set_base`), the
 level's bumps adding offsets from zero, under the parts start's acceptance rule (`parts_start.accept`: the total
 loss must fall by KEEP_SHARE of the trend's gain). Not projected onto the bumps: they are near piecewise constant
 (width 0.6 of their spacing) and hold a ramp as a staircase (the CPU's balloon at grid 24: a 7x trend at 0.0081
@@ -34,6 +38,13 @@ import torch
 from .parts_start import accept, forwards_are_cheap, refine_kwargs
 from .substep import kept_rung
 
+MEAN_SCALE = 0.25   # the search's coordinates (mean, tilt): ends = u + MEAN_SCALE * mean +- tilt. The uniform search has
+                    # pinned the mean (its loss is sharp there: the balloon's 0.019 at 3.1e4 Pa, 0.030 at 2.2e4), so the
+                    # simplex's step along it is 2 ** 0.25 = 1.19x, along the tilt x2 / 2 at the ends
+SIGN_P = 0.125      # ... and the trend lower on so many held-back frames that a fair coin would do so with p <= this
+                    # (one-sided sign test: all of three, all 4 of a 14-frame clip's, 11 of 15): a slope bought by one or two frames
+                    # the uniform E misses is no trend (the H200's paper-size hemp_rope: 8 of 15 lower, a trend
+                    # across the rope of 0.6% taken, and the iterations it was charged cost the fit MA 0.82 -> 0.23)
 AXIS_APART = math.radians(30.0)   # a principal axis within this of an axis already tried adds nothing new
 MAX_AXES = 3
 
@@ -66,6 +77,33 @@ def trend_weights(points: np.ndarray, axis: np.ndarray, free: np.ndarray | None 
     lo, hi = float(ref.min()), float(ref.max())
     t = np.clip((s - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
     return np.stack([1.0 - t, t], axis=1)
+
+
+def sign_test_p(better: int, n: int) -> float:
+    """One-sided sign test: the chance that a fair coin comes up `better` or more times in `n`."""
+    return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
+
+
+class TiltProbe:
+    """A trend's probe in the coordinates (mean, tilt) about the uniform log E `u`: the ends
+    (u + MEAN_SCALE * mean + tilt, u + MEAN_SCALE * mean - tilt), clipped to [lo, hi]."""
+
+    def __init__(self, f, u: float, lo: float, hi: float):
+        self.f, self.u, self.lo, self.hi = f, float(u), float(lo), float(hi)
+
+    @property
+    def cache(self) -> dict:
+        return self.f.cache
+
+    def ends(self, p) -> np.ndarray:
+        m = self.u + MEAN_SCALE * float(p[0])
+        return np.clip(np.array([m + float(p[1]), m - float(p[1])]), self.lo, self.hi)
+
+    def __call__(self, p) -> float:
+        return self.f(self.ends(p))
+
+    def many(self, ps):
+        return None
 
 
 def heldback_losses(prob, E: torch.Tensor, nu, trajs, eff, frames, e_bound: float) -> list[float]:
@@ -107,39 +145,44 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
         le_now = mat.log_e().detach().cpu().numpy()
         nu = mat.poisson().detach()
     u = float(np.mean(le_now))
-    start = np.array([u, u])
     tr = [t.detach() for t in trajs] if trajs else None
     kw = refine_kwargs(2, probes, cheap=not forwards_are_cheap(prob))
     step = float(kw.pop("step"))
     lo, hi = mat.lo + 1e-3, mat.hi - 1e-3
+    span = hi - lo
     screened: list = []
     with kept_rung(prob):
         for ax in axes:
-            f = PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
-            f0 = f(start)
+            f = TiltProbe(PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch,
+                                    weights=trend_weights(x0, ax, free)), u, lo, hi)
+            f0 = f(np.zeros(2))
             best = f0
-            for j in range(2):     # the simplex's two-sided vertices: an end x2, else x0.5
-                e = np.eye(2)[j]
-                v = f(np.clip(start + step * e, lo, hi))
-                if v >= f0:
-                    v = min(v, f(np.clip(start - step * e, lo, hi)))
-                best = min(best, v)
+            for sgn in (1.0, -1.0):      # the screen: the axis tilted both ways about the uniform E, ends x2 and / 2
+                best = min(best, f(np.array([0.0, sgn * step])))
             screened.append((best, f, ax))
         _, f, ax = min(screened, key=lambda r: r[0])
-        r = part_refine(f, start, lo, hi, kw.pop("evals"), step, **kw)   # (its first vertices: the screen's, cached)
+        # the simplex in (mean, tilt) from the uniform E: its first vertices a mean 2 ** MEAN_SCALE up (or down) and the
+        # screen's better tilt (cached)
+        r = part_refine(f, np.zeros(2), -span, span, kw.pop("evals"), step, **kw)
     n_probes = sum(len(g.cache) for _, g, _ in screened)
     w = trend_weights(x0, ax, free)
-    gain = f(start) - float(r["loss"])
-    values = np.exp(w @ np.asarray(r["log_e"]))
+    ends = f.ends(np.asarray(r["log_e"]))
+    gain = f(np.zeros(2)) - float(r["loss"])
+    values = np.exp(w @ ends)
     E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
     bound = float(max(np.max(values), math.exp(u)))
     h0 = heldback_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
     h1 = heldback_losses(prob, E_of(values), nu, tr, eff, val, bound)
     rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
+    n_better = int(np.sum(np.asarray(h0) > np.asarray(h1)))
+    p_sign = sign_test_p(n_better, len(val))
+    keep = bool(rule["keep_field"] and p_sign <= SIGN_P)
+    why = f"{rule['why']} (sign test p {p_sign:.3f}{' <= ' if p_sign <= SIGN_P else ' > '}{SIGN_P})"
+    r = {**r, "log_e": ends}
     out.update(forwards=n_probes + 2, axis=[float(v) for v in ax], log_e=[float(v) for v in r["log_e"]],
-               sweep_loss=float(r["loss"]), trend_gain=float(gain), axes=len(axes), heldback=rule["why"])
-    if rule["keep_field"]:
-        taken = accept(prob, mat, total_fn, values, gain, f(start), bound0, nest=True)
+               sweep_loss=float(r["loss"]), trend_gain=float(gain), axes=len(axes), heldback=why, sign_p=p_sign)
+    if keep:
+        taken = accept(prob, mat, total_fn, values, gain, f(np.zeros(2)), bound0, nest=True)
         out["forwards"] += 2
     else:
         taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
@@ -149,10 +192,10 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     if log:
         ea, eb = (math.exp(v) for v in r["log_e"])
         tail = (f"on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
-                f"{'started there' if taken['used'] else 'not taken'}" if rule["keep_field"] else "not taken")
+                f"{'started there' if taken['used'] else 'not taken'}" if keep else "not taken")
         log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) from {ea:.4g} to {eb:.4g} Pa "
-            f"({len(axes)} axes, {n_probes} probes on {len(train)} frames, its gain {gain:.5f}); {rule['why']}; {tail}")
+            f"({len(axes)} axes, {n_probes} probes on {len(train)} frames, its gain {gain:.5f}); {why}; {tail}")
     return out
 
 
-__all__ = ["trend_start", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "TiltProbe", "sign_test_p", "MEAN_SCALE", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
