@@ -139,3 +139,23 @@ def test_a_trend_that_does_not_carry_to_the_held_back_frames_is_refused():
     out = ts.trend_start(prob, mat, s, None, None, total, 20)
     assert out["trend_gain"] > 0 and not out["used"] and mat.base is None
     assert "lower on 0 of" in out["heldback"]
+
+
+def test_the_next_axis_is_tried_when_the_first_does_not_carry_over():
+    """Training frames graded 5x along x and 3x along y, the held-back frames 3x along y only: x's trend screens best and
+    is refused on the held-back frames; y's, tried next, is kept."""
+    x = _grid()
+    tx = (x[:, 0] - x[:, 0].min()) / np.ptp(x[:, 0])
+    ty = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    base = math.log(1.5e4)
+    train_truth = base + math.log(5.0) * (tx - 0.5) + math.log(3.0) * (ty - 0.5)
+    held_truth = torch.as_tensor(base + math.log(3.0) * (ty - 0.5))
+    prob, _ = _problem(train_truth, x)
+    prob.simulate = lambda E, nu, trajs, eff: ([torch.mean((torch.log(E) - held_truth) ** 2)] * prob.T, [None] * prob.T)
+    mat = _Mat(np.full(len(x), base))
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002)
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    said = []
+    out = ts.trend_start(prob, mat, s, None, None, total, 20, log=said.append)
+    assert out["used"] and out["rank"] == 1 and abs(abs(out["axis"][1]) - 1) < 1e-9
+    assert any("axis 1 of" in m and "not taken" in m for m in said)

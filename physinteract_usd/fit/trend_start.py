@@ -11,16 +11,16 @@ What: before the finest level, when the parts start was not taken, a field whose
 the object to the other, log E = (1 - t) a + t b with t in [0, 1] the particle's place along the axis (free particles'
 extent), is searched along each candidate axis: gravity's and the free particles' principal axes more than
 AXIS_APART off the ones before (at most 3). The search sees the training frames only (`select.holdout_frames`, as the
-select schedule and the guard hold frames back). The search runs in the coordinates (mean, tilt) about the uniform E,
-which the start search has already pinned: each axis is first tilted both ways (ends x2 and / 2, the mean held: 2
-probes), and the axis whose tilt renders best gets the simplex (`select.part_refine`, the parts start's rule; its
-first vertices a mean 1.19x up or down and that tilt, cached). Moving one end alone (the first version) changes the
-mean the uniform loss is sharp about, so it rendered worse along the true axis and picked another (the H200's
-paper-size hemp_rope, 2026-11-28: a trend across the rope). The trend must then beat the uniform E on the held-back
+select schedule and the guard hold frames back). Each axis is first screened (`screen_moves`: tilted both ways about
+its middle, the mean held, and each end alone x2 or / 2: 4-6 probes); the axes are ranked by their best screened
+point, and the best one's simplex (`select.part_refine`, the parts start's rule) starts there. Either screen alone
+lost a scene on the H200 (2026-11-28): ends alone picked a trend across the paper-size hemp_rope (its true trend
+pivots about the middle), tilts alone a trend across the balloon (its true trend pivots about the stiff neck, where the
+uniform E sits). The trend must then beat the uniform E on the held-back
 frames by more than its one added coefficient predicts (`select.select_rule`; 2 forwards) and on so many of them
 that a coin would not (sign test, SIGN_P): a slope that fits the training frames' noise, or one or two frames the
 uniform E misses, does not carry over (the H200's small hemp_rope: a trend across the rope gaining 2%, MA 0.80 ->
-0.24, before the held-back test). Kept, it becomes the fixed base of a nested field (`MaterialField.set_base`), the
+0.24, before the held-back test). Refused, the next axis by its screen gets its simplex (at most TRIES). Kept, it becomes the fixed base of a nested field (`MaterialField.set_base`), the
 level's bumps adding offsets from zero, under the parts start's acceptance rule (`parts_start.accept`: the total
 loss must fall by KEEP_SHARE of the trend's gain). Not projected onto the bumps: they are near piecewise constant
 (width 0.6 of their spacing) and hold a ramp as a staircase (the CPU's balloon at grid 24: a 7x trend at 0.0081
@@ -38,9 +38,7 @@ import torch
 from .parts_start import accept, forwards_are_cheap, refine_kwargs
 from .substep import kept_rung
 
-MEAN_SCALE = 0.25   # the search's coordinates (mean, tilt): ends = u + MEAN_SCALE * mean +- tilt. The uniform search has
-                    # pinned the mean (its loss is sharp there: the balloon's 0.019 at 3.1e4 Pa, 0.030 at 2.2e4), so the
-                    # simplex's step along it is 2 ** 0.25 = 1.19x, along the tilt x2 / 2 at the ends
+TRIES = 2           # the axes (best screened first) whose simplex may be tried until one passes the held-back test
 SIGN_P = 0.125      # ... and the trend lower on so many held-back frames that a fair coin would do so with p <= this
                     # (one-sided sign test: all of three, all 4 of a 14-frame clip's, 11 of 15): a slope bought by one or two frames
                     # the uniform E misses is no trend (the H200's paper-size hemp_rope: 8 of 15 lower, a trend
@@ -79,31 +77,24 @@ def trend_weights(points: np.ndarray, axis: np.ndarray, free: np.ndarray | None 
     return np.stack([1.0 - t, t], axis=1)
 
 
+def screen_moves(f, u0: np.ndarray, step: float, lo: float, hi: float) -> list[tuple]:
+    """An axis' screen, as (a, b) moves in units of `step` from the uniform (u, u): tilted both ways about its middle
+    ((1, -1), (-1, 1)), and each end alone moved x2, or / 2 where x2 renders no better than the uniform (the parts
+    simplex's two-sided vertices). The tilt holds the mean the uniform E was fitted to; an end alone pivots about the
+    other end, where the uniform E is pinned when that end dominates the motion (the balloon's neck)."""
+    moves: list[tuple] = [(1.0, -1.0), (-1.0, 1.0)]
+    f0 = f(u0)
+    for j in range(2):
+        d = tuple(1.0 if k == j else 0.0 for k in range(2))
+        moves.append(d)
+        if f(np.clip(u0 + step * np.array(d), lo, hi)) >= f0:
+            moves.append(tuple(-v for v in d))
+    return moves
+
+
 def sign_test_p(better: int, n: int) -> float:
     """One-sided sign test: the chance that a fair coin comes up `better` or more times in `n`."""
     return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
-
-
-class TiltProbe:
-    """A trend's probe in the coordinates (mean, tilt) about the uniform log E `u`: the ends
-    (u + MEAN_SCALE * mean + tilt, u + MEAN_SCALE * mean - tilt), clipped to [lo, hi]."""
-
-    def __init__(self, f, u: float, lo: float, hi: float):
-        self.f, self.u, self.lo, self.hi = f, float(u), float(lo), float(hi)
-
-    @property
-    def cache(self) -> dict:
-        return self.f.cache
-
-    def ends(self, p) -> np.ndarray:
-        m = self.u + MEAN_SCALE * float(p[0])
-        return np.clip(np.array([m + float(p[1]), m - float(p[1])]), self.lo, self.hi)
-
-    def __call__(self, p) -> float:
-        return self.f(self.ends(p))
-
-    def many(self, ps):
-        return None
 
 
 def heldback_losses(prob, E: torch.Tensor, nu, trajs, eff, frames, e_bound: float) -> list[float]:
@@ -147,55 +138,63 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     u = float(np.mean(le_now))
     tr = [t.detach() for t in trajs] if trajs else None
     kw = refine_kwargs(2, probes, cheap=not forwards_are_cheap(prob))
-    step = float(kw.pop("step"))
+    step, evals = float(kw.pop("step")), int(kw.pop("evals"))
     lo, hi = mat.lo + 1e-3, mat.hi - 1e-3
-    span = hi - lo
+    u0 = np.array([u, u])
+    E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
     screened: list = []
     with kept_rung(prob):
         for ax in axes:
-            f = TiltProbe(PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch,
-                                    weights=trend_weights(x0, ax, free)), u, lo, hi)
-            f0 = f(np.zeros(2))
-            best = f0
-            for sgn in (1.0, -1.0):      # the screen: the axis tilted both ways about the uniform E, ends x2 and / 2
-                best = min(best, f(np.array([0.0, sgn * step])))
-            screened.append((best, f, ax))
-        _, f, ax = min(screened, key=lambda r: r[0])
-        # the simplex in (mean, tilt) from the uniform E: its first vertices a mean 2 ** MEAN_SCALE up (or down) and the
-        # screen's better tilt (cached)
-        r = part_refine(f, np.zeros(2), -span, span, kw.pop("evals"), step, **kw)
-    n_probes = sum(len(g.cache) for _, g, _ in screened)
-    w = trend_weights(x0, ax, free)
-    ends = f.ends(np.asarray(r["log_e"]))
-    gain = f(np.zeros(2)) - float(r["loss"])
-    values = np.exp(w @ ends)
-    E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
-    bound = float(max(np.max(values), math.exp(u)))
-    h0 = heldback_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
-    h1 = heldback_losses(prob, E_of(values), nu, tr, eff, val, bound)
-    rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
-    n_better = int(np.sum(np.asarray(h0) > np.asarray(h1)))
-    p_sign = sign_test_p(n_better, len(val))
-    keep = bool(rule["keep_field"] and p_sign <= SIGN_P)
-    why = f"{rule['why']} (sign test p {p_sign:.3f}{' <= ' if p_sign <= SIGN_P else ' > '}{SIGN_P})"
-    r = {**r, "log_e": ends}
-    out.update(forwards=n_probes + 2, axis=[float(v) for v in ax], log_e=[float(v) for v in r["log_e"]],
-               sweep_loss=float(r["loss"]), trend_gain=float(gain), axes=len(axes), heldback=why, sign_p=p_sign)
-    if keep:
-        taken = accept(prob, mat, total_fn, values, gain, f(np.zeros(2)), bound0, nest=True)
-        out["forwards"] += 2
-    else:
-        taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
-        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
-            sim._use_bound(bound0)
+            f = PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
+            pts = [u0] + [np.clip(u0 + step * np.array(d), lo, hi) for d in screen_moves(f, u0, step, lo, hi)]
+            vals = [f(p) for p in pts]
+            i = int(np.argmin(vals))
+            screened.append((vals[i], pts[i], f, ax))
+    screened.sort(key=lambda r: r[0])
+    f0 = screened[0][2](u0)
+    rec = None
+    for rank, (v_screen, p_best, f, ax) in enumerate(screened[:TRIES]):
+        if not v_screen < f0:
+            break                                   # this axis' screen found nothing below the uniform E
+        with kept_rung(prob):
+            r = part_refine(f, p_best, lo, hi, evals, step, **kw)
+        w = trend_weights(x0, ax, free)
+        ends = np.asarray(r["log_e"], np.float64)
+        gain = f0 - float(r["loss"])
+        values = np.exp(w @ ends)
+        bound = float(max(np.max(values), math.exp(u)))
+        h0 = heldback_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
+        h1 = heldback_losses(prob, E_of(values), nu, tr, eff, val, bound)
+        rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
+        n_better = int(np.sum(np.asarray(h0) > np.asarray(h1)))
+        p_sign = sign_test_p(n_better, len(val))
+        keep = bool(rule["keep_field"] and p_sign <= SIGN_P)
+        why = f"{rule['why']} (sign test p {p_sign:.3f}{' <= ' if p_sign <= SIGN_P else ' > '}{SIGN_P})"
+        rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
+                   trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values)
+        if log:
+            log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) (axis {rank + 1} of "
+                f"{len(axes)} by its screen) from {math.exp(ends[0]):.4g} to {math.exp(ends[1]):.4g} Pa (on "
+                f"{len(train)} frames, its gain {gain:.5f}); {why}" + ("" if keep else "; not taken"))
+        if keep:
+            break
+    n_probes = sum(len(g.cache) for _, _, g, _ in screened)
+    out.update(forwards=n_probes + 2 * (0 if rec is None else rec["rank"] + 1), axes=len(axes))
+    taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
+    if rec is not None:
+        out.update({k: v for k, v in rec.items() if k not in ("keep", "values")})
+        if rec["keep"]:
+            taken = accept(prob, mat, total_fn, rec["values"], rec["trend_gain"], f0, bound0, nest=True)
+            out["forwards"] += 2
+            if log:
+                log(f"trend start: on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
+                    f"{'started there' if taken['used'] else 'not taken'}")
+    elif log:
+        log("trend start: no axis' screen renders better than the uniform E; not taken")
+    if not taken["used"] and bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
+        sim._use_bound(bound0)
     out.update(taken)
-    if log:
-        ea, eb = (math.exp(v) for v in r["log_e"])
-        tail = (f"on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
-                f"{'started there' if taken['used'] else 'not taken'}" if keep else "not taken")
-        log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) from {ea:.4g} to {eb:.4g} Pa "
-            f"({len(axes)} axes, {n_probes} probes on {len(train)} frames, its gain {gain:.5f}); {why}; {tail}")
     return out
 
 
-__all__ = ["trend_start", "TiltProbe", "sign_test_p", "MEAN_SCALE", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
