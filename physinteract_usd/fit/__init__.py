@@ -12,6 +12,7 @@ from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
 from .parts_start import default_probes, parts_start_hook
+from .trend_start import default_trend_probes
 from .problem import FitProblem, LossWeights, Observations
 from .select import fill_unconstrained, fit_guarded, fit_select
 
@@ -33,6 +34,8 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     if s.parts_start is None:    # the parts start's default: on CUDA, off on the CPU (recorded as resolved). In
         # place, not a copy: a stop mutates the caller's settings while the fit runs (confidence_probes = 0)
         s.parts_start = default_probes(prob, None)
+    if s.trend_start is None:    # the trend start's default: on CUDA, off on the CPU (recorded as resolved)
+        s.trend_start = default_trend_probes(prob, None)
     if s.schedule == "bumps" and s.uniform_guard:     # the field only where it clearly beats one number (#24)
         r = fit_guarded(prob, s, **kw)
     else:

@@ -129,10 +129,14 @@ class FitSettings:
                                         # None (the default): parts_start.PARTS_START_CUDA (20) where the problem's
                                         # tensors are on CUDA (the 12 suite scenes gained, none lost: mean MA 0.399 ->
                                         # 0.513), 0 on the CPU (the demo's +16-20 CPU s for no MA; docs/benchmarks/fit.md)
-    trend_start: int = 0                # schedule bumps (through fit.fit): where the parts start was not taken, the finest level
+    trend_start: int | None = None      # schedule bumps (through fit.fit): where the parts start was not taken, the finest level
                                         # starts from a log-linear trend of E along one of the object's axes (gravity's,
-                                        # principal ones), its two ends found by at most this many probes after a
-                                        # two-probe screen per axis (fit/trend_start.py; 0: off). #24, balloon
+                                        # principal ones) when it beats the uniform E on held-back frames, its two ends
+                                        # found by at most this many probes after a 4-6-probe screen per axis
+                                        # (fit/trend_start.py; 0: off). None (the default): trend_start.TREND_START_CUDA
+                                        # (20) where the problem's tensors are on CUDA (the 12 suite scenes on the H200:
+                                        # mean MA 0.580 -> 0.626, >= 0.9 on 4 not 2; the paper row 0.821 -> 1.000), 0 on
+                                        # the CPU (as the parts start: its probes cost the demo time). #24, balloon
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
     uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
                                         # below the best uniform E's, else the uniform model (select.fit_guarded). #24

@@ -38,6 +38,10 @@ import torch
 from .parts_start import accept, forwards_are_cheap, refine_kwargs
 from .substep import kept_rung
 
+TREND_START_CUDA = 20   # FitSettings.trend_start's default where the fit runs on CUDA (`default_trend_probes`): the 12 named
+                        # suite scenes from true contacts on 4 x H200 (2026-11-28, code df450ef): balloon 0.345 -> 1.000,
+                        # hemp_rope 0.801 -> 0.959, glove 0.257 -> 0.272, knit_cap 0.412 -> 0.147, the other 8 unchanged;
+                        # the paper-size hemp_rope 0.821 -> 1.000. Off on the CPU, as the parts start
 TRIES = 2           # the axes (best screened first) whose simplex may be tried until one passes the held-back test
 SIGN_P = 0.125      # ... and the trend lower on so many held-back frames that a fair coin would do so with p <= this
                     # (one-sided sign test: all of three, all 4 of a 14-frame clip's, 11 of 15): a slope bought by one or two frames
@@ -45,6 +49,14 @@ SIGN_P = 0.125      # ... and the trend lower on so many held-back frames that a
                     # across the rope of 0.6% taken, and the iterations it was charged cost the fit MA 0.82 -> 0.23)
 AXIS_APART = math.radians(30.0)   # a principal axis within this of an axis already tried adds nothing new
 MAX_AXES = 3
+
+
+def default_trend_probes(prob, asked: int | None) -> int:
+    """The trend start's probe cap for `prob`: what the settings ask, else TREND_START_CUDA where the problem's forwards
+    are cheap (CUDA) and 0 (off) on the CPU."""
+    if asked is not None:
+        return int(asked)
+    return TREND_START_CUDA if forwards_are_cheap(prob) else 0
 
 
 def trend_axes(points: np.ndarray, gravity=None) -> list[np.ndarray]:
@@ -197,4 +209,4 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     return out
 
 
-__all__ = ["trend_start", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
