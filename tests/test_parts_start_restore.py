@@ -373,7 +373,19 @@ def test_the_parts_starts_default_is_on_for_cuda_and_off_on_the_cpu(monkeypatch)
         assert F.fit(prob, F.FitSettings(schedule="bumps", unconstrained_floor=0.0)) == "done"
     assert seen == {"cpu": (0, False), "cuda:0": (20, True)}, seen
     F.fit(gpu, F.FitSettings(schedule="bumps", parts_start=0))
+    assert seen["cuda:0"] == (0, True)              # the trend start's default (on CUDA) still asks for the hook
+    F.fit(gpu, F.FitSettings(schedule="bumps", parts_start=0, trend_start=0))
     assert seen["cuda:0"] == (0, False)
+
+
+def test_the_trend_starts_default_is_on_for_cuda_and_off_on_the_cpu():
+    import physinteract_usd.fit as F
+    from physinteract_usd.fit import trend_start as ts
+
+    assert F.FitSettings().trend_start is None
+    cpu, gpu = types.SimpleNamespace(tdev="cpu"), types.SimpleNamespace(tdev="cuda:0")
+    assert ts.default_trend_probes(cpu, None) == 0 and ts.default_trend_probes(gpu, None) == ts.TREND_START_CUDA == 20
+    assert ts.default_trend_probes(gpu, 0) == 0 and ts.default_trend_probes(cpu, 9) == 9
 
 
 def test_the_default_is_resolved_in_the_callers_settings_object(monkeypatch):
