@@ -102,7 +102,8 @@ def write_gt_json(gt_dir: Path, sd, hand_traj, release=None) -> None:
 
 
 def render_truth(sd, contact_specs, E=None, nu=NU_TRUE):
-    """Frames (T, H, W, 3), silhouettes (T, H, W) and particle positions (T, P, 3) at uniform E."""
+    """Frames (T, H, W, 3), silhouettes (T, H, W) and particle positions (T, P, 3) at E (uniform, per particle, or a
+    function of the rest positions)."""
     from physinteract_usd.fit import FitProblem, Observations
     from physinteract_usd.render import render
 
@@ -113,7 +114,10 @@ def render_truth(sd, contact_specs, E=None, nu=NU_TRUE):
     bg = torch.as_tensor(BACKGROUND, dtype=prob.tdtype)
     frames, masks = [], []
     with torch.no_grad():
-        x, F = prob.simulate(torch.full((P,), float(E_TRUE if E is None else E), dtype=prob.tdtype), torch.full((P,), float(nu), dtype=prob.tdtype))
+        e = E_TRUE if E is None else E
+        e = e(np.asarray(sd.particles_positions, np.float64)) if callable(e) else e   # a field: E of the rest positions
+        e = torch.as_tensor(np.broadcast_to(np.asarray(e, np.float64), (P,)).copy(), dtype=prob.tdtype)
+        x, F = prob.simulate(e, torch.full((P,), float(nu), dtype=prob.tdtype))
         for k in range(T):
             means, covs = prob.gaussians_at(x[k], F[k])
             out = render(means, covs, prob.colors, prob.opacities, prob.cameras[k], background=bg)

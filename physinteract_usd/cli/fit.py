@@ -80,8 +80,7 @@ def add_parser(sub):
     s.add_argument("--trend-start", type=int, default=None, metavar="N",
                    help="bumps schedule: where the parts start was not taken, start the finest level from E graded "
                         "log-linearly along one of the object's axes (gravity's, principal ones) when that beats one E "
-                        "on held-back frames; a screen of 4-6 probes per axis, then a simplex of at most N (on the CPU "
-                        "9, stopped early when it stalls); charged to the iteration budget when taken; 0 turns it "
+                        "on held-back frames; a screen of 4-6 probes per axis, then a simplex of at most N; charged to the iteration budget when taken; 0 turns it "
                         "off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.58 -> 0.63; the paper-size "
                         "scene 0.82 -> 1.00), off on the CPU; #24)")
     s.add_argument("--nuisance-damping", action="store_true",
