@@ -11,8 +11,8 @@ particles the video does not constrain marked and filled from their neighbours).
 from .ladder import fit_ladder
 from .material import MaterialField
 from .optimize import FitResult, FitSettings, fit_bumps
-from .parts_start import default_probes, parts_start_hook
-from .trend_start import default_trend_probes
+from .parts_start import default_probes
+from .trend_start import default_trend_probes, starts_hook
 from .problem import FitProblem, LossWeights, Observations
 from .select import fill_unconstrained, fit_guarded, fit_select
 
@@ -41,7 +41,7 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
     else:
         ps, ts = int(getattr(s, "parts_start", 0) or 0), int(getattr(s, "trend_start", 0) or 0)
         if s.schedule == "bumps" and (ps > 0 or ts > 0) and kw.get("start") is None:
-            kw = {**kw, "before_finest": parts_start_hook(ps, ts)}   # #24: foam_bar's parts, balloon's trend
+            kw = {**kw, "before_finest": starts_hook(ps, ts)}   # #24: foam_bar's parts, balloon's trend
         r = SCHEDULES[s.schedule](prob, s, **kw)
     if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
         # what the video does not constrain (#24; not on a stop's zero-iteration last pass)

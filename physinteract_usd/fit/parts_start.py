@@ -165,23 +165,11 @@ def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bou
     return {"used": used, "loss0": loss0, "loss": loss1}
 
 
-def parts_start_hook(probes: int, trend: int = 0):
-    """`fit_bumps(before_finest=...)`: the parts start with at most `probes` probes (0: none), then, where it was
-    not taken, the trend start (fit/trend_start.py) with at most `trend` (0: none). The record is the one taken (else
-    the last tried), its "forwards" both searches'."""
+def parts_start_hook(probes: int):
+    """`fit_bumps(before_finest=...)`: the parts start with at most `probes` probes (with the trend start after it:
+    `trend_start.starts_hook`)."""
     def hook(prob, mat, s, trajs, eff, total_fn, log=None):
-        from .trend_start import trend_start
-
-        rec = {"forwards": 0, "used": False, "parts": 0}
-        if probes > 0:
-            rec = parts_start(prob, mat, s, trajs, eff, total_fn, probes, log)
-        if trend > 0 and not rec["used"]:
-            t = trend_start(prob, mat, s, trajs, eff, total_fn, trend, log)
-            t["forwards"] += rec["forwards"]
-            if probes > 0:
-                t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
-            rec = t
-        return rec
+        return parts_start(prob, mat, s, trajs, eff, total_fn, probes, log)
     return hook
 
 

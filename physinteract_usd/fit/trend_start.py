@@ -35,7 +35,7 @@ import math
 import numpy as np
 import torch
 
-from .parts_start import accept, forwards_are_cheap, refine_kwargs
+from .parts_start import accept, forwards_are_cheap, parts_start, refine_kwargs
 from .substep import kept_rung
 
 TREND_START_CUDA = 20   # FitSettings.trend_start's default where the fit runs on CUDA (`default_trend_probes`): the 12 named
@@ -212,4 +212,22 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     return out
 
 
-__all__ = ["trend_start", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
+def starts_hook(parts: int, trend: int):
+    """`fit_bumps(before_finest=...)`: the parts start with at most `parts` probes (0: none), then, where it was not
+    taken, the trend start with at most `trend` (0: none). The record is the one taken (else the last tried), its
+    "forwards" both searches'."""
+    def hook(prob, mat, s, trajs, eff, total_fn, log=None):
+        rec = {"forwards": 0, "used": False, "parts": 0}
+        if parts > 0:
+            rec = parts_start(prob, mat, s, trajs, eff, total_fn, parts, log)
+        if trend > 0 and not rec["used"]:
+            t = trend_start(prob, mat, s, trajs, eff, total_fn, trend, log)
+            t["forwards"] += rec["forwards"]
+            if parts > 0:
+                t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
+            rec = t
+        return rec
+    return hook
+
+
+__all__ = ["trend_start", "starts_hook", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
