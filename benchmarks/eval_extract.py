@@ -279,6 +279,15 @@ def parse_overrides(text: str) -> dict:
         if k not in fields:
             raise SystemExit(f"--fit-settings: {k!r} is not a FitSettings field ({', '.join(fields)})")
         d = getattr(FitSettings(), k)
+        if d is None:        # a field whose default is resolved later (parts_start, trend_start): a number or a word
+            try:
+                out[k] = int(v)
+            except ValueError:
+                try:
+                    out[k] = float(v)
+                except ValueError:
+                    out[k] = v
+            continue
         out[k] = v if isinstance(d, str) else type(d)(float(v) if isinstance(d, float) else int(v))
     return out
 
