@@ -215,7 +215,8 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
 def starts_hook(parts: int, trend: int):
     """`fit_bumps(before_finest=...)`: the parts start with at most `parts` probes (0: none), then, where it was not
     taken, the trend start with at most `trend` (0: none). The record is the one taken (else the last tried), its
-    "forwards" both searches'."""
+    "forwards" both searches'; the fit keeps it as its model's "parts_start" (the key older versions wrote), "kind":
+    "trend" for the trend start's, with the parts start's own record under its "parts_start"."""
     def hook(prob, mat, s, trajs, eff, total_fn, log=None):
         rec = {"forwards": 0, "used": False, "parts": 0}
         if parts > 0:
