@@ -281,12 +281,9 @@ def parse_overrides(text: str) -> dict:
         d = getattr(FitSettings(), k)
         if d is None:        # a field whose default is resolved later (parts_start, trend_start): a number or a word
             try:
-                out[k] = int(v)
+                out[k] = json.loads(v)
             except ValueError:
-                try:
-                    out[k] = float(v)
-                except ValueError:
-                    out[k] = v
+                out[k] = v
             continue
         out[k] = v if isinstance(d, str) else type(d)(float(v) if isinstance(d, float) else int(v))
     return out

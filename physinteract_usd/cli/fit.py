@@ -80,9 +80,9 @@ def add_parser(sub):
     s.add_argument("--trend-start", type=int, default=None, metavar="N",
                    help="bumps schedule: where the parts start was not taken, start the finest level from E graded "
                         "log-linearly along one of the object's axes (gravity's, principal ones) when that beats one E "
-                        "on held-back frames; a screen of 4-6 probes per axis, then a simplex of at most N; charged to the iteration budget when taken; 0 turns it "
-                        "off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.58 -> 0.63; the paper-size "
-                        "scene 0.82 -> 1.00), off on the CPU; #24)")
+                        "on held-back frames; a screen of 4-6 probes per axis, then a simplex of at most N; charged "
+                        "to the iteration budget when taken; 0 turns it off; default: 20 on a GPU (the suite's 12 "
+                        "scenes: mean MA 0.58 -> 0.63; the paper-size scene 0.82 -> 1.00), off on the CPU; #24)")
     s.add_argument("--nuisance-damping", action="store_true",
                    help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "
                         "dissipation the video has and the model lacks goes into c, not E; recorded in the version's "
@@ -121,18 +121,12 @@ def run(a) -> int:
         if not 0 <= a.unconstrained_floor < 1:
             raise InputError("--unconstrained-floor", f"must be in [0, 1), got {a.unconstrained_floor}")
         over["unconstrained_floor"] = a.unconstrained_floor
-    if a.gauss_newton is not None:
-        if a.gauss_newton < 0:
-            raise InputError("--gauss-newton", f"must be >= 0, got {a.gauss_newton}")
-        over["gn_steps"] = a.gauss_newton
-    if a.parts_start is not None:
-        if a.parts_start < 0:
-            raise InputError("--parts-start", f"must be >= 0, got {a.parts_start}")
-        over["parts_start"] = a.parts_start
-    if a.trend_start is not None:
-        if a.trend_start < 0:
-            raise InputError("--trend-start", f"must be >= 0, got {a.trend_start}")
-        over["trend_start"] = a.trend_start
+    for flag, given, key in (("--gauss-newton", a.gauss_newton, "gn_steps"), ("--parts-start", a.parts_start, "parts_start"),
+                             ("--trend-start", a.trend_start, "trend_start")):
+        if given is not None:
+            if given < 0:
+                raise InputError(flag, f"must be >= 0, got {given}")
+            over[key] = given
     if a.nuisance_damping:
         over["nuisance_damping"] = True
     over = over or None

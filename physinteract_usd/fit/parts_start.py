@@ -138,7 +138,6 @@ def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bou
     `mat`'s basis (`nest`: as the fixed base of a nested field, the bumps' offsets zero: exact) and keep it if the
     total loss falls by at least KEEP_SHARE of `gain`; else restore the field and the adaptive substep's rung
     (`bound0`, as before the probes). Returns {"used", "loss0", "loss"}."""
-    sim = getattr(prob, "sim", None)
     theta0, base0 = mat.theta.detach().clone(), getattr(mat, "base", None)
     try:
         loss0 = float(total_fn())
@@ -158,11 +157,17 @@ def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bou
             mat.base = base0
         with torch.no_grad():
             mat.theta = theta0.clone().requires_grad_(True)
-        # the probes simulated stiffer fields, and the substep's hysteresis may keep their rung: leave the simulator
-        # as it was, or the fit goes on at another step (the H200's hemp_rope: a start not taken, MA 0.801 -> 0.485)
-        if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
-            sim._use_bound(bound0)
+        restore_rung(prob, bound0)
     return {"used": used, "loss0": loss0, "loss": loss1}
+
+
+def restore_rung(prob, bound0) -> None:
+    """Put the adaptive substep back on the rung `bound0` it had before a start's probes: they simulated stiffer
+    fields, and the substep's hysteresis may keep their rung, so the fit would go on at another step (the H200's
+    hemp_rope: a start not taken, MA 0.801 -> 0.485)."""
+    sim = getattr(prob, "sim", None)
+    if bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
+        sim._use_bound(bound0)
 
 
 def parts_start_hook(probes: int):
@@ -173,4 +178,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "accept", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

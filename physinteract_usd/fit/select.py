@@ -954,9 +954,16 @@ def frame_losses(prob: FitProblem, r: FitResult, s: FitSettings, frames, e_bound
     simulate at the adaptive substep of that stiffness (`pinned_substep`), not the one the
     simulator happens to hold."""
     t, trajs, eff = _result_inputs(prob, r, s)
+    return field_frame_losses(prob, t(r.youngs), t(r.poisson), trajs, eff, frames, e_bound)
+
+
+def field_frame_losses(prob: FitProblem, E: torch.Tensor, nu: torch.Tensor, trajs, eff, frames,
+                       e_bound: float | None = None) -> list[float]:
+    """`frame_losses` for a field given as tensors (E, nu, the trajectories and effects' values); inf where the
+    simulation fails."""
     with torch.no_grad(), pinned_substep(prob, e_bound):
         try:
-            x, F = prob.simulate(t(r.youngs), t(r.poisson), trajs, eff)
+            x, F = prob.simulate(E, nu, trajs, eff)
         except SimulationError:
             return [float("inf")] * len(frames)
         return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]

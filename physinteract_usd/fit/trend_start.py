@@ -35,7 +35,7 @@ import math
 import numpy as np
 import torch
 
-from .parts_start import accept, forwards_are_cheap, parts_start, refine_kwargs
+from .parts_start import accept, forwards_are_cheap, parts_start, refine_kwargs, restore_rung
 from .substep import kept_rung
 
 TREND_START_CUDA = 20   # FitSettings.trend_start's default where the fit runs on CUDA (`default_trend_probes`): the 12 named
@@ -109,26 +109,12 @@ def sign_test_p(better: int, n: int) -> float:
     return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
 
 
-def heldback_losses(prob, E: torch.Tensor, nu, trajs, eff, frames, e_bound: float) -> list[float]:
-    """Each of `frames`' reconstruction loss for the field `E` (one forward, no gradients), simulated at the adaptive
-    substep of stiffness `e_bound` (`pinned_substep`: two fields compared at one step); inf where it fails."""
-    from ..errors import SimulationError
-    from .substep import pinned_substep
-
-    with torch.no_grad(), pinned_substep(prob, e_bound):
-        try:
-            x, F = prob.simulate(E, nu, trajs, eff)
-        except SimulationError:
-            return [float("inf")] * len(frames)
-        return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]
-
-
 def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
     """Start the field (`mat`, nested on the trend: `MaterialField.set_base`) from the best log-linear trend along one
     axis when it renders better on held-back frames and lowers the total loss. `total_fn()`: the fit's total loss at
     the current field (a forward). Returns the parts start's kind of record: {"forwards", "used", "kind": "trend",
     "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain", "heldback"}."""
-    from .select import PartProbe, holdout_frames, part_refine, select_rule
+    from .select import PartProbe, field_frame_losses, holdout_frames, part_refine, select_rule
 
     out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
     sim = getattr(prob, "sim", None)
@@ -178,11 +164,11 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
         gain = f0 - float(r["loss"])
         values = np.exp(w @ ends)
         bound = float(max(np.max(values), math.exp(u)))
-        h0 = heldback_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
-        h1 = heldback_losses(prob, E_of(values), nu, tr, eff, val, bound)
+        # the two fields on the held-back frames at one substep (the stiffer one's)
+        h0 = field_frame_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
+        h1 = field_frame_losses(prob, E_of(values), nu, tr, eff, val, bound)
         rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
-        n_better = int(np.sum(np.asarray(h0) > np.asarray(h1)))
-        p_sign = sign_test_p(n_better, len(val))
+        p_sign = sign_test_p(int(rule["better_frames"]), len(val))
         keep = bool(rule["keep_field"] and p_sign <= SIGN_P)
         why = f"{rule['why']} (sign test p {p_sign:.3f}{' <= ' if p_sign <= SIGN_P else ' > '}{SIGN_P})"
         rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
@@ -206,8 +192,8 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
                     f"{'started there' if taken['used'] else 'not taken'}")
     elif log:
         log("trend start: no axis' screen renders better than the uniform E; not taken")
-    if not taken["used"] and bound0 is not None and getattr(sim, "adaptive", False) and sim.e_bound != bound0:
-        sim._use_bound(bound0)
+    if not taken["used"]:
+        restore_rung(prob, bound0)
     out.update(taken)
     return out
 
@@ -231,4 +217,4 @@ def starts_hook(parts: int, trend: int):
     return hook
 
 
-__all__ = ["trend_start", "starts_hook", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "heldback_losses", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "starts_hook", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
