@@ -305,6 +305,12 @@ def test_no_joint_leaves_the_trajectory_at_t0(scene, tmp_path, monkeypatch, caps
     assert code == 0, out.err
     summary = json.loads(out.out)
     assert summary["iterations"] == 4 and summary["interrupted"] is False and summary["version"] == 1
+    # where the time went (#26): the fit's own phases add up to its clock, the CLI's around it are there too
+    ph = summary["phases_s"]
+    inner = ("start_search", "iterations", "final_pass", "confidence")
+    assert set(inner + ("prepare", "problem", "notes", "write")) <= set(ph) and min(ph.values()) >= 0
+    assert ph["confidence"] > 0 and ph["iterations"] > 0
+    assert sum(ph[k] for k in inner) == pytest.approx(summary["runtime_s"], rel=0.05, abs=0.2)
     sd = read_stage(stage)
     tr = {t.stage: t.positions for t in sd.trajectories}
     np.testing.assert_array_equal(tr["fitted"], tr["initial"])

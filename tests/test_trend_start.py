@@ -9,6 +9,7 @@ import math
 import types
 
 import numpy as np
+import pytest
 import torch
 
 from physinteract_usd.fit import trend_start as ts
@@ -159,3 +160,25 @@ def test_the_next_axis_is_tried_when_the_first_does_not_carry_over():
     out = ts.trend_start(prob, mat, s, None, None, total, 20, log=said.append)
     assert out["used"] and out["rank"] == 1 and abs(abs(out["axis"][1]) - 1) < 1e-9
     assert any("axis 1 of" in m and "not taken" in m for m in said)
+
+
+def test_the_starts_share_the_uniform_fields_loss_and_nothing_else():
+    """`same_field_once` (#26): the parts start and the trend start both test their field against the uniform start's
+    total loss; one forward serves both while the field is bitwise the same, a changed field (or base) runs again."""
+    mat = _Mat(np.full(5, math.log(2e4)))
+    calls = []
+
+    def total():
+        calls.append(1)
+        return float(mat.youngs().sum())
+
+    f = ts.same_field_once(mat, total)
+    v0 = f()
+    assert f() == v0 and len(calls) == 1
+    mat.set_values(np.full(5, 3e4))
+    assert f() != v0 and len(calls) == 2
+    mat.set_values(np.full(5, 2e4))                 # restored: the same field's value, run again (only the last kept)
+    assert f() == pytest.approx(v0) and len(calls) == 3
+    mat.set_base(np.full(5, 2e4))                   # the same E, another base and coefficients: a new field
+    f()
+    assert len(calls) == 4

@@ -19,6 +19,7 @@ best iterate is written as an `interrupted` version (never current over a comple
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,6 +80,7 @@ class FitOutcome:
     snapshot: str = ""                   # <stem>.versions/v<N>.usdc
     stopped_by: str | None = None        # the signal that stopped the fit (SIGINT, SIGTERM)
     confidence_estimated: bool = True
+    phases: dict = field(default_factory=dict)   # seconds around the fit: "prepare", "problem", "notes", "write" (#26)
 
     def summary(self) -> dict:
         """The JSON-able summary `fit --json` prints."""
@@ -91,6 +93,7 @@ class FitOutcome:
                 "stopped_by": self.stopped_by, "confidence_estimated": self.confidence_estimated,
                 "iterations": len(r.loss_history),
                 "final_loss": r.final_loss, "runtime_s": r.runtime_s, "device": r.device,
+                "phases_s": {**self.phases, **((r.model or {}).get("phases_s") or {})},
                 "interrupted": r.interrupted,
                 "psnr": float(np.mean([min(f["psnr"], 100) for f in fm])),
                 "psnr_masked": float(np.nanmean([min(f["psnr_masked"], 100) for f in fm])),
@@ -465,11 +468,13 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
     if checkpoint_every is None or int(checkpoint_every) < 0:
         raise InputError("--checkpoint-every", f"must be >= 0, got {checkpoint_every!r}")
     cpu_threads(device)
+    t_prep = time.perf_counter()
     job = prepare_fit(stage_path, iterations=iterations, joint=joint, contact_from=contact_from, contacts=contacts,
                       hand_masks=hand_masks, device=device, seed=seed, resume=resume, log=log,
                       settings_overrides=settings_overrides, yes=yes, warm=warm, progress=progress, starts=starts,
                       warm_path=warm_path)
     lp = LayerPaths.of(job.stage_path)
+    phases = {"prepare": round(time.perf_counter() - t_prep, 3)}   # reading the stage, the contacts, the settings
     probes = int(job.settings.confidence_probes)
     names = [c.name for c in job.contacts]   # replaced by the simulation's slot names once built
     tracker = FitTracker(lp.checkpoint if checkpoint_every else None, fingerprint(job.scene, job.contacts),
@@ -486,8 +491,11 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
 
     with stopping.graceful(on_stop=on_stop):
         late = False
+        t_run = time.perf_counter()
         try:
             result = run_fit(job, progress=progress, log=log, on_iteration=on_iteration)
+            # building the problem (simulation, renderer, observations) and what else ran outside the fit's clock
+            phases["problem"] = round(max(time.perf_counter() - t_run - float(result.runtime_s), 0.0), 3)
         except stopping.StopRequested as stop:
             result, late = _finish_from(job, tracker, log), True
             if result is None:
@@ -495,17 +503,21 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
                 raise KeyboardInterrupt from None
         stopped_by = stopping.requested()
         if not late and not stopped_by:
+            t_notes = time.perf_counter()
             for line in interaction_notes(job, result) + ground_notes(job, result):
                 log(line)
+            phases["notes"] = round(time.perf_counter() - t_notes, 3)
         conf_ok = probes > 0 and not late and int(result.settings.get("confidence_probes", 0)) > 0
         result.settings["confidence_probes"] = probes   # what was asked; confidenceEstimated says what ran
         if job.history:   # resumed from a checkpoint: the version holds the whole fit's history
             result.loss_history = list(job.history) + list(result.loss_history)
+        t_write = time.perf_counter()
         info = write_fit_layer(job.stage_path, job.scene, result, job.contacts, keep_best=keep_best,
                                effect_parameters=result.effect_parameters,
                                confidence_estimated=conf_ok, resumed_from=job.resumed_from)
         remove_checkpoint(lp.checkpoint)
+        phases["write"] = round(time.perf_counter() - t_write, 3)
     job.settings.confidence_probes = probes
     return FitOutcome(result, info["version"], info["layer"], job.contacts, current=info["current"],
                       reason=info["reason"], snapshot=info["snapshot"], stopped_by=stopped_by,
-                      confidence_estimated=conf_ok)
+                      confidence_estimated=conf_ok, phases=phases)

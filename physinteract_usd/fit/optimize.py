@@ -16,6 +16,7 @@ resumed fit (`start`) spends all its iterations on the finest basis, from the fi
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -31,6 +32,7 @@ from .converge import improved, level_patience, lr_scale, plateaued
 from .gauss_newton import forwards_to_iterations, gauss_newton_step
 from .effect_params import effect_parameters, effect_values, fitted_values, search_effects
 from .material import MaterialField, appearance_transfer_weights, neighbour_pairs, pair_weights
+from .phases import Phases
 from .problem import FitProblem
 from .exposure import EXPOSURE_FLOOR, exposure_of_rollout, unconstrained_particles
 from .search import GOLDEN, UniformProbe, golden_section, has_ground, no_finite_uniform_probe
@@ -383,6 +385,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     s = settings or FitSettings()
     _seed(s.seed)
     t0 = time.perf_counter()
+    clock = Phases()           # where the time goes (model["phases_s"], #26)
     st = prob.scene.settings
     feats = prob.particle_appearance() if s.appearance > 0 else None
     mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype,
@@ -411,8 +414,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
         e_uniform = float(np.exp(np.mean(np.log(start["youngs"]))))
     else:
         skipped: list = []
-        e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log,
-                                                                                  skipped=skipped, seen=probes)
+        with clock("start_search"):
+            e_uniform = uniform_e if uniform_e is not None else golden_uniform_search(prob, mat, s.search_evals, log,
+                                                                                      skipped=skipped, seen=probes)
         if skipped:
             start_skipped = sorted(skipped)
         mat.set_uniform(e_uniform)
@@ -487,7 +491,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                         return float(o["rec"] + o["reg_traj"] + rg)
 
                 stopping.check("backward")
+                t_hook = time.perf_counter()
                 ps = before_finest(prob, mat, s, trajs, eff_now(), total_now, log)
+                clock.add("starts", time.perf_counter() - t_hook)
                 # charged to the budget only when taken: a start not taken leaves the fit exactly the old one
                 # (its probes' time is extra, recorded in the model's "parts_start")
                 charged = (min(forwards_to_iterations(ps["forwards"], BACKWARD_PER_FORWARD), n_it)
@@ -601,6 +607,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     nu = mat.poisson().detach()
     # final pass: renders, metrics, animation; the loss as the history counts it (frames 1.., the
     # smoothness term), so the reported final loss is the kept iterate's entry in the history
+    t_loop = time.perf_counter() - t0 - sum(clock.seconds.values())
+    clock.add("iterations", t_loop)           # the levels' iterations (and the effect search, if any)
+    t_final = time.perf_counter()
     with torch.no_grad():   # (the kept iterate's own simulation when the loop ran it)
         stopping.finishing()
         out = prob.loss(E, nu, [t.detach() for t in trajs] if trajs else None, effects=eff_now(),
@@ -610,7 +619,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
         x, F = out["x"], out["F"]
         renders = {0: {n: v.detach() for n, v in prob.render_frame(0, x[0], F[0]).items()}, **out["renders"]}
     metrics = frame_metrics(prob, renders)
+    clock.add("final_pass", time.perf_counter() - t_final)
     conf = np.ones(len(prob.x0))
+    t_conf = time.perf_counter()
     if s.confidence_probes > 0:  # also after Ctrl-C: the kept iterate is written, with its confidence
         if interrupted and log:
             log("estimating the kept iterate's confidence (Ctrl-C again quits without writing)")
@@ -623,7 +634,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             mat.refine(max(levels))
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now(),
                           covariance=s.confidence_covariance)
+    clock.add("confidence", time.perf_counter() - t_conf)
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
+    model["phases_s"] = dict(clock.seconds)
     if mat.base is not None:
         model["nested"] = True                    # the field was an offset on a fixed base's E
     if parts_log:
@@ -743,8 +756,12 @@ def _restore_in_place(mat, trajs, saved, eff_raw=None):
 
 
 def frame_metrics(prob: FitProblem, renders: dict) -> list:
-    out = []
-    for k in sorted(renders):
+    """Per frame (sorted), the image metrics of `renders` against the video. The frames' SSIM filters (numpy and
+    scipy, which let go of the GIL) run on a few threads: the paper row's 45 frames at 512^2 took ~2 s on one (#26);
+    the values are each frame's own, whatever the threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(k):
         r = renders[k]
         pred = r["rgb"].cpu().numpy()
         sil = r["alpha"].cpu().numpy() > 0.5
@@ -753,8 +770,17 @@ def frame_metrics(prob: FitProblem, renders: dict) -> list:
         hand = prob.obs.hand_masks[k] if prob.obs.hand_masks is not None else None
         d = M.frame_metrics(pred, true, sil, true_sil, hand)
         d["frame"] = int(k)
-        out.append(d)
-    return out
+        return d
+
+    ks = sorted(renders)
+    threads = max(1, min(METRIC_THREADS, os.cpu_count() or 1, len(ks)))
+    if threads == 1:
+        return [one(k) for k in ks]
+    with ThreadPoolExecutor(threads) as ex:
+        return list(ex.map(one, ks))
+
+
+METRIC_THREADS = 8   # frame_metrics' threads at most (each frame's SSIM is a few scipy filters)
 
 
 def residual_correlation(residuals: list) -> float:
@@ -935,6 +961,41 @@ def _weighted_residuals(prob: FitProblem, x, F) -> list:
     return res
 
 
+def fd_batched(sim) -> bool:
+    """Whether the finite differences' K stepped fields go as tiled copies in one rollout (#26): on CUDA, where a
+    launch-bound rollout's copies cost little more than one; on the CPU they cost their sum and go on threads."""
+    return str(getattr(sim, "tdev", "cpu")).startswith("cuda") and hasattr(sim, "simulate_batch")
+
+
+def _fd_columns_batched(prob: FitProblem, mat: MaterialField, nu, tr, eff, jobs, hs, diag, cols):
+    """`_gn_diag_fd`'s stepped simulations as tiled copies side by side (`Simulation.simulate_batch`: on a GPU the
+    K copies of a launch-bound scene cost ~2-3 of one), **with the unstepped field as copy 0**: each column is the
+    difference of two copies of one rollout (a tiled copy's arithmetic is not bitwise the solo rollout's, and a 1%
+    step's response would carry that difference). Every job is at the current rung (checked by the caller), so the
+    batch runs at it. Fills `diag` (or `cols`) as the caller would; None when a copy failed (as the solo path); False
+    where the batch does not apply (a scene that cannot be tiled): the caller goes on with its own path."""
+    from ..sim.batch import TilingError
+
+    sim = prob.sim
+    E = torch.stack([mat.youngs().detach()] + [torch.as_tensor(j[0]).detach() for j in jobs])
+    trajs = None if tr is None else [t.detach() for t in tr]
+    try:
+        with torch.no_grad():
+            x, F, bad = sim.simulate_batch(E, nu, trajs, eff)
+    except (TilingError, ValueError):
+        return False
+    if bool(np.any(bad)):
+        return None
+    with torch.no_grad():
+        base_b = _weighted_residuals(prob, x[0], F[0])
+        for k, h in enumerate(hs):
+            if cols is not None:
+                cols.append(_fd_column(prob, base_b, x[k + 1], F[k + 1], h))
+            else:
+                diag[k] = _fd_column_sq(prob, base_b, x[k + 1], F[k + 1], h)
+    return diag
+
+
 def _fd_column(prob: FitProblem, base, x, F, h: float) -> torch.Tensor:
     """J_k from one stepped simulation (x, F): the weighted residuals' change from `base` over h, every
     frame's RGB and silhouette residual flattened into one vector."""
@@ -1083,6 +1144,10 @@ def _gn_diag_fd_threaded(prob: FitProblem, mat: MaterialField, nu, tr, eff, base
         jobs.append((Ek, nu, tr, eff))
         hs.append(h)
     stopping.check("backward")   # these forwards are the estimate's work: a stop acts here (as in a backward)
+    if fd_batched(sim):
+        got = _fd_columns_batched(prob, mat, nu, tr, eff, jobs, hs, diag, cols)
+        if got is not False:
+            return got
     sims = sim.simulate_each(jobs)
     with torch.no_grad():
         for k, (r_, h) in enumerate(zip(sims, hs)):

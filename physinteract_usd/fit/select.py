@@ -519,14 +519,30 @@ class PartProbe:
                        else np.argmax(self.weights, axis=1).astype(np.int64))
         self.nu, self.trajs, self.effects, self.batch = nu, trajs, effects, batch
         self.cache: dict[tuple, float] = {}
+        self.given = 0      # values taken from elsewhere (`remember`), not run here
 
     def _E(self, le) -> torch.Tensor:
         le = np.asarray(le, np.float64)
         e = np.exp(self.weights @ le) if self.weights is not None else np.exp(le)[self.labels]
         return torch.as_tensor(e, dtype=self.prob.tdtype, device=self.prob.tdev)
 
+    @staticmethod
+    def key(le) -> tuple:
+        return tuple(round(float(v), 10) for v in le)
+
+    def remember(self, le, value: float) -> None:
+        """Take `value` as this probe's loss at `le` (the same field's loss probed by another PartProbe on the
+        same frames, e.g. the uniform E of every trend axis)."""
+        self.cache[self.key(le)] = float(value)
+        self.given += 1
+
+    @property
+    def forwards(self) -> int:
+        """The forwards this probe ran (its cache less the values it was given)."""
+        return len(self.cache) - self.given
+
     def __call__(self, le) -> float:
-        key = tuple(round(float(v), 10) for v in le)
+        key = self.key(le)
         if key not in self.cache:
             try:
                 with torch.no_grad(), kept_rung(self.prob):   # a probe leaves the substep's rung as it found it

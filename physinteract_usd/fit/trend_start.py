@@ -31,6 +31,7 @@ restored).
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import torch
@@ -147,6 +148,8 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     with kept_rung(prob):
         for ax in axes:
             f = PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
+            if screened:    # the uniform E is the same field on every axis: probed once (#26: 2 forwards of 3 axes')
+                f.remember(u0, screened[0][2](u0))
             pts = [u0] + [np.clip(u0 + step * np.array(d), lo, hi) for d in screen_moves(f, u0, step, lo, hi)]
             vals = [f(p) for p in pts]
             i = int(np.argmin(vals))
@@ -179,7 +182,7 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
                 f"{len(train)} frames, its gain {gain:.5f}); {why}" + ("" if keep else "; not taken"))
         if keep:
             break
-    n_probes = sum(len(g.cache) for _, _, g, _ in screened)
+    n_probes = sum(g.forwards for _, _, g, _ in screened)
     out.update(forwards=n_probes + 2 * (0 if rec is None else rec["rank"] + 1), axes=len(axes))
     taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
     if rec is not None:
@@ -198,17 +201,42 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     return out
 
 
+def same_field_once(mat, total_fn):
+    """`total_fn` remembered for the field it was last called at (`mat`'s coefficients and base, bitwise): a start
+    not taken restores the field exactly (and the substep's rung), so the next start's reference loss is the same
+    forward's (#26: one forward of the paper row's ~60 probes)."""
+    seen: dict = {}
+
+    def key():
+        base = getattr(mat, "base", None)
+        return (mat.theta.detach().cpu().numpy().tobytes(),
+                None if base is None else base.detach().cpu().numpy().tobytes())
+
+    def total():
+        k = key()
+        if k not in seen:
+            seen.clear()
+            seen[k] = float(total_fn())
+        return seen[k]
+    return total
+
+
 def starts_hook(parts: int, trend: int):
     """`fit_bumps(before_finest=...)`: the parts start with at most `parts` probes (0: none), then, where it was not
     taken, the trend start with at most `trend` (0: none). The record is the one taken (else the last tried), its
     "forwards" both searches'; the fit keeps it as its model's "parts_start" (the key older versions wrote), "kind":
     "trend" for the trend start's, with the parts start's own record under its "parts_start"."""
     def hook(prob, mat, s, trajs, eff, total_fn, log=None):
+        total_fn = same_field_once(mat, total_fn)   # both starts' accept test the uniform start's loss: one forward
         rec = {"forwards": 0, "used": False, "parts": 0}
         if parts > 0:
+            t0 = time.perf_counter()
             rec = parts_start(prob, mat, s, trajs, eff, total_fn, parts, log)
+            rec["seconds"] = round(time.perf_counter() - t0, 3)
         if trend > 0 and not rec["used"]:
+            t0 = time.perf_counter()
             t = trend_start(prob, mat, s, trajs, eff, total_fn, trend, log)
+            t["seconds"] = round(time.perf_counter() - t0, 3)
             t["forwards"] += rec["forwards"]
             if parts > 0:
                 t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
@@ -217,4 +245,4 @@ def starts_hook(parts: int, trend: int):
     return hook
 
 
-__all__ = ["trend_start", "starts_hook", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
+__all__ = ["trend_start", "starts_hook", "same_field_once", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
