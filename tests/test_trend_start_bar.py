@@ -50,3 +50,43 @@ def test_a_uniform_bar_takes_no_trend(tmp_path):
     _, r, logs = _fit(tmp_path / "uniform", fs.E_TRUE)
     ps = r.model.get("parts_start") or {}
     assert ps.get("kind") == "trend" and not ps.get("used"), (ps, logs)
+
+
+def test_the_batched_screen_gives_the_solo_screens_values(tmp_path):
+    """The axes' screens as tiled copies (`trend_start.screen_batched`, CUDA's path, forced here on the CPU) in groups
+    of the rung each copy would take alone: every value the screens read is the solo probe's to the tiling's
+    arithmetic (#26), and they cover the uniform E, the tilts, the ends x2 and the ends / 2 the solo screen asks for."""
+    import torch
+
+    from physinteract_usd.fit import FitProblem
+    from physinteract_usd.fit import trend_start as ts
+    from physinteract_usd.fit.material import MaterialField
+    from physinteract_usd.fit.select import PartProbe
+    from physinteract_usd.usd.stage import read_stage
+
+    b = fs.build(tmp_path / "graded", E=_graded, n_frames=6)
+    sd = read_stage(b["stage"])
+    prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, b["gt"]))
+    st = sd.settings
+    mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype, device=prob.tdev)
+    x0 = np.asarray(prob.x0, np.float64)
+    axes = ts.trend_axes(x0, st.gravity)[:2]
+    nu = torch.full((len(x0),), 0.3, dtype=prob.tdtype)
+    u0 = np.array([math.log(8e3)] * 2)
+    step, lo, hi = math.log(2.0), mat.lo + 1e-3, mat.hi - 1e-3
+    frames = [1, 2, 4, 5]
+
+    def probes(batch):
+        return [PartProbe(prob, frames, None, nu, None, None, batch=batch, weights=ts.trend_weights(x0, a))
+                for a in axes]
+
+    fb, fo = probes("always"), probes("never")
+    ran = ts.screen_batched(fb, u0, step, lo, hi)
+    assert ran >= 4
+    for f_b, f_o in zip(fb, fo):
+        filled = dict(f_b.cache)
+        pts = [u0] + [np.clip(u0 + step * np.array(d), lo, hi) for d in ts.screen_moves(f_o, u0, step, lo, hi)]
+        for p in pts:
+            assert f_b.key(p) in filled or f_b.key(p) == f_b.key(u0)     # every point the screen reads was filled
+            if f_b.key(p) in filled:
+                assert filled[f_b.key(p)] == pytest.approx(f_o(p), rel=1e-4)
