@@ -140,6 +140,7 @@ def fit_case(tag, out, deadline, *, capture, stage, init_args, fit_limit, iterat
     row["iterations"] = fj.get("iterations")
     row["status"] = fj.get("status") or (f"rc {rc}" if rc is not None else "not run")
     row["fit_runtime_s"] = fj.get("runtime_s")
+    row["phases_s"] = fj.get("phases_s")      # where the fit's time went (fit --json, #26)
     rc, _ = run(f"{tag}_eval", [py, "-m", "physinteract_usd", "evaluate", stage, "--gt", f"{capture}/gt",
                                 "--device", DEVICE, "--json"], out, 60, deadline)
     ev = last_json(out / f"{tag}_eval.log") or {}
@@ -280,6 +281,16 @@ def main(argv=None):
                      f"{r['wall_s']:.1f} s = {r['wall_s'] / one['wall_s']:.2f}x one fit's {one['wall_s']:.1f} s "
                      f"({one['lockstep_iterations']} iterations, MA {f(one['copy'][0].get('ma'), '{:.3f}')}); "
                      f"{r['wall_per_iteration_s']:.3f} s / iteration (one fit {one['wall_per_iteration_s']:.3f}); {per} | - |")
+    lines.append("")
+    for r in rows:
+        ph = r.get("phases_s") or {}
+        if ph:
+            lines.append(f"fit ({r['case']}) phases, s (fit --json): fit clock {f(r.get('fit_runtime_s'))} = "
+                         + ", ".join(f"{k} {v:.1f}" for k, v in ph.items()
+                                     if k in ("start_search", "starts", "iterations", "final_pass", "confidence"))
+                         + "; around it " + ", ".join(f"{k} {v:.1f}" for k, v in ph.items()
+                                                      if k in ("prepare", "problem", "notes", "write"))
+                         + f"; the CLI's wall {f(r.get('fit_s'))} s")
     lines.append("")
     lines.append(f"total wall time {time.monotonic() - T0:.0f} s; raw logs in {out}/")
     table = "\n".join(lines)
