@@ -963,8 +963,12 @@ def _weighted_residuals(prob: FitProblem, x, F) -> list:
 
 def fd_batched(sim) -> bool:
     """Whether the finite differences' K stepped fields go as tiled copies in one rollout (#26): on CUDA, where a
-    launch-bound rollout's copies cost little more than one; on the CPU they cost their sum and go on threads."""
-    return str(getattr(sim, "tdev", "cpu")).startswith("cuda") and hasattr(sim, "simulate_batch")
+    launch-bound rollout's copies cost little more than one; on the CPU they cost their sum and go on threads.
+    `PHYSINTERACT_FD_BATCH` = "never" / "always" overrides it (the benchmarks' A/B)."""
+    how = os.environ.get("PHYSINTERACT_FD_BATCH", "cuda")
+    if how == "never" or not hasattr(sim, "simulate_batch"):
+        return False
+    return how == "always" or str(getattr(sim, "tdev", "cpu")).startswith("cuda")
 
 
 def _fd_columns_batched(prob: FitProblem, mat: MaterialField, nu, tr, eff, jobs, hs, diag, cols):
