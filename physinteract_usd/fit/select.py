@@ -569,49 +569,6 @@ class PartProbe:
         return [float(v) for v in vals]
 
 
-def fill_many(items: list) -> int:
-    """Probe (PartProbe, log E) pairs as tiled copies (`FitProblem.losses_batch`) into each probe's cache, so that
-    the probes' own calls find them there (#26: the trend start's screen, ~17 independent forwards at paper size
-    in ~5 rollouts' time). Unlike `PartProbe.many` the values are the solo probes' to the tiling's arithmetic:
-    the copies go in groups of the rung each would take alone from the rung in use (`Simulation.rung_wanted`), so a
-    soft copy is not simulated at a stiffer one's finer step. The probes must share the problem, frames, nu,
-    trajectories and effects. Only where their `batch` policy allows it (CUDA by default); elsewhere, and for a
-    scene that cannot be tiled, nothing is filled and the probes run alone when called. Returns the copies run."""
-    from ..sim.batch import TilingError
-
-    todo = [(f, le) for f, le in items if f.key(le) not in f.cache]
-    if len(todo) < 2:
-        return 0
-    f0 = todo[0][0]
-    if f0.batch == "never" or (f0.batch == "cuda" and not str(f0.prob.tdev).startswith("cuda")):
-        return 0
-    sim = getattr(f0.prob, "sim", None)
-    seen: dict = {}
-    groups: dict = {}
-    for f, le in todo:
-        k = (id(f), f.key(le))
-        if k in seen:
-            continue
-        seen[k] = True
-        E = f._E(le)
-        rung = sim.rung_wanted(float(E.max())) if sim is not None and hasattr(sim, "rung_wanted") else None
-        groups.setdefault(rung, []).append((f, le, E))
-    ran = 0
-    for rung, grp in groups.items():
-        if len(grp) < 2:
-            continue           # one copy: its own call runs it alone
-        try:
-            with torch.no_grad(), kept_rung(f0.prob):
-                vals = f0.prob.losses_batch(torch.stack([E for _, _, E in grp]), f0.nu, f0.trajs, f0.effects,
-                                            frames=f0.frames)
-        except TilingError:
-            return ran
-        for (f, le, _), v in zip(grp, vals):
-            f.cache[f.key(le)] = float(v) if math.isfinite(float(v)) else float("inf")
-        ran += len(grp)
-    return ran
-
-
 def part_sweep(f: PartProbe, start: np.ndarray, grid: np.ndarray, s: FitSettings) -> dict:
     """Coordinate search of each part's log E (forward passes only): in the first round, each
     part in turn (largest first) over the whole `grid` of log E, the others held, then a
