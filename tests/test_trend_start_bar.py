@@ -50,4 +50,3 @@ def test_a_uniform_bar_takes_no_trend(tmp_path):
     _, r, logs = _fit(tmp_path / "uniform", fs.E_TRUE)
     ps = r.model.get("parts_start") or {}
     assert ps.get("kind") == "trend" and not ps.get("used"), (ps, logs)
-
