@@ -196,6 +196,11 @@ def test_cli_fit_starts_writes_every_start_into_the_version(scene, tmp_path, cap
     summ = out.summary()
     assert len(summ["starts"]) == 2 and summ["starts_mode"] == "sequential"
     assert out.confidence_estimated and not np.allclose(out.result.confidence, 1.0)
+    # the starts' own phases (#26): the fits of both starts, then the chosen one's confidence, on the fit's clock
+    ph = summ["phases_s"]
+    assert ph["iterations"] > 0 and ph["confidence"] > 0 and "start_search" in ph
+    assert sum(ph[k] for k in ("start_search", "iterations", "confidence")) == pytest.approx(summ["runtime_s"],
+                                                                                           rel=0.05, abs=0.2)
     sd = read_stage(stage)
     mm = sd.current_report["material_model"]
     mm = json.loads(mm) if isinstance(mm, str) else mm

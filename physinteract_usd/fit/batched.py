@@ -50,6 +50,7 @@ from .converge import improved, lr_scale, plateaued
 from .material import MaterialField, neighbour_pairs, pair_weights
 from .optimize import (FitResult, FitSettings, _level_params, _restore_in_place, _seed, _split, assemble_result,
                        clean_gradients, fit_bumps, frame_metrics, golden_uniform_search)
+from .phases import Phases
 from .problem import FitProblem
 
 
@@ -477,6 +478,7 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
     `model["starts_mode"]` "batched" or "sequential"."""
     s = settings or FitSettings()
     t0 = time.perf_counter()
+    clock = Phases()        # model["phases_s"]: the search, the starts' fits, the chosen one's confidence (#26)
     starts = default_starts(n_starts, s.seed)
     st = prob.scene.settings
     batched = batching_pays(prob, s) if batched is None else bool(batched)
@@ -490,7 +492,9 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
                             device=prob.tdev, seed=s.seed, width=s.basis_width, features=feats,
                             appearance=s.appearance, centre_mask=~prob.held_particles())
         mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
-        uniform_e = golden_uniform_search(prob, mat, s.search_evals, log, skipped=skipped, seen=probes)
+        with clock("start_search"):
+            uniform_e = golden_uniform_search(prob, mat, s.search_evals, log, skipped=skipped, seen=probes)
+    t_fits = time.perf_counter()
     if log:
         log(f"{len(starts)} starts ({'batched: one tiled rollout per iteration' if batched else 'one by one'}) "
             f"from the uniform E {uniform_e:.4g} Pa x " + ", ".join(f"{sp.factor:g}" for sp in starts))
@@ -519,6 +523,7 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
     if not finite:
         raise SimulationError("no start of the fit simulated stably", frame=0,
                               advice="check the contacts and the E range (every start went unstable)")
+    clock.add("iterations", time.perf_counter() - t_fits)      # every start's fit, with its final pass
     k = min(finite, key=lambda i: results[i].final_loss)
     win = results[k]
     interrupted = any(r.interrupted for r in results)
@@ -526,14 +531,17 @@ def fit_starts(prob: FitProblem, settings: FitSettings | None = None, n_starts: 
         log("starts: " + ", ".join(f"x{d['factor']:g} {d['final_loss']:.5f}" if d["final_loss"] is not None
                                    else f"x{d['factor']:g} dropped" for d in table)
             + f"; kept x{starts[k].factor:g}")
+    t_conf = time.perf_counter()
     if s.confidence_probes > 0 and not interrupted:
         # the chosen start's confidence (fit_bumps' last pass from its iterate, at its own substep)
         fin = fit_bumps(prob, dataclasses.replace(s, seed=starts[k].seed, iterations=0), progress=False, log=None,
                         start={"youngs": win.youngs, "poisson": win.poisson, "trajectories": win.trajectories})
         win.confidence, win.confidence_gaussian = fin.confidence, fin.confidence_gaussian
         win.settings["confidence_probes"] = s.confidence_probes
+    clock.add("confidence", time.perf_counter() - t_conf)
     model = {k_: v for k_, v in win.model.items() if k_ != "start"}
-    model.update(starts=table, starts_chosen=k, starts_mode="batched" if batched else "sequential")
+    model.update(starts=table, starts_chosen=k, starts_mode="batched" if batched else "sequential",
+                 phases_s=dict(clock.seconds))
     if probes:
         model["uniform_probes"] = probes
     if skipped:
