@@ -399,3 +399,56 @@ def test_the_default_is_resolved_in_the_callers_settings_object(monkeypatch):
     s = F.FitSettings(schedule="bumps")
     F.fit(prob, s)
     assert seen == [s] and seen[0] is s and s.parts_start == 0
+
+
+class _NestMat(_Mat):
+    base = None
+
+    def set_base(self, e):
+        self.base = np.asarray(e, np.float64)
+        self.theta = torch.zeros(8, requires_grad=True)
+
+
+def _run_nested(monkeypatch, keep, losses):
+    """The parts start with `parts_nest` (opt-in): its simplex on the training frames, the held-back test deciding."""
+    sim = _Sim()
+    prob = types.SimpleNamespace(sim=sim, T=12, tdtype=torch.float64, tdev="cpu", contacts=[])
+    labels = np.array([0, 0, 0, 1, 1, 1])
+    seen = {}
+    monkeypatch.setattr(select, "part_candidates", lambda *a: [{"kind": "appearance", "parts": 2, "labels": labels}])
+
+    class Probe:
+        def __init__(self, prob_, frames, *a, **k):
+            self.cache, seen["frames"] = {}, list(frames)
+
+        def __call__(self, x):
+            return 0.02
+
+    def held(prob_, s, E0, E1, added, *a):
+        seen["held"] = (E1.numpy().copy(), added, list(a[-1]))
+        return {"keep": keep, "why": "test", "sign_p": 0.06 if keep else 0.5, "rule": {}}
+
+    monkeypatch.setattr(select, "PartProbe", Probe)
+    monkeypatch.setattr(select, "part_refine", lambda *a, **k: {"log_e": [np.log(3e4), np.log(8e3)], "loss": 0.01})
+    monkeypatch.setattr(select, "heldback_test", held)
+    it = iter(losses)
+    mat = _NestMat()
+    s = types.SimpleNamespace(select_sweep_batch=1, parts_nest=True, select_holdout_every=3)
+    out = ps.parts_start(prob, mat, s, None, None, lambda: next(it), 20)
+    return out, mat, seen
+
+
+def test_a_nested_parts_start_is_judged_on_frames_its_simplex_did_not_see(monkeypatch):
+    out, mat, seen = _run_nested(monkeypatch, keep=True, losses=[0.010, 0.004])
+    train, val = select.holdout_frames(12, 3)
+    assert seen["frames"] == train and seen["held"][2] == val and not set(train) & set(val)
+    np.testing.assert_allclose(seen["held"][0], [3e4] * 3 + [8e3] * 3)      # the parts' own field, tested as it is
+    assert seen["held"][1] == 1                                             # one coefficient more than one E
+    assert out["used"] and out.get("nested")
+    np.testing.assert_allclose(mat.base, [3e4] * 3 + [8e3] * 3)             # held exactly, as the nested base
+    assert float(mat.theta.abs().max()) == 0.0
+
+
+def test_a_nested_parts_start_the_held_back_frames_refuse_changes_nothing(monkeypatch):
+    out, mat, _ = _run_nested(monkeypatch, keep=False, losses=[])          # no total loss is even asked for
+    assert not out["used"] and mat.base is None and float(mat.theta.abs().max()) == 0.0

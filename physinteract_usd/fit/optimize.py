@@ -131,6 +131,11 @@ class FitSettings:
                                         # None (the default): parts_start.PARTS_START_CUDA (20) where the problem's
                                         # tensors are on CUDA (the 12 suite scenes gained, none lost: mean MA 0.399 ->
                                         # 0.513), 0 on the CPU (the demo's +16-20 CPU s for no MA; docs/benchmarks/fit.md)
+    parts_nest: bool = False            # the parts start as the trend start is judged and held: its simplex on the training
+                                        # frames, kept only if its field beats the uniform E on the held-back ones (one
+                                        # coefficient per part more, and a sign test), then the fixed base of a nested
+                                        # field (exact: no projection onto the bumps, which leaks a part near the range's
+                                        # top into its neighbours). Opt-in (30th session: not measured on the suite)
     trend_start: int | None = None      # schedule bumps (through fit.fit): where the parts start was not taken, the finest level
                                         # starts from a log-linear trend of E along one of the object's axes (gravity's,
                                         # principal ones) when it beats the uniform E on held-back frames, its two ends

@@ -985,6 +985,31 @@ def field_frame_losses(prob: FitProblem, E: torch.Tensor, nu: torch.Tensor, traj
         return [float(prob.frame_loss(k, prob.render_frame(k, x[k], F[k]))["total"]) for k in frames]
 
 
+SIGN_P = 0.125      # a start's field must also be lower on so many held-back frames that a fair coin would do so
+                    # with p <= this (`heldback_test`; the trend start's rule, fit/trend_start.py)
+
+
+def sign_test_p(better: int, n: int) -> float:
+    """One-sided sign test: the chance that a fair coin comes up `better` or more times in `n`."""
+    return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
+
+
+def heldback_test(prob: FitProblem, s: FitSettings, E0: torch.Tensor, E1: torch.Tensor, added: int, nu, trajs, eff,
+                  frames) -> dict:
+    """A start's field E1 against the field E0 it would replace, on the held-back `frames` at one substep (the
+    stiffer field's): kept when `select_rule` keeps it (its mean drop beyond the price of `added` coefficients) and
+    it is lower on so many frames that a coin would not be (sign test p <= SIGN_P). {"keep", "why", "sign_p",
+    "rule"}."""
+    bound = float(max(float(E0.max()), float(E1.max())))
+    h0 = field_frame_losses(prob, E0, nu, trajs, eff, frames, bound)
+    h1 = field_frame_losses(prob, E1, nu, trajs, eff, frames, bound)
+    rule = select_rule(h0, h1, int(added), s)
+    p = sign_test_p(int(rule.get("better_frames", 0)), len(frames))
+    keep = bool(rule["keep_field"] and p <= SIGN_P)
+    why = f"{rule['why']} (sign test p {p:.3f}{' <= ' if p <= SIGN_P else ' > '}{SIGN_P})"
+    return {"keep": keep, "why": why, "sign_p": p, "rule": rule}
+
+
 def select_rule(uniform_val: list[float], field_val: list[float], added: int, s: FitSettings) -> dict:
     """The held-back test (module doc, 4.): {"keep_field", "mean_drop", "penalty", "better_frames",
     "why"}."""

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from .parts_start import accept, forwards_are_cheap, parts_start, refine_kwargs, restore_rung
+from .select import SIGN_P, sign_test_p  # noqa: F401  (re-exported: the held-back test's sign rule)
 from .substep import kept_rung
 
 TREND_START_CUDA = 20   # FitSettings.trend_start's default where the fit runs on CUDA (`default_trend_probes`): the 12 named
@@ -44,10 +45,10 @@ TREND_START_CUDA = 20   # FitSettings.trend_start's default where the fit runs o
                         # hemp_rope 0.801 -> 0.959, glove 0.257 -> 0.272, knit_cap 0.412 -> 0.147, the other 8 unchanged;
                         # the paper-size hemp_rope 0.821 -> 1.000. Off on the CPU, as the parts start
 TRIES = 2           # the axes (best screened first) whose simplex may be tried until one passes the held-back test
-SIGN_P = 0.125      # ... and the trend lower on so many held-back frames that a fair coin would do so with p <= this
-                    # (one-sided sign test: all of three, all 4 of a 14-frame clip's, 11 of 15): a slope bought by one or two frames
-                    # the uniform E misses is no trend (the H200's paper-size hemp_rope: 8 of 15 lower, a trend
-                    # across the rope of 0.6% taken, and the iterations it was charged cost the fit MA 0.82 -> 0.23)
+# select.SIGN_P (0.125): the trend lower on so many held-back frames that a fair coin would do so with p <= this
+# (one-sided sign test: all of three, all 4 of a 14-frame clip's, 11 of 15): a slope bought by one or two frames
+# the uniform E misses is no trend (the H200's paper-size hemp_rope: 8 of 15 lower, a trend
+# across the rope of 0.6% taken, and the iterations it was charged cost the fit MA 0.82 -> 0.23)
 AXIS_APART = math.radians(30.0)   # a principal axis within this of an axis already tried adds nothing new
 MAX_AXES = 3
 
@@ -105,17 +106,12 @@ def screen_moves(f, u0: np.ndarray, step: float, lo: float, hi: float) -> list[t
     return moves
 
 
-def sign_test_p(better: int, n: int) -> float:
-    """One-sided sign test: the chance that a fair coin comes up `better` or more times in `n`."""
-    return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
-
-
 def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> dict:
     """Start the field (`mat`, nested on the trend: `MaterialField.set_base`) from the best log-linear trend along one
     axis when it renders better on held-back frames and lowers the total loss. `total_fn()`: the fit's total loss at
     the current field (a forward). Returns the parts start's kind of record: {"forwards", "used", "kind": "trend",
     "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain", "heldback"}."""
-    from .select import PartProbe, field_frame_losses, holdout_frames, part_refine, select_rule
+    from .select import PartProbe, heldback_test, holdout_frames, part_refine
 
     out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
     sim = getattr(prob, "sim", None)
@@ -169,14 +165,9 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
         ends = np.asarray(r["log_e"], np.float64)
         gain = f0 - float(r["loss"])
         values = np.exp(w @ ends)
-        bound = float(max(np.max(values), math.exp(u)))
-        # the two fields on the held-back frames at one substep (the stiffer one's)
-        h0 = field_frame_losses(prob, E_of(np.full(len(values), math.exp(u))), nu, tr, eff, val, bound)
-        h1 = field_frame_losses(prob, E_of(values), nu, tr, eff, val, bound)
-        rule = select_rule(h0, h1, 1, s)     # one coefficient more than the uniform E (the slope)
-        p_sign = sign_test_p(int(rule["better_frames"]), len(val))
-        keep = bool(rule["keep_field"] and p_sign <= SIGN_P)
-        why = f"{rule['why']} (sign test p {p_sign:.3f}{' <= ' if p_sign <= SIGN_P else ' > '}{SIGN_P})"
+        # the two fields on the held-back frames at one substep (the stiffer one's); one coefficient more (the slope)
+        hb = heldback_test(prob, s, E_of(np.full(len(values), math.exp(u))), E_of(values), 1, nu, tr, eff, val)
+        keep, why, p_sign = hb["keep"], hb["why"], hb["sign_p"]
         rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
                    trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values)
         if log:
