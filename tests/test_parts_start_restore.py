@@ -425,7 +425,7 @@ def _run_nested(monkeypatch, keep, losses):
             return 0.02
 
     def held(prob_, s, E0, E1, added, *a):
-        seen["held"] = (E1.numpy().copy(), added, list(a[-1]))
+        seen["held"] = (np.array(E1, copy=True), added, list(a[-1]))
         return {"keep": keep, "why": "test", "sign_p": 0.06 if keep else 0.5, "rule": {}}
 
     monkeypatch.setattr(select, "PartProbe", Probe)

@@ -102,7 +102,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     lowers the total loss. `total_fn()`: the fit's total loss at the current field (a forward).
     `refine(m)`: the simplex's `select.part_refine` arguments for m parts (default `refine_kwargs(m, probes)`; a
     benchmark's other rule, benchmarks/parts_simplex_trace.py). Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
-    from .select import PartProbe, heldback_test, holdout_frames, part_candidates, part_refine
+    from .select import PartProbe, heldback_test, part_candidates, part_refine, problem_holdout
 
     out = {"forwards": 0, "used": False, "parts": 0}
     sim = getattr(prob, "sim", None)
@@ -121,9 +121,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     nest = bool(getattr(s, "parts_nest", False))
     frames, val = list(range(1, prob.T)), []
     if nest:   # judged as the trend start is: the simplex on the training frames, the held-back ones decide
-        after_release = [c.release_frame + 1 for c in getattr(prob, "contacts", None) or []
-                         if getattr(c, "release_frame", None) is not None]
-        train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+        train, val = problem_holdout(prob, s)
         frames = train if val else frames
     f = PartProbe(prob, frames, labels, nu, tr, eff, batch=s.select_sweep_batch)
     start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
@@ -136,8 +134,7 @@ def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refin
     out["parts_gain"] = gain_parts
     values = np.exp(np.asarray(r["log_e"]))[labels]
     if nest and val:
-        E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
-        hb = heldback_test(prob, s, E_of(np.exp(le_now)), E_of(values), m - 1, nu, tr, eff, val)
+        hb = heldback_test(prob, s, np.exp(le_now), values, m - 1, nu, tr, eff, val)
         out.update(heldback=hb["why"], sign_p=hb["sign_p"], forwards=out["forwards"] + 2, nested=True)
         if not hb["keep"]:
             restore_rung(prob, bound0)

@@ -102,6 +102,14 @@ class FrameView:
         return self._prob.loss(*args, frames=self._frames if frames is None else frames, **kw)
 
 
+def problem_holdout(prob, s) -> tuple[list[int], list[int]]:
+    """`holdout_frames` for a fit problem and its settings: every `s.select_holdout_every`-th frame held back, the
+    first frame after each contact's release kept for fitting."""
+    after_release = [c.release_frame + 1 for c in getattr(prob, "contacts", None) or []
+                     if getattr(c, "release_frame", None) is not None]
+    return holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+
+
 def _shape(vals: np.ndarray, minima: list[int], flat: float) -> str:
     fin = vals[np.isfinite(vals)]
     if len(fin) and (fin.max() - fin.min()) <= flat * max(fin.min(), 1e-12):
@@ -406,8 +414,7 @@ def fit_guarded(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=
     if start is not None:
         return fit_bumps(prob, s, progress=progress, log=log, start=start, on_iteration=on_iteration)
     say = log or (lambda *a: None)
-    after_release = [c.release_frame + 1 for c in prob.contacts if getattr(c, "release_frame", None) is not None]
-    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+    train, val = problem_holdout(prob, s)
     if not val:
         r = fit_bumps(prob, s, progress=progress, log=log, on_iteration=on_iteration, uniform_e=uniform_e)
         r.model = {**(r.model or {}), "guard": {"why": "no held-back frames (fewer than 6 frames): the field unjudged"}}
@@ -994,12 +1001,13 @@ def sign_test_p(better: int, n: int) -> float:
     return float(sum(math.comb(n, k) for k in range(int(better), n + 1)) / 2.0 ** n) if n > 0 else 1.0
 
 
-def heldback_test(prob: FitProblem, s: FitSettings, E0: torch.Tensor, E1: torch.Tensor, added: int, nu, trajs, eff,
+def heldback_test(prob: FitProblem, s: FitSettings, E0, E1, added: int, nu, trajs, eff,
                   frames) -> dict:
-    """A start's field E1 against the field E0 it would replace, on the held-back `frames` at one substep (the
+    """A start's field E1 against the field E0 it would replace (per-particle E, arrays or tensors), on the held-back `frames` at one substep (the
     stiffer field's): kept when `select_rule` keeps it (its mean drop beyond the price of `added` coefficients) and
     it is lower on so many frames that a coin would not be (sign test p <= SIGN_P). {"keep", "why", "sign_p",
     "rule"}."""
+    E0, E1 = (torch.as_tensor(np.asarray(e), dtype=prob.tdtype, device=prob.tdev) for e in (E0, E1))
     bound = float(max(float(E0.max()), float(E1.max())))
     h0 = field_frame_losses(prob, E0, nu, trajs, eff, frames, bound)
     h1 = field_frame_losses(prob, E1, nu, trajs, eff, frames, bound)
@@ -1045,8 +1053,7 @@ def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=N
     say = log or (lambda *a: None)
     st = prob.scene.settings
     nu0 = min(st.poisson_default, 0.98 * st.poisson_max)
-    after_release = [c.release_frame + 1 for c in prob.contacts if getattr(c, "release_frame", None) is not None]
-    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+    train, val = problem_holdout(prob, s)
     view = FrameView(prob, train)
     N, n_uni, n_final = _stage_budgets(s)
     stages = _Stages(on_iteration)

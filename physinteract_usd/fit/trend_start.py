@@ -111,7 +111,7 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     axis when it renders better on held-back frames and lowers the total loss. `total_fn()`: the fit's total loss at
     the current field (a forward). Returns the parts start's kind of record: {"forwards", "used", "kind": "trend",
     "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain", "heldback"}."""
-    from .select import PartProbe, heldback_test, holdout_frames, part_refine
+    from .select import PartProbe, heldback_test, part_refine, problem_holdout
 
     out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
     sim = getattr(prob, "sim", None)
@@ -120,9 +120,7 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     free = ~np.asarray(prob.held_particles(), bool)
     grav = getattr(getattr(prob.scene, "settings", None), "gravity", None)
     axes = trend_axes(x0[free] if free.sum() >= 3 else x0, grav)
-    after_release = [c.release_frame + 1 for c in getattr(prob, "contacts", None) or []
-                     if getattr(c, "release_frame", None) is not None]
-    train, val = holdout_frames(prob.T, int(s.select_holdout_every), keep=after_release)
+    train, val = problem_holdout(prob, s)
     if not axes or not val:
         if log:
             log("trend start: " + ("no axis" if not axes else "too few frames to hold any back") + "; not tried")
@@ -139,7 +137,6 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     step, evals = float(kw.pop("step")), int(kw.pop("evals"))
     lo, hi = mat.lo + 1e-3, mat.hi - 1e-3
     u0 = np.array([u, u])
-    E_of = lambda v: torch.as_tensor(v, dtype=prob.tdtype, device=prob.tdev)   # noqa: E731
     screened: list = []
     fs = [PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
           for ax in axes]
@@ -166,7 +163,7 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
         gain = f0 - float(r["loss"])
         values = np.exp(w @ ends)
         # the two fields on the held-back frames at one substep (the stiffer one's); one coefficient more (the slope)
-        hb = heldback_test(prob, s, E_of(np.full(len(values), math.exp(u))), E_of(values), 1, nu, tr, eff, val)
+        hb = heldback_test(prob, s, np.full(len(values), math.exp(u)), values, 1, nu, tr, eff, val)
         keep, why, p_sign = hb["keep"], hb["why"], hb["sign_p"]
         rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
                    trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values)
