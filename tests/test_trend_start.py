@@ -182,3 +182,103 @@ def test_the_starts_share_the_uniform_fields_loss_and_nothing_else():
     mat.set_base(np.full(5, 2e4))                   # the same E, another base and coefficients: a new field
     f()
     assert len(calls) == 4
+
+
+def _two_starts(monkeypatch, truth, labels):
+    """The screened starts (`starts_hook(order="screened")`) on the bowl problem, the object's colours `labels`."""
+    from physinteract_usd.fit import select
+
+    x = _grid()
+    prob, calls = _problem(truth, x)
+    monkeypatch.setattr(select, "part_candidates", lambda *a: [{"kind": "appearance", "parts": 2, "labels": labels}])
+    mat = _Mat(np.full(len(x), float(np.mean(truth))))
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002, parts_nest=False)
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    said = []
+    rec = ts.starts_hook(20, 20, "screened")(prob, mat, s, None, None, total, log=said.append)
+    return rec, mat, calls, said, x
+
+
+def test_screened_starts_a_graded_object_runs_the_trend_and_never_the_parts_simplex(monkeypatch):
+    """Graded 5x along gravity's axis, coloured in two halves along it: both screens beat the uniform E, the trend's
+    more; its simplex runs first and is taken, the parts start's simplex never runs (only its 2-4 screen probes)."""
+    x = _grid()
+    t = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    truth = math.log(3.75e4) * t + math.log(7.5e3) * (1 - t)
+    rec, mat, calls, said, _ = _two_starts(monkeypatch, truth, (t > 0.5).astype(np.int64))
+    assert rec["order"] == ["trend", "parts"] and rec["screens"]["trend"] < rec["screens"]["parts"]
+    assert rec["used"] and rec["kind"] == "trend" and "parts_start" not in rec
+    assert rec["forwards"] == len(calls)                      # every probe counted, the parts' screen too
+    assert not any(m.startswith("parts start:") for m in said)
+    lo_end, hi_end = sorted(math.exp(v) for v in rec["log_e"])
+    assert abs(lo_end / 7.5e3 - 1) < 0.25 and abs(hi_end / 3.75e4 - 1) < 0.25
+    assert mat.base is not None
+
+
+def test_screened_starts_a_two_part_object_runs_the_parts_nested_and_never_the_trends_simplex(monkeypatch):
+    """Two parts 5x apart, split across gravity's axis (along x): the parts' screen leads, their simplex is judged on
+    the held-back frames and held exactly as the nested base; the trend's simplex never runs."""
+    x = _grid()
+    labels = (x[:, 0] > 0).astype(np.int64)
+    truth = np.where(labels == 1, math.log(3.75e4), math.log(7.5e3))
+    rec, mat, calls, said, _ = _two_starts(monkeypatch, truth, labels)
+    assert rec["order"][0] == "parts" and rec["used"] and rec.get("nested") and "trend_start" not in rec
+    assert rec["forwards"] == len(calls)
+    assert not any(m.startswith("trend start:") for m in said)
+    e = mat.youngs().detach().numpy()
+    assert mat.base is not None and float(mat.theta.detach().abs().max()) == 0.0
+    assert abs(np.median(e[labels == 1]) / 3.75e4 - 1) < 0.25 and abs(np.median(e[labels == 0]) / 7.5e3 - 1) < 0.25
+
+
+def test_screened_starts_a_refused_leader_hands_over_to_the_other(monkeypatch):
+    """The leader's simplex refused on the held-back frames (they are uniform): the other start runs next, and with
+    nothing to gain there either the field is left exactly as it was."""
+    x = _grid()
+    t = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    truth = math.log(3.75e4) * t + math.log(7.5e3) * (1 - t)
+    from physinteract_usd.fit import select
+
+    prob, calls = _problem(truth, x)
+    flat = torch.full((len(x),), float(np.mean(truth)), dtype=torch.float64)
+
+    def simulate(E, nu, trajs, eff):          # the held-back frames' bowl: uniform
+        calls.append(1)
+        return [torch.mean((torch.log(E) - flat) ** 2)] * prob.T, [None] * prob.T
+
+    prob.simulate = simulate
+    monkeypatch.setattr(select, "part_candidates",
+                        lambda *a: [{"kind": "appearance", "parts": 2, "labels": (t > 0.5).astype(np.int64)}])
+    mat = _Mat(np.full(len(x), float(np.mean(truth))))
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002, parts_nest=False)
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    rec = ts.starts_hook(20, 20, "screened")(prob, mat, s, None, None, total)
+    assert rec["order"] == ["trend", "parts"] and not rec["used"] and "trend_start" in rec
+    assert rec["forwards"] == len(calls)
+    assert mat.base is None and np.allclose(mat.log_e().detach().numpy(), float(np.mean(truth)))
+
+
+def test_a_screen_probes_the_simplexs_first_vertices_so_the_simplex_runs_none_again():
+    """`select.first_vertices` probes what `part_refine` probes first (two-sided): after the screen, the simplex on the
+    same probe ends where it ends alone, with as many forwards in all."""
+    from physinteract_usd.fit import select
+
+    truth = np.log([3e4, 6e3])
+
+    class Bowl:
+        def __init__(self):
+            self.cache, self.given = {}, 0
+
+        def __call__(self, le):
+            k = tuple(round(float(v), 10) for v in le)
+            if k not in self.cache:
+                self.cache[k] = float(np.sum((np.asarray(le) - truth) ** 2))
+            return self.cache[k]
+
+    start, lo, hi = np.log([1.2e4, 1.2e4]), math.log(1e3), math.log(6e4)
+    alone, screened = Bowl(), Bowl()
+    r0 = select.part_refine(alone, start, lo, hi, 20, math.log(2.0), two_sided=True)
+    vals = select.first_vertices(screened, start, math.log(2.0), lo, hi, two_sided=True)
+    n_screen = len(screened.cache)
+    assert n_screen == 4 and min(vals) < vals[0]           # x2 worse for the soft part: its / 2 probed too
+    r1 = select.part_refine(screened, start, lo, hi, 20, math.log(2.0), two_sided=True)
+    assert len(screened.cache) == len(alone.cache) and np.allclose(r0["log_e"], r1["log_e"])

@@ -50,3 +50,18 @@ def test_a_uniform_bar_takes_no_trend(tmp_path):
     _, r, logs = _fit(tmp_path / "uniform", fs.E_TRUE)
     ps = r.model.get("parts_start") or {}
     assert ps.get("kind") == "trend" and not ps.get("used"), (ps, logs)
+
+
+def test_both_starts_screened_take_the_trend_on_the_graded_bar(tmp_path):
+    """Both starts on (a GPU's default, forced here on the CPU), ordered by their screens (`starts_order` "screened"):
+    the graded bar's trend screens lower than its colour parts and is taken; the parts simplex never runs."""
+    b = fs.build(tmp_path / "both", E=_graded, n_frames=10)
+    logs = []
+    over = {**fs.SMOKE_SETTINGS, "trend_start": 20, "parts_start": 20, "starts_order": "screened"}
+    r = api.fit(b["stage"], iterations=10, contact_from=b["gt"], settings_overrides=over, progress=False,
+                log=logs.append).result
+    ps = r.model.get("parts_start") or {}
+    assert ps.get("kind") == "trend" and ps.get("used") and ps["order"][0] == "trend", (ps, logs)
+    assert ps["screens"]["trend"] < ps["screens"]["parts"] and "parts_start" not in ps
+    assert not any(m.startswith("parts start:") for m in logs)
+    assert abs(ps["axis"][0]) > 0.95 and r.model.get("nested")

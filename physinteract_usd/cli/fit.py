@@ -78,11 +78,16 @@ def add_parser(sub):
                         "taken; 0 turns it off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.40 -> 0.51, "
                         "none lower), off on the CPU (the demo's fit ~+16-20 CPU s for no MA); #24)")
     s.add_argument("--trend-start", type=int, default=None, metavar="N",
-                   help="bumps schedule: where the parts start was not taken, start the finest level from E graded "
+                   help="bumps schedule: start the finest level from E graded "
                         "log-linearly along one of the object's axes (gravity's, principal ones) when that beats one E "
                         "on held-back frames; a screen of 4-6 probes per axis, then a simplex of at most N; charged "
                         "to the iteration budget when taken; 0 turns it off; default: 20 on a GPU (the suite's 12 "
                         "scenes: mean MA 0.58 -> 0.63; the paper-size scene 0.82 -> 1.00), off on the CPU; #24)")
+    s.add_argument("--starts-order", choices=("screened", "parts-first"), default=None,
+                   help="bumps schedule, where both starts run (a GPU's default): 'screened' (the default) screens both "
+                        "on the training frames and runs the lower one's simplex first, the other's only where it is "
+                        "not taken, the parts start judged on held-back frames and nested; 'parts-first' runs the "
+                        "parts start (projected onto the bumps) then the trend start (#24, #26)")
     s.add_argument("--nuisance-damping", action="store_true",
                    help="fit a global damping c (1/s) jointly with E though the stage has no damping effect: the "
                         "dissipation the video has and the model lacks goes into c, not E; recorded in the version's "
@@ -129,6 +134,8 @@ def run(a) -> int:
             over[key] = given
     if a.nuisance_damping:
         over["nuisance_damping"] = True
+    if a.starts_order is not None:
+        over["starts_order"] = a.starts_order.replace("-", "_")
     over = over or None
     outcome = api.fit(a.stage, iterations=a.iterations, joint=not a.no_joint, contact_from=a.contact_from,
                       device=a.device, seed=a.seed, resume=a.resume, log=log, settings_overrides=over,

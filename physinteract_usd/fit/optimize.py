@@ -144,6 +144,10 @@ class FitSettings:
                                         # (20) where the problem's tensors are on CUDA (the 12 suite scenes on the H200:
                                         # mean MA 0.580 -> 0.626, >= 0.9 on 4 not 2; the paper row 0.821 -> 1.000), 0 on
                                         # the CPU (as the parts start: its probes cost the demo time). #24, balloon
+    starts_order: str = "screened"      # where both starts run (fit/trend_start.starts_hook): "screened", both screened on the
+                                        # training frames, the parts start nested, the lower screen's simplex first, the
+                                        # other's only where it is not taken; "parts_first", the projected parts start then
+                                        # the trend start (the 29th session's). #24 / #26
     gn_max_basis: int = 32              # ... only while the basis has at most this many functions (K forwards a step)
     uniform_guard: bool = False         # schedule bumps: the field is returned only if its held-back loss is clearly
                                         # below the best uniform E's, else the uniform model (select.fit_guarded). #24

@@ -97,63 +97,111 @@ def forwards_are_cheap(prob) -> bool:
     return str(getattr(prob, "tdev", "cpu")).startswith("cuda")
 
 
-def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refine=None) -> dict:
+def parts_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None, refine=None, nest: bool | None = None) -> dict:
     """Start the field (`mat`, on the level's basis) from the appearance parts' fitted E when it
     lowers the total loss. `total_fn()`: the fit's total loss at the current field (a forward).
     `refine(m)`: the simplex's `select.part_refine` arguments for m parts (default `refine_kwargs(m, probes)`; a
-    benchmark's other rule, benchmarks/parts_simplex_trace.py). Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
-    from .select import PartProbe, heldback_test, part_candidates, part_refine, problem_holdout
+    benchmark's other rule, benchmarks/parts_simplex_trace.py). `nest`: judged on held-back frames and held as the
+    nested base (None: `s.parts_nest`). Returns {"forwards", "used", "parts", "log_e", "loss0", "loss"}."""
+    return PartsStart(prob, mat, s, trajs, eff, probes, log, refine, nest).run(total_fn)
 
-    out = {"forwards": 0, "used": False, "parts": 0}
-    sim = getattr(prob, "sim", None)
-    bound0 = getattr(sim, "e_bound", None)     # the adaptive substep's rung before the probes (restored if not taken)
-    cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
-    if not cands:
-        if log:
-            log("parts start: the object's colours make one part; the uniform start stays")
-        return out
-    labels = cands[0]["labels"]
-    m = int(labels.max()) + 1
-    with torch.no_grad():
-        le_now = mat.log_e().detach().cpu().numpy()
-        nu = mat.poisson().detach()
-    tr = [t.detach() for t in trajs] if trajs else None
-    nest = bool(getattr(s, "parts_nest", False))
-    frames, val = list(range(1, prob.T)), []
-    if nest:   # judged as the trend start is: the simplex on the training frames, the held-back ones decide
-        train, val = problem_holdout(prob, s)
-        frames = train if val else frames
-    f = PartProbe(prob, frames, labels, nu, tr, eff, batch=s.select_sweep_batch)
-    start = np.array([float(np.mean(le_now[labels == j])) for j in range(m)])
-    with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
-        kw = dict(refine(m)) if refine is not None else refine_kwargs(m, probes, cheap=not forwards_are_cheap(prob))
-        r = part_refine(f, start, mat.lo + 1e-3, mat.hi - 1e-3, kw.pop("evals"), kw.pop("step"), **kw)
-    out.update(parts=m, forwards=len(f.cache), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
-               stalled=bool(r.get("stalled", False)))
-    gain_parts = f(start) - float(r["loss"])          # what the parts' own field gained (reconstruction)
-    out["parts_gain"] = gain_parts
-    values = np.exp(np.asarray(r["log_e"]))[labels]
-    if nest and val:
-        hb = heldback_test(prob, s, np.exp(le_now), values, m - 1, nu, tr, eff, val)
-        out.update(heldback=hb["why"], sign_p=hb["sign_p"], forwards=out["forwards"] + 2, nested=True)
-        if not hb["keep"]:
-            restore_rung(prob, bound0)
-            out.update(used=False, loss0=float("nan"), loss=float("nan"))
+
+class PartsStart:
+    """The parts start in two steps, so that `trend_start.starts_hook` can rank it against the trend start before
+    either's simplex runs (#24/#26): `screen()` probes the simplex's first vertices (each part x2, or / 2 where x2 renders
+    no better: `select.first_vertices`, the very points `part_refine` probes first, so its simplex takes them from the
+    probe's cache), `run(total_fn)` the rest (`parts_start`)."""
+
+    def __init__(self, prob, mat, s, trajs, eff, probes: int, log=None, refine=None, nest: bool | None = None):
+        from .select import PartProbe, part_candidates, problem_holdout
+
+        self.prob, self.mat, self.s, self.eff, self.probes, self.log, self.refine = prob, mat, s, eff, probes, log, refine
+        self.sim = getattr(prob, "sim", None)
+        self.bound0 = getattr(self.sim, "e_bound", None)   # the adaptive substep's rung before the probes (restored if not taken)
+        cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
+        self.ready = bool(cands)
+        self.screened = None
+        if not self.ready:
+            return
+        self.labels = cands[0]["labels"]
+        self.m = int(self.labels.max()) + 1
+        with torch.no_grad():
+            self.le_now = mat.log_e().detach().cpu().numpy()
+            self.nu = mat.poisson().detach()
+        self.tr = [t.detach() for t in trajs] if trajs else None
+        self.nest = bool(getattr(s, "parts_nest", False)) if nest is None else bool(nest)
+        self.frames, self.val = list(range(1, prob.T)), []
+        if self.nest:   # judged as the trend start is: the simplex on the training frames, the held-back ones decide
+            train, val = problem_holdout(prob, s)
+            self.frames, self.val = (train if val else self.frames), val
+        self.f = PartProbe(prob, self.frames, self.labels, self.nu, self.tr, eff, batch=s.select_sweep_batch)
+        self.start = np.array([float(np.mean(self.le_now[self.labels == j])) for j in range(self.m)])
+        kw = dict(refine(self.m)) if refine is not None else refine_kwargs(self.m, probes,
+                                                                            cheap=not forwards_are_cheap(prob))
+        self.evals, self.step, self.kw = kw.pop("evals"), kw.pop("step"), kw
+        self.lo, self.hi = mat.lo + 1e-3, mat.hi - 1e-3
+
+    def screen(self) -> float:
+        """The lowest loss among the start, the simplex's first vertices (cached in the probe: the simplex takes them
+        from there) and each part's contrast (the part x2, the others / 2: m probes more), inf where there are no parts.
+        The contrasts are the trend screen's tilts for parts: one part alone moved by x2 renders a step between two
+        parts 5x apart worse than a trend tilted x2 both ways does, so a screen of single moves would rank a two-part
+        object's trend first (tests/test_trend_start.py)."""
+        from .select import first_vertices
+
+        if not self.ready:
+            return float("inf")
+        with kept_rung(self.prob):
+            vals = first_vertices(self.f, self.start, self.step, self.lo, self.hi, two_sided=self.kw.get("two_sided", False))
+            if self.m >= 2 and math.isfinite(vals[0]):
+                for j in range(self.m):
+                    d = np.full(self.m, -self.step)
+                    d[j] = self.step
+                    vals.append(self.f(np.clip(self.start + d, self.lo, self.hi)))
+        self.screened = float(min(vals))
+        return self.screened
+
+    def run(self, total_fn) -> dict:
+        from .select import heldback_test, part_refine
+
+        prob, mat, s, log = self.prob, self.mat, self.s, self.log
+        out = {"forwards": 0, "used": False, "parts": 0}
+        if not self.ready:
             if log:
-                log(f"parts start: {m} parts by colour at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-                    + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {hb['why']}; not taken")
+                log("parts start: the object's colours make one part; the uniform start stays")
             return out
-    taken = accept(prob, mat, total_fn, values, gain_parts, f(start), bound0, nest=nest)
-    out["forwards"] += 2
-    out.update(taken)
-    loss0, loss1 = taken["loss0"], taken["loss"]
-    if log:
-        es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-        log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes"
-            f"{', stalled' if out['stalled'] else ''}); {'nested' if nest else 'on the bumps'} "
-            f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
-            f" (the parts' own gain {gain_parts:.5f})")
-    return out
+        m, f, start, labels, bound0 = self.m, self.f, self.start, self.labels, self.bound0
+        with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
+            r = part_refine(f, start, self.lo, self.hi, self.evals, self.step, **self.kw)
+        out.update(parts=m, forwards=len(f.cache) - getattr(f, "given", 0), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
+                   stalled=bool(r.get("stalled", False)))
+        if self.screened is not None:
+            out["screen_loss"] = self.screened
+        gain_parts = f(start) - float(r["loss"])          # what the parts' own field gained (reconstruction)
+        out["parts_gain"] = gain_parts
+        values = np.exp(np.asarray(r["log_e"]))[labels]
+        nest, frames = self.nest, self.frames
+        if nest and self.val:
+            hb = heldback_test(prob, s, np.exp(self.le_now), values, m - 1, self.nu, self.tr, self.eff, self.val)
+            out.update(heldback=hb["why"], sign_p=hb["sign_p"], forwards=out["forwards"] + 2, nested=True)
+            if not hb["keep"]:
+                restore_rung(prob, bound0)
+                out.update(used=False, loss0=float("nan"), loss=float("nan"))
+                if log:
+                    log(f"parts start: {m} parts by colour at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
+                        + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {hb['why']}; not taken")
+                return out
+        taken = accept(prob, mat, total_fn, values, gain_parts, f(start), bound0, nest=nest)
+        out["forwards"] += 2
+        out.update(taken)
+        loss0, loss1 = taken["loss0"], taken["loss"]
+        if log:
+            es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
+            log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes"
+                f"{', stalled' if out['stalled'] else ''}); {'nested' if nest else 'on the bumps'} "
+                f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
+                f" (the parts' own gain {gain_parts:.5f})")
+        return out
 
 
 def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bound0=None, nest: bool = False) -> dict:
@@ -201,4 +249,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "PartsStart", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

@@ -642,6 +642,39 @@ class _Stalled(Exception):
     """part_refine's simplex stopped: its best probe did not improve for a while (`stall`)."""
 
 
+def _first_simplex(x0: np.ndarray, step: float, lo: float, hi: float) -> np.ndarray:
+    """`part_refine`'s first simplex: `x0` and one vertex `step` along each part (-`step` where + leaves [lo, hi])."""
+    n = len(x0)
+    return np.vstack([x0] + [np.clip(x0 + step * np.eye(n)[j] * (1 if x0[j] + step <= hi else -1), lo, hi)
+                             for j in range(n)])
+
+
+def _mirror(x0: np.ndarray, v: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """A vertex `v` mirrored through `x0` (the two-sided simplex's other side), within [lo, hi]."""
+    return np.clip(2 * x0 - v, lo, hi)
+
+
+def first_vertices(f: PartProbe, log_e: np.ndarray, step: float, lo: float, hi: float, two_sided: bool = False) -> list:
+    """The losses `part_refine` probes first from `log_e` (its start and its first simplex's vertices, each mirrored as
+    its `two_sided` rule does where the vertex renders no better than the start; not the `bracket` rule's parabola):
+    a screen of a simplex before it runs (fit/trend_start.starts_hook ranks the parts start against the trend start
+    by it). The same points, so a `part_refine` on the same probe afterwards takes them from its cache."""
+    x0 = np.clip(np.asarray(log_e, np.float64), lo, hi)
+    start = f(x0)
+    vals = [start]
+    if not math.isfinite(start):
+        return vals
+    simplex = _first_simplex(x0, step, lo, hi)
+    for j in range(len(x0)):
+        fp = f(simplex[j + 1])
+        vals.append(fp)
+        if two_sided and fp >= start:
+            other = _mirror(x0, simplex[j + 1], lo, hi)
+            if not np.allclose(other, x0):
+                vals.append(f(other))
+    return vals
+
+
 def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: int, step: float = math.log(1.25),
                 xtol: float = math.log(1.02), stall: tuple | None = None, two_sided: bool = False,
                 bracket: bool = False, stall_after_simplex: bool = False) -> dict:
@@ -674,8 +707,7 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
     out = {"log_e": x0, "loss": start, "probes": 0}
     if evals < n + 1 or not math.isfinite(start):
         return out
-    simplex = np.vstack([x0] + [np.clip(x0 + step * np.eye(n)[j] * (1 if x0[j] + step <= hi else -1), lo, hi)
-                                for j in range(n)])
+    simplex = _first_simplex(x0, step, lo, hi)
     if two_sided:
         drops: list = []       # per part bracketed on both sides: the drop its parabola predicts (None: not bracketed)
         moved = [False] * n    # ... and whether its vertex went to the parabola's
@@ -684,7 +716,7 @@ def part_refine(f: PartProbe, log_e: np.ndarray, lo: float, hi: float, evals: in
             fp = f(simplex[j + 1])
             drops.append(None)
             if fp >= start:
-                other = np.clip(2 * x0 - simplex[j + 1], lo, hi)
+                other = _mirror(x0, simplex[j + 1], lo, hi)
                 if np.allclose(other, x0):
                     continue
                 fm = f(other)

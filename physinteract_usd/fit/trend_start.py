@@ -111,85 +111,124 @@ def trend_start(prob, mat, s, trajs, eff, total_fn, probes: int, log=None) -> di
     axis when it renders better on held-back frames and lowers the total loss. `total_fn()`: the fit's total loss at
     the current field (a forward). Returns the parts start's kind of record: {"forwards", "used", "kind": "trend",
     "axis", "log_e" (the two ends), "loss0", "loss", "trend_gain", "heldback"}."""
-    from .select import PartProbe, heldback_test, part_refine, problem_holdout
+    return TrendStart(prob, mat, s, trajs, eff, probes, log).run(total_fn)
 
-    out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
-    sim = getattr(prob, "sim", None)
-    bound0 = getattr(sim, "e_bound", None)
-    x0 = np.asarray(prob.x0, np.float64)
-    free = ~np.asarray(prob.held_particles(), bool)
-    grav = getattr(getattr(prob.scene, "settings", None), "gravity", None)
-    axes = trend_axes(x0[free] if free.sum() >= 3 else x0, grav)
-    train, val = problem_holdout(prob, s)
-    if not axes or not val:
-        if log:
-            log("trend start: " + ("no axis" if not axes else "too few frames to hold any back") + "; not tried")
-        return out
-    with torch.no_grad():
-        le_now = mat.log_e().detach().cpu().numpy()
-        nu = mat.poisson().detach()
-    u = float(np.mean(le_now))
-    tr = [t.detach() for t in trajs] if trajs else None
-    # the simplex uncut on every device (the parts start cuts it on the CPU for the demo's time; the trend start is
-    # opt-in there): cut, it stopped at a 2% gain on the tiny graded bar (tests/test_trend_start_bar.py) and at a 2x
-    # trend on the CPU's balloon, where the GPU's uncut one found 5x
-    kw = refine_kwargs(2, probes, cheap=False)
-    step, evals = float(kw.pop("step")), int(kw.pop("evals"))
-    lo, hi = mat.lo + 1e-3, mat.hi - 1e-3
-    u0 = np.array([u, u])
-    screened: list = []
-    fs = [PartProbe(prob, train, None, nu, tr, eff, batch=s.select_sweep_batch, weights=trend_weights(x0, ax, free))
-          for ax in axes]
-    with kept_rung(prob):
-        for ax, f in zip(axes, fs):
-            # (the screens one probe at a time: as tiled copies in groups of one rung each, the paper row's trend start
-            # took 25.0 s against 22.1 alone, same lease, same stage: 21k-particle copies cost their sum; #26)
-            if screened:    # the uniform E is the same field on every axis: probed once (#26: 2 forwards of 3 axes')
-                f.remember(u0, screened[0][2](u0))
-            pts = [u0] + [np.clip(u0 + step * np.array(d), lo, hi) for d in screen_moves(f, u0, step, lo, hi)]
-            vals = [f(p) for p in pts]
-            i = int(np.argmin(vals))
-            screened.append((vals[i], pts[i], f, ax))
-    screened.sort(key=lambda r: r[0])
-    f0 = screened[0][2](u0)
-    rec = None
-    for rank, (v_screen, p_best, f, ax) in enumerate(screened[:TRIES]):
-        if not v_screen < f0:
-            break                                   # this axis' screen found nothing below the uniform E
-        with kept_rung(prob):
-            r = part_refine(f, p_best, lo, hi, evals, step, **kw)
-        w = trend_weights(x0, ax, free)
-        ends = np.asarray(r["log_e"], np.float64)
-        gain = f0 - float(r["loss"])
-        values = np.exp(w @ ends)
-        # the two fields on the held-back frames at one substep (the stiffer one's); one coefficient more (the slope)
-        hb = heldback_test(prob, s, np.full(len(values), math.exp(u)), values, 1, nu, tr, eff, val)
-        keep, why, p_sign = hb["keep"], hb["why"], hb["sign_p"]
-        rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
-                   trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values)
-        if log:
-            log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) (axis {rank + 1} of "
-                f"{len(axes)} by its screen) from {math.exp(ends[0]):.4g} to {math.exp(ends[1]):.4g} Pa (on "
-                f"{len(train)} frames, its gain {gain:.5f}); {why}" + ("" if keep else "; not taken"))
-        if keep:
-            break
-    n_probes = sum(g.forwards for _, _, g, _ in screened)
-    out.update(forwards=n_probes + 2 * (0 if rec is None else rec["rank"] + 1), axes=len(axes))
-    taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
-    if rec is not None:
-        out.update({k: v for k, v in rec.items() if k not in ("keep", "values")})
-        if rec["keep"]:
-            taken = accept(prob, mat, total_fn, rec["values"], rec["trend_gain"], f0, bound0, nest=True)
-            out["forwards"] += 2
+
+class TrendStart:
+    """The trend start in two steps (as `parts_start.PartsStart`): `screen()` screens every axis (the module doc) and
+    returns the best screened loss, `run(total_fn)` the best axes' simplex, the held-back test and the acceptance."""
+
+    def __init__(self, prob, mat, s, trajs, eff, probes: int, log=None):
+        from .select import PartProbe, problem_holdout
+
+        self.prob, self.mat, self.s, self.eff, self.probes, self.log = prob, mat, s, eff, probes, log
+        self.bound0 = getattr(getattr(prob, "sim", None), "e_bound", None)
+        self.x0 = np.asarray(prob.x0, np.float64)
+        self.free = ~np.asarray(prob.held_particles(), bool)
+        grav = getattr(getattr(prob.scene, "settings", None), "gravity", None)
+        self.axes = trend_axes(self.x0[self.free] if self.free.sum() >= 3 else self.x0, grav)
+        self.train, self.val = problem_holdout(prob, s)
+        self.ready = bool(self.axes and self.val)
+        self.screened: list | None = None
+        if not self.ready:
+            return
+        with torch.no_grad():
+            le_now = mat.log_e().detach().cpu().numpy()
+            self.nu = mat.poisson().detach()
+        self.u = float(np.mean(le_now))
+        self.tr = [t.detach() for t in trajs] if trajs else None
+        # the simplex uncut on every device (the parts start cuts it on the CPU for the demo's time; the trend start is
+        # opt-in there): cut, it stopped at a 2% gain on the tiny graded bar (tests/test_trend_start_bar.py) and at a 2x
+        # trend on the CPU's balloon, where the GPU's uncut one found 5x
+        kw = refine_kwargs(2, probes, cheap=False)
+        self.step, self.evals, self.kw = float(kw.pop("step")), int(kw.pop("evals")), kw
+        self.lo, self.hi = mat.lo + 1e-3, mat.hi - 1e-3
+        self.u0 = np.array([self.u, self.u])
+        self.fs = [PartProbe(prob, self.train, None, self.nu, self.tr, eff, batch=s.select_sweep_batch,
+                             weights=trend_weights(self.x0, ax, self.free)) for ax in self.axes]
+
+    def remember_uniform(self, value: float) -> None:
+        """The uniform field's loss on the training frames, probed elsewhere (the parts start's screen): not run again."""
+        if self.ready:
+            self.fs[0].remember(self.u0, value)
+
+    def screen(self) -> float:
+        """Every axis screened (`screen_moves`); the best screened loss (inf: nothing to screen)."""
+        if not self.ready:
+            return float("inf")
+        if self.screened is None:
+            screened: list = []
+            lo, hi, step, u0 = self.lo, self.hi, self.step, self.u0
+            with kept_rung(self.prob):
+                for ax, f in zip(self.axes, self.fs):
+                    # (the screens one probe at a time: as tiled copies in groups of one rung each, the paper row's trend
+                    # start took 25.0 s against 22.1 alone, same lease, same stage: 21k-particle copies cost their sum; #26)
+                    if screened:    # the uniform E is the same field on every axis: probed once (#26: 2 of 3 axes' forwards)
+                        f.remember(u0, screened[0][2](u0))
+                    pts = [u0] + [np.clip(u0 + step * np.array(d), lo, hi) for d in screen_moves(f, u0, step, lo, hi)]
+                    vals = [f(p) for p in pts]
+                    i = int(np.argmin(vals))
+                    screened.append((vals[i], pts[i], f, ax))
+            screened.sort(key=lambda r: r[0])
+            self.screened = screened
+        return float(self.screened[0][0])
+
+    @property
+    def forwards(self) -> int:
+        return sum(f.forwards for f in self.fs) if self.ready else 0
+
+    def run(self, total_fn) -> dict:
+        from .select import heldback_test, part_refine
+
+        prob, mat, s, log = self.prob, self.mat, self.s, self.log
+        out = {"forwards": 0, "used": False, "kind": "trend", "parts": 2}
+        if not self.ready:
             if log:
-                log(f"trend start: on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
-                    f"{'started there' if taken['used'] else 'not taken'}")
-    elif log:
-        log("trend start: no axis' screen renders better than the uniform E; not taken")
-    if not taken["used"]:
-        restore_rung(prob, bound0)
-    out.update(taken)
-    return out
+                log("trend start: " + ("no axis" if not self.axes else "too few frames to hold any back") + "; not tried")
+            return out
+        self.screen()
+        x0, free, u0, lo, hi, step = self.x0, self.free, self.u0, self.lo, self.hi, self.step
+        screened = self.screened
+        f0 = screened[0][2](u0)
+        rec = None
+        for rank, (v_screen, p_best, f, ax) in enumerate(screened[:TRIES]):
+            if not v_screen < f0:
+                break                                   # this axis' screen found nothing below the uniform E
+            with kept_rung(prob):
+                r = part_refine(f, p_best, lo, hi, self.evals, step, **self.kw)
+            w = trend_weights(x0, ax, free)
+            ends = np.asarray(r["log_e"], np.float64)
+            gain = f0 - float(r["loss"])
+            values = np.exp(w @ ends)
+            # the two fields on the held-back frames at one substep (the stiffer one's); one coefficient more (the slope)
+            hb = heldback_test(prob, s, np.full(len(values), math.exp(self.u)), values, 1, self.nu, self.tr, self.eff,
+                               self.val)
+            keep, why, p_sign = hb["keep"], hb["why"], hb["sign_p"]
+            rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
+                       trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values,
+                       screen_loss=float(v_screen))
+            if log:
+                log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) (axis {rank + 1} of "
+                    f"{len(self.axes)} by its screen) from {math.exp(ends[0]):.4g} to {math.exp(ends[1]):.4g} Pa (on "
+                    f"{len(self.train)} frames, its gain {gain:.5f}); {why}" + ("" if keep else "; not taken"))
+            if keep:
+                break
+        out.update(forwards=self.forwards + 2 * (0 if rec is None else rec["rank"] + 1), axes=len(self.axes))
+        taken = {"used": False, "loss0": float("nan"), "loss": float("nan")}
+        if rec is not None:
+            out.update({k: v for k, v in rec.items() if k not in ("keep", "values")})
+            if rec["keep"]:
+                taken = accept(prob, mat, total_fn, rec["values"], rec["trend_gain"], f0, self.bound0, nest=True)
+                out["forwards"] += 2
+                if log:
+                    log(f"trend start: on the bumps loss {taken['loss0']:.5f} -> {taken['loss']:.5f}: "
+                        f"{'started there' if taken['used'] else 'not taken'}")
+        elif log:
+            log("trend start: no axis' screen renders better than the uniform E; not taken")
+        if not taken["used"]:
+            restore_rung(prob, self.bound0)
+        out.update(taken)
+        return out
 
 
 def same_field_once(mat, total_fn):
@@ -212,28 +251,90 @@ def same_field_once(mat, total_fn):
     return total
 
 
-def starts_hook(parts: int, trend: int):
-    """`fit_bumps(before_finest=...)`: the parts start with at most `parts` probes (0: none), then, where it was not
-    taken, the trend start with at most `trend` (0: none). The record is the one taken (else the last tried), its
-    "forwards" both searches'; the fit keeps it as its model's "parts_start" (the key older versions wrote), "kind":
-    "trend" for the trend start's, with the parts start's own record under its "parts_start"."""
+STARTS_ORDERS = ("screened", "parts_first")
+
+
+def starts_hook(parts: int, trend: int, order: str = "parts_first"):
+    """`fit_bumps(before_finest=...)`: the parts start with at most `parts` probes (0: none) and the trend start with at
+    most `trend` (0: none), the second only where the first was not taken. `order` (`FitSettings.starts_order`):
+    "parts_first", the parts start (projected onto the bumps, or nested with `parts_nest`) then the trend start (the
+    29th session's); "screened", both screened first on the same training frames (the parts simplex's first vertices,
+    the trend's axis screens), the parts start nested (no projection onto the bumps: `parts_start` module doc), and the
+    one whose screen renders lower runs its simplex first (#24 / #26: the paper-size hemp_rope's refused parts simplex
+    was ~12 s of its fit, and a parts start refused for its projection let the trend start run by accident).
+    The record is the one taken (else the last tried), its "forwards" every probe's; the fit keeps it as its model's
+    "parts_start" (the key older versions wrote), "kind": "trend" for the trend start's, the other start's own record
+    under its "parts_start" / "trend_start", with "order" and "screens" where screened."""
+    if order not in STARTS_ORDERS:
+        raise ValueError(f"starts_order must be one of {', '.join(STARTS_ORDERS)}, not {order!r}")
+
+    def timed(start, total_fn):
+        t0 = time.perf_counter()
+        r = start.run(total_fn)
+        r["seconds"] = round(time.perf_counter() - t0, 3) + getattr(start, "screen_seconds", 0.0)
+        return r
+
     def hook(prob, mat, s, trajs, eff, total_fn, log=None):
+        from .parts_start import PartsStart
+
         total_fn = same_field_once(mat, total_fn)   # both starts' accept test the uniform start's loss: one forward
-        rec = {"forwards": 0, "used": False, "parts": 0}
-        if parts > 0:
-            t0 = time.perf_counter()
-            rec = parts_start(prob, mat, s, trajs, eff, total_fn, parts, log)
-            rec["seconds"] = round(time.perf_counter() - t0, 3)
-        if trend > 0 and not rec["used"]:
-            t0 = time.perf_counter()
-            t = trend_start(prob, mat, s, trajs, eff, total_fn, trend, log)
-            t["seconds"] = round(time.perf_counter() - t0, 3)
-            t["forwards"] += rec["forwards"]
+        if order == "parts_first" or parts <= 0 or trend <= 0:
+            rec = {"forwards": 0, "used": False, "parts": 0}
             if parts > 0:
-                t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
-            rec = t
+                rec = timed(PartsStart(prob, mat, s, trajs, eff, parts, log), total_fn)
+            if trend > 0 and not rec["used"]:
+                t = timed(TrendStart(prob, mat, s, trajs, eff, trend, log), total_fn)
+                t["forwards"] += rec["forwards"]
+                if parts > 0:
+                    t["parts_start"] = {k: v for k, v in rec.items() if k != "forwards"}
+                rec = t
+            return rec
+        starts = {"parts": PartsStart(prob, mat, s, trajs, eff, parts, log, nest=True),
+                  "trend": TrendStart(prob, mat, s, trajs, eff, trend, log)}
+        screens = {}
+        for name, st in starts.items():
+            t0 = time.perf_counter()
+            if name == "trend" and "parts" in screens and _same_uniform(starts["parts"], st):
+                st.remember_uniform(starts["parts"].f(starts["parts"].start))   # the same field, the same frames
+            screens[name] = st.screen()
+            st.screen_seconds = round(time.perf_counter() - t0, 3)
+        order_now = sorted((n for n in screens if math.isfinite(screens[n])), key=lambda n: (screens[n], n != "parts"))
+        if log:
+            log("starts: screened on the training frames, " + ", ".join(
+                f"{n} {screens[n]:.5f}" for n in starts) + (f"; {order_now[0]} first" if order_now else "; neither"))
+        tried: dict = {}
+        for name in order_now:
+            tried[name] = timed(starts[name], total_fn)
+            if tried[name]["used"]:
+                break
+        if not tried:
+            return {"forwards": sum(_screen_forwards(st) for st in starts.values()), "used": False, "parts": 0,
+                    "order": order_now, "screens": screens}
+        last = list(tried)[-1]
+        rec = tried[last]
+        rec["forwards"] = sum(r["forwards"] for r in tried.values()) + sum(
+            _screen_forwards(starts[n]) for n in starts if n not in tried)
+        for n, r in tried.items():
+            if n != last:
+                rec[f"{n}_start"] = {k: v for k, v in r.items() if k != "forwards"}
+        rec.update(order=order_now, screens=screens)
         return rec
     return hook
 
 
-__all__ = ["trend_start", "starts_hook", "same_field_once", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
+def _same_uniform(parts, trend) -> bool:
+    """Whether the parts start's start and the trend start's uniform are one field on the same frames (the field was
+    uniform, as it is after the uniform level: every part's mean log E is the trend's)."""
+    return (parts.ready and trend.ready and list(parts.frames) == list(trend.train)
+            and bool(np.all(np.abs(parts.start - trend.u) <= 1e-9)))
+
+
+def _screen_forwards(start) -> int:
+    """The forwards a start's screen ran (a start never run past its screen)."""
+    if not getattr(start, "ready", False):
+        return 0
+    f = getattr(start, "f", None)
+    return (len(f.cache) - getattr(f, "given", 0)) if f is not None else int(getattr(start, "forwards", 0))
+
+
+__all__ = ["trend_start", "TrendStart", "STARTS_ORDERS", "starts_hook", "same_field_once", "default_trend_probes", "TREND_START_CUDA", "screen_moves", "sign_test_p", "TRIES", "SIGN_P", "trend_axes", "trend_weights", "AXIS_APART", "MAX_AXES"]
