@@ -781,10 +781,15 @@ def build_simulation(scene: SceneData, contacts: list[ContactSet], n_frames: int
 
 def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
     """Compile the Warp modules a fit on ``device`` launches (the simulator's substep and hand-written
-    adjoints, the renderer) into Warp's kernel cache, two at a time, and return their names: what
-    `scripts/setup.sh` runs once after an install, so that the first fit on a fresh machine loads them
-    instead of compiling them (~20 s of CPU on the demo; docs/benchmarks/cpu.md, #26). The cache is
-    keyed by the kernels' source and options: a changed kernel compiles again at its first launch."""
+    adjoints, the renderer; on CUDA also the fused transfers and the per-frame graph kernels) into Warp's
+    kernel cache and return their names: what `scripts/setup.sh` runs once after an install, so that the
+    first fit on a fresh machine loads them instead of compiling them (~20 s of CPU on the demo,
+    docs/benchmarks/cpu.md; on a fresh H200 the first fit's clock was 59.8 s against 10.7 s once
+    compiled, docs/benchmarks/gpu.md; #26). Two at a time on the CPU (a 2-core box), all at once on CUDA
+    (the compiler's calls release the GIL). The cache is keyed by the kernels' source and options: a
+    changed kernel compiles again at its first launch."""
+    import os
+
     import warp as wp
 
     from .devices import quiet_warp_init
@@ -795,6 +800,13 @@ def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
     K = get_kernels(dtype)
     R = render_kernels(wp.float32 if dtype == "float32" else wp.float64)
     names = [K.modules.core, K.modules.adj, R.module]
+    workers = 2
+    if str(device).startswith("cuda"):
+        from .sim.frame_graphs import get_frame_kernels
+
+        get_frame_kernels(dtype)
+        names += [K.modules.cuda, f"physinteract_framegraph_{dtype}"]
+        workers = max(1, min(len(names), os.cpu_count() or 1))
     # (the two lanes' small module, sim/lanes.py, is opt-in: compiled at its first use, not here)
-    wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=2)
+    wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=workers)
     return names

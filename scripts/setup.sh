@@ -19,6 +19,11 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   # (~15 s of CPU, two modules at a time; a kernel changed later compiles at its first launch: #26)
   python -c "from physinteract_usd.simulation import warm_kernels; print('compiled the CPU kernels:', ', '.join(warm_kernels()))" \
     || echo "note: the CPU kernels were not compiled ahead; the first fit compiles them"
+  # and where Warp sees a CUDA GPU, the CUDA kernels too (a fresh H200's first fit: 59.8 s against 10.7 s; #26)
+  if python -c "import warp as wp; wp.config.quiet = True; wp.init(); raise SystemExit(0 if wp.is_cuda_available() else 1)" 2>/dev/null; then
+    python -c "from physinteract_usd.simulation import warm_kernels; print('compiled the CUDA kernels:', ', '.join(warm_kernels('cuda')))" \
+      || echo "note: the CUDA kernels were not compiled ahead; the first fit on the GPU compiles them"
+  fi
   touch "$stamp"
 fi
 # set up already: check that the packages are there without importing them (importing torch and warp

@@ -452,3 +452,42 @@ def test_a_nested_parts_start_is_judged_on_frames_its_simplex_did_not_see(monkey
 def test_a_nested_parts_start_the_held_back_frames_refuse_changes_nothing(monkeypatch):
     out, mat, _ = _run_nested(monkeypatch, keep=False, losses=[])          # no total loss is even asked for
     assert not out["used"] and mat.base is None and float(mat.theta.abs().max()) == 0.0
+
+
+def test_a_nested_parts_start_with_a_clear_drop_is_kept_on_few_lower_frames():
+    """`clear_drop`: the sign test (all 4 of a short clip's held-back frames) refused foam_bar's true parts on the H200
+    (3 of 4 lower, the held-back loss 45% lower); a drop of at least PARTS_CLEAR_DROP of the held-back loss that beats
+    the coefficients' price keeps them; a small one (balloon_dog's 6%) or one below the price does not."""
+    def hb(drop, loss0=0.012, penalty=3e-5, keep=False):
+        return {"keep": keep, "why": "w", "sign_p": 0.312, "rule": {"mean_drop": drop, "loss0": loss0, "penalty": penalty}}
+
+    assert ps.clear_drop(hb(0.45 * 0.012))[0] and "45%" in ps.clear_drop(hb(0.45 * 0.012))[1]
+    assert not ps.clear_drop(hb(0.06 * 0.012))[0]
+    assert not ps.clear_drop(hb(0.5 * 0.012, penalty=0.007))[0]            # beyond the share, not the price
+    assert ps.clear_drop(hb(0.0, keep=True))[0]                            # the test's own keep stands
+    assert not ps.clear_drop({"keep": False, "why": "w", "sign_p": 1.0, "rule": {}})[0]
+
+
+def test_the_clear_drop_keeps_a_nested_parts_start_through_the_start(monkeypatch):
+    sim = _Sim()
+    prob = types.SimpleNamespace(sim=sim, T=12, tdtype=torch.float64, tdev="cpu", contacts=[])
+    labels = np.array([0, 0, 0, 1, 1, 1])
+    monkeypatch.setattr(select, "part_candidates", lambda *a: [{"kind": "appearance", "parts": 2, "labels": labels}])
+
+    class Probe:
+        def __init__(self, *a, **k):
+            self.cache = {}
+
+        def __call__(self, x):
+            return 0.02
+
+    monkeypatch.setattr(select, "PartProbe", Probe)
+    monkeypatch.setattr(select, "part_refine", lambda *a, **k: {"log_e": [np.log(3e4), np.log(8e3)], "loss": 0.01})
+    monkeypatch.setattr(select, "heldback_test", lambda *a: {
+        "keep": False, "why": "lower on 3 of 4", "sign_p": 0.312,
+        "rule": {"keep_field": True, "mean_drop": 0.0054, "loss0": 0.012, "penalty": 2.4e-5}})
+    it = iter([0.010, 0.004])
+    mat = _NestMat()
+    s = types.SimpleNamespace(select_sweep_batch=1, parts_nest=True, select_holdout_every=3)
+    out = ps.parts_start(prob, mat, s, None, None, lambda: next(it), 20)
+    assert out["used"] and "45%" in out["heldback"] and mat.base is not None

@@ -45,6 +45,13 @@ import torch
 from ..errors import SimulationError
 from .substep import kept_rung
 
+PARTS_CLEAR_DROP = 0.25   # a nested parts start (`clear_drop`) is kept where its held-back drop is at least this share of the
+                          # held-back loss, though lower on too few of a short clip's held-back frames for the sign test
+                          # (all 4 of 4 at p <= 1/8): on the H200 suite (2026-11-29, development data) the sign rule refused
+                          # foam_bar's parts (3 of 4 lower, 45% drop; MA 0.94 -> 0.37) and bow_tie's (2 of 4, 57%; 0.79 ->
+                          # 0.57), and kept it off balloon_dog's (3 of 4, 6%). Parts only: a trend is the best of up to 3
+                          # axes' searches, the parts one candidate fixed by the colours, and the sign rule is what
+                          # refused balloon's wrong first axis (3 of 4 lower, 40% drop) for its right second one
 KEEP_SHARE = 0.5   # the bumps must keep this share of the parts' gain: where their projection loses most of it
                    # (balloon_dog at grid 16 on the CPU: 4 parts 0.0301 -> 0.0142, on 8 bumps 0.0298), the basis
                    # cannot hold the parts and the start is a distorted one (it cost that fit MA 0.54 -> 0.24)
@@ -183,13 +190,14 @@ class PartsStart:
         nest, frames = self.nest, self.frames
         if nest and self.val:
             hb = heldback_test(prob, s, np.exp(self.le_now), values, m - 1, self.nu, self.tr, self.eff, self.val)
-            out.update(heldback=hb["why"], sign_p=hb["sign_p"], forwards=out["forwards"] + 2, nested=True)
-            if not hb["keep"]:
+            keep, why = clear_drop(hb)
+            out.update(heldback=why, sign_p=hb["sign_p"], forwards=out["forwards"] + 2, nested=True)
+            if not keep:
                 restore_rung(prob, bound0)
                 out.update(used=False, loss0=float("nan"), loss=float("nan"))
                 if log:
                     log(f"parts start: {m} parts by colour at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-                        + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {hb['why']}; not taken")
+                        + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {why}; not taken")
                 return out
         taken = accept(prob, mat, total_fn, values, gain_parts, f(start), bound0, nest=nest)
         out["forwards"] += 2
@@ -202,6 +210,19 @@ class PartsStart:
                 f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
                 f" (the parts' own gain {gain_parts:.5f})")
         return out
+
+
+def clear_drop(hb: dict) -> tuple[bool, str]:
+    """A nested parts start's held-back verdict from `select.heldback_test`'s record: kept where the test keeps it, or
+    where its field's mean drop beats the price of its coefficients and is at least PARTS_CLEAR_DROP of the held-back
+    loss, however many of the (few) frames it is lower on. Returns (keep, why)."""
+    rule = hb.get("rule") or {}
+    drop, loss0 = rule.get("mean_drop"), rule.get("loss0")
+    if hb["keep"] or drop is None or not loss0 or not math.isfinite(float(drop)):
+        return bool(hb["keep"]), hb["why"]
+    clear = bool(drop > rule.get("penalty", 0.0) and drop >= PARTS_CLEAR_DROP * loss0)
+    share = drop / loss0
+    return clear, hb["why"] + (f"; but {share:.0%} of the held-back loss >= {PARTS_CLEAR_DROP:.0%}: kept" if clear else "")
 
 
 def accept(prob, mat, total_fn, values: np.ndarray, gain: float, ref: float, bound0=None, nest: bool = False) -> dict:
@@ -249,4 +270,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "PartsStart", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "PartsStart", "clear_drop", "PARTS_CLEAR_DROP", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]

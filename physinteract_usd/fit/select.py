@@ -1052,7 +1052,7 @@ def heldback_test(prob: FitProblem, s: FitSettings, E0, E1, added: int, nu, traj
 
 def select_rule(uniform_val: list[float], field_val: list[float], added: int, s: FitSettings) -> dict:
     """The held-back test (module doc, 4.): {"keep_field", "mean_drop", "penalty", "better_frames",
-    "why"}."""
+    "why", "loss0" (the simpler model's mean held-back loss)}."""
     u, f = np.asarray(uniform_val, float), np.asarray(field_val, float)
     if not len(u):
         return {"keep_field": False, "why": "no held-back frames (fewer than 6 frames): the simpler model"}
@@ -1064,7 +1064,8 @@ def select_rule(uniform_val: list[float], field_val: list[float], added: int, s:
     why = (f"held-back loss {u.mean():.5f} -> {f.mean():.5f}: mean drop {mean:.2e} "
            f"{'>' if mean > penalty else '<='} the price of {added} more coefficients {penalty:.2e}; lower on "
            f"{better} of {len(d)} held-back frames")
-    return {"keep_field": keep, "mean_drop": mean, "penalty": penalty, "better_frames": better, "why": why}
+    return {"keep_field": keep, "mean_drop": mean, "penalty": penalty, "better_frames": better, "why": why,
+            "loss0": float(u.mean())}
 
 
 def fit_select(prob: FitProblem, s: FitSettings, *, progress: bool = True, log=None, start: dict | None = None,
