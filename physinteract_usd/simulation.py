@@ -800,13 +800,20 @@ def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
     K = get_kernels(dtype)
     R = render_kernels(wp.float32 if dtype == "float32" else wp.float64)
     names = [K.modules.core, K.modules.adj, R.module]
-    workers = 2
-    if str(device).startswith("cuda"):
-        from .sim.frame_graphs import get_frame_kernels
+    if not str(device).startswith("cuda"):
+        # (the two lanes' small module, sim/lanes.py, is opt-in: compiled at its first use, not here)
+        wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=2)
+        return names
+    from .sim.frame_graphs import get_frame_kernels
+    from .sim.solver import BLOCK_DIM
 
-        get_frame_kernels(dtype)
-        names += [K.modules.cuda, f"physinteract_framegraph_{dtype}"]
-        workers = max(1, min(len(names), os.cpu_count() or 1))
-    # (the two lanes' small module, sim/lanes.py, is opt-in: compiled at its first use, not here)
-    wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=workers)
-    return names
+    get_frame_kernels(dtype)
+    sim = [K.modules.core, K.modules.adj, K.modules.cuda, f"physinteract_framegraph_{dtype}"]
+    # the simulator's launches on CUDA run BLOCK_DIM threads per block, and each block size is its own variant of a
+    # module: compiled at Warp's default (256) they were of no use to the fit (a fresh H200, 2026-11-29: the first
+    # fit after such a warm-up still took 38-39 s of fit clock against 10 s); the renderer at the default
+    workers = max(1, min(len(sim) + 1, os.cpu_count() or 1))
+    wp.force_load(device=device, modules=[wp.get_module(n) for n in sim], block_dim=int(BLOCK_DIM or 256),
+                  max_workers=workers)
+    wp.force_load(device=device, modules=[wp.get_module(R.module)], max_workers=1)
+    return sim + [R.module]
