@@ -135,8 +135,8 @@ class FitSettings:
                                         # frames, kept only if its field beats the uniform E on the held-back ones (one
                                         # coefficient per part more, and a sign test), then the fixed base of a nested
                                         # field (exact: no projection onto the bumps, which leaks a part near the range's
-                                        # top into its neighbours). Opt-in (30th session: not measured on the suite)
-    trend_start: int | None = None      # schedule bumps (through fit.fit): where the parts start was not taken, the finest level
+                                        # top into its neighbours). Opt-in for starts_order "parts_first"; always so in "screened" (the default)
+    trend_start: int | None = None      # schedule bumps (through fit.fit): (ordered with the parts start by starts_order) the finest level
                                         # starts from a log-linear trend of E along one of the object's axes (gravity's,
                                         # principal ones) when it beats the uniform E on held-back frames, its two ends
                                         # found by at most this many probes after a 4-6-probe screen per axis

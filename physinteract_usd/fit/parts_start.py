@@ -32,7 +32,10 @@ coefficient per part more, and the sign test: `select.heldback_test`), then the 
 Why: the projection onto the bumps is a least-squares fit in the field's logit, where a part the simplex pushed to the
 range's top (the paper-size hemp_rope's 5.994e4 of [1e3, 6e4]) has a logit of ~8.3 that leaks into its neighbours
 (a synthetic rope on 8 bumps: soft neighbours of such a part at 5.2e4, 6.4x their 8,227 Pa; at 4e4, 1.9e4); such
-a start is refused for its projection, not for what the parts render. Not measured on the suite yet.
+a start is refused for its projection, not for what the parts render. Opt-in in the "parts_first" order; in the
+default "screened" order (`trend_start.starts_hook`, 31st session) the parts start is always nested, and kept also
+where its held-back drop is clear though a short clip has too few frames for the sign test (`clear_drop`; the H200
+suite: foam_bar 0.37 -> 0.975, bow_tie 0.57 -> 0.951; docs/benchmarks/fit.md, top).
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ balloon: uniform optimum 3.1e4 Pa against 3.75e4 / 7.5e3 at its ends). From ther
 finer grid all stayed in that basin (soft end 2.5-3.1x), while the truth's own field renders better (0.0087 against
 0.0100). The parts start (`parts_start.py`) cannot help: such an object has one colour.
 
-What: before the finest level, when the parts start was not taken, a field whose log E runs linearly from one end of
+What: before the finest level (ordered with the parts start by their screens: `starts_hook`), a field whose log E runs linearly from one end of
 the object to the other, log E = (1 - t) a + t b with t in [0, 1] the particle's place along the axis (free particles'
 extent), is searched along each candidate axis: gravity's and the free particles' principal axes more than
 AXIS_APART off the ones before (at most 3). The search sees the training frames only (`select.holdout_frames`, as the
