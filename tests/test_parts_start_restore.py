@@ -409,7 +409,7 @@ class _NestMat(_Mat):
         self.theta = torch.zeros(8, requires_grad=True)
 
 
-def _run_nested(monkeypatch, keep, losses):
+def _run_nested(monkeypatch, keep, losses, rule=None):
     """The parts start with `parts_nest` (opt-in): its simplex on the training frames, the held-back test deciding."""
     sim = _Sim()
     prob = types.SimpleNamespace(sim=sim, T=12, tdtype=torch.float64, tdev="cpu", contacts=[])
@@ -426,7 +426,7 @@ def _run_nested(monkeypatch, keep, losses):
 
     def held(prob_, s, E0, E1, added, *a):
         seen["held"] = (np.array(E1, copy=True), added, list(a[-1]))
-        return {"keep": keep, "why": "test", "sign_p": 0.06 if keep else 0.5, "rule": {}}
+        return {"keep": keep, "why": "test", "sign_p": 0.06 if keep else 0.5, "rule": rule or {}}
 
     monkeypatch.setattr(select, "PartProbe", Probe)
     monkeypatch.setattr(select, "part_refine", lambda *a, **k: {"log_e": [np.log(3e4), np.log(8e3)], "loss": 0.01})
@@ -469,25 +469,6 @@ def test_a_nested_parts_start_with_a_clear_drop_is_kept_on_few_lower_frames():
 
 
 def test_the_clear_drop_keeps_a_nested_parts_start_through_the_start(monkeypatch):
-    sim = _Sim()
-    prob = types.SimpleNamespace(sim=sim, T=12, tdtype=torch.float64, tdev="cpu", contacts=[])
-    labels = np.array([0, 0, 0, 1, 1, 1])
-    monkeypatch.setattr(select, "part_candidates", lambda *a: [{"kind": "appearance", "parts": 2, "labels": labels}])
-
-    class Probe:
-        def __init__(self, *a, **k):
-            self.cache = {}
-
-        def __call__(self, x):
-            return 0.02
-
-    monkeypatch.setattr(select, "PartProbe", Probe)
-    monkeypatch.setattr(select, "part_refine", lambda *a, **k: {"log_e": [np.log(3e4), np.log(8e3)], "loss": 0.01})
-    monkeypatch.setattr(select, "heldback_test", lambda *a: {
-        "keep": False, "why": "lower on 3 of 4", "sign_p": 0.312,
-        "rule": {"keep_field": True, "mean_drop": 0.0054, "loss0": 0.012, "penalty": 2.4e-5}})
-    it = iter([0.010, 0.004])
-    mat = _NestMat()
-    s = types.SimpleNamespace(select_sweep_batch=1, parts_nest=True, select_holdout_every=3)
-    out = ps.parts_start(prob, mat, s, None, None, lambda: next(it), 20)
+    out, mat, _ = _run_nested(monkeypatch, keep=False, losses=[0.010, 0.004],
+                              rule={"keep_field": True, "mean_drop": 0.0054, "loss0": 0.012, "penalty": 2.4e-5})
     assert out["used"] and "45%" in out["heldback"] and mat.base is not None
