@@ -20,7 +20,7 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   python -c "from physinteract_usd.simulation import warm_kernels; print('compiled the CPU kernels:', ', '.join(warm_kernels()))" \
     || echo "note: the CPU kernels were not compiled ahead; the first fit compiles them"
   # and where Warp sees a CUDA GPU, the CUDA kernels too (a fresh H200's first fit: 59.8 s against 10.7 s; #26)
-  if python -c "import warp as wp; wp.config.quiet = True; wp.init(); raise SystemExit(0 if wp.is_cuda_available() else 1)" 2>/dev/null; then
+  if python -c "import warp as wp; wp.config.quiet = True; wp.init(); raise SystemExit(0 if wp.is_cuda_available() else 1)" >/dev/null 2>&1; then
     python -c "from physinteract_usd.simulation import warm_kernels; print('compiled the CUDA kernels:', ', '.join(warm_kernels('cuda')))" \
       || echo "note: the CUDA kernels were not compiled ahead; the first fit on the GPU compiles them"
   fi
