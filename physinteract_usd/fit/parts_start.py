@@ -120,14 +120,14 @@ class PartsStart:
     """The parts start in two steps, so that `trend_start.starts_hook` can rank it against the trend start before
     either's simplex runs (#24/#26): `screen()` probes the simplex's first vertices (each part x2, or / 2 where x2 renders
     no better: `select.first_vertices`, the very points `part_refine` probes first, so its simplex takes them from the
-    probe's cache), `run(total_fn)` the rest (`parts_start`)."""
+    probe's cache) and each part's contrast, `run(total_fn)` the rest (`parts_start`)."""
 
     def __init__(self, prob, mat, s, trajs, eff, probes: int, log=None, refine=None, nest: bool | None = None):
         from .select import PartProbe, part_candidates, problem_holdout
 
-        self.prob, self.mat, self.s, self.eff, self.probes, self.log, self.refine = prob, mat, s, eff, probes, log, refine
-        self.sim = getattr(prob, "sim", None)
-        self.bound0 = getattr(self.sim, "e_bound", None)   # the adaptive substep's rung before the probes (restored if not taken)
+        self.prob, self.mat, self.s, self.eff, self.log = prob, mat, s, eff, log
+        self.bound0 = getattr(getattr(prob, "sim", None), "e_bound", None)   # the adaptive substep's rung before the probes
+                                                                              # (restored if not taken)
         cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
         self.ready = bool(cands)
         self.screened = None

@@ -121,7 +121,7 @@ class TrendStart:
     def __init__(self, prob, mat, s, trajs, eff, probes: int, log=None):
         from .select import PartProbe, problem_holdout
 
-        self.prob, self.mat, self.s, self.eff, self.probes, self.log = prob, mat, s, eff, probes, log
+        self.prob, self.mat, self.s, self.eff, self.log = prob, mat, s, eff, log
         self.bound0 = getattr(getattr(prob, "sim", None), "e_bound", None)
         self.x0 = np.asarray(prob.x0, np.float64)
         self.free = ~np.asarray(prob.held_particles(), bool)
@@ -187,7 +187,7 @@ class TrendStart:
                 log("trend start: " + ("no axis" if not self.axes else "too few frames to hold any back") + "; not tried")
             return out
         self.screen()
-        x0, free, u0, lo, hi, step = self.x0, self.free, self.u0, self.lo, self.hi, self.step
+        u0, lo, hi, step = self.u0, self.lo, self.hi, self.step
         screened = self.screened
         f0 = screened[0][2](u0)
         rec = None
@@ -196,7 +196,7 @@ class TrendStart:
                 break                                   # this axis' screen found nothing below the uniform E
             with kept_rung(prob):
                 r = part_refine(f, p_best, lo, hi, self.evals, step, **self.kw)
-            w = trend_weights(x0, ax, free)
+            w = f.weights                           # the axis' weights its probe was built with
             ends = np.asarray(r["log_e"], np.float64)
             gain = f0 - float(r["loss"])
             values = np.exp(w @ ends)
