@@ -58,3 +58,32 @@ def test_frame_graph_warm_key_holds_the_block_dim():
     k256 = ro._warm_key("forward")
     ro.solver.block_dim = 64
     assert ro._warm_key("forward") != k256
+
+
+def test_every_simulator_launch_carries_one_block_dim(monkeypatch):
+    """The set-up's CUDA warm-up compiles the simulator's modules at one block size (`launch_block_dim`); a launch
+    at another size compiles a whole module again (a fresh H200's first fit after the warm-up still compiled the core
+    module and the frame graphs' at 256, 14.5 s, 2026-11-29). A forward and backward through the frame-shape
+    graphs' path, the rest state included: every launch from the simulator's files carries the same size."""
+    from physinteract_usd.sim import rollout as rollout_mod
+
+    m, ctrl, pts, eff, trajs = _scene()
+    monkeypatch.setattr(rollout_mod, "FRAME_GRAPHS", True)
+    monkeypatch.setattr(solver_mod, "launch_block_dim", lambda device: 64)
+    ro = Rollout(m, ctrl, graphs=False)
+    assert ro.frame_graphs and ro.solver.block_dim == 64
+    seen = {}
+    launch = wp.launch
+
+    def rec(*a, **k):
+        f = sys._getframe(1).f_code.co_filename
+        if f.endswith(("solver.py", "rollout.py", "state.py")):
+            seen.setdefault(f.rsplit("/", 1)[-1], []).append(k.get("block_dim"))
+            k["block_dim"] = 256
+        return launch(*a, **k)
+
+    monkeypatch.setattr(wp, "launch", rec)
+    _loss_and_grads(ro, pts, eff, trajs)
+    assert {"solver.py", "rollout.py", "state.py"} <= set(seen), sorted(seen)
+    for name, dims in seen.items():
+        assert set(dims) == {64}, (name, sorted(set(map(str, dims))))

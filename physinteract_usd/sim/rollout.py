@@ -324,8 +324,10 @@ class Rollout:
         K = sol.K
         d = self.model.device
         carry, other = self._adj
-        wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False)
-        wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False)
+        wp.launch(K.add_vec3, self.P, [carry.x, self.grad_x[k + 1]], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
+        wp.launch(K.add_mat33, self.P, [carry.F, self.grad_F[k + 1]], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
         for s in reversed(range(self.S)):
             sol.step_adjoint(st[s], st[s + 1], other, carry, k, s, self.adj_params, self.adj_ctrl, clear_adj_in=True,
                              save=None if tape is None else tape[s])
@@ -504,7 +506,7 @@ class Rollout:
         c = self.ctrl
         wp.launch(fw.FK.frame_begin, 1, [fw.ctr, c.pin_active, c.pin_pos, c.col_active, c.col_pos, self.status],
                   [fw.ctrl.pin_active, fw.ctrl.pin_pos, fw.ctrl.col_active, fw.ctrl.col_pos, fw.status],
-                  device=d, record_tape=False)
+                  device=d, record_tape=False, block_dim=self.solver.block_dim)
 
     def _ck_arrays(self):
         return [self.ck.w[f] for f in SimState.FIELDS]
@@ -518,38 +520,41 @@ class Rollout:
         fw, sol, d = self._windows(), self.solver, self.model.device
         a, b = self._pp
         wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(a), device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
         self._begin(fw, d)
         for s in range(self.S):
             sol.step(a, b, 0, s, ctrl=fw.ctrl)
             a, b = b, a
         sol.check(a, 0, fw.status)
         wp.launch(fw.FK.state_to_rows, self.P, [fw.ctr, 1] + self._fields(a), self._ck_arrays(), device=d,
-                  record_tape=False)
-        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
+        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
 
     def _sf_forward_stored(self) -> None:
         fw, sol, d = self._window_states(), self.solver, self.model.device
         st = fw.st
         wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(st[0]), device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
         self._begin(fw, d)
         for s in range(self.S):
             sol.step(st[s], st[s + 1], 0, s, ctrl=fw.ctrl)
         sol.check(st[self.S], 0, fw.status)
         wp.launch(fw.FK.state_to_rows, self.P, [fw.ctr, 1] + self._fields(st[self.S]), self._ck_arrays(), device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
         self._window_to_arena(fw, d)
-        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False)
+        wp.launch(fw.FK.frame_end, 1, [fw.ctr, 1, fw.status], [self.status], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
 
     def _window_to_arena(self, fw, d) -> None:
         wp.launch(fw.FK.window_to_arena, (self.S + 1, self.P), [fw.ctr] + [fw.states.w[f] for f in SimState.FIELDS],
-                  [self._arena[f] for f in SimState.FIELDS], device=d, record_tape=False)
+                  [self._arena[f] for f in SimState.FIELDS], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
 
     def _sf_replay_into_window(self, fw, d) -> None:
         st = fw.st
         wp.launch(fw.FK.rows_to_state, self.P, [fw.ctr, 0] + self._ck_arrays(), self._fields(st[0]), device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
         self._begin(fw, d)
         for s in range(self.S - 1):
             self.solver.step(st[s], st[s + 1], 0, s, ctrl=fw.ctrl)
@@ -567,12 +572,14 @@ class Rollout:
         c, ac = self.ctrl, self.adj_ctrl
         wp.launch(fw.FK.frame_begin, 1, [fw.ctr, c.pin_active, c.pin_pos, c.col_active, c.col_pos, self.status],
                   [fw.ctrl.pin_active, fw.ctrl.pin_pos, fw.ctrl.col_active, fw.ctrl.col_pos, fw.status],
-                  device=d, record_tape=False)
+                  device=d, record_tape=False, block_dim=self.solver.block_dim)
         wp.launch(fw.FK.adj_begin, 1, [fw.ctr, ac.pin_pos, ac.col_pos], [fw.adj.pin_pos, fw.adj.col_pos], device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
         carry, other = self._adj
-        wp.launch(fw.FK.add_row_vec3, self.P, [fw.ctr, 1, self.grad_x, carry.x], device=d, record_tape=False)
-        wp.launch(fw.FK.add_row_mat33, self.P, [fw.ctr, 1, self.grad_F, carry.F], device=d, record_tape=False)
+        wp.launch(fw.FK.add_row_vec3, self.P, [fw.ctr, 1, self.grad_x, carry.x], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
+        wp.launch(fw.FK.add_row_mat33, self.P, [fw.ctr, 1, self.grad_F, carry.F], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
         for s in reversed(range(self.S)):
             sol.step_adjoint(st[s], st[s + 1], other, carry, 0, s, self.adj_params, fw.adj, ctrl=fw.ctrl,
                              clear_adj_in=True)
@@ -580,12 +587,13 @@ class Rollout:
         if carry is not self._adj[0]:
             self._adj[0].assign(carry)
         wp.launch(fw.FK.adj_end, 1, [fw.ctr, -1, fw.adj.pin_pos, fw.adj.col_pos], [ac.pin_pos, ac.col_pos], device=d,
-                  record_tape=False)
+                  record_tape=False, block_dim=self.solver.block_dim)
 
     def _sf_adjoint_stored(self) -> None:
         fw, d = self._window_states(), self.model.device
         wp.launch(fw.FK.arena_to_window, (self.S + 1, self.P), [fw.ctr] + [self._arena[f] for f in SimState.FIELDS],
-                  [fw.states.w[f] for f in SimState.FIELDS], device=d, record_tape=False)
+                  [fw.states.w[f] for f in SimState.FIELDS], device=d, record_tape=False,
+                  block_dim=self.solver.block_dim)
         self._sf_adjoint(fw, d)
 
     def _sf_backward(self) -> None:

@@ -69,6 +69,14 @@ BLOCK_DIM: int | None = int(os.environ["PHYSINTERACT_SIM_BLOCK_DIM"]) if os.envi
     else 64
 
 
+def launch_block_dim(device) -> int:
+    """Threads per block of every launch of the simulator's modules on ``device`` (BLOCK_DIM on CUDA, Warp's
+    default 256 elsewhere). One value for all of them: each block size is its own compiled variant of a module, and
+    the set-up's CUDA warm-up (`simulation.warm_kernels`) compiles this one (a launch at another size compiled the
+    whole module again in a fresh machine's first fit, 14.5 s on an H200, 2026-11-29)."""
+    return int(BLOCK_DIM) if (BLOCK_DIM and wp.get_device(device).is_cuda) else 256
+
+
 class SimParams:
     """The differentiable inputs of the kernels: per-particle E, nu and the effect parameter vector."""
 
@@ -122,7 +130,7 @@ class MPMSolver:
         d = model.device
         self.device = d
         # threads per block of every launch (BLOCK_DIM on CUDA; Warp's default 256 otherwise: the same kernels)
-        self.block_dim = int(BLOCK_DIM) if (BLOCK_DIM and wp.get_device(d).is_cuda) else 256
+        self.block_dim = launch_block_dim(d)
         self.res = tuple(g.resolution)
         self.lo = K.vec3(*g.lower)
         self.inv_dx = 1.0 / g.dx

@@ -50,8 +50,10 @@ class SimState:
         else:
             v0a = wp.array(np.broadcast_to(np.asarray(v0, dtype=model.np_dtype), (model.n_particles, 3)).copy(),
                            dtype=K.vec3, device=model.device)
+        from .solver import launch_block_dim
+
         wp.launch(K.set_rest, model.n_particles, [dev["x0"], v0a], [self.x, self.v, self.C, self.F, self.Fv],
-                  device=model.device)
+                  device=model.device, block_dim=launch_block_dim(model.device))
 
     def assign(self, other: "SimState") -> None:
         for f in self.FIELDS:
