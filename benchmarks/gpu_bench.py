@@ -141,6 +141,7 @@ def fit_case(tag, out, deadline, *, capture, stage, init_args, fit_limit, iterat
     row["status"] = fj.get("status") or (f"rc {rc}" if rc is not None else "not run")
     row["fit_runtime_s"] = fj.get("runtime_s")
     row["phases_s"] = fj.get("phases_s")      # where the fit's time went (fit --json, #26)
+    row["iteration_s"] = fj.get("iteration_s")  # each gradient iteration's seconds
     rc, _ = run(f"{tag}_eval", [py, "-m", "physinteract_usd", "evaluate", stage, "--gt", f"{capture}/gt",
                                 "--device", DEVICE, "--json"], out, 60, deadline)
     ev = last_json(out / f"{tag}_eval.log") or {}
@@ -162,6 +163,8 @@ def main(argv=None):
                     help="the batch step also runs B=4 with per-copy renders (batch_fits.py --per-copy-renders)")
     ap.add_argument("--batch-args", default="", help="more arguments for batch_fits.py (e.g. '--grid 12 "
                                                      "--iterations 2' for a CPU smoke test)")
+    ap.add_argument("--gsplat-limit", type=float, default=150.0,
+                    help="seconds for gsplat's probe (a fresh machine builds its CUDA extension first: >90 s once)")
     ap.add_argument("--batch-limit", type=float, default=200.0, help="seconds for the batch step at most")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -190,7 +193,7 @@ def main(argv=None):
             run(f"probe_mpm_{P}", [py, probes / "mpm_probe.py", "cuda", P, n, 100], out, 60, dl)
             lg = out / f"probe_mpm_{P}.log"
             R[f"probe_{P}"] = (grab(lg, r"graph: forward ([\d.]+) us"), grab(lg, r"forward\+backward ([\d.]+) us/substep"))
-        run("probe_gsplat", [py, probes / "gsplat_probe.py", 15000, 512], out, 90, dl)
+        run("probe_gsplat", [py, probes / "gsplat_probe.py", 15000, 512], out, a.gsplat_limit, dl)
         R["gsplat"] = grab(out / "probe_gsplat.log", r"median ([\d.]+) ms")
     if "sim" not in skip:
         run("bench_sim", [py, "benchmarks/bench_sim.py", "--device", "cuda", "--sizes", "2000:32", "15000:100",
@@ -291,6 +294,9 @@ def main(argv=None):
                          + "; around it " + ", ".join(f"{k} {v:.1f}" for k, v in ph.items()
                                                       if k in ("prepare", "problem", "notes", "write"))
                          + f"; the CLI's wall {f(r.get('fit_s'))} s")
+        if r.get("iteration_s"):
+            lines.append(f"fit ({r['case']}) gradient iterations, s each: "
+                         + " ".join(f"{v:.2f}" for v in r["iteration_s"]))
     lines.append("")
     lines.append(f"total wall time {time.monotonic() - T0:.0f} s; raw logs in {out}/")
     table = "\n".join(lines)

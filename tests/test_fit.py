@@ -311,6 +311,9 @@ def test_no_joint_leaves_the_trajectory_at_t0(scene, tmp_path, monkeypatch, caps
     assert set(inner + ("prepare", "problem", "notes", "write")) <= set(ph) and min(ph.values()) >= 0
     assert ph["confidence"] > 0 and ph["iterations"] > 0
     assert sum(ph[k] for k in inner) == pytest.approx(summary["runtime_s"], rel=0.05, abs=0.2)
+    # each gradient iteration's seconds: as many as the iterations the fit ran, within its iterations phase
+    its = summary["iteration_s"]
+    assert len(its) == summary["iterations"] and min(its) > 0 and sum(its) <= ph["iterations"] + 0.01
     sd = read_stage(stage)
     tr = {t.stage: t.positions for t in sd.trajectories}
     np.testing.assert_array_equal(tr["fitted"], tr["initial"])

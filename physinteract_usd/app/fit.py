@@ -94,6 +94,7 @@ class FitOutcome:
                 "iterations": len(r.loss_history),
                 "final_loss": r.final_loss, "runtime_s": r.runtime_s, "device": r.device,
                 "phases_s": {**self.phases, **((r.model or {}).get("phases_s") or {})},
+                "iteration_s": (r.model or {}).get("iteration_s"),
                 "interrupted": r.interrupted,
                 "psnr": float(np.mean([min(f["psnr"], 100) for f in fm])),
                 "psnr_masked": float(np.nanmean([min(f["psnr_masked"], 100) for f in fm])),

@@ -455,6 +455,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     interrupted = False
     gn_log: list = []
     parts_log: list = []
+    iter_s: list = []          # each gradient iteration's seconds (model["iteration_s"]: where a slow one is, #26)
 
     def snapshot(loss_value, sim=None):
         best.update(loss=loss_value, sim=sim, theta=mat.theta.detach().clone(), w_nu=mat.w_nu.detach().clone(),
@@ -556,6 +557,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 scale = lr_scale(j, n_it, tail)
                 for g, b0 in zip(opt.param_groups, base):
                     g["lr"] = b0 * scale
+                t_it = time.perf_counter()
                 opt.zero_grad(set_to_none=True)
                 E = mat.youngs()
                 nu = mat.poisson()
@@ -581,6 +583,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
                 total.backward()
                 clean_gradients(opt, trajs)
                 opt.step()
+                iter_s.append(round(time.perf_counter() - t_it, 3))
                 it += 1
                 if bar is not None:
                     with torch.no_grad():
@@ -646,6 +649,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     clock.add("confidence", time.perf_counter() - t_conf)
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
     model["phases_s"] = dict(clock.seconds)
+    model["iteration_s"] = iter_s
     if mat.base is not None:
         model["nested"] = True                    # the field was an offset on a fixed base's E
     if parts_log:
