@@ -99,8 +99,9 @@ def test_a_uniform_level_at_the_searched_minimum_has_patience_one():
 
 def test_the_uniform_level_after_the_start_search_is_skipped_when_the_next_fits_nu(tmp_path):
     """levels (1, 4) with nu fitted on both: with skip_searched_uniform on, the uniform level after the
-    start search is skipped (every iteration on 4 bumps, the uniform level's share unused); it runs by
-    default (off) and, when on, where the next level does not fit nu."""
+    start search is skipped (every iteration on 4 bumps, the uniform level's share unused); by default it runs
+    where no start runs (the CPU's default) and is skipped where one does; when on, it runs where the next level
+    does not fit nu."""
     import fit_scene as fs
 
     from physinteract_usd import api
@@ -112,12 +113,17 @@ def test_the_uniform_level_after_the_start_search_is_skipped_when_the_next_fits_
     sd = read_stage(sc["stage"])
     prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, sc["gt"]))
     ks = {}
-    for name, kw in (("skip", {"skip_searched_uniform": True}), ("off", {}), ("nu1", {"skip_searched_uniform": True, "fit_poisson_levels": 1})):
+    resolved = {}
+    for name, kw in (("skip", {"skip_searched_uniform": True}), ("off", {}), ("nu1", {"skip_searched_uniform": True, "fit_poisson_levels": 1}),
+                     ("starts", {"trend_start": 2, "parts_start": 0})):
         seen, logs = [], []
         s = FitSettings(iterations=4, levels=(1, 4), level_share=(0.5, 0.5), search_evals=2, joint=False,
                         confidence_probes=0, seed=0, plateau_patience=0, **{"fit_poisson_levels": 2, **kw})
         run_fit(prob, s, progress=False, log=logs.append, on_iteration=lambda it, lv, mat, tr: seen.append(mat.K))
-        ks[name] = (seen, any("skipped" in m for m in logs))
+        ks[name] = (seen, any("level 1 (K=1) skipped" in m for m in logs))
+        resolved[name] = s.skip_searched_uniform
     assert ks["skip"] == ([4, 4], True)
-    assert ks["off"] == ([1, 1, 4, 4], False)
+    # the default (None) resolves by whether the starts run: off on the CPU's default (no starts), on where they run
+    assert ks["off"] == ([1, 1, 4, 4], False) and resolved["off"] is False
     assert ks["nu1"] == ([1, 1, 4, 4], False)
+    assert ks["starts"][1] and resolved["starts"] is True and all(k == 4 for k in ks["starts"][0])

@@ -40,8 +40,11 @@ def fit(prob: FitProblem, settings: FitSettings | None = None, **kw) -> FitResul
         r = fit_guarded(prob, s, **kw)
     else:
         ps, ts = int(getattr(s, "parts_start", 0) or 0), int(getattr(s, "trend_start", 0) or 0)
-        if s.schedule == "bumps" and (ps > 0 or ts > 0) and kw.get("start") is None:
+        starts = s.schedule == "bumps" and (ps > 0 or ts > 0) and kw.get("start") is None
+        if starts:
             kw = {**kw, "before_finest": starts_hook(ps, ts, getattr(s, "starts_order", "parts_first"))}   # #24: foam_bar's parts, balloon's trend
+        if getattr(s, "skip_searched_uniform", False) is None:   # resolved in place (recorded): where the starts run
+            s.skip_searched_uniform = bool(starts)
         r = SCHEDULES[s.schedule](prob, s, **kw)
     if float(s.unconstrained_floor) > 0 and not r.interrupted and int(s.iterations) > 0:
         # what the video does not constrain (#24; not on a stop's zero-iteration last pass)
