@@ -267,7 +267,7 @@ class Rollout:
         if k == 0:
             sol.reset_status(self.status)
             sol.box_flag.zero_()
-            a.set_rest(self.model, self.v0)
+            a.set_rest(self.model, self.v0, self.solver.block_dim)
             self.ck.frame(0).assign(a)
         else:
             a.assign(self.ck.frame(k))
@@ -287,7 +287,7 @@ class Rollout:
         if k == 0:
             sol.reset_status(self.status)
             sol.box_flag.zero_()
-            st[0].set_rest(self.model, self.v0)
+            st[0].set_rest(self.model, self.v0, self.solver.block_dim)
             self.ck.frame(0).assign(st[0])
         else:
             st[0].assign(self.ck.frame(k))
@@ -498,7 +498,7 @@ class Rollout:
         a = self._pp[0]
         self.solver.reset_status(self.status)
         self.solver.box_flag.zero_()
-        a.set_rest(self.model, self.v0)
+        a.set_rest(self.model, self.v0, self.solver.block_dim)
         self.ck.frame(0).assign(a)
         fw.ctr.zero_()
 

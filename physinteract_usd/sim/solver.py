@@ -872,7 +872,7 @@ class MPMSolver:
         """Forward rollout without gradients; returns per-frame numpy arrays x, v, F (frame 0 = start)."""
         m = self.model
         if state is None:
-            state = SimState.rest(m)
+            state = SimState.rest(m, block_dim=self.block_dim)
         start = SimState.zeros(m.n_particles, m.dtype, m.device)
         start.assign(state)
         for _ in range(2):          # the second time on the whole grid, if the particles left the grid box

@@ -34,13 +34,15 @@ class SimState:
                      for t in (K.vec3, K.vec3, K.mat33, K.mat33, K.mat33)))
 
     @classmethod
-    def rest(cls, model, v0=None) -> "SimState":
+    def rest(cls, model, v0=None, block_dim: int = 256) -> "SimState":
         """The state at frame 0: rest positions, F = Fv = I, C = 0, velocity v0 (default 0)."""
         s = cls.zeros(model.n_particles, model.dtype, model.device)
-        s.set_rest(model, v0)
+        s.set_rest(model, v0, block_dim)
         return s
 
-    def set_rest(self, model, v0=None) -> None:
+    def set_rest(self, model, v0=None, block_dim: int = 256) -> None:
+        """`block_dim`: the launch's threads per block, the solver's (`MPMSolver.block_dim`: one compiled variant of
+        the simulator's modules on CUDA; the CPU ignores it)."""
         K = get_kernels(model.dtype)
         dev = model.device_arrays()
         if v0 is None:
@@ -50,10 +52,8 @@ class SimState:
         else:
             v0a = wp.array(np.broadcast_to(np.asarray(v0, dtype=model.np_dtype), (model.n_particles, 3)).copy(),
                            dtype=K.vec3, device=model.device)
-        from .solver import launch_block_dim
-
         wp.launch(K.set_rest, model.n_particles, [dev["x0"], v0a], [self.x, self.v, self.C, self.F, self.Fv],
-                  device=model.device, block_dim=launch_block_dim(model.device))
+                  device=model.device, block_dim=int(block_dim))
 
     def assign(self, other: "SimState") -> None:
         for f in self.FIELDS:
