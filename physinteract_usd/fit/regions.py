@@ -289,6 +289,32 @@ def motion_clusters(score: np.ndarray, free: np.ndarray, graph: sp.csr_matrix, s
     return out
 
 
+def separation(points: np.ndarray, labels: np.ndarray) -> float:
+    """How far apart a partition's parts lie, at the scale of the parts themselves: for each part, the mean distance
+    from its particles to the nearest particle of another part over the part's thinnest extent (the square root of
+    its positions' smallest covariance eigenvalue), averaged over the parts by their particle shares. Regions (a bar's
+    two halves, a flower's stem, centre and petals) score ~2-5; the two colour classes of a pattern (a checker, stripes,
+    dots: each class spread over the whole object, every particle near the other class) ~0.25-0.9 (the 12 suite
+    scenes, docs/benchmarks/fit.md). A flat layer against one neighbour scores sqrt(3) = 1.73 whatever its thickness (a
+    little more where it is few particles thick); a layer between two, ~0.87 (#24). inf for fewer than two parts."""
+    x = np.asarray(points, np.float64)
+    lab = np.asarray(labels)
+    parts = [k for k in np.unique(lab) if k >= 0]
+    if len(parts) < 2:
+        return float("inf")
+    total, weight = 0.0, 0
+    for k in parts:
+        m = lab == k
+        if m.sum() < 4 or (~m).sum() == 0:
+            continue
+        d = cKDTree(x[~m]).query(x[m])[0]
+        thin = float(np.sqrt(max(np.linalg.eigvalsh(np.cov(x[m].T))[0], 0.0)))
+        r = float(d.mean()) / thin if thin > 0 else float("inf")
+        total += m.sum() * r
+        weight += int(m.sum())
+    return total / weight if weight else float("inf")
+
+
 def same_partition(a: np.ndarray, b: np.ndarray) -> bool:
     """Whether two labelings split the particles alike (the same parts under any names)."""
     a, b = np.asarray(a), np.asarray(b)
