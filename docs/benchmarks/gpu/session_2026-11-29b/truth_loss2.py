@@ -6,12 +6,13 @@ import torch
 from scipy.spatial import cKDTree
 
 stage, cap = sys.argv[1], sys.argv[2]
+over = json.loads(sys.argv[3]) if len(sys.argv) > 3 else {"parts_start": 20, "trend_start": 20}
 from physinteract_usd import api
 from physinteract_usd.app.fit import make_problem, prepare_fit
 
 t = time.perf_counter()
 out = api.fit(stage, iterations=20, contact_from=cap + "/gt", device="cpu", progress=False, warm=False, keep_best=False,
-              log=lambda m: print(m, file=sys.stderr, flush=True), settings_overrides={"parts_start": 20, "trend_start": 20})
+              log=lambda m: print(m, file=sys.stderr, flush=True), settings_overrides=over)
 r = out.result
 job = prepare_fit(stage, contact_from=cap + "/gt", device="cpu", warm=False, yes=True, log=lambda m: None, progress=False)
 prob = make_problem(job)
@@ -32,4 +33,7 @@ for pname, tr in (("true path", None), ("fitted path", fitted)):
     rows[pname] = {"fit field": rec(r.youngs, r.poisson, tr), "truth E+nu": rec(E_t, nu_t, tr),
                    "truth E, fit nu": rec(E_t, r.poisson, tr),
                    f"uniform {np.median(r.youngs):.3g}, fit nu": rec(np.full(len(E_t), np.median(r.youngs)), r.poisson, tr)}
-print(json.dumps({"final_loss": r.final_loss, "rec": rows, "wall_s": round(time.perf_counter() - t, 1)}, indent=1))
+from physinteract_usd import metrics as M
+from physinteract_usd.synth.gt import read_gt_array
+ma = M.material_accuracy(np.asarray(r.youngs_gaussian, np.float64), np.asarray(read_gt_array(cap + "/gt", "youngs_modulus.npy"), np.float64))
+print(json.dumps({"over": over, "ma": ma, "final_loss": r.final_loss, "rec": rows, "wall_s": round(time.perf_counter() - t, 1)}, indent=1))
