@@ -805,15 +805,15 @@ def warm_kernels(device="cpu", dtype: str = "float32") -> list[str]:
         wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=2)
         return names
     from .sim.frame_graphs import get_frame_kernels
-    from .sim.solver import BLOCK_DIM
+    from .sim.solver import launch_block_dim
 
     get_frame_kernels(dtype)
     sim = [K.modules.core, K.modules.adj, K.modules.cuda, f"physinteract_framegraph_{dtype}"]
-    # the simulator's launches on CUDA run BLOCK_DIM threads per block, and each block size is its own variant of a
-    # module: compiled at Warp's default (256) they were of no use to the fit (a fresh H200, 2026-11-29: the first
-    # fit after such a warm-up still took 38-39 s of fit clock against 10 s); the renderer at the default
+    # every launch of the simulator's modules runs launch_block_dim's threads a block, and each block size is its own
+    # variant of a module: compiled at Warp's default (256) they were of no use to the fit (a fresh H200, 2026-11-29:
+    # the first fit after such a warm-up still took 38-39 s of fit clock against 10 s); the renderer at the default
     workers = max(1, min(len(sim) + 1, os.cpu_count() or 1))
-    wp.force_load(device=device, modules=[wp.get_module(n) for n in sim], block_dim=int(BLOCK_DIM or 256),
+    wp.force_load(device=device, modules=[wp.get_module(n) for n in sim], block_dim=launch_block_dim(device),
                   max_workers=workers)
     wp.force_load(device=device, modules=[wp.get_module(R.module)], max_workers=1)
     return sim + [R.module]

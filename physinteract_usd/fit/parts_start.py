@@ -129,27 +129,25 @@ class PartsStart:
     probe's cache) and each part's contrast, `run(total_fn)` the rest (`parts_start`)."""
 
     def __init__(self, prob, mat, s, trajs, eff, probes: int, log=None, refine=None, nest: bool | None = None):
+        from .regions import separation
         from .select import PartProbe, part_candidates, problem_holdout
 
         self.prob, self.mat, self.s, self.eff, self.log = prob, mat, s, eff, log
         self.bound0 = getattr(getattr(prob, "sim", None), "e_bound", None)   # the adaptive substep's rung before the probes
                                                                               # (restored if not taken)
-        from .regions import separation
-
         cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
         self.ready = bool(cands)
         self.screened = None
-        self.why = "the object's colours make one part"
+        self.separation = None    # regions.separation of the colour parts (where there are some and positions)
         if self.ready and getattr(prob, "x0", None) is not None:
             # a pattern's colour classes (a checker, stripes) are not regions of a material: each is spread over the
             # whole object, interleaved with the other, and the data can prefer such a split for the wrong reasons
             self.separation = separation(np.asarray(prob.x0), np.asarray(cands[0]["labels"]))
             if self.separation < PARTS_MIN_SEPARATION:
                 self.ready = False
-                self.why = (f"the colour parts are interleaved (separation {self.separation:.2f} < "
-                            f"{PARTS_MIN_SEPARATION}: a pattern, not regions)")
                 if log:
-                    log(f"parts start: {self.why}; not tried")
+                    log(f"parts start: the colour parts are interleaved (separation {self.separation:.2f} < "
+                        f"{PARTS_MIN_SEPARATION}: a pattern, not regions); not tried")
         if not self.ready:
             return
         self.labels = cands[0]["labels"]
@@ -196,10 +194,10 @@ class PartsStart:
         prob, mat, s, log = self.prob, self.mat, self.s, self.log
         out = {"forwards": 0, "used": False, "parts": 0}
         if not self.ready:
-            if log and self.why.startswith("the object's"):   # (an interleaved one said so when it was built)
-                log(f"parts start: {self.why}; the uniform start stays")
-            if hasattr(self, "separation"):
+            if self.separation is not None:      # interleaved parts: said so when it was built
                 out["separation"] = self.separation
+            elif log:
+                log("parts start: the object's colours make one part; the uniform start stays")
             return out
         m, f, start, labels, bound0 = self.m, self.f, self.start, self.labels, self.bound0
         with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
