@@ -149,6 +149,9 @@ class FitSettings:
                                         # (20) where the problem's tensors are on CUDA (the 12 suite scenes on the H200:
                                         # mean MA 0.580 -> 0.626, >= 0.9 on 4 not 2; the paper row 0.821 -> 1.000), 0 on
                                         # the CPU (as the parts start: its probes cost the demo time). #24, balloon
+    parts_by_shape: bool = True         # the parts start (fit/parts_start.py): where the colours make no regions (one colour,
+                                        # or a pattern's interleaved classes), the parts by thickness (thin against thick:
+                                        # regions.thickness_clusters) where the shape has them; False: colour parts only. #24
     starts_order: str = "screened"      # where both starts run (fit/trend_start.starts_hook): "screened", both screened on the
                                         # training frames, the parts start nested, the lower screen's simplex first, the
                                         # other's only where it is not taken; "parts_first", the projected parts start then

@@ -136,21 +136,27 @@ class PartsStart:
         self.bound0 = getattr(getattr(prob, "sim", None), "e_bound", None)   # the adaptive substep's rung before the probes
                                                                               # (restored if not taken)
         cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
-        self.ready = bool(cands)
         self.screened = None
         self.separation = None    # regions.separation of the colour parts (where there are some and positions)
-        if self.ready and getattr(prob, "x0", None) is not None:
+        self.by = "colour"        # what the parts are: "colour" (the appearance's), "thickness" (the shape's: `shape_parts`)
+        self.thickness_m = ()     # the shape parts' median local thicknesses (thin, thick), metres
+        labels = cands[0]["labels"] if cands else None
+        x0 = getattr(prob, "x0", None)
+        if labels is not None and x0 is not None:
             # a pattern's colour classes (a checker, stripes) are not regions of a material: each is spread over the
             # whole object, interleaved with the other, and the data can prefer such a split for the wrong reasons
-            self.separation = separation(np.asarray(prob.x0), np.asarray(cands[0]["labels"]))
+            self.separation = separation(np.asarray(x0), np.asarray(labels))
             if self.separation < PARTS_MIN_SEPARATION:
-                self.ready = False
+                labels = None
                 if log:
                     log(f"parts start: the colour parts are interleaved (separation {self.separation:.2f} < "
                         f"{PARTS_MIN_SEPARATION}: a pattern, not regions); not tried")
+        if labels is None and x0 is not None and bool(getattr(s, "parts_by_shape", False)):
+            labels = self.shape_parts(prob, s, log)
+        self.ready = labels is not None
         if not self.ready:
             return
-        self.labels = cands[0]["labels"]
+        self.labels = labels
         self.m = int(self.labels.max()) + 1
         with torch.no_grad():
             self.le_now = mat.log_e().detach().cpu().numpy()
@@ -167,6 +173,28 @@ class PartsStart:
                                                                             cheap=not forwards_are_cheap(prob))
         self.evals, self.step, self.kw = kw.pop("evals"), kw.pop("step"), kw
         self.lo, self.hi = mat.lo + 1e-3, mat.hi - 1e-3
+
+    def shape_parts(self, prob, s, log=None):
+        """The parts by thickness (`select.shape_candidate`) where they lie apart as regions (`regions.separation` at
+        least PARTS_MIN_SEPARATION), else None; said in the log either way."""
+        from .regions import separation
+        from .select import shape_candidate
+
+        c = shape_candidate(prob, s)
+        if c is None:
+            return None
+        sep = separation(np.asarray(prob.x0), np.asarray(c["labels"]))
+        thin, thick = c["thickness_m"]
+        if sep < PARTS_MIN_SEPARATION:
+            if log:
+                log(f"parts start: the thin ({1e3 * thin:.0f} mm) and thick ({1e3 * thick:.0f} mm) parts are interleaved "
+                    f"(separation {sep:.2f} < {PARTS_MIN_SEPARATION}); not tried")
+            return None
+        self.by, self.thickness_m, self.separation = "thickness", (thin, thick), sep
+        if log:
+            log(f"parts start: the colours make no regions; {c['parts']} parts by thickness (thin {1e3 * thin:.0f} mm, "
+                f"thick {1e3 * thick:.0f} mm, separation {sep:.2f})")
+        return c["labels"]
 
     def screen(self) -> float:
         """The lowest loss among the start, the simplex's first vertices (cached in the probe: the simplex takes them
@@ -192,12 +220,16 @@ class PartsStart:
         from .select import heldback_test, part_refine
 
         prob, mat, s, log = self.prob, self.mat, self.s, self.log
-        out = {"forwards": 0, "used": False, "parts": 0}
+        out = {"forwards": 0, "used": False, "parts": 0, "by": self.by}
+        if self.by == "thickness":
+            out["thickness_m"] = [float(v) for v in self.thickness_m]
         if not self.ready:
             if self.separation is not None:      # interleaved parts: said so when it was built
                 out["separation"] = self.separation
             elif log:
-                log("parts start: the object's colours make one part; the uniform start stays")
+                log("parts start: the object's colours make one part"
+                    + (" and its shape one thickness" if getattr(self.s, "parts_by_shape", False) else "")
+                    + "; the uniform start stays")
             return out
         m, f, start, labels, bound0 = self.m, self.f, self.start, self.labels, self.bound0
         with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
@@ -218,7 +250,7 @@ class PartsStart:
                 restore_rung(prob, bound0)
                 out.update(used=False, loss0=float("nan"), loss=float("nan"))
                 if log:
-                    log(f"parts start: {m} parts by colour at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
+                    log(f"parts start: {m} parts by {self.by} at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
                         + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {why}; not taken")
                 return out
         taken = accept(prob, mat, total_fn, values, gain_parts, f(start), bound0, nest=nest)
@@ -227,7 +259,7 @@ class PartsStart:
         loss0, loss1 = taken["loss0"], taken["loss"]
         if log:
             es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-            log(f"parts start: {m} parts by colour at E {es} Pa (simplex, {len(f.cache)} probes"
+            log(f"parts start: {m} parts by {self.by} at E {es} Pa (simplex, {len(f.cache)} probes"
                 f"{', stalled' if out['stalled'] else ''}); {'nested' if nest else 'on the bumps'} "
                 f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
                 f" (the parts' own gain {gain_parts:.5f})")

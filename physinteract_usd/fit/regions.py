@@ -197,6 +197,67 @@ def colour_clusters(features: np.ndarray | None, free: np.ndarray, min_contrast:
     return out
 
 
+THICK_RATIO = 1.25   # `thickness_clusters`: the thick class's median local thickness over the thin class's, at least
+                     # (the 12 suite scenes at init --grid auto, 2026-11-29, development data: a glove's palm 44 mm
+                     # against its fingers' 26 (1.67), a toy rope's knots against the rope (1.31), a tow rope's hooks
+                     # (1.32), a flower's stem (2.06); an object of one thickness 1.00-1.06: a bar, a rope, a ball)
+
+
+def particle_thickness(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Each particle's local thickness (metres: the diameter of the largest inscribed ball that holds it, on the
+    particles' own lattice; `thickness.local_thickness`). Where no ridge ball covers a particle (a lump too small to
+    have a medial axis), the nearest covered particle's."""
+    from ..thickness import local_thickness, occupancy
+
+    x = np.asarray(points, np.float64)
+    h = float(spacing)
+    tmap = local_thickness(occupancy(x, h), h)[0]
+    idx = np.floor((x - x.min(0)) / h + 0.5).astype(np.int64) + 1
+    t = tmap[tuple(idx.T)].astype(np.float64)
+    ok = np.isfinite(t) & (t > 0)
+    if not ok.any():
+        return np.full(len(x), np.nan)
+    if not ok.all():
+        t[~ok] = t[ok][cKDTree(x[ok]).query(x[~ok])[1]]
+    return t
+
+
+def thickness_clusters(points: np.ndarray, spacing: float, free: np.ndarray, graph: sp.csr_matrix,
+                       min_ratio: float = THICK_RATIO, steps: int = 3) -> tuple[np.ndarray | None, tuple]:
+    """Two clusters of the free particles by shape: thin against thick (-1 on held ones), or None where the object is of
+    one thickness. The particles' local thickness (`particle_thickness`), its log smoothed over the particle graph
+    (`steps` rounds), split where the two classes' variance of log thickness is least (Otsu's threshold); kept only
+    where the thick class's median is at least `min_ratio` times the thin one's. Why (#24): the parts of a composite
+    object are often of different thickness and material both (a glove's palm and its fingers, a rope's knots), and
+    where the colours are a pattern (a checker, stripes: `separation`) or one colour, shape is the prior left.
+    Returns (labels or None, (thin median, thick median) in metres, or ())."""
+    free = np.asarray(free, bool)
+    if free.sum() < 8:
+        return None, ()
+    t = particle_thickness(points, spacing)
+    if not np.isfinite(t).all():
+        return None, ()
+    lt = smooth(np.log(t), graph, steps=steps)
+    v = np.sort(lt[free])
+    n = len(v)
+    c = np.cumsum(v)
+    k = np.arange(1, n)                       # the thin class: the first k values
+    m0, m1 = c[:-1] / k, (c[-1] - c[:-1]) / (n - k)
+    between = k * (n - k) * (m0 - m1) ** 2    # Otsu: the largest between-class variance, the least within
+    between[v[1:] <= v[:-1]] = -1.0           # a threshold between two different values only
+    j = int(np.argmax(between))
+    if between[j] <= 0:
+        return None, ()
+    cut = 0.5 * (v[j] + v[j + 1])
+    thick = lt >= cut
+    if not (free & thick).any() or not (free & ~thick).any():
+        return None, ()
+    med = (float(np.median(t[free & ~thick])), float(np.median(t[free & thick])))
+    if med[1] < min_ratio * med[0]:
+        return None, med
+    return np.where(free, thick.astype(np.int64), -1), med
+
+
 def _blend(c: np.ndarray) -> float:
     """How far the centre nearest a blend of two others lies from the segment between them (RGB
     distance): the local mean colours at the edge between two colours lie on that segment."""

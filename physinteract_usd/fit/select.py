@@ -278,6 +278,35 @@ def part_candidates(prob, s: FitSettings, score: np.ndarray | None, log=None, at
     return out
 
 
+def shape_candidate(prob, s: FitSettings) -> dict | None:
+    """The parts by shape (`regions.thickness_clusters`: thin against thick), cut as `part_candidates` cuts the colour
+    clusters (held particles join the nearest free cluster; pieces smaller than `region_min_share` join their neighbour),
+    then one part per class (thin, thick), as {"kind": "thickness", "labels", "parts": 2,
+    "thickness_m": (thin, thick) medians}, or None where the object is of one thickness. #24: the parts start's prior
+    where the colours are a pattern or one colour (`parts_start.PartsStart`)."""
+    from . import regions as R
+
+    st = prob.scene.settings
+    P = len(prob.x0)
+    held = np.asarray(prob.held_particles(), bool)
+    x = np.asarray(prob.x0)
+    graph = R.particle_graph(x, 1.6 * st.particle_spacing)
+    cl, med = R.thickness_clusters(x, st.particle_spacing, ~held, graph)
+    if cl is None:
+        return None
+    cl = R.attach_held(cl, held, x)
+    lab = R.connected_parts(cl, graph, max(8, int(s.region_min_share * P)), int(s.select_max_parts))
+    if lab is None or (lab < 0).any():
+        return None
+    # one part per class (thin, thick): the pieces of a class share one E, two coefficients however many fingers or
+    # knots (a 4-part simplex does not converge in the CUDA cap's 20 probes; the bumps after it refine each piece)
+    cls = np.array([np.bincount(cl[lab == j], minlength=2).argmax() for j in range(int(lab.max()) + 1)])
+    lab = cls[lab]
+    if len(np.unique(lab)) < 2:
+        return None
+    return {"kind": "thickness", "labels": lab.astype(np.int64), "parts": 2, "thickness_m": med}
+
+
 def _result_inputs(prob, r: FitResult, s: FitSettings):
     """(to-tensor function, the result's trajectories, its effects' values) for simulating a fit result."""
     t = lambda a: torch.as_tensor(np.asarray(a), dtype=prob.tdtype, device=prob.tdev)  # noqa: E731
