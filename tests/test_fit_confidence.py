@@ -321,3 +321,22 @@ def test_the_batched_finite_differences_give_the_solo_gauss_newton_matrix(proble
     G0, G1 = grams["solo"], grams["batched"]
     assert np.abs(G1 - G0).max() <= 0.01 * np.abs(np.diag(G0)).max(), (G0, G1)   # 0.3% here
     np.testing.assert_allclose(conf_b, conf_solo, atol=0.02)
+
+
+def test_the_callers_rollout_is_not_simulated_again(problem, monkeypatch):
+    """#26: with the finite differences the confidence takes the final pass's rollout of the same field (`simulated`)
+    instead of its own first simulation: the same confidence, one simulation fewer."""
+    prob, sd = problem
+    mat = _field(prob, sd)
+    want = confidence(prob, mat, [], probes=4, exposure_floor=0, method="fd")
+    with torch.no_grad():
+        x, F = prob.simulate(mat.youngs().detach(), mat.poisson().detach(), None, None)
+    calls = []
+    real = prob.simulate
+    monkeypatch.setattr(prob, "simulate", lambda *a, **k: calls.append(1) or real(*a, **k))
+    got = confidence(prob, _field(prob, sd), [], probes=4, exposure_floor=0, method="fd", simulated=(x, F))
+    n_with = len(calls)
+    calls.clear()
+    confidence(prob, _field(prob, sd), [], probes=4, exposure_floor=0, method="fd")
+    assert n_with == len(calls) - 1
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)

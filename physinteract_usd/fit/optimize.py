@@ -645,6 +645,7 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
     if s.confidence_probes > 0:  # also after Ctrl-C: the kept iterate is written, with its confidence
         if interrupted and log:
             log("estimating the kept iterate's confidence (Ctrl-C again quits without writing)")
+        same = None if interrupted else (x, F)   # the final pass's rollout is this field's (unless refined below)
         if mat.K < max(levels) or mat.centre_mask is not None:
             # the kept iterate may come from a coarse level (a uniform E has one uniform
             # confidence): judge it at the finest resolution the schedule reaches, with bumps on
@@ -652,8 +653,9 @@ def fit_bumps(prob: FitProblem, settings: FitSettings | None = None, *, progress
             # value; what the video says about them alone is what the confidence reports)
             mat.centre_mask = None
             mat.refine(max(levels))
+            same = None
         conf = confidence(prob, mat, trajs, s.confidence_probes, seed=s.seed, effects=eff_now(),
-                          covariance=s.confidence_covariance)
+                          covariance=s.confidence_covariance, simulated=same)
     clock.add("confidence", time.perf_counter() - t_conf)
     model = {"schedule": "bumps", "effect_search": searched} if searched else {}
     model["phases_s"] = dict(clock.seconds)
@@ -847,7 +849,7 @@ FD_LOG_E_STEP = 0.01         # the finite-difference estimator's step: 1% of E w
 def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: int = 0,
                tol: float = math.log(1.2), return_sigma: bool = False, effects: dict | None = None,
                method: str = "auto", return_diag: bool = False, covariance: str = "full",
-               exposure_floor: float | None = None):
+               exposure_floor: float | None = None, simulated=None):
     """Per-particle confidence in E: the probability that log E lies within the MA tolerance of
     the estimate, from the Gauss-Newton curvature of the current basis coefficients.
 
@@ -879,7 +881,9 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     one, which would lend it the strained region's certainty): a support holds it, or its strain
     exposure in the same rollout is below `exposure_floor` x the free particles' median
     (`exposure.unconstrained_particles`; default `exposure.EXPOSURE_FLOOR`, 0 turns it off).
-    `return_diag`: (confidence, diag(J^T J), the method used) instead.
+    `return_diag`: (confidence, diag(J^T J), the method used) instead. `simulated`: (x, F), the rollout of this very
+    field, trajectories and effects that the caller already ran (the fit's final pass): with the finite differences
+    (no graph needed) it is not simulated again (#26: one forward of the paper-size fit's confidence).
     """
     theta = mat.theta.detach().clone().requires_grad_(True)
     mat.theta = theta
@@ -896,7 +900,10 @@ def confidence(prob: FitProblem, mat: MaterialField, trajs, probes: int, seed: i
     # between them) or the finite differences' base
     E = mat.youngs()
     with torch.set_grad_enabled(not use_fd):
-        x, F = prob.simulate(E if not use_fd else E.detach(), nu, tr, eff)
+        if use_fd and simulated is not None:
+            x, F = simulated
+        else:
+            x, F = prob.simulate(E if not use_fd else E.detach(), nu, tr, eff)
         res = _weighted_residuals(prob, x, F)
     unseen = _unseen_particles(prob, F, exposure_floor)
     for r, rm in res:
