@@ -104,3 +104,33 @@ def test_a_collider_acts_from_when_the_object_gives_aside():
     vo2[13:15] = [-0.5, 0.05]                                          # squeezed the other way: not the press
     tm2 = Timing(vh, vo2, coupling(vh, vo2, 0.35), near, (0, T1 - 1), speed, 12, None)
     assert collider_start(tm2) == 15
+
+
+def test_a_collider_arriving_in_motion_acts_from_the_first_pair_the_object_follows():
+    """(#23, 33rd session, dev_0539) A sphere comes in decelerating (3.5 ... 0.7 px a frame) and presses on without a
+    stop (0.46, 0.63, 0.88 ...); the object next to the contact follows its way from the arrival's pair at 0.25 px
+    (below eps), then at 0.38, 0.57 ...: the grasp is the first pair it follows (16), not the first two above eps (17,
+    where the rules had put it). Not back over a pair it does not follow, nor more than `back` pairs, nor where the
+    toucher is not at the contact."""
+    from physinteract_usd.extract.timing import collider_start
+
+    vh = np.array([[-3.44, -0.65], [-2.88, -0.35], [-2.31, -0.38], [-1.47, -0.1], [-0.89, 0.01], [-0.52, -0.46],
+                   [-0.46, -0.05], [-0.55, 0.3], [-0.87, 0.08], [-0.7, 0.37], [-0.96, 0.0], [-0.87, 0.02]])
+    vo = np.array([[0.18, 0.15], [0.52, 0.03], [0.18, -0.29], [-0.04, 0.0], [-0.17, 0.14], [-0.09, -0.05],
+                   [-0.22, -0.11], [-0.36, 0.12], [-0.56, 0.08], [-0.53, 0.1], [-0.69, 0.04], [-0.69, 0.0]])
+    pad = 10                                   # frames 10.. as on the capture
+    vh = np.vstack([np.zeros((pad, 2)), vh])
+    vo = np.vstack([np.zeros((pad, 2)), vo])
+    T1 = len(vh)
+    c = coupling(vh, vo, 0.35)
+    assert c[15] < 0 and c[16] > 0 and c[17] > 0
+    speed = np.linalg.norm(vh, axis=1)
+    near = np.ones(T1 + 1, bool)
+    assert collider_start(Timing(vh, vo, c, near, (9, T1 - 1), speed, 17, None)) == 16
+    assert collider_start(Timing(vh, vo, c, near, (9, T1 - 1), speed, 17, None), back=0) == 17
+    off = near.copy()
+    off[16] = False                            # the toucher not at the contact there: not walked over
+    assert collider_start(Timing(vh, vo, c, off, (9, T1 - 1), speed, 17, None)) == 17
+    c2 = c.copy()
+    c2[16] = -1                                # the object not following there: not walked over
+    assert collider_start(Timing(vh, vo, c2, near, (9, T1 - 1), speed, 17, None)) == 17

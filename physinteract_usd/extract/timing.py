@@ -257,15 +257,25 @@ def moved_alone(timing: Timing, eps: float):
     return run[0], run[-1], float(max(so[k] for k in run))
 
 
-def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3) -> int:
+def collider_start(timing: Timing, eps: float = 0.35, reach: int = 3, back: int = 2) -> int:
     """A fingertip's or a palm's grasp: the first pair (within `reach` of the toucher's stillest
     frame) in which the object follows it: a collider acts from when the object starts to give (it
-    may rest on the surface before, acting on nothing)."""
+    may rest on the surface before, acting on nothing). From there back over at most `back` pairs
+    in which the object already follows the toucher's way (`coupling` +1: its way within ~45 deg, at
+    >= 20% of its speed), while the toucher is at the contact: a push starting as the toucher
+    arrives moves the object next to the contact by less than `eps` in its first pair, which
+    `following_onset` (two pairs >= `eps` running, a pull's rule) steps over (#23, 33rd session:
+    dev_0539, a sphere arriving at 0.46 px a frame at 48 fps, the object following at 0.25 px in
+    the arrival's pair: the grasp 2 frames late)."""
     c, g = timing.coupled, timing.grasp
     vh, vo = timing.hand_velocity, timing.object_velocity
+    near = timing.near
     end = len(c) if timing.release is None else min(len(c), timing.release)
     for k in range(g, min(end, g + reach + 1)):
         if c[k] > 0 or gives(vh[k], vo[k], eps):
+            lo = k - int(back)
+            while k - 1 >= max(lo, 0) and c[k - 1] > 0 and near[k - 1]:
+                k -= 1
             return k
     return g
 
