@@ -73,3 +73,26 @@ def test_the_parts_start_fits_the_shape_parts_where_the_colours_make_no_regions(
         assert abs(np.median(e[finger]) / 7.5e3 - 1) < 0.1 and abs(np.median(e[~finger]) / 3.75e4 - 1) < 0.1, (
             np.median(e[finger]), np.median(e[~finger]))
         assert rec["forwards"] == len(calls)
+
+
+def test_a_glove_of_one_material_keeps_its_uniform_start(monkeypatch):
+    """The same palm and fingers, one E throughout (the uniform start at it): the shape's parts are built and screened,
+    but they render no better than the uniform E, so the start is not taken and the field is left exactly."""
+    import test_trend_start as T
+    from physinteract_usd.fit import parts_start, select
+    from physinteract_usd.fit import trend_start as ts
+
+    x, _ = _glove()
+    truth = np.full(len(x), math.log(1.5e4))
+    monkeypatch.setattr(select, "part_candidates", lambda *a, **k: [])
+    monkeypatch.setattr(parts_start, "forwards_are_cheap", lambda prob: True)
+    prob, calls = T._problem(truth, x)
+    prob.scene.settings.particle_spacing = H
+    mat = T._Mat(truth.copy())
+    s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002,
+                              parts_nest=True, parts_by_shape=True, region_min_share=0.03, select_max_parts=4)
+    total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+    said = []
+    rec = ts.starts_hook(20, 0)(prob, mat, s, None, None, total, log=said.append)
+    assert rec["by"] == "thickness" and not rec["used"], (rec, said)
+    assert np.array_equal(mat.log_e().detach().numpy(), truth)
