@@ -22,7 +22,11 @@ the uniform E one part softens and another stiffens), stopped when its last m + 
 forward costs ~1 s, the simplex gets the cap's probes and no stall stop (`refine_kwargs(cheap=False)`): the cut
 lost telephone_cable's start on the H200 (2026-11-27b), and an uncut run extends the cut one's path, so it finds at
 least what the cut one found (docs/benchmarks/fit.md, "Why the cheap start lost telephone_cable").
-An object of one colour has no such parts, and its fit is unchanged. The probes are charged to the
+Where the colours make no regions (one colour, or a pattern's interleaved classes: PARTS_MIN_SEPARATION), the parts
+by shape take their place (`FitSettings.parts_by_shape`, 33rd session: `select.shape_candidate`, thin against thick
+by the particles' local thickness, one E per class, also only where they lie apart): a glove's palm and fingers on the
+H200 suite, MA 0.27 -> 0.87 (docs/benchmarks/fit.md, top). An object of one colour and one thickness has no such
+parts, and its fit is unchanged. The probes are charged to the
 level's iteration budget (a forward and a backward per iteration) when the start is taken; one not
 taken leaves the fit exactly as without it (the field and the adaptive substep's rung restored), its probes'
 time extra.
