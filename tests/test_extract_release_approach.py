@@ -134,3 +134,24 @@ def test_a_collider_arriving_in_motion_acts_from_the_first_pair_the_object_follo
     c2 = c.copy()
     c2[16] = -1                                # the object not following there: not walked over
     assert collider_start(Timing(vh, vo, c2, near, (9, T1 - 1), speed, 17, None)) == 17
+
+
+def test_a_hand_faintly_seen_at_the_contact_for_two_frames_has_not_let_go():
+    """(#23, 33rd session, dev_0530) A pinch pulls a ring out and back; in frames 19-20 its hand shows 2 px at the
+    contact (under the touching's 3 px floor), then touches again to 25: the gap is bridged and the contact period runs
+    on past it. Not a gap where the hand is gone (0 px), nor one longer than FAINT_GAP frames."""
+    from physinteract_usd.extract.timing import FAINT_GAP, bridge_faint, contact_period
+
+    touch = np.array([0, 0, 0, 0, 11, 9, 9, 8, 9, 7, 6, 8, 6, 5, 3, 3, 9, 8, 5, 2, 2, 7, 6, 8, 7, 7, 0, 0, 0])
+    near = touch >= 3
+    assert contact_period(near) == (4, 18)
+    bridged = bridge_faint(near, touch)
+    assert bridged[19] and bridged[20] and contact_period(bridged) == (4, 25)
+    gone = touch.copy()
+    gone[20] = 0                                            # the hand gone from the contact in one frame of the gap
+    assert contact_period(bridge_faint(gone >= 3, gone)) == (4, 18)
+    long_gap = touch.copy()
+    long_gap[19:19 + FAINT_GAP + 1] = 2                     # longer than FAINT_GAP
+    assert not bridge_faint(long_gap >= 3, long_gap)[19]
+    assert np.array_equal(bridge_faint(near, None), near)  # no counts: unchanged
+    assert not bridge_faint(near, touch)[26]               # the end of the clip is not a gap
