@@ -5,7 +5,10 @@ PARTS_MIN_SEPARATION): the parts start tries a scene's appearance parts only whe
 
 Each scene: a 3-frame small capture (`synth --frames 3`: the object and its colours do not depend on the frames; the
 truth at the size's default grid), `init --grid auto` with the capture's suggested settings (the suite's particles), the
-appearance candidate of `select.part_candidates`, its separation. Prints a markdown table (CPU, ~10 s a scene)."""
+appearance candidate of `select.part_candidates`, its separation; and the parts by shape that the parts start takes where
+the colours make no regions (`select.shape_candidate`: thin against thick, 33rd session), their median thicknesses and
+separation, with the oracle MA (each part at its best single E, on the particles, from the truth: development data)
+against the whole object's. Prints a markdown table (CPU, ~10 s a scene)."""
 
 from __future__ import annotations
 
@@ -47,11 +50,44 @@ def separation_of(scene: str, work: Path) -> dict:
     sd = read_stage(st)
     prob = FitProblem(sd, api.load_observations(sd), api.true_contacts(sd, cap / "gt"))
     c = [c for c in part_candidates(prob, FitSettings(), None) if c["kind"] == "appearance" and c["parts"] > 1]
-    if not c:
-        return {"scene": scene, "particles": len(prob.x0), "parts": 1, "separation": None, "tried": False}
-    sep = separation(np.asarray(prob.x0), c[0]["labels"])
-    return {"scene": scene, "particles": len(prob.x0), "parts": int(c[0]["parts"]), "separation": round(sep, 3),
-            "tried": bool(sep >= PARTS_MIN_SEPARATION)}
+    row = {"scene": scene, "particles": len(prob.x0), "parts": 1, "separation": None, "tried": False}
+    if c:
+        sep = separation(np.asarray(prob.x0), c[0]["labels"])
+        row.update(parts=int(c[0]["parts"]), separation=round(sep, 3), tried=bool(sep >= PARTS_MIN_SEPARATION))
+    row.update(shape_of(prob, cap))
+    return row
+
+
+def oracle_ma(e_true: np.ndarray, labels: np.ndarray) -> float:
+    """The share of particles within 20% of their part's best single E (the E that puts most of the part within 20%)."""
+    ok = np.zeros(len(e_true), bool)
+    for j in np.unique(labels):
+        m = labels == j
+        best = max(np.unique(e_true[m]), key=lambda v: np.mean(np.abs(e_true[m] - v) / e_true[m] <= 0.2))
+        ok[m] = np.abs(e_true[m] - best) / e_true[m] <= 0.2
+    return float(ok.mean())
+
+
+def shape_of(prob, cap: Path) -> dict:
+    """The shape's parts (`select.shape_candidate`), their separation and the oracle MA against one E's."""
+    from scipy.spatial import cKDTree
+
+    from physinteract_usd.fit import FitSettings
+    from physinteract_usd.fit.parts_start import PARTS_MIN_SEPARATION
+    from physinteract_usd.fit.regions import separation
+    from physinteract_usd.fit.select import shape_candidate
+
+    x = np.asarray(prob.x0)
+    gt = np.load(cap / "gt" / "particles.npz")
+    e_true = gt["E"][cKDTree(gt["rest"]).query(x)[1]].astype(float)
+    out = {"oracle_uniform": round(oracle_ma(e_true, np.zeros(len(x), int)), 3), "shape": None}
+    c = shape_candidate(prob, FitSettings())
+    if c is not None:
+        sep = separation(x, c["labels"])
+        out["shape"] = {"thin_mm": round(1e3 * c["thickness_m"][0], 1), "thick_mm": round(1e3 * c["thickness_m"][1], 1),
+                        "separation": round(sep, 2), "tried": bool(sep >= PARTS_MIN_SEPARATION),
+                        "oracle": round(oracle_ma(e_true, c["labels"]), 3)}
+    return out
 
 
 def main(argv=None) -> None:
@@ -62,10 +98,16 @@ def main(argv=None) -> None:
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
     rows = [separation_of(s, work) for s in a.scenes.split(",") if s]
-    print("| scene | particles | colour parts | separation | parts start tries them |\n|---|---:|---:|---:|---|")
+    print("| scene | particles | colour parts | separation | parts start tries them | shape parts: thin / thick mm "
+          "(separation) | oracle MA: one E -> shape parts |\n|---|---:|---:|---:|---|---|---|")
     for r in sorted(rows, key=lambda r: -(r["separation"] or 0)):
         sep = "-" if r["separation"] is None else f"{r['separation']:.2f}"
-        print(f"| {r['scene']} | {r['particles']:,} | {r['parts']} | {sep} | {'yes' if r['tried'] else 'no'} |")
+        sh = r["shape"]
+        shape = "none" if sh is None else (f"{sh['thin_mm']} / {sh['thick_mm']} ({sh['separation']:.2f}"
+                                           f"{'' if sh['tried'] else ': interleaved'})")
+        orc = f"{r['oracle_uniform']:.3f}" + ("" if sh is None else f" -> {sh['oracle']:.3f}")
+        print(f"| {r['scene']} | {r['particles']:,} | {r['parts']} | {sep} | {'yes' if r['tried'] else 'no'} | {shape} | "
+              f"{orc} |")
 
 
 if __name__ == "__main__":
