@@ -96,3 +96,25 @@ def test_a_glove_of_one_material_keeps_its_uniform_start(monkeypatch):
     rec = ts.starts_hook(20, 0)(prob, mat, s, None, None, total, log=said.append)
     assert rec["by"] == "thickness" and not rec["used"], (rec, said)
     assert np.array_equal(mat.log_e().detach().numpy(), truth)
+
+
+def test_the_cli_turns_the_shape_parts_off(tmp_path, monkeypatch):
+    """`fit --no-shape-parts` reaches the settings (parts_by_shape False); without it nothing is overridden there."""
+    from physinteract_usd import api
+    from physinteract_usd.cli import main
+    from physinteract_usd.fit import FitSettings
+
+    assert FitSettings().parts_by_shape is True
+    seen = []
+
+    def fake_fit(stage, **kw):
+        seen.append(kw.get("settings_overrides") or {})
+        raise SystemExit(0)
+
+    monkeypatch.setattr(api, "fit", fake_fit)
+    stage = tmp_path / "scene.usda"
+    stage.write_text("#usda 1.0\n")
+    for argv in (["fit", str(stage), "--no-shape-parts"], ["fit", str(stage)]):
+        with pytest.raises(SystemExit):
+            main(argv)
+    assert seen[0]["parts_by_shape"] is False and "parts_by_shape" not in seen[1]
