@@ -67,16 +67,39 @@ class Thickness:
                 "ridge_pairs": self.ridge_pairs, "compact": self.compact}
 
 
+def voxel_index(points: np.ndarray, spacing: float) -> np.ndarray:
+    """(N, 3) the voxel of `occupancy`'s grid that holds each point."""
+    p = np.asarray(points, np.float64)
+    return np.floor((p - p.min(0)) / spacing + 0.5).astype(np.int64) + 1
+
+
 def occupancy(points: np.ndarray, spacing: float) -> np.ndarray:
     """A boolean grid (one empty voxel of margin on every side) with the voxels holding `points`
     (particles on a lattice of `spacing`, e.g. `fill`'s) set."""
     p = np.asarray(points, np.float64)
     if len(p) == 0:
         raise ValueError("no points to measure")
-    idx = np.floor((p - p.min(0)) / spacing + 0.5).astype(np.int64) + 1
+    idx = voxel_index(p, spacing)
     occ = np.zeros(tuple(idx.max(0) + 2), bool)
     occ[tuple(idx.T)] = True
     return occ
+
+
+def point_thickness(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Each point's local thickness (metres: the diameter of the largest inscribed ball that holds it, `local_thickness`
+    on the points' own occupancy). Where no ridge ball covers a point (a lump too small to have a medial axis), the
+    nearest covered point's; nan everywhere where none is covered."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(points, np.float64)
+    tmap = local_thickness(occupancy(x, spacing), float(spacing))[0]
+    t = tmap[tuple(voxel_index(x, spacing).T)].astype(np.float64)
+    ok = np.isfinite(t) & (t > 0)
+    if not ok.any():
+        return np.full(len(x), np.nan)
+    if not ok.all():
+        t[~ok] = t[ok][cKDTree(x[ok]).query(x[~ok])[1]]
+    return t
 
 
 def local_thickness(occ: np.ndarray, voxel: float = 1.0, min_thickness: float = 0.0):

@@ -203,38 +203,21 @@ THICK_RATIO = 1.25   # `thickness_clusters`: the thick class's median local thic
                      # (1.32), a flower's stem (2.06); an object of one thickness 1.00-1.06: a bar, a rope, a ball)
 
 
-def particle_thickness(points: np.ndarray, spacing: float) -> np.ndarray:
-    """Each particle's local thickness (metres: the diameter of the largest inscribed ball that holds it, on the
-    particles' own lattice; `thickness.local_thickness`). Where no ridge ball covers a particle (a lump too small to
-    have a medial axis), the nearest covered particle's."""
-    from ..thickness import local_thickness, occupancy
-
-    x = np.asarray(points, np.float64)
-    h = float(spacing)
-    tmap = local_thickness(occupancy(x, h), h)[0]
-    idx = np.floor((x - x.min(0)) / h + 0.5).astype(np.int64) + 1
-    t = tmap[tuple(idx.T)].astype(np.float64)
-    ok = np.isfinite(t) & (t > 0)
-    if not ok.any():
-        return np.full(len(x), np.nan)
-    if not ok.all():
-        t[~ok] = t[ok][cKDTree(x[ok]).query(x[~ok])[1]]
-    return t
-
-
 def thickness_clusters(points: np.ndarray, spacing: float, free: np.ndarray, graph: sp.csr_matrix,
                        min_ratio: float = THICK_RATIO, steps: int = 3) -> tuple[np.ndarray | None, tuple]:
     """Two clusters of the free particles by shape: thin against thick (-1 on held ones), or None where the object is of
-    one thickness. The particles' local thickness (`particle_thickness`), its log smoothed over the particle graph
+    one thickness. The particles' local thickness (`thickness.point_thickness`), its log smoothed over the particle graph
     (`steps` rounds), split where the two classes' variance of log thickness is least (Otsu's threshold); kept only
     where the thick class's median is at least `min_ratio` times the thin one's. Why (#24): the parts of a composite
     object are often of different thickness and material both (a glove's palm and its fingers, a rope's knots), and
     where the colours are a pattern (a checker, stripes: `separation`) or one colour, shape is the prior left.
     Returns (labels or None, (thin median, thick median) in metres, or ())."""
+    from ..thickness import point_thickness
+
     free = np.asarray(free, bool)
     if free.sum() < 8:
         return None, ()
-    t = particle_thickness(points, spacing)
+    t = point_thickness(points, spacing)
     if not np.isfinite(t).all():
         return None, ()
     lt = smooth(np.log(t), graph, steps=steps)
