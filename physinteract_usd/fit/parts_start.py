@@ -141,7 +141,7 @@ class PartsStart:
                                                                               # (restored if not taken)
         cands = [c for c in part_candidates(prob, s, None) if c["kind"] == "appearance" and c["parts"] > 1]
         self.screened = None
-        self.separation = None    # regions.separation of the colour parts (where there are some and positions)
+        self.separation = None    # regions.separation of the parts tried or refused (the colour's, else the shape's)
         self.by = "colour"        # what the parts are: "colour" (the appearance's), "thickness" (the shape's: `shape_parts`)
         self.thickness_m = ()     # the shape parts' median local thicknesses (thin, thick), metres
         labels = cands[0]["labels"] if cands else None
@@ -155,6 +155,7 @@ class PartsStart:
                 if log:
                     log(f"parts start: the colour parts are interleaved (separation {self.separation:.2f} < "
                         f"{PARTS_MIN_SEPARATION}: a pattern, not regions); not tried")
+        # (FitSettings.parts_by_shape defaults True; a settings object without the field, e.g. a test's, has none)
         if labels is None and x0 is not None and bool(getattr(s, "parts_by_shape", False)):
             labels = self.shape_parts(prob, s, log)
         self.ready = labels is not None
