@@ -21,6 +21,7 @@ The suite's standard since the 22nd session (every truth finer than its fit; doc
 first half as above (`foam_bar,hemp_rope,balloon_dog,toy_rope,telephone_cable,tow_rope`, `--synth-fit-grid 128`), the
 second half (`balloon,bow_tie,glove,flower,basketball,knit_cap`) with `--synth-fit-grid auto` (the truth made for the
 grid init's auto chooses; at the size's 24, bow_tie's, glove's and flower's truths were coarser than their fits).
+`benchmarks/gpu_suite12.sh` runs both halves at once under one deadline and prints the 12 rows and their mean.
 """
 
 from __future__ import annotations
