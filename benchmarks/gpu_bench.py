@@ -14,6 +14,9 @@ the rest with it), all within `--deadline` seconds of wall time:
    one image per call and 13 per call (`render_batch`, as a fit renders its frames on CUDA);
 4. a small fit: the bundled sample (samples/foam_bar: 14 frames, grid 24, the demo's settings),
    true contacts, default iterations, `fit --device cuda`, then `evaluate` (MA, masked PSNR);
+4b. the issue's small capture (~2k particles, 36-40 frames, 60 iterations): `synth foam_bar --frames 36 --noise
+   0.015 --blur 3` (the small size: grid 24, 1,769 particles), true contacts, `fit --iterations 60`, `evaluate`
+   (`--skip small36` leaves it out);
 5. four small fits batched in one process against one fit (benchmarks/batch_fits.py --copies 4: the
    bundled sample at grid 24, 60 iterations each, the start search once beforehand; with
    `--batch-before` also B=4 with its renders and loss per copy and frame, the before of the batched
@@ -158,7 +161,7 @@ def main(argv=None):
     ap.add_argument("--paper-iterations", type=int, default=20)
     ap.add_argument("--device", default="cuda", help="cuda (cpu: a smoke test of this script)")
     ap.add_argument("--small-iterations", type=int, default=None)
-    ap.add_argument("--skip", default="", help="comma list of steps to skip: probes,sim,render,small,batch,paper")
+    ap.add_argument("--skip", default="", help="comma list of steps to skip: probes,sim,render,small,small36,batch,paper")
     ap.add_argument("--batch-before", action="store_true",
                     help="the batch step also runs B=4 with per-copy renders (batch_fits.py --per-copy-renders)")
     ap.add_argument("--batch-args", default="", help="more arguments for batch_fits.py (e.g. '--grid 12 "
@@ -224,6 +227,14 @@ def main(argv=None):
                              init_args=["--grid", "24", "--padding", "0.3", "--youngs-range", "1e3,6e4",
                                         "--max-poisson", "0.4", "--density", "150"],
                              fit_limit=150, iterations=a.small_iterations, reserve=max(0.0, min(250.0, left(dl) - 160))))
+    if "small36" not in skip:
+        cap = "/tmp/gpu_bench/small36_foam_bar"
+        rows.append(fit_case("small36", out, dl, capture=cap, stage="/tmp/gpu_bench/small36/scene.usda",
+                             synth=["synth", "foam_bar", cap, "--frames", "36", "--noise", "0.015", "--blur", "3",
+                                    "--device", DEVICE, "--force"],
+                             init_args=["--grid", "24", "--padding", "0.3", "--youngs-range", "1e3,6e4",
+                                        "--max-poisson", "0.4", "--density", "150"],
+                             fit_limit=150, iterations=60, reserve=max(0.0, min(230.0, left(dl) - 120))))
     batch_rows = []
     if "batch" not in skip:
         bf = out / "bf"
