@@ -4,6 +4,7 @@ fit then goes on at another step (the H200's hemp_rope, 2026-11-26: a start not 
 
 from __future__ import annotations
 
+import math
 import types
 
 import numpy as np
@@ -472,3 +473,47 @@ def test_the_clear_drop_keeps_a_nested_parts_start_through_the_start(monkeypatch
     out, mat, _ = _run_nested(monkeypatch, keep=False, losses=[0.010, 0.004],
                               rule={"keep_field": True, "mean_drop": 0.0054, "loss0": 0.012, "penalty": 2.4e-5})
     assert out["used"] and "45%" in out["heldback"] and mat.base is not None
+
+
+def test_the_uncut_simplex_goes_on_past_its_cap_while_still_descending():
+    """`refine_kwargs(..., cheap=False, extend=True)` (the parts start on CUDA): a simplex still descending a narrow
+    valley at its cap goes on (foam_bar at 36 frames stopped at the cap 1.4x off its soft part's truth and was refused),
+    stops once two simplices' worth of probes bring nothing new, and never passes EXTEND_CAP x the cap; without
+    `extend` it stops at the cap, as before; a flat loss costs nothing more."""
+    class Valley:      # a quadratic valley across the axes, 30x steeper across than along its floor
+        def __init__(self, target):
+            self.target, self.cache = np.asarray(target, float), {}
+
+        def __call__(self, le):
+            d = np.asarray(le, float) - self.target
+            across, along = (d[0] + d[1]) / math.sqrt(2), (d[0] - d[1]) / math.sqrt(2)
+            v = 0.01 * (1 + 30.0 * across ** 2 + along ** 2)
+            self.cache[tuple(np.round(le, 10))] = v
+            return v
+
+    target = np.log([1e4, 1e5])
+    start = target + np.log([3.0, 1 / 3.0])            # far along the valley's floor
+    lo, hi = np.log(1e3), np.log(1e7)
+    kw_cut = ps.refine_kwargs(2, 12, cheap=False)
+    kw_ext = ps.refine_kwargs(2, 12, cheap=False, extend=True)
+    assert "extend" not in kw_cut and kw_ext["extend"] == (ps.EXTEND_CAP * 12, ps.extend_window(2), ps.STALL_TOL)
+    g0, g1 = Valley(target), Valley(target)
+    r0 = select.part_refine(g0, start, lo, hi, **kw_cut)
+    r1 = select.part_refine(g1, start, lo, hi, **kw_ext)
+    err0, err1 = (float(np.max(np.abs(r["log_e"] - target))) for r in (r0, r1))
+    assert r0.get("extended", 0) == 0 and r1["extended"] > 0, (r0, r1)
+    assert err1 < math.log(1.1) < err0, (np.exp(r0["log_e"]), np.exp(r1["log_e"]))
+    assert r1["loss"] < r0["loss"] and len(g1.cache) <= ps.EXTEND_CAP * 12 + 4, len(g1.cache)
+
+    class Flat:
+        def __init__(self):
+            self.cache = {}
+
+        def __call__(self, le):
+            v = 0.02 * (1 + 1e-4 * float(np.sum(np.abs(le))))
+            self.cache[tuple(np.round(le, 10))] = v
+            return v
+
+    f = Flat()
+    r = select.part_refine(f, np.log([1e4, 1e4]), lo, hi, **ps.refine_kwargs(2, 12, cheap=False, extend=True))
+    assert r["extended"] == 0 and len(f.cache) <= 12 + 3, (r, len(f.cache))

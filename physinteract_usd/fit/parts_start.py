@@ -87,14 +87,32 @@ def probe_budget(parts: int, cap: int) -> int:
     return max(min(int(cap), PROBES_PER_DIM * (int(parts) + 1)), int(parts) + 2)
 
 
-def refine_kwargs(parts: int, cap: int, cheap: bool = True) -> dict:
+EXTEND_CAP = 3        # the uncut simplex (CUDA) of the parts start goes on past its cap while still descending (`select.part_refine`'s
+                     # `extend`), up to this many times the cap, until its last 2 (m + 1) probes bring no new best STALL_TOL below
+                     # the best before them: foam_bar at 36 frames (the issue's small capture, H200 and this VM alike) stopped at
+                     # the cap of 20 at 3.21e4 / 1.056e4 Pa (truth 3.75e4 / 7.5e3), refused on the held-back frames (7 of 12
+                     # lower), MA 0.483; the same simplex reached 3.80e4 / 7.79e3 by probe 35 (docs/benchmarks/fit.md, top)
+
+
+def extend_window(parts: int) -> int:
+    """The extended simplex's stall window: two simplices' worth of probes (a descent along a narrow valley brings a new
+    best every few probes, not every m + 1: the window of `stall_window` would stop foam_bar's at the cap)."""
+    return 2 * (int(parts) + 1)
+
+
+def refine_kwargs(parts: int, cap: int, cheap: bool = True, extend: bool = False) -> dict:
     """`select.part_refine`'s arguments for the start's simplex over `parts` parts under the fit's cap. `cheap` (a
     forward is dear: the CPU): 3 (m + 1) probes and the stall stop (the demo's +83..104 CPU s cut to +16). Else (CUDA,
     a forward ~1 s): the cap's probes, no stall stop: the 12 suite scenes on the H200 (2026-11-27b) lost
     telephone_cable's start to the cut (MA 0.728 -> 0.228: its simplex stopped at [1, 2, 1]x, the 20-probe one found
-    the coil's 0.86x after ~20 probes), and a longer run of the same simplex only extends the cut one's path."""
+    the coil's 0.86x after ~20 probes), and a longer run of the same simplex only extends the cut one's path.
+    `extend` (uncut only): past the cap while still descending (EXTEND_CAP, `extend_window`)."""
     if not cheap:
-        return dict(evals=max(int(cap), int(parts) + 2), step=SIMPLEX_STEP, two_sided=True)
+        evals = max(int(cap), int(parts) + 2)
+        kw = dict(evals=evals, step=SIMPLEX_STEP, two_sided=True)
+        if extend:
+            kw["extend"] = (EXTEND_CAP * evals, extend_window(parts), STALL_TOL)
+        return kw
     return dict(evals=probe_budget(parts, cap), step=SIMPLEX_STEP, stall=(stall_window(parts), STALL_TOL), two_sided=True)
 
 
@@ -175,7 +193,7 @@ class PartsStart:
         self.f = PartProbe(prob, self.frames, self.labels, self.nu, self.tr, eff, batch=s.select_sweep_batch)
         self.start = np.array([float(np.mean(self.le_now[self.labels == j])) for j in range(self.m)])
         kw = dict(refine(self.m)) if refine is not None else refine_kwargs(self.m, probes,
-                                                                            cheap=not forwards_are_cheap(prob))
+                                                                            cheap=not forwards_are_cheap(prob), extend=True)
         self.evals, self.step, self.kw = kw.pop("evals"), kw.pop("step"), kw
         self.lo, self.hi = mat.lo + 1e-3, mat.hi - 1e-3
 
@@ -240,7 +258,7 @@ class PartsStart:
         with kept_rung(prob):      # the probes leave the substep's rung as they found it (each probe does too)
             r = part_refine(f, start, self.lo, self.hi, self.evals, self.step, **self.kw)
         out.update(parts=m, forwards=len(f.cache) - getattr(f, "given", 0), log_e=[float(v) for v in r["log_e"]], sweep_loss=float(r["loss"]),
-                   stalled=bool(r.get("stalled", False)))
+                   stalled=bool(r.get("stalled", False)), extended=int(r.get("extended", 0)))
         if self.screened is not None:
             out["screen_loss"] = self.screened
         gain_parts = f(start) - float(r["loss"])          # what the parts' own field gained (reconstruction)
@@ -256,7 +274,7 @@ class PartsStart:
                 out.update(used=False, loss0=float("nan"), loss=float("nan"))
                 if log:
                     log(f"parts start: {m} parts by {self.by} at E " + ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-                        + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes); {why}; not taken")
+                        + f" Pa (simplex on {len(frames)} frames, {len(f.cache)} probes{_past_cap(out)}); {why}; not taken")
                 return out
         taken = accept(prob, mat, total_fn, values, gain_parts, f(start), bound0, nest=nest)
         out["forwards"] += 2
@@ -264,11 +282,15 @@ class PartsStart:
         loss0, loss1 = taken["loss0"], taken["loss"]
         if log:
             es = ", ".join(f"{math.exp(v):.4g}" for v in r["log_e"])
-            log(f"parts start: {m} parts by {self.by} at E {es} Pa (simplex, {len(f.cache)} probes"
-                f"{', stalled' if out['stalled'] else ''}); {'nested' if nest else 'on the bumps'} "
+            log(f"parts start: {m} parts by {self.by} at E {es} Pa (simplex, {len(f.cache)} probes{_past_cap(out)}"
+                f"{', stalled' if out['stalled'] and not out['extended'] else ''}); {'nested' if nest else 'on the bumps'} "
                 f"loss {loss0:.5f} -> {loss1:.5f}: {'started there' if out['used'] else 'not taken'}"
                 f" (the parts' own gain {gain_parts:.5f})")
         return out
+
+
+def _past_cap(rec: dict) -> str:
+    return f", {rec['extended']} past the cap while still descending" if rec.get("extended") else ""
 
 
 def clear_drop(hb: dict) -> tuple[bool, str]:
@@ -329,4 +351,4 @@ def parts_start_hook(probes: int):
     return hook
 
 
-__all__ = ["parts_start", "PartsStart", "clear_drop", "PARTS_CLEAR_DROP", "PARTS_MIN_SEPARATION", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL"]
+__all__ = ["parts_start", "PartsStart", "clear_drop", "PARTS_CLEAR_DROP", "PARTS_MIN_SEPARATION", "accept", "restore_rung", "parts_start_hook", "default_probes", "PARTS_START_CUDA", "forwards_are_cheap", "probe_budget", "refine_kwargs", "stall_window", "SIMPLEX_STEP", "PROBES_PER_DIM", "STALL_TOL", "EXTEND_CAP", "extend_window"]
