@@ -75,7 +75,7 @@ def add_parser(sub):
                    help="bumps schedule: start the finest level from the colour parts' E (or the shape's thin and "
                         "thick parts where the colours make no regions: --no-shape-parts), found by a simplex of at "
                         "most N forward probes from the uniform E (on the CPU 3 per part + 3 below N: 9-11 for two "
-                        "parts, stopped early when it stalls; on a GPU all N; charged to the iteration budget when "
+                        "parts, stopped early when it stalls; on a GPU all N, and on while it still descends, up to 3N; charged to the iteration budget when "
                         "taken; 0 turns it off; default: 20 on a GPU (the suite's 12 scenes: mean MA 0.40 -> 0.51, "
                         "none lower), off on the CPU (the demo's fit ~+16-20 CPU s for no MA); #24)")
     s.add_argument("--trend-start", type=int, default=None, metavar="N",
