@@ -148,19 +148,22 @@ def test_the_probe_budget_scales_with_the_parts():
     assert ps.probe_budget(2, 6) == 6 and ps.probe_budget(3, 1) == 5
 
 
+class _Flat:
+    """A flat loss: the parts' spread hardly matters (the simplex should find nothing and stop)."""
+
+    def __init__(self):
+        self.cache = {}
+
+    def __call__(self, le):
+        v = 0.02 * (1 + 1e-4 * float(np.sum(np.abs(le))))
+        self.cache[tuple(np.round(le, 10))] = v
+        return v
+
+
 def test_the_simplex_stops_when_it_stalls():
     """A flat loss (the parts' spread does not matter): the simplex stops after its first simplex and
     one more round of probes, not at its budget; a valley it descends is not cut short."""
-    class Flat:
-        def __init__(self):
-            self.cache = {}
-
-        def __call__(self, le):
-            v = 0.02 * (1 + 1e-4 * float(np.sum(np.abs(le))))
-            self.cache[tuple(np.round(le, 10))] = v
-            return v
-
-    f = Flat()
+    f = _Flat()
     r = select.part_refine(f, np.log([1e4, 1e4]), np.log(1e3), np.log(1e7), 20, step=np.log(2.0), stall=(6, 0.005))
     assert r.get("stalled") and len(f.cache) <= 8, len(f.cache)
     import test_fit_parts as tfp
@@ -505,15 +508,6 @@ def test_the_uncut_simplex_goes_on_past_its_cap_while_still_descending():
     assert err1 < math.log(1.1) < err0, (np.exp(r0["log_e"]), np.exp(r1["log_e"]))
     assert r1["loss"] < r0["loss"] and len(g1.cache) <= ps.EXTEND_CAP * 12 + 4, len(g1.cache)
 
-    class Flat:
-        def __init__(self):
-            self.cache = {}
-
-        def __call__(self, le):
-            v = 0.02 * (1 + 1e-4 * float(np.sum(np.abs(le))))
-            self.cache[tuple(np.round(le, 10))] = v
-            return v
-
-    f = Flat()
+    f = _Flat()
     r = select.part_refine(f, np.log([1e4, 1e4]), lo, hi, **ps.refine_kwargs(2, 12, cheap=False, extend=True))
     assert r["extended"] == 0 and len(f.cache) <= 12 + 3, (r, len(f.cache))
