@@ -265,3 +265,26 @@ def test_path_error_tells_a_lift_read_as_a_move_toward_the_camera():
     assert r["path_rel"] == pytest.approx(np.sqrt(2), rel=1e-9)
     assert (r["lift_true_cm"], r["lift_cm"]) == (pytest.approx(5.0), pytest.approx(0.0))
     assert ws.path_error(NS(trajectory=None), NS(trajectory=mine), 2, 7, T) == {}
+
+
+def test_moved_before_contact_reads_a_sag_before_the_hand_arrives(tmp_path):
+    """world_suite's capture property: an object 0.2 m long whose every particle sags 2 cm by the hand's arrival
+    (frame 3) moved 10% of its size before contact; the hand's path, planned from the rest centroid, is 2 cm from
+    the held particles at its arrival; an object at rest until the arrival reads 0 / 0."""
+    ws = _bench("world_suite")
+    rest = np.stack([np.linspace(0, 0.2, 21), np.zeros(21), np.zeros(21)], 1)
+    T, arrive = 6, 3
+    sag = np.minimum(np.arange(T), arrive) / arrive * 0.02
+    X = rest[None] - sag[:, None, None] * np.array([0.0, 1.0, 0.0])
+    held_at = rest[20]
+    traj = np.repeat(held_at[None], T, 0)
+    it = {"type": "pointAdherent", "contact_point": held_at.tolist(), "contact_radius": 0.005,
+          "trajectory": traj.tolist(), "arrive_frame": arrive, "grasp_frame": arrive + 1}
+    np.savez(tmp_path / "particles.npz", rest=rest, positions=X)
+    r = ws.moved_before_contact(tmp_path, {"interaction": it})
+    assert r["pre_contact_pct"] == pytest.approx(10.0, rel=1e-9)
+    assert r["drawn_gap_mm"] == pytest.approx(20.0, rel=1e-9)
+    np.savez(tmp_path / "particles.npz", rest=rest, positions=np.repeat(rest[None], T, 0))
+    r = ws.moved_before_contact(tmp_path, {"interaction": it})
+    assert r["pre_contact_pct"] == 0.0 and r["drawn_gap_mm"] == pytest.approx(0.0, abs=1e-12)
+    assert ws.moved_before_contact(tmp_path / "nothing", {"interaction": it}) == {}
