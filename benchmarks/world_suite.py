@@ -215,14 +215,16 @@ def compare(stage: Path, gt_dir: Path, result) -> dict:
 def moved_before_contact(gt_dir: Path, g: dict) -> dict:
     """What the truth's object does before the toucher arrives (`pre_contact_pct`: the largest mean particle
     displacement from rest up to the arrival, % of the object's size) and, for a grasp, how far the drawn hand's path
-    is from the held particles at its arrival (`drawn_gap_mm`); {} without the truth's particle positions."""
+    is from the held particles (those within gt.json's contact radius of its contact point) at its arrival
+    (`drawn_gap_mm`); {} without the truth's particle positions."""
     try:
         d = np.load(gt_dir / "particles.npz")
         X, rest = d["positions"], d["rest"]
     except (OSError, KeyError):
         return {}
     it = g["interaction"]
-    a = int(min(it.get("arrive_frame") or it["grasp_frame"], len(X) - 1))
+    a = it.get("arrive_frame")
+    a = int(min(it["grasp_frame"] if a is None else a, len(X) - 1))
     size = float(np.ptp(rest, axis=0).max())
     pre = max(float(np.linalg.norm(X[k] - rest, axis=1).mean()) for k in range(a + 1))
     out = {"pre_contact_pct": 100.0 * pre / size if size > 0 else None, "drawn_gap_mm": None}
