@@ -189,6 +189,10 @@ def draw_world(seed: int, split: str = "dev", overrides: dict | None = None) -> 
     # not drawn (no draw consumed): the truth finer than `init --grid auto` at this particle cap would fit it
     # (None: finer than the README's suggested grid only, within the CPU's budget; synth --truth-for-auto N)
     take("truth_for_auto", None)
+    # not drawn: the truth settled on its supports (or floor) before frame 0, the scan its settled shape (#23: by
+    # default the object starts at its unsettled rest and sags before anything touches it; opt-in until both splits
+    # are regenerated and the fits re-measured)
+    take("settle", False)
     if o:
         raise InputError("overrides", f"unknown world parameters: {', '.join(sorted(o))}")
     return w
@@ -555,20 +559,27 @@ class World:
         self.approach_offset()                      # sets `arrive`
         out = []
         self.contact_indices = np.zeros(0, np.int64)
+        if not hasattr(self, "contact_point_rest"):
+            self.contact_point_rest = np.asarray(self.contact_point, np.float64).copy()
+        cp0 = self.contact_point_rest
+        xr = getattr(self, "x_scan", None)
+        xr = x0 if xr is None else xr              # the shape the toucher finds: settled with `settle`
         if it == "pointAdherent":
             reach = max(2.0 * h, self.w["grasp_share"] * self.toucher_radius)
-            d = np.linalg.norm(x0 - self.contact_point, axis=1)
+            d = np.linalg.norm(x0 - cp0, axis=1)
             idx = np.where((d < reach) & ~held_sup)[0]
             if len(idx) < 3:
                 idx = np.argsort(d)[:3]
             self.contact_indices = idx
-            centroid = x0[idx].mean(0)
+            self.contact_point = self._settled_point(cp0, idx)
+            centroid = xr[idx].mean(0)
             self.trajectory = centroid + self.disp
             self.hand_offset = self.contact_point - centroid
             # the hand takes hold when it arrives (and holds still through its dwell), pulls from `grasp`
             out.append(Contact("pointAdherent", indices=idx, trajectory=self.trajectory, grasp_frame=self.arrive,
                                release_frame=None if self.never else self.release))
         elif it == "pointNonAdherent":
+            self.contact_point = self._settled_point(cp0)
             R = self.toucher_radius
             n = self.contact_normal
             start = self.contact_point + n * (R + 0.2 * h)
@@ -582,7 +593,8 @@ class World:
                 out.append(Contact("pointNonAdherent", trajectory=self.trajectory + half, shape="capsule", radius=R,
                                    axis=tuple(half), friction=self.w["friction"], grasp_frame=0))
         else:
-            top = float(x0[:, 1].max()) + 0.5 * h
+            self.contact_point = self._settled_point(cp0)
+            top = float(xr[:, 1].max()) + 0.5 * h
             start = np.array([self.contact_point[0], top, self.contact_point[2]])
             self.trajectory = start + self.disp + self.approach_offset()
             self.hand_offset = np.zeros(3)
@@ -595,10 +607,58 @@ class World:
         self.fixed_indices = np.where(held_sup)[0]
         return out
 
+    SETTLE_SECONDS = 1.5       # `settle`: the object on its supports under gravity this long, damped at SETTLE_DAMPING
+    SETTLE_DAMPING = 20.0      # 1/s: over twice a 6 cm sag's own rate (sqrt(g / 0.06) ~ 13 rad/s): at rest within the time
+
+    def settle_state(self, grid, effects: dict) -> dict:
+        """`w["settle"]`: the truth's object under gravity on its supports (no toucher), damped, until at rest: its last
+        state {"x", "v", "C", "F", "Fv"} (tensors of one frame, v and C zero), from which the truth's frames start; the
+        settled positions as `self.x_scan` (the contact point follows them in `contacts`: `_settled_point`)."""
+        from ..sim import Contact, Control, Rollout, SimModel
+
+        sup = np.where(self._held_mask())[0]
+        n = max(2, int(round(self.SETTLE_SECONDS * self.fps)))
+        control = Control([Contact("fixed", indices=sup)] if len(sup) else [], n_frames=n)
+        eff = dict(effects, damping={"coefficient": self.SETTLE_DAMPING})
+        m = SimModel.create(self.x0, np.full(len(self.x0), self.h ** 3), self.density, self.E, self.nu, grid=grid,
+                            fps=self.fps, substeps=self.substeps, E_max=float(self.E.max()), effects=eff,
+                            device=self.device, pin_gain=1.0, ground_contact=truth_ground_contact(), stencil_check=False)
+        ro = Rollout(m, control, graphs=False)
+        dev = "cpu" if self.device == "cpu" else self.device
+        with torch.no_grad():
+            ro(torch.tensor(self.E, dtype=torch.float32, device=dev), torch.tensor(self.nu, dtype=torch.float32, device=dev))
+        last = {k: t[-1].clone() for k, t in ro.checkpoints().items()}
+        for k in ("v", "C"):
+            if k in last:
+                last[k].zero_()
+        self.x_scan = last["x"].detach().double().cpu().numpy().reshape(len(self.x0), 3)
+        return last
+
+    def _settled_point(self, cp0: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """The rest contact point `cp0` carried to the settled shape: moved as the particles it is drawn on moved (the
+        held set `idx`, else those within 2 spacings); `cp0` itself without `settle`."""
+        xs = getattr(self, "x_scan", None)
+        if xs is None or xs is self.x0:
+            return cp0
+        if idx is None or not len(idx):
+            idx = np.where(np.linalg.norm(self.x0 - cp0, axis=1) < 2.0 * self.h)[0]
+            if not len(idx):
+                idx = np.argsort(np.linalg.norm(self.x0 - cp0, axis=1))[:3]
+        return cp0 + (xs[idx] - self.x0[idx]).mean(0)
+
     def run(self):
-        """The ground truth: x (T, P, 3), F (T, P, 3, 3), frame 0 at rest."""
+        """The ground truth: x (T, P, 3), F (T, P, 3, 3), frame 0 at rest (with `settle`: the settled state at frames
+        0 and 1, the frames simulated from 1 on)."""
         from ..sim import Control, GridSpec, Rollout, SimModel
 
+        settle = bool(self.w.get("settle"))
+        self.x_scan = self.x0
+        if settle:
+            pts = np.concatenate([self.x0, self.x0 + np.array([0.0, -0.5 * self.extent, 0.0])])
+            fall = math.sqrt(2 * GRAVITY * self.extent)
+            self.substeps = self._substeps(2.0 * self.h, float(self.E.max()), fall)
+            eff0 = {} if self.floor_y is None else {"ground": {"height": self.floor_y, "friction": float(self.w["friction"])}}
+            start = self.settle_state(GridSpec.around(pts, dx=2.0 * self.h, padding=0.35 * self.extent), eff0)
         contacts = self.contacts()
         control = Control(contacts, n_frames=self.T - 1)
         pts = np.concatenate([self.x0, self.trajectory, self.trajectory + self.hand_offset])
@@ -628,11 +688,16 @@ class World:
                                 # the frames' ends only, as before #24: the retries below (and so the captures
                                 # generated before) stay as they were (sim/model.py stencil_check)
                                 stencil_check=False)
-            ro = Rollout(m, control)
+            ro = Rollout(m, control, graphs=not settle)
             try:
                 with torch.no_grad():
-                    x, F = ro(torch.tensor(self.E, dtype=torch.float32, device=dev),
-                              torch.tensor(self.nu, dtype=torch.float32, device=dev))
+                    E_t = torch.tensor(self.E, dtype=torch.float32, device=dev)
+                    nu_t = torch.tensor(self.nu, dtype=torch.float32, device=dev)
+                    if settle:       # frames 0 and 1 the settled state, the rest simulated from it
+                        states = {k: torch.stack([t, t]) for k, t in start.items()}
+                        x, F = ro.forward_from(1, states, E_t, nu_t)
+                    else:
+                        x, F = ro(E_t, nu_t)
                 x = x.cpu().double().numpy()
                 self.check_held(x)
                 return x, F.cpu().double().numpy()
@@ -1022,7 +1087,13 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
 
     # ---- write the capture folder
     outdir.begin(out)
-    write_ply(g, out / "object.ply")
+    scan = g
+    if w.get("settle"):     # the scan is of the object at rest on its supports: its settled shape (frame 0's)
+        from ..gaussians import Gaussians
+
+        scan = Gaussians(means=gpos[0], scales=g.scales, quats=g.quats, opacities=g.opacities, sh=g.sh,
+                         normals=g.normals)
+    write_ply(scan, out / "object.ply")
     enc = w["encoding"]
     if enc == "mp4":
         write_video(out / "video.mp4", rgb, world.fps)
@@ -1054,7 +1125,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
         "youngs_modulus": {"min": e_lo, "max": e_hi, "range": e_hi / e_lo},
         "poisson_ratio": {"all": w["poisson"]},
         "interaction": {"type": it, "contact_point": world.contact_point.tolist(),
-                        "contact_radius": float(np.max(np.linalg.norm(world.x0[world.contact_indices]
+                        "contact_radius": float(np.max(np.linalg.norm(world.x_scan[world.contact_indices]
                                                                       - world.contact_point, axis=1)))
                         if len(world.contact_indices) else world.toucher_radius,
                         "contact_particles": int(len(world.contact_indices)),
@@ -1085,7 +1156,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
         "generation_seconds": None,
     }
     write_ground_truth(out, info, e_g, nu_g, gpos,
-                       dict(rest=world.x0, E=world.E, nu=world.nu, volume=np.full(len(world.x0), world.h ** 3),
+                       dict(rest=world.x_scan, E=world.E, nu=world.nu, volume=np.full(len(world.x0), world.h ** 3),
                             positions=x.astype(np.float32)), hmask, amodal)
     ys = suggested["youngs_range"]
     floor_line = ""
