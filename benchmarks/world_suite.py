@@ -109,7 +109,8 @@ def made_for(gt_json: Path):
     return None if not ft else int(ft["max_particles"])
 
 
-def generate(work: Path, split: str, seeds: list[int], device: str, log=print, truth_for_auto=None) -> None:
+def generate(work: Path, split: str, seeds: list[int], device: str, log=print, truth_for_auto=None,
+             settle: bool = False) -> None:
     work.mkdir(parents=True, exist_ok=True)
     if split == "validation":
         mark_validation(work)
@@ -120,16 +121,19 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print, t
         made = next((p for p in (work / f"{n}.gt" / "gt.json", work / n / "gt" / "gt.json") if p.exists()), None)
         if made is not None:
             was = made_for(made)
-            if was == truth_for_auto:
+            was_settled = bool((read_ground_truth(made.parent).get("world") or {}).get("settle"))
+            if was == truth_for_auto and was_settled == bool(settle):
                 continue
-            # a capture this script made for another truth (--truth-for-auto changed): made again, the stage too
-            log(f"{n}: its truth was made for --truth-for-auto {was}, not {truth_for_auto}: made again", flush=True)
+            # a capture this script made for another truth (--truth-for-auto or --settle changed): made again, the
+            # stage too
+            log(f"{n}: its truth was made for --truth-for-auto {was}{', settled' if was_settled else ''}, not "
+                f"{truth_for_auto}{', settled' if settle else ''}: made again", flush=True)
             for d in (work / n, work / f"{n}.gt", work / f"{n}.stage"):
                 shutil.rmtree(d, ignore_errors=True)
         t0 = time.perf_counter()
         try:
             api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None,
-                      truth_for_auto=truth_for_auto)
+                      truth_for_auto=truth_for_auto, overrides={"settle": True} if settle else None)
             log(f"{n}: {time.perf_counter() - t0:.0f} s", flush=True)
         except Exception as exc:
             log(f"{n}: FAILED {type(exc).__name__}: {exc}", flush=True)
@@ -440,6 +444,9 @@ def main(argv=None):
     ap.add_argument("--truth-for-auto", type=int, default=None, metavar="N",
                     help="generate: synth --truth-for-auto N (the truth finer than init --grid auto --max-particles "
                          "N's fit too; a GPU's work on thin objects; docs/benchmarks/world_fits.md)")
+    ap.add_argument("--settle", action="store_true",
+                    help="generate: synth --settle (the truth settled on its supports before frame 0, the scan its "
+                         "settled shape; a capture made otherwise is made again)")
     ap.add_argument("--timing", choices=["rules", "model", "hybrid"], default=None,
                     help="extract's timing: the passes' rules, the ninth pass's model, or the model's grasp with "
                          "the rules' release (timing.METHOD; default: the code's)")
@@ -452,7 +459,7 @@ def main(argv=None):
     tool = f"world_suite.py {a.command} --split dev"
     try:
         if a.command == "generate":
-            generate(work, a.split, parse_seeds(a.seeds), a.device, truth_for_auto=a.truth_for_auto)
+            generate(work, a.split, parse_seeds(a.seeds), a.device, truth_for_auto=a.truth_for_auto, settle=a.settle)
             return 0
         guard(work, a.split, a.final, tool)
         names = [name_of(a.split, s) for s in parse_seeds(a.seeds)] if a.seeds else captures(work, a.split)

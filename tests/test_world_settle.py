@@ -26,3 +26,14 @@ def test_a_settled_world_is_at_rest_before_the_toucher_arrives_and_the_hand_hold
         np.ptp(w0.x0, axis=0).max())                                 # ... in the shape it sagged to, not at the old rest
     a, held = w1.arrive, w1.contact_indices
     assert np.linalg.norm(w1.trajectory[a] - x1[a][held].mean(0)) < 2.0 * w1.h   # the hand's path at what it holds
+
+
+def test_synth_settle_is_for_world_captures_only(tmp_path, capsys):
+    """`synth NAME OUT --settle`: one line naming the flag, exit 2, nothing written."""
+    from physinteract_usd.cli import main
+
+    out = tmp_path / "cap"
+    assert main(["synth", "foam_bar", str(out), "--settle"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--settle" in err[0] and "world captures" in err[0]
+    assert not out.exists()
