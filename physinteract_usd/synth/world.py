@@ -654,14 +654,18 @@ class World:
         settle = bool(self.w.get("settle"))
         self.x_scan = self.x0
         if settle:
-            pts = np.concatenate([self.x0, self.x0 + np.array([0.0, -0.5 * self.extent, 0.0])])
             fall = math.sqrt(2 * GRAVITY * self.extent)
             self.substeps = self._substeps(2.0 * self.h, float(self.E.max()), fall)
             eff0 = {} if self.floor_y is None else {"ground": {"height": self.floor_y, "friction": float(self.w["friction"])}}
-            start = self.settle_state(GridSpec.around(pts, dx=2.0 * self.h, padding=0.35 * self.extent), eff0)
+            # room to hang by its whole length and swing aside by half of it (the main run's widest grid below: a
+            # clamped sheet settling aside left a box of 0.35 x its size, dev_0539)
+            pad, ext = 0.35 * self.extent, np.array([0.5, 1.0, 0.5]) * self.extent
+            grid0 = GridSpec.around(self.x0, dx=2.0 * self.h, lower=self.x0.min(0) - pad - ext,
+                                    upper=self.x0.max(0) + pad + np.array([ext[0], 0.0, ext[2]]))
+            start = self.settle_state(grid0, eff0)
         contacts = self.contacts()
         control = Control(contacts, n_frames=self.T - 1)
-        pts = np.concatenate([self.x0, self.trajectory, self.trajectory + self.hand_offset])
+        pts = np.concatenate([self.x0, self.x_scan, self.trajectory, self.trajectory + self.hand_offset])
         dx = 2.0 * self.h
         pad = 0.35 * self.extent
         fall = math.sqrt(2 * GRAVITY * self.extent)
