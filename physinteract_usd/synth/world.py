@@ -692,7 +692,7 @@ class World:
                                 # the frames' ends only, as before #24: the retries below (and so the captures
                                 # generated before) stay as they were (sim/model.py stencil_check)
                                 stencil_check=False)
-            ro = Rollout(m, control, graphs=not settle)
+            ro = Rollout(m, control, graphs=False) if settle else Rollout(m, control)
             try:
                 with torch.no_grad():
                     E_t = torch.tensor(self.E, dtype=torch.float32, device=dev)
