@@ -638,7 +638,7 @@ class World:
         """The rest contact point `cp0` carried to the settled shape: moved as the particles it is drawn on moved (the
         held set `idx`, else those within 2 spacings); `cp0` itself without `settle`."""
         xs = getattr(self, "x_scan", None)
-        if xs is None or xs is self.x0:
+        if not self.w.get("settle") or xs is None:
             return cp0
         if idx is None or not len(idx):
             idx = np.where(np.linalg.norm(self.x0 - cp0, axis=1) < 2.0 * self.h)[0]
