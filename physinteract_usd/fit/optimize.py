@@ -149,6 +149,9 @@ class FitSettings:
                                         # (20) where the problem's tensors are on CUDA (the 12 suite scenes on the H200:
                                         # mean MA 0.580 -> 0.626, >= 0.9 on 4 not 2; the paper row 0.821 -> 1.000), 0 on
                                         # the CPU (as the parts start: its probes cost the demo time). #24, balloon
+    trend_extend: bool = True           # the trend start's simplex goes on past its cap while still descending, as the
+                                        # parts start's uncut one does (parts_start.EXTEND_CAP, `extend_window`); False:
+                                        # it stops at the cap (before the 35th session). #24
     parts_by_shape: bool = True         # the parts start (fit/parts_start.py): where the colours make no regions (one colour,
                                         # or a pattern's interleaved classes), the parts by thickness (thin against thick:
                                         # regions.thickness_clusters) where the shape has them; False: colour parts only. #24

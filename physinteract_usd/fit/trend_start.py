@@ -140,7 +140,7 @@ class TrendStart:
         # the simplex uncut on every device (the parts start cuts it on the CPU for the demo's time; the trend start is
         # opt-in there): cut, it stopped at a 2% gain on the tiny graded bar (tests/test_trend_start_bar.py) and at a 2x
         # trend on the CPU's balloon, where the GPU's uncut one found 5x
-        kw = refine_kwargs(2, probes, cheap=False)
+        kw = refine_kwargs(2, probes, cheap=False, extend=bool(getattr(s, "trend_extend", False)))
         self.step, self.evals, self.kw = float(kw.pop("step")), int(kw.pop("evals")), kw
         self.lo, self.hi = mat.lo + 1e-3, mat.hi - 1e-3
         self.u0 = np.array([self.u, self.u])
@@ -206,11 +206,13 @@ class TrendStart:
             keep, why, p_sign = hb["keep"], hb["why"], hb["sign_p"]
             rec = dict(axis=[float(v) for v in ax], log_e=[float(v) for v in ends], sweep_loss=float(r["loss"]),
                        trend_gain=float(gain), heldback=why, sign_p=p_sign, rank=rank, keep=keep, values=values,
-                       screen_loss=float(v_screen))
+                       screen_loss=float(v_screen), extended=int(r.get("extended", 0)))
             if log:
                 log(f"trend start: log E linear along ({ax[0]:+.2f}, {ax[1]:+.2f}, {ax[2]:+.2f}) (axis {rank + 1} of "
                     f"{len(self.axes)} by its screen) from {math.exp(ends[0]):.4g} to {math.exp(ends[1]):.4g} Pa (on "
-                    f"{len(self.train)} frames, its gain {gain:.5f}); {why}" + ("" if keep else "; not taken"))
+                    f"{len(self.train)} frames, its gain {gain:.5f}" + (f", {rec['extended']} probes past the cap while "
+                                                                        "still descending" if rec["extended"] else "")
+                    + f"); {why}" + ("" if keep else "; not taken"))
             if keep:
                 break
         out.update(forwards=self.forwards + 2 * (0 if rec is None else rec["rank"] + 1), axes=len(self.axes))
