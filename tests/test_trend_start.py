@@ -282,3 +282,25 @@ def test_a_screen_probes_the_simplexs_first_vertices_so_the_simplex_runs_none_ag
     assert n_screen == 4 and min(vals) < vals[0]           # x2 worse for the soft part: its / 2 probed too
     r1 = select.part_refine(screened, start, lo, hi, 20, math.log(2.0), two_sided=True)
     assert len(screened.cache) == len(alone.cache) and np.allclose(r0["log_e"], r1["log_e"])
+
+
+def test_the_trend_simplex_goes_on_past_a_short_cap_while_it_still_descends():
+    """`FitSettings.trend_extend` (#24): the trend start's simplex, cut at a cap it reaches still descending, goes on
+    (up to parts_start.EXTEND_CAP x the cap) until it stalls, as the parts start's uncut one does: on the graded
+    block with a 6-probe cap the capped simplex stops 17% short of the trend's ends, the extended one within 5%."""
+    x = _grid()
+    t = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    truth = math.log(3.75e4) * t + math.log(7.5e3) * (1 - t)
+    ends = {}
+    for ext in (False, True):
+        prob, calls = _problem(truth, x)
+        mat = _Mat(np.full(len(x), math.log(3.1e4)))
+        s = types.SimpleNamespace(select_sweep_batch="never", select_holdout_every=3, select_penalty=0.002,
+                                  trend_extend=ext)
+        total = lambda: float(prob.loss(mat.youngs().detach(), None, None, None)["rec"])   # noqa: E731
+        out = ts.trend_start(prob, mat, s, None, None, total, 6)
+        ends[ext] = (sorted(math.exp(v) for v in out["log_e"]), out["extended"], out["sweep_loss"])
+    err = {k: max(abs(v[0][0] / 7.5e3 - 1), abs(v[0][1] / 3.75e4 - 1)) for k, v in ends.items()}
+    assert ends[False][1] == 0 and ends[True][1] > 0, ends
+    assert err[False] > 0.12 and err[True] < 0.08, (err, ends)          # 17% off at the cap; 5% extended (12 probes)
+    assert ends[True][2] < 0.2 * ends[False][2]
