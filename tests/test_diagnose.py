@@ -426,6 +426,56 @@ def test_a_hidden_damping_that_a_ground_mimics_stays_damping(damped):
     assert pt["winner"] == "damping", pt["why"]
 
 
+def _mixed_refits(info):
+    """damping refitted and `interaction:timing` judged as probe (its amplitude and the base's linear re-adjustment
+    without the held-back frames) on shared held-back frames, as `app.diagnose.refit_confusable` does before the pair
+    step (2 iterations, one fold)."""
+    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
+    from physinteract_usd.diagnose import refit as RF
+    from physinteract_usd.diagnose.core import estimate_of
+
+    prob, base = _problem(info)
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("damping", "interaction:timing")))
+    by = {c.effect: c for c in d.results}
+    dm, tm = by["damping"], by["interaction:timing"]
+    for c in (dm, tm):
+        c.best, c.step = c.marginal_probe
+        c.estimate = estimate_of(c, prob)
+    val = RF.group_frames(d, [dm, tm], folds=1)
+    null = RF.refit_null(d, val, iterations=2)
+    RF.refit_effect(d, dm, iterations=2, frames=val, null=null)
+    RF.judge_probe(d, tm, frames=val)
+    return d, dm, tm
+
+
+@pytest.fixture(scope="module")
+def released_early(tmp_path_factory):
+    # the true hand lets go 2 frames before the stage says (a wrong interaction that also takes energy out of the swing)
+    return ds.build(tmp_path_factory.mktemp("released_early"), release_shift=-2, noise=0.015)
+
+
+def test_a_physical_effect_and_the_interaction_that_mimics_it_are_told_apart_by_nesting(damped, released_early):
+    """Issue #22, the mixed pair (`refit.nested_with_interaction`): damping refitted under the timing candidate's
+    change, every model re-adjusted alike. On the damped bar damping is needed given the timing change and the timing
+    change is not; on the bar released 2 frames early the timing change (found: the release moved 2 frames earlier)
+    is needed given damping and damping is not. The problem's own contacts are back after each."""
+    from physinteract_usd.diagnose import refit as RF
+
+    d, dm, tm = _mixed_refits(damped)
+    before = list(d._ctx["prob"].contacts)
+    pt = RF.nested_with_interaction(d, dm, tm, iterations=2)
+    assert pt["winner"] == "damping", pt["why"]
+    assert pt["adds"]["damping"]["needed"] and not pt["adds"]["interaction:timing"]["needed"]
+    assert d._ctx["prob"].contacts == before
+
+    d, dm, tm = _mixed_refits(released_early)
+    assert tm.probes[tm.best].meta["what"] == "release_frame" and tm.probes[tm.best].meta["frame"] == \
+        tm.probes[tm.best].meta["was"] - 2
+    pt = RF.nested_with_interaction(d, dm, tm, iterations=2)
+    assert pt["winner"] == "interaction:timing", pt["why"]
+    assert pt["adds"]["interaction:timing"]["needed"] and not pt["adds"]["damping"]["needed"]
+
+
 @pytest.fixture(scope="module")
 def viscous(tmp_path_factory):
     # the suite's tiny-bar viscoelasticity at 1x (benchmarks/diagnose_suite.hidden_for): E_v 0.3 E, tau 0.1 s

@@ -254,23 +254,30 @@ def _decided(a, b) -> bool:
 
 
 def pair_step(diag, win, group, iterations: int, log=print) -> dict | None:
-    """A confusable pair of physical effects (`refit.NESTED_PAIRS`: damping vs ground, damping vs
-    viscoelasticity), both accepted on the same held-back frames: `win` (the group's choice so far) and
-    the accepted mate with the largest held-back drop are refitted together and each is judged by what it
-    adds given the other (`refit.nested_pair`: drop-one held-back loss). One more refit a fold, only where
-    such a pair is confirmed. The result goes on both (`pair_test`) and in their notes; returns it (its
-    `winner` names the effect the data needs, None when not told apart) or None when it does not apply."""
-    from ..diagnose.refit import NESTED_PAIRS, _same_folds, bottom_signature, nested_pair
+    """A confusable pair both accepted on the same held-back frames: two physical effects (`refit.NESTED_PAIRS`:
+    damping vs ground, damping vs viscoelasticity) or a physical effect and the interaction cause that mimics it
+    (`refit.INTERACTION_PAIRS`: damping vs a grasp or release frame moved, ...). `win` (the group's choice so far)
+    and the accepted mate with the largest held-back drop are refitted together and each is judged by what it adds
+    given the other (`refit.nested_pair`, `refit.nested_with_interaction`: drop-one held-back loss). One more refit
+    a fold, only where such a pair is confirmed. The result goes on both (`pair_test`) and in their notes; returns
+    it (its `winner` names the one the data needs, None when not told apart) or None when it does not apply."""
+    from ..diagnose.refit import (INTERACTION_PAIRS, NESTED_PAIRS, _same_folds, bottom_signature, nested_pair,
+                                  nested_with_interaction)
 
-    if not (win.accepted and win.effect in PHYSICAL and getattr(win, "_held", None) is not None):
+    if not (win.accepted and getattr(win, "_held", None) is not None):
         return None
-    mates = [c for c in group if c is not win and c.accepted and frozenset((c.effect, win.effect)) in NESTED_PAIRS
+    pairs = (NESTED_PAIRS + INTERACTION_PAIRS) if win.effect in PHYSICAL else INTERACTION_PAIRS
+    mates = [c for c in group if c is not win and c.accepted and frozenset((c.effect, win.effect)) in pairs
              and getattr(c, "_held", None) is not None and _same_folds(c._held, win._held)]
     if not mates:
         return None
     mate = max(mates, key=lambda c: c.held_back_drop or 0.0)
     log(f"refitting {win.effect} and {mate.effect} together ({iterations} iterations): what each adds given the other")
-    pt = nested_pair(diag, win, mate, iterations=iterations)
+    if win.effect in PHYSICAL and mate.effect in PHYSICAL:
+        pt = nested_pair(diag, win, mate, iterations=iterations)
+    else:
+        phys, inter = (win, mate) if win.effect in PHYSICAL else (mate, win)
+        pt = nested_with_interaction(diag, phys, inter, iterations=iterations)
     if pt is None:
         return None
     if getattr(diag._ctx.get("settings"), "pair_signature", False) and {win.effect, mate.effect} == {"damping", "ground"}:

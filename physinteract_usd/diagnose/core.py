@@ -673,6 +673,29 @@ def _threshold_search(effect: str, cr, run: _Runner, r0: np.ndarray, J: np.ndarr
     return Probe(f"{key}={v:.4g}*", cache[u][1] - r0, +1, {key: v})
 
 
+def probe_contacts(prob, cr) -> list | None:
+    """The contacts of an interaction candidate's best probe (`interaction:timing`, `:contact`, `:grasp_size`,
+    `:support`), rebuilt from its metadata as `probes_for` made them: the model's contacts with that one change,
+    for a refit under it (`refit.nested_with_interaction`). None for any other candidate or probe."""
+    if not cr.effect.startswith("interaction:") or cr.best < 0 or not cr.probes:
+        return None
+    meta = cr.probes[cr.best].meta or {}
+    i = next((k for k, c in enumerate(prob.contacts) if c.name == meta.get("contact")), None)
+    if i is None:
+        return None
+    c, cs = prob.contacts[i], list(prob.contacts)
+    if cr.effect == "interaction:timing":
+        cs[i] = dataclasses.replace(c, **{meta["what"]: int(meta["frame"])})
+    elif cr.effect == "interaction:contact":
+        cs[i] = moved_contact(c, np.asarray(meta["offset"], float), prob.x0, prob.contacts)
+    else:
+        nc = _resized(c, meta["direction"], prob.x0, prob.contacts, prob.scene.settings.particle_spacing)
+        if nc is None:
+            return None
+        cs[i] = nc
+    return cs
+
+
 def _sim_r(run: _Runner, contacts, log):
     try:
         return run.r(sim=run.sim_for(contacts=contacts))

@@ -369,6 +369,11 @@ def _same_folds(a: list, b: list) -> bool:
 # The confusable pairs of physical effects the nested comparison (`nested_pair`) separates when both are
 # accepted on the same held-back frames (issue #22: "damping vs ground friction", damping vs viscoelasticity).
 NESTED_PAIRS = (frozenset(("damping", "ground")), frozenset(("damping", "viscoelasticity")))
+# A physical effect and the interaction cause that mimics it, told apart the same way (`nested_with_interaction`): a
+# grasp a frame late or a release a frame early takes energy out of the swing as damping does (the README
+# walkthrough at grid 24 named the grasp moved 1 -> 2 before damping, |cos| 0.97 between them).
+INTERACTION_PAIRS = (frozenset(("damping", "interaction:timing")), frozenset(("viscoelasticity", "interaction:timing")),
+                     frozenset(("damping", "interaction:support")))
 
 
 def refit_joint(diag: Diagnosis, crs: list, frames: list, *, iterations: int = 8, holdout_every: int = 4, log=None
@@ -430,6 +435,80 @@ def nested_pair(diag: Diagnosis, a: CandidateResult, b: CandidateResult, *, iter
         return None
     out = judge_nested(diag, a, b, j["held"], effects=j["effects"])
     out.update(estimate=j["estimate"], _joint=j)
+    return out
+
+
+class _under_contacts:
+    """The diagnosis's problem simulating under other `contacts` for a while (`nested_with_interaction`): its
+    simulation swapped for a twin under them (`Simulation.forward_twin`; differentiable), restored on exit."""
+
+    def __init__(self, prob, contacts):
+        self.prob, self.contacts = prob, contacts
+
+    def __enter__(self):
+        p = self.prob
+        self.saved = (p.sim, p.contacts, p.control)
+        p.sim = p.sim.forward_twin(self.contacts)
+        p.contacts, p.control = p.sim.contacts, p.sim.control
+        return p
+
+    def __exit__(self, *exc):
+        self.prob.sim, self.prob.contacts, self.prob.control = self.saved
+        return False
+
+
+def _readjusted(diag: Diagnosis, ra: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """An augmented residual `ra` plus the base parameters' linear re-adjustment fitted without the held-back
+    elements `mask` (as `judge_probe` re-adjusts an interaction probe): its image part."""
+    ctx = diag._ctx
+    J, n = diag._J, ctx["run"].n_img or len(mask)
+    if not J.size:
+        return np.asarray(ra)[:n]
+    train = np.concatenate([~mask, np.ones(len(ra) - n, bool)])
+    a = _train_lstsq(J, ra, train)
+    return (ra + J @ a)[:n]
+
+
+def nested_with_interaction(diag: Diagnosis, phys: CandidateResult, inter: CandidateResult, *, iterations: int = 8,
+                            holdout_every: int = 4, log=None) -> dict | None:
+    """A physical effect and an interaction cause that mimics it (damping and a grasp frame moved: both take energy
+    out of the swing), both accepted on the same held-back frames, told apart as a confusable pair of physical
+    effects is (`nested_pair`): the effect refitted under the interaction's change (its best probe's contacts,
+    `core.probe_contacts`), and each judged by what it adds given the other. The interaction is judged as a probe
+    with the base's linear re-adjustment (`judge_probe`), a physical effect by a refit that holds the base: here the
+    effect's model and the pair's get the same re-adjustment, so each side of the drop-one test is re-adjusted
+    alike. Returns `judge_nested`'s dict (`winner` the effect or the cause, None when not told apart) or None when
+    it does not apply (no rebuilt contacts, other folds, the simulation failed)."""
+    from .core import probe_contacts
+
+    hp, hi = getattr(phys, "_held", None), getattr(inter, "_held", None)
+    if hp is None or hi is None or not _same_folds(hp, hi):
+        return None
+    ctx = diag._ctx
+    prob, res, run = ctx["prob"], ctx["res"], ctx["run"]
+    cs = probe_contacts(prob, inter)
+    if cs is None:
+        return None
+    folds = [sorted(set(res.frame_of()[m].tolist())) for m, _ in hp]
+    start = dict(phys.estimate or {})
+    from ..workers import fork_map
+
+    def one(val):
+        with _under_contacts(prob, cs):
+            _, r1a, state = _refit(diag, phys.effect, start, val, iterations, holdout_every, log)
+        return r1a, state
+
+    try:
+        got = fork_map(one, folds, device=prob.tdev)
+    except SimulationError:
+        return None
+    joint = [(m, _readjusted(diag, r1a, m)) for (m, _), (r1a, _) in zip(hp, got)]
+    phys_adj = type("Held", (), {"effect": phys.effect,
+                                 "_held": [(m, _readjusted(diag, run.aug(np.asarray(r)), m)) for m, r in hp]})()
+    out = judge_nested(diag, phys_adj, inter, joint, effects=(phys.effect, inter.effect))
+    out["estimate"] = {phys.effect: dict(got[0][1]["effects"].get(phys.effect, {}))}
+    out["why"] = (f"{phys.effect} refitted under {inter.effect}'s change ({inter.probes[inter.best].label}), the base "
+                  f"re-adjusted alike in every model; " + out["why"])
     return out
 
 
@@ -711,7 +790,7 @@ def judge_on_rest(diag: Diagnosis, cr: CandidateResult) -> None:
 
 __all__ = ["refit_effect", "refit_null", "judge_probe", "judge_on_rest", "price_heterogeneity", "held_back_frames", "held_back_folds", "as_folds", "group_frames",
            "held_back_test", "warm_start", "residual_at", "rung_for",
-           "compare_rivals", "nested_pair", "judge_nested", "bottom_signature", "lowest_points_mask", "refit_joint", "per_frame_loss", "NESTED_PAIRS"]
+           "compare_rivals", "nested_pair", "nested_with_interaction", "judge_nested", "bottom_signature", "lowest_points_mask", "refit_joint", "per_frame_loss", "NESTED_PAIRS", "INTERACTION_PAIRS"]
 
 
 def refit_base(prob, base, factor: float, *, iterations: int = 8, res: ImageResidual | None = None, log=None):
