@@ -37,3 +37,39 @@ def test_synth_settle_is_for_world_captures_only(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--settle" in err[0] and "world captures" in err[0]
     assert not out.exists()
+
+
+def _ring(R=0.08, r=0.012, n=4000, seed=0):
+    """Particles filling a torus in the x-y plane (a hanging ring), its hole's centre at the origin."""
+    rng = np.random.default_rng(seed)
+    u, v, rho = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 2 * np.pi, n), r * np.sqrt(rng.uniform(0, 1, n))
+    return np.stack([(R + rho * np.cos(v)) * np.cos(u), (R + rho * np.cos(v)) * np.sin(u), rho * np.sin(v)], 1)
+
+
+def test_a_poke_on_a_rings_inner_rim_comes_in_only_as_far_as_its_path_is_clear():
+    """dev_0542 (#23): a fingertip planned to come 18 cm along the inner rim's normal passed through the ring's far side
+    and knocked it swinging before it arrived. `World._clear_approach` turns the direction toward the normal while that
+    clears the particles and, where nothing does (across a ring's hole), shortens the approach to the clear stretch; a
+    poke on the outer rim keeps its path."""
+    import types
+
+    from physinteract_usd.synth.world import World, _unit
+
+    x = _ring()
+    R, h = 0.012, 0.004
+    for rim, n in (("inner", np.array([1.0, 0.0, 0.0])), ("outer", np.array([1.0, 0.0, 0.0]))):
+        cp = np.array([0.08 - 0.012, 0.0, 0.0]) if rim == "inner" else np.array([0.08 + 0.012, 0.0, 0.0])
+        if rim == "inner":
+            n = -n                                         # the inner rim faces the hole: -x at +x
+        w = types.SimpleNamespace(contact_normal=n, hand_dir=_unit(n + np.array([0.0, 0.3, 0.0])), h=h,
+                                  w={"approach": 0.18, "look": "fingertip"})
+        start = cp + n * (R + 0.2 * h)
+        World._clear_approach(w, start, x, R)
+        length = getattr(w, "approach_len", 0.18) + 0.06
+        s = np.linspace(R / length, 1.0, 200)
+        gap = np.linalg.norm((start + np.outer(s, length * w.hand_dir))[:, None] - x[None], axis=2).min(1) - R
+        if rim == "outer":
+            assert not hasattr(w, "approach_len") and w.approach_clearance >= 0.5 * h
+        else:
+            assert w.approach_clearance < 0 and 2 * R <= w.approach_len < 0.18    # shortened across the hole
+        assert gap.min() > 0, (rim, gap.min())                                     # the swept path misses the ring

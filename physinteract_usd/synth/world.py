@@ -83,6 +83,16 @@ def _pick(rng, seq, p=None):
     return seq[i]
 
 
+def _on_lattice(grid, ref):
+    """`grid` moved onto `ref`'s lattice (the same dx): its lower corner snapped down to `ref`'s nodes, one node more
+    a side, so it covers what it covered and its nodes are `ref`'s."""
+    from ..sim import GridSpec
+
+    lo0, lo = np.asarray(ref.lower), np.asarray(grid.lower)
+    snapped = lo0 + np.floor((lo - lo0) / ref.dx) * ref.dx
+    return GridSpec(tuple(snapped), ref.dx, tuple(int(r) + 1 for r in grid.resolution))
+
+
 def _unit(v):
     v = np.asarray(v, float)
     n = np.linalg.norm(v)
@@ -543,7 +553,7 @@ class World:
         arrive = max(g - w["dwell"], 1)
         self.arrive = arrive
         away = _smooth(np.clip((arrive - k) / max(arrive, 1), 0, 1))
-        off = away[:, None] * w["approach"] * self.hand_dir
+        off = away[:, None] * getattr(self, "approach_len", w["approach"]) * self.hand_dir
         if not self.never:
             back = _smooth(np.clip((k - r) / 5.0, 0, 1))
             off = off + back[:, None] * 0.12 * self.hand_dir
@@ -562,6 +572,16 @@ class World:
         if not hasattr(self, "contact_point_rest"):
             self.contact_point_rest = np.asarray(self.contact_point, np.float64).copy()
         cp0 = self.contact_point_rest
+        if not hasattr(self, "hand_dir_rest"):
+            self.hand_dir_rest = np.asarray(self.hand_dir, float).copy()
+            self.contact_normal_rest = np.asarray(self.contact_normal, float).copy()
+            self.disp_rest = np.asarray(self.disp, float).copy()
+        if self.w.get("settle") and it != "surfaceNonAdherent":
+            # a press from above stays one; a grasp's or a poke's frame turns with the settled surface
+            R = self._settled_frame(cp0)
+            self.hand_dir = _unit(R @ self.hand_dir_rest)
+            self.contact_normal = _unit(R @ self.contact_normal_rest)
+            self.disp = self.disp_rest @ R.T if it == "pointNonAdherent" else self.disp_rest
         xr = getattr(self, "x_scan", None)
         xr = x0 if xr is None else xr              # the shape the toucher finds: settled with `settle`
         if it == "pointAdherent":
@@ -583,6 +603,8 @@ class World:
             R = self.toucher_radius
             n = self.contact_normal
             start = self.contact_point + n * (R + 0.2 * h)
+            if self.w.get("settle"):
+                self._clear_approach(start, xr, R)
             self.trajectory = start + self.disp + self.approach_offset()
             self.hand_offset = np.zeros(3)
             if self.w["look"] == "sphere":
@@ -607,31 +629,67 @@ class World:
         self.fixed_indices = np.where(held_sup)[0]
         return out
 
-    SETTLE_SECONDS = 1.5       # `settle`: the object on its supports under gravity this long, damped at SETTLE_DAMPING
-    SETTLE_DAMPING = 20.0      # 1/s: over twice a 6 cm sag's own rate (sqrt(g / 0.06) ~ 13 rad/s): at rest within the time
+    SETTLE_SECONDS = 1.5       # `settle`: the first stretch under gravity on its supports; then SETTLE_CHUNK at a time
+    SETTLE_CHUNK = 0.5         # seconds more while it still moves, up to SETTLE_MAX_SECONDS
+    SETTLE_MAX_SECONDS = 6.0
+    SETTLE_TOL = 0.002         # at rest: no particle moved more than this share of the object's size over SETTLE_WINDOW
+    SETTLE_WINDOW = 0.25       # seconds
+    SETTLE_DAMPING_MIN = 4.0   # 1/s: the settling damping's floor
+
+    def settle_damping(self) -> float:
+        """The settling run's damping rate (1/s): twice the slowest pendulum's rate about the supports, sqrt(g / L)
+        with L the object's size (critical for that mode, so a clamped sheet swinging down to hang comes to rest
+        at the fastest rate a uniform damping allows; every faster mode then decays at the same rate). The 34th
+        session's fixed 20 1/s overdamped it: dev_0539's sheet still crept down 40% of its size after 1.5 s."""
+        return max(self.SETTLE_DAMPING_MIN, 2.0 * math.sqrt(GRAVITY / max(self.extent, 1e-3)))
 
     def settle_state(self, grid, effects: dict) -> dict:
-        """`w["settle"]`: the truth's object under gravity on its supports (no toucher), damped, until at rest: its last
-        state {"x", "v", "C", "F", "Fv"} (tensors of one frame, v and C zero), from which the truth's frames start; the
-        settled positions as `self.x_scan` (the contact point follows them in `contacts`: `_settled_point`)."""
+        """`w["settle"]`: the truth's object under gravity on its supports (no toucher), damped (`settle_damping`),
+        until at rest: SETTLE_SECONDS, then SETTLE_CHUNK at a time while some particle still moved more than
+        SETTLE_TOL of the object's size over the last SETTLE_WINDOW, up to SETTLE_MAX_SECONDS (`self.settle_info`
+        says how long it took and what motion was left: a capture whose object did not come to rest says so in its
+        gt.json). Returns its last state {"x", "v", "C", "F", "Fv"} (tensors of one frame, v and C zero), from
+        which the truth's frames start; the settled positions as `self.x_scan` (the contact point and its normal
+        follow them in `contacts`: `_settled_point`, `_settled_frame`)."""
         from ..sim import Contact, Control, Rollout, SimModel
 
         sup = np.where(self._held_mask())[0]
-        n = max(2, int(round(self.SETTLE_SECONDS * self.fps)))
-        control = Control([Contact("fixed", indices=sup)] if len(sup) else [], n_frames=n)
-        eff = dict(effects, damping={"coefficient": self.SETTLE_DAMPING})
+        c = self.settle_damping()
+        eff = dict(effects, damping={"coefficient": c})
         m = SimModel.create(self.x0, np.full(len(self.x0), self.h ** 3), self.density, self.E, self.nu, grid=grid,
                             fps=self.fps, substeps=self.substeps, E_max=float(self.E.max()), effects=eff,
                             device=self.device, pin_gain=1.0, ground_contact=truth_ground_contact(), stencil_check=False)
-        ro = Rollout(m, control, graphs=False)
         dev = "cpu" if self.device == "cpu" else self.device
-        with torch.no_grad():
-            ro(torch.tensor(self.E, dtype=torch.float32, device=dev), torch.tensor(self.nu, dtype=torch.float32, device=dev))
-        last = {k: t[-1].clone() for k, t in ro.checkpoints().items()}
+        E_t = torch.tensor(self.E, dtype=torch.float32, device=dev)
+        nu_t = torch.tensor(self.nu, dtype=torch.float32, device=dev)
+        first = max(2, int(round(self.SETTLE_SECONDS * self.fps)))
+        chunk = max(2, int(round(self.SETTLE_CHUNK * self.fps)))
+        most = max(first, int(round(self.SETTLE_MAX_SECONDS * self.fps)))
+        win = max(1, min(chunk, int(round(self.SETTLE_WINDOW * self.fps))))
+        size = max(self.extent, 1e-6)
+        last, frames, moved = None, 0, float("inf")
+        while True:
+            n = first if last is None else min(chunk, most - frames)
+            control = Control([Contact("fixed", indices=sup)] if len(sup) else [], n_frames=n)
+            ro = Rollout(m, control, graphs=False)
+            with torch.no_grad():
+                if last is None:
+                    ro(E_t, nu_t)
+                else:            # on from the last state, its motion kept
+                    ro.forward_from(1, {k: torch.stack([t, t]) for k, t in last.items()}, E_t, nu_t)
+            ck = ro.checkpoints()
+            last = {k: t[-1].clone() for k, t in ck.items()}
+            frames += n
+            xs = ck["x"].view(len(ck["x"]), len(self.x0), 3)
+            moved = float(torch.linalg.norm(xs[-1] - xs[-1 - win], dim=1).max()) / size
+            if moved < self.SETTLE_TOL or frames >= most:
+                break
         for k in ("v", "C"):
             if k in last:
                 last[k].zero_()
         self.x_scan = last["x"].detach().double().cpu().numpy().reshape(len(self.x0), 3)
+        self.settle_info = {"seconds": frames / self.fps, "damping": c, "at_rest": bool(moved < self.SETTLE_TOL),
+                            "moving_pct": 100.0 * moved, "window_s": win / self.fps}
         return last
 
     def _settled_point(self, cp0: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
@@ -645,6 +703,55 @@ class World:
             if not len(idx):
                 idx = np.argsort(np.linalg.norm(self.x0 - cp0, axis=1))[:3]
         return cp0 + (xs[idx] - self.x0[idx]).mean(0)
+
+    def _clear_approach(self, start: np.ndarray, xr: np.ndarray, R: float) -> None:
+        """A poke's toucher comes in along `hand_dir` from `approach` away (and a finger's body trails 6 cm behind
+        its tip): where that straight path passes through the object (dev_0542: a fingertip reaching a hanging ring's
+        outer side through its near side knocked it swinging two frames before it arrived, 11% of the ring's size),
+        the direction turns toward the surface's normal, in thirds, until the path clears the particles by R + h/2
+        beyond one radius of the start; the clearest when none does. `self.approach_clearance` (m) says what it
+        cleared. With `settle` only (the default captures as before)."""
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(xr)
+        n, d0 = _unit(self.contact_normal), _unit(self.hand_dir)
+        body = 0.0 if self.w["look"] == "sphere" else 0.06
+        length = float(self.w["approach"]) + body
+        s = np.linspace(min(1.0, R / max(length, 1e-9)), 1.0, 48)
+        best = None
+        for t in (0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0):
+            d = _unit(d0 + t * (n - d0)) if t < 1.0 else n
+            gap = tree.query(start + np.outer(s, length * d))[0] - R
+            clear = float(gap.min())
+            # how far out along d the path stays clear (a poke inside a ring's hole: the far side is in the way)
+            free = float(s[np.argmax(gap < 0.5 * self.h)] * length) if clear < 0.5 * self.h else length
+            if best is None or free > best[2]:
+                best = (clear, d, free)
+            if clear >= 0.5 * self.h:
+                best = (clear, d, free)
+                break
+        self.hand_dir, self.approach_clearance = best[1], best[0]
+        if best[0] < 0.5 * self.h:
+            # nowhere clear: it comes in from as far as its path is clear, its body's length within it
+            self.approach_len = max(2.0 * R, best[2] - body - R)
+
+    def _settled_frame(self, cp0: np.ndarray) -> np.ndarray:
+        """(3, 3) the rotation the surface about the rest contact point `cp0` turned through while settling: the
+        best rotation (Kabsch) taking the rest particles within 3 spacings of it to their settled places; the
+        identity without `settle`. The toucher's normal, its direction and a poke's push turn with it (dev_0539: a
+        sphere planned along the rest normal of a sheet that settled turned grazed it)."""
+        xs = getattr(self, "x_scan", None)
+        if not self.w.get("settle") or xs is None:
+            return np.eye(3)
+        d = np.linalg.norm(self.x0 - cp0, axis=1)
+        idx = np.where(d < 3.0 * self.h)[0]
+        if len(idx) < 4:
+            idx = np.argsort(d)[:8]
+        a = self.x0[idx] - self.x0[idx].mean(0)
+        b = xs[idx] - xs[idx].mean(0)
+        u, _, vt = np.linalg.svd(a.T @ b)
+        sgn = np.sign(np.linalg.det(u @ vt)) or 1.0
+        return (u @ np.diag([1.0, 1.0, sgn]) @ vt).T
 
     def run(self):
         """The ground truth: x (T, P, 3), F (T, P, 3, 3), frame 0 at rest (with `settle`: the settled state at frames
@@ -663,6 +770,7 @@ class World:
             grid0 = GridSpec.around(self.x0, dx=2.0 * self.h, lower=self.x0.min(0) - pad - ext,
                                     upper=self.x0.max(0) + pad + np.array([ext[0], 0.0, ext[2]]))
             start = self.settle_state(grid0, eff0)
+            self.settle_grid = grid0
         contacts = self.contacts()
         control = Control(contacts, n_frames=self.T - 1)
         pts = np.concatenate([self.x0, self.x_scan, self.trajectory, self.trajectory + self.hand_offset])
@@ -686,6 +794,9 @@ class World:
                 ext = np.array([0.5, 1.0, 0.5]) * self.extent
                 self.grid = GridSpec.around(pts, dx=dx, lower=pts.min(0) - pad - ext,
                                             upper=pts.max(0) + pad + np.array([ext[0], 0.0, ext[2]]))
+            if settle:       # on the settling run's lattice: another node offset is another discrete equilibrium, and
+                # the settled object would start moving again (dev_0539's soft sheet: 2.6% of its size before contact)
+                self.grid = _on_lattice(self.grid, self.settle_grid)
             m = SimModel.create(self.x0, np.full(len(self.x0), self.h ** 3), self.density, self.E, self.nu,
                                 grid=self.grid, fps=self.fps, substeps=self.substeps, E_max=float(self.E.max()),
                                 effects=effects, device=self.device, pin_gain=1.0, ground_contact=truth_ground_contact(),
@@ -1159,6 +1270,10 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
         "world": w,
         "generation_seconds": None,
     }
+    if getattr(world, "settle_info", None):      # how the truth settled before frame 0 (only with `settle`)
+        info["settle"] = dict(world.settle_info)
+        if getattr(world, "approach_clearance", None) is not None:
+            info["settle"]["approach_clearance_mm"] = 1000.0 * float(world.approach_clearance)
     write_ground_truth(out, info, e_g, nu_g, gpos,
                        dict(rest=world.x_scan, E=world.E, nu=world.nu, volume=np.full(len(world.x0), world.h ** 3),
                             positions=x.astype(np.float32)), hmask, amodal)
