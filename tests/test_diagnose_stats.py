@@ -771,3 +771,38 @@ def test_the_cli_prints_a_confusable_verdict_as_one_block(monkeypatch, capsys):
     assert out[3].startswith("  ground: held-back drop") and "height=-0.12" in out[3]
     assert out[4] == "  what would tell them apart: a free decay clear of the floor"
     assert out[5] == "  to lower the error now: physinteract-usd effects add s.usda damping (the cheaper model)"
+
+
+def test_a_probe_that_only_undoes_the_bases_linear_step_on_held_back_frames_is_not_accepted():
+    """`refit.judge_probe` (#22, 35th session): the base's linear re-adjustment, fitted on the training frames, can
+    raise the held-back loss; a discrete probe whose model is the base as it is on the held-back frames (it undoes
+    that step there and nothing else) beats the re-adjusted base by construction. It must beat the base as it is
+    too, so it is not accepted; a probe that also explains the held-back frames is."""
+    from types import SimpleNamespace
+
+    from physinteract_usd.diagnose.core import CandidateResult, Probe
+    from physinteract_usd.diagnose.refit import judge_probe
+
+    rng = np.random.default_rng(3)
+    d, frame, folds = _pair_diag(rng)
+    n = len(frame)
+    held = np.isin(frame, [2, 4, 6, 8, 10, 12])
+    j = rng.normal(size=n)
+    r0 = rng.normal(scale=0.1, size=n) - 0.05 * j * ~held           # the base column fits the training frames ...
+    r0 = r0 + 0.05 * j * held                                        # ... and the held-back ones the other way
+    a0 = -float(j[~held] @ r0[~held]) / float(j[~held] @ j[~held])
+    d._J = j[:, None]
+    d._ctx.update({"prob": SimpleNamespace(T=13), "r0a": r0, "run": SimpleNamespace(n_img=n, aloss=lambda r: float(
+        np.mean(np.square(r))))})
+    undo = np.where(held, -a0 * j, 0.0)                              # the step undone on the held-back frames
+    signal = np.where(held, -0.05 * j - a0 * j, 0.0)                 # ... and the held-back frames' own misfit too
+    got = {}
+    for name, col in (("undo", undo), ("signal", signal)):
+        cr = CandidateResult("interaction:timing", [Probe("hand.grasp_frame+1", col, +1, {}, discrete=True)])
+        cr.best = 0
+        judge_probe(d, cr, frames=[[2, 4, 6, 8, 10, 12]])
+        got[name] = cr
+    base_adj = float(np.mean(np.square((r0 + a0 * j)[held])))
+    assert base_adj > float(np.mean(np.square(r0[held])))            # the linear step raised the held-back loss
+    assert not got["undo"].accepted and got["undo"].held_back_drop <= 1e-12, got["undo"].note
+    assert got["signal"].accepted and got["signal"].held_back_p < 0.05, got["signal"].note
