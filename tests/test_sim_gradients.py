@@ -217,3 +217,38 @@ def test_matfunc_adjoints():
         fd = (ev(Fs + eps * D, cs + eps * dc)[:, col] - ev(Fs - eps * D, cs - eps * dc)[:, col]) / (2 * eps)
         an = (gF * D).sum((1, 2)) + gc * dc
         np.testing.assert_allclose(an, fd, rtol=1e-6, atol=1e-7 * np.abs(fd).max())
+
+
+def test_grad_initial_deformation_gradient():
+    """`Rollout(..., F0=...)` (#23: a prestressed scan starts with the stress that holds it up): the gradient with
+    respect to frame 0's deformation gradient, and E's and the trajectory's beside it, against central differences;
+    a call without F0 after one with it starts from the identity again, bit for bit as a fresh rollout."""
+    pts = block((4, 3, 3), SP, (0.2, 0.2, 0.25))
+    P, T = len(pts), 3
+    m = SimModel.create(pts, SP ** 3, 1000.0, 3e3, 0.3, grid=GridSpec((0, 0, 0), DX, (12, 12, 12)), fps=15,
+                        substeps=20, E_max=2e4, dtype="float64")
+    right = np.nonzero(pts[:, 0] > pts[:, 0].max() - 1e-9)[0]
+    left = np.nonzero(pts[:, 0] < pts[:, 0].min() + 1e-9)[0]
+    traj = np.repeat(pts[right].mean(0)[None], T + 1, 0)
+    traj[:, 1] += np.linspace(0.0, 0.02, T + 1)
+    ro = Rollout(m, Control([Contact("pointAdherent", indices=right, trajectory=traj),
+                             Contact("fixed", indices=left)], n_frames=T))
+    W, WF = _weights(T, P)
+    g = torch.Generator().manual_seed(7)
+    F0 = torch.eye(3, dtype=torch.float64).expand(P, 3, 3) + 0.02 * torch.randn(P, 3, 3, generator=g,
+                                                                               dtype=torch.float64)
+    E0 = torch.full((P,), 3e3, dtype=torch.float64)
+
+    def loss(E, F0_, tr):
+        x, F = ro(E, torch.full((P,), 0.3, dtype=torch.float64), trajectories={0: tr}, F0=F0_)
+        return (x * W).sum() + 0.1 * (F * WF).sum()
+
+    res = directional_check(loss, [E0, F0, torch.as_tensor(traj)], [300.0, 0.01, 0.01], eps=[1e-5, 1e-5, 1e-6])
+    for lab, (an, fd) in zip(("E", "F0", "trajectory"), res):
+        assert rel_err(an, fd) < TOL and abs(fd) > 1e-9, (lab, an, fd)
+    x1, F1 = ro(E0, torch.full((P,), 0.3, dtype=torch.float64), trajectories={0: torch.as_tensor(traj)})
+    fresh = Rollout(m, Control([Contact("pointAdherent", indices=right, trajectory=traj),
+                                Contact("fixed", indices=left)], n_frames=T))
+    x2, F2 = fresh(E0, torch.full((P,), 0.3, dtype=torch.float64), trajectories={0: torch.as_tensor(traj)})
+    assert torch.equal(x1, x2) and torch.equal(F1, F2) and torch.equal(F1[0], torch.eye(3, dtype=torch.float64
+                                                                                         ).expand(P, 3, 3))

@@ -147,8 +147,10 @@ class Rollout:
     E (P,) [Pa], nu (P,); ``effects``: {effect: {parameter: value}} (tensors or floats; effects
     must be enabled in the model; missing values take the model's defaults); ``trajectories``:
     {contact index: (T+1, 3)} or a list aligned with ``control.contacts`` (None: the contact's own);
-    ``v0``: optional initial velocity (P, 3) or (3,). Returns x (T+1, P, 3) and F (T+1, P, 3, 3),
-    frame 0 = rest, differentiable w.r.t. all the inputs.
+    ``v0``: optional initial velocity (P, 3) or (3,); ``F0``: optional initial deformation gradient (P, 3, 3) (the
+    model's rest positions then start prestressed: a scan of an object already hanging in its supports, its stress
+    holding it up; default the identity). Returns x (T+1, P, 3) and F (T+1, P, 3, 3), frame 0 = the start,
+    differentiable w.r.t. all the inputs.
 
     The rollout keeps its buffers (checkpoints, replay states, one grid and its adjoint) between
     calls. With ``graphs=True`` (default) each frame's forward and backward is captured once into a
@@ -176,6 +178,10 @@ class Rollout:
         self.adj_ctrl = ControlAdjoint(self.ctrl)
         self.status = self.solver.new_status(self.T)
         self.v0 = wp.zeros(self.P, dtype=K.vec3, device=m.device)
+        # frame 0's F: the identity, or a call's `F0` (always copied in at the start, so a frame graph captured with
+        # one holds for the other)
+        self.F0 = wp.array(np.tile(np.eye(3, dtype=m.np_dtype), (self.P, 1, 1)), dtype=K.mat33, device=m.device)
+        self.has_F0 = False
         self.ck = Checkpoints(m, self.T)
         self.grad_x = wp.zeros((self.T + 1, self.P), dtype=K.vec3, device=m.device)
         self.grad_F = wp.zeros((self.T + 1, self.P), dtype=K.mat33, device=m.device)
@@ -267,7 +273,7 @@ class Rollout:
         if k == 0:
             sol.reset_status(self.status)
             sol.box_flag.zero_()
-            a.set_rest(self.model, self.v0, self.solver.block_dim)
+            self._set_start(a)
             self.ck.frame(0).assign(a)
         else:
             a.assign(self.ck.frame(k))
@@ -287,7 +293,7 @@ class Rollout:
         if k == 0:
             sol.reset_status(self.status)
             sol.box_flag.zero_()
-            st[0].set_rest(self.model, self.v0, self.solver.block_dim)
+            self._set_start(st[0])
             self.ck.frame(0).assign(st[0])
         else:
             st[0].assign(self.ck.frame(k))
@@ -492,13 +498,18 @@ class Rollout:
             self.graphs = False
             graphs.clear()
 
+    def _set_start(self, a: SimState) -> None:
+        """Frame 0's state into `a`: the rest (positions, `v0`, F = Fv = I, C = 0), F = `F0` where a call gave one."""
+        a.set_rest(self.model, self.v0, self.solver.block_dim)
+        wp.copy(a.F, self.F0)
+
     def _rest_prelude(self) -> None:
         """Frame 0's own work before the frame graphs (eager: a few launches per forward)."""
         fw = self._windows()
         a = self._pp[0]
         self.solver.reset_status(self.status)
         self.solver.box_flag.zero_()
-        a.set_rest(self.model, self.v0, self.solver.block_dim)
+        self._set_start(a)
         self.ck.frame(0).assign(a)
         fw.ctr.zero_()
 
@@ -747,7 +758,7 @@ class Rollout:
         return {k: _wclone(t) for k, t in self.ck.t.items()}
 
     def forward_from(self, start: int, states: dict, E=None, nu=None, effects: Mapping | None = None,
-                     trajectories=None, v0=None):
+                     trajectories=None, v0=None, F0=None):
         """x (T+1, P, 3), F (T+1, P, 3, 3) without gradients of the rollout whose frames 0 .. `start`
         are `states` (`checkpoints()` of a forward of this model under a control that agrees with this
         one's before frame `start`: the same inputs, contacts that differ only from frame `start`, e.g.
@@ -756,9 +767,9 @@ class Rollout:
         graphs (CUDA's default, whose counter starts at frame 0): the whole forward, `__call__`."""
         if int(start) <= 0 or (self.graphs and self.frame_graphs):
             with torch.no_grad():
-                return self(E, nu, effects=effects, trajectories=trajectories, v0=v0)
+                return self(E, nu, effects=effects, trajectories=trajectories, v0=v0, F0=F0)
         with torch.no_grad():
-            args = self._inputs(E, nu, effects, trajectories, v0)
+            args = self._inputs(E, nu, effects, trajectories, v0, F0)
             _torch_sync(self.model)
             self._load_inputs(*args)
             rows = int(start) + 1
@@ -828,11 +839,12 @@ class Rollout:
         return self._adj[0]
 
     # ------------------------------------------------------------------ torch
-    def __call__(self, E=None, nu=None, effects: Mapping | None = None, trajectories=None, v0=None):
-        return _SimulateFn.apply(self, *self._inputs(E, nu, effects, trajectories, v0))
+    def __call__(self, E=None, nu=None, effects: Mapping | None = None, trajectories=None, v0=None, F0=None):
+        return _SimulateFn.apply(self, *self._inputs(E, nu, effects, trajectories, v0, F0))
 
-    def _inputs(self, E, nu, effects, trajectories, v0):
-        """The call's inputs as the torch op takes them (E, nu, eff, pin_pos, col_pos, v0), checked."""
+    def _inputs(self, E, nu, effects, trajectories, v0, F0=None):
+        """The call's inputs as the torch op takes them (E, nu, eff, pin_pos, col_pos, v0, F0), checked (F0 None:
+        the identity, and no gradient for it)."""
         m = self.model
         td = _TORCH_DTYPE[m.dtype]
         dev = _torch_device(m)
@@ -877,7 +889,12 @@ class Rollout:
             raise SimulationError(
                 f"nu up to {float(lim[2]):.4g} exceeds nu_max = {m.nu_max:.4g}, where the substep was chosen (CFL)",
                 frame=0, advice="clamp nu in the fit, or build the model with a larger nu_max")
-        return E.contiguous(), nu.contiguous(), eff, pin_pos, col_pos, v0.contiguous()
+        if F0 is not None:
+            F0 = as_t(F0, None)
+            if tuple(F0.shape) != (self.P, 3, 3):
+                raise ValueError(f"F0 must be (P, 3, 3) = ({self.P}, 3, 3), got {tuple(F0.shape)}")
+            F0 = F0.contiguous()
+        return E.contiguous(), nu.contiguous(), eff, pin_pos, col_pos, v0.contiguous(), F0
 
     def _effect_vector(self, effects, td, dev) -> torch.Tensor:
         m = self.model
@@ -919,7 +936,7 @@ class Rollout:
         cols = [row(i) for i in c.colliders] or [zeros]
         return torch.stack(pins), torch.stack(cols)
 
-    def _load_inputs(self, E, nu, eff, pin_pos, col_pos, v0):
+    def _load_inputs(self, E, nu, eff, pin_pos, col_pos, v0, F0=None):
         K = self.solver.K
         wp.copy(self.params.E, wp.from_torch(E.detach().contiguous(), dtype=K.T))
         wp.copy(self.params.nu, wp.from_torch(nu.detach().contiguous(), dtype=K.T))
@@ -927,19 +944,25 @@ class Rollout:
         wp.copy(self.ctrl.pin_pos, wp.from_torch(pin_pos.detach().contiguous(), dtype=K.vec3))
         wp.copy(self.ctrl.col_pos, wp.from_torch(col_pos.detach().contiguous(), dtype=K.vec3))
         wp.copy(self.v0, wp.from_torch(v0.detach().contiguous(), dtype=K.vec3))
+        if F0 is not None:
+            wp.copy(self.F0, wp.from_torch(F0.detach().contiguous(), dtype=K.mat33))
+        elif self.has_F0:              # back to the identity after a call with F0
+            self.F0.assign(np.tile(np.eye(3, dtype=self.model.np_dtype), (self.P, 1, 1)))
+        self.has_F0 = F0 is not None
 
 
 class _SimulateFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, ro: Rollout, E, nu, eff, pin_pos, col_pos, v0):
+    def forward(ctx, ro: Rollout, E, nu, eff, pin_pos, col_pos, v0, F0=None):
         _torch_sync(ro.model)              # the inputs torch produced are complete
-        ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
+        ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0, F0)
         ctx.generation = ro.run_forward(store=any(ctx.needs_input_grad))
         _warp_sync(ro.model)               # Warp's work is complete before torch reads it
         saved = {k: _wclone(t) for k, t in ro.ck.t.items()}
         ctx.ro = ro
+        ctx.has_F0 = F0 is not None
         ctx.save_for_backward(E, nu, eff, pin_pos, col_pos, v0, saved["x"], saved["v"], saved["C"], saved["F"],
-                              saved["Fv"])
+                              saved["Fv"], *((F0,) if F0 is not None else ()))
         x, F = saved["x"], saved["F"]
         return x.view(ro.T + 1, ro.P, 3), F.view(ro.T + 1, ro.P, 3, 3)
 
@@ -947,7 +970,8 @@ class _SimulateFn(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, gx, gF):
         ro: Rollout = ctx.ro
-        E, nu, eff, pin_pos, col_pos, v0, x, v, C, F, Fv = ctx.saved_tensors
+        E, nu, eff, pin_pos, col_pos, v0, x, v, C, F, Fv, *rest = ctx.saved_tensors
+        F0 = rest[0] if ctx.has_F0 else None
         gx = None if gx is None else gx.detach().to(x.dtype).contiguous()
         gF = None if gF is None else gF.detach().to(x.dtype).contiguous()
         _torch_sync(ro.model)
@@ -958,7 +982,7 @@ class _SimulateFn(torch.autograd.Function):
                 buf.zero_()
             else:
                 _wcopy(wp.to_torch(buf, requires_grad=False), g)
-        ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0)
+        ro._load_inputs(E, nu, eff, pin_pos, col_pos, v0, F0)
         adj0 = ro.run_backward(ctx.generation)
         _warp_sync(ro.model)
         gE = wp.to_torch(ro.adj_params.E).clone()
@@ -967,13 +991,18 @@ class _SimulateFn(torch.autograd.Function):
         gpin = wp.to_torch(ro.adj_ctrl.pin_pos).clone()
         gcol = wp.to_torch(ro.adj_ctrl.col_pos).clone()
         gv0 = wp.to_torch(adj0.v).clone()
+        gF0 = None
+        if ctx.has_F0:      # through the frames, and frame 0's own F (the output's first row is F0 itself)
+            gF0 = wp.to_torch(adj0.F).clone().view(ro.P, 3, 3)
+            if gF is not None:
+                gF0 = gF0 + gF.view(ro.T + 1, ro.P, 3, 3)[0].to(gF0.dtype)
         # effects that are off do not depend on their parameters
         on = torch.zeros(N_PARAMS, dtype=torch.bool)
         for e in ro.model.effects.enabled:
             for p in PARAMETERS[e]:
                 on[SLOTS[(e, p)]] = True
         geff = torch.where(on.to(geff.device), geff, torch.zeros_like(geff))
-        return None, gE, gnu, geff, gpin, gcol, gv0
+        return None, gE, gnu, geff, gpin, gcol, gv0, gF0
 
 
 # Bulk copies go through Warp: torch's intra-op thread pool makes a clone of a few 100 kB take
@@ -1001,11 +1030,11 @@ def _warp_sync(model) -> None:
 
 
 def simulate(model, control: Control | None = None, E=None, nu=None, effects=None, trajectories=None, v0=None,
-             n_frames: int | None = None, graphs: bool = False):
+             n_frames: int | None = None, graphs: bool = False, F0=None):
     """One-off differentiable rollout (allocates its buffers; in a loop, reuse a `Rollout`).
     Returns x (T+1, P, 3), F (T+1, P, 3, 3) as torch tensors."""
     return Rollout(model, control, n_frames=n_frames, graphs=graphs)(E, nu, effects=effects, trajectories=trajectories,
-                                                                     v0=v0)
+                                                                     v0=v0, F0=F0)
 
 
 def effect_inputs(model, requires_grad: bool = True, dtype=torch.float64) -> dict:
