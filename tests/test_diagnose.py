@@ -374,25 +374,35 @@ def grounded(tmp_path_factory):
                     noise=0.015)
 
 
-def _pair_refits(info):
-    """damping and ground refitted as a confusable group is (from their marginal estimates, on shared held-back
-    frames, 2 iterations, one fold), as `app.diagnose.refit_confusable` does before the pair step."""
+def _group_refits(info, effects):
+    """The candidates `effects` refitted as a confusable group is (from their marginal estimates, on shared held-back
+    frames, 2 iterations, one fold), as `app.diagnose.refit_confusable` does before the pair step: a physical effect
+    refitted, any other judged as its probe (its amplitude and the base's linear re-adjustment without the held-back
+    frames). Returns the diagnosis and the candidates in the order asked."""
     from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
     from physinteract_usd.diagnose import refit as RF
-    from physinteract_usd.diagnose.core import estimate_of
+    from physinteract_usd.diagnose.core import PHYSICAL, estimate_of
 
     prob, base = _problem(info)
-    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("damping", "ground")))
+    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=tuple(effects)))
     by = {c.effect: c for c in d.results}
-    dm, g = by["damping"], by["ground"]
-    for c in (dm, g):
+    cs = [by[e] for e in effects]
+    for c in cs:
         c.best, c.step = c.marginal_probe
         c.estimate = estimate_of(c, prob)
-    val = RF.group_frames(d, [dm, g], folds=1)
+    val = RF.group_frames(d, cs, folds=1)
     null = RF.refit_null(d, val, iterations=2)
-    for c in (dm, g):
-        RF.refit_effect(d, c, iterations=2, frames=val, null=null)
-    return d, dm, g
+    for c in cs:
+        if c.effect in PHYSICAL:
+            RF.refit_effect(d, c, iterations=2, frames=val, null=null)
+        else:
+            RF.judge_probe(d, c, frames=val)
+    return (d, *cs)
+
+
+def _pair_refits(info):
+    """damping and ground refitted as a confusable group is (`_group_refits`)."""
+    return _group_refits(info, ("damping", "ground"))
 
 
 def test_a_hidden_ground_is_told_from_damping_by_its_signature_and_by_nesting(grounded):
@@ -427,25 +437,8 @@ def test_a_hidden_damping_that_a_ground_mimics_stays_damping(damped):
 
 
 def _mixed_refits(info):
-    """damping refitted and `interaction:timing` judged as probe (its amplitude and the base's linear re-adjustment
-    without the held-back frames) on shared held-back frames, as `app.diagnose.refit_confusable` does before the pair
-    step (2 iterations, one fold)."""
-    from physinteract_usd.diagnose import DiagnoseSettings, diagnose_problem
-    from physinteract_usd.diagnose import refit as RF
-    from physinteract_usd.diagnose.core import estimate_of
-
-    prob, base = _problem(info)
-    d = diagnose_problem(prob, base, DiagnoseSettings(candidates=("damping", "interaction:timing")))
-    by = {c.effect: c for c in d.results}
-    dm, tm = by["damping"], by["interaction:timing"]
-    for c in (dm, tm):
-        c.best, c.step = c.marginal_probe
-        c.estimate = estimate_of(c, prob)
-    val = RF.group_frames(d, [dm, tm], folds=1)
-    null = RF.refit_null(d, val, iterations=2)
-    RF.refit_effect(d, dm, iterations=2, frames=val, null=null)
-    RF.judge_probe(d, tm, frames=val)
-    return d, dm, tm
+    """damping refitted and `interaction:timing` judged as its probe on shared held-back frames (`_group_refits`)."""
+    return _group_refits(info, ("damping", "interaction:timing"))
 
 
 @pytest.fixture(scope="module")
