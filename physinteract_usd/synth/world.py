@@ -669,7 +669,7 @@ class World:
         size = max(self.extent, 1e-6)
         last, frames, moved = None, 0, float("inf")
         while True:
-            n = first if last is None else min(chunk, most - frames)
+            n = first if last is None else max(2, min(chunk, most - frames + 1))
             control = Control([Contact("fixed", indices=sup)] if len(sup) else [], n_frames=n)
             ro = Rollout(m, control, graphs=False)
             with torch.no_grad():
@@ -678,8 +678,8 @@ class World:
                 else:            # on from the last state, its motion kept
                     ro.forward_from(1, {k: torch.stack([t, t]) for k, t in last.items()}, E_t, nu_t)
             ck = ro.checkpoints()
+            frames += n if last is None else n - 1      # a continuation's frame 1 is the last chunk's end
             last = {k: t[-1].clone() for k, t in ck.items()}
-            frames += n
             xs = ck["x"].view(len(ck["x"]), len(self.x0), 3)
             moved = float(torch.linalg.norm(xs[-1] - xs[-1 - win], dim=1).max()) / size
             if moved < self.SETTLE_TOL or frames >= most:
@@ -706,8 +706,9 @@ class World:
 
     def _clear_approach(self, start: np.ndarray, xr: np.ndarray, R: float) -> None:
         """A poke's toucher comes in along `hand_dir` from `approach` away (and a finger's body trails 6 cm behind
-        its tip): where that straight path passes through the object (dev_0542: a fingertip reaching a hanging ring's
-        outer side through its near side knocked it swinging two frames before it arrived, 11% of the ring's size),
+        its tip): where that straight path passes through the object (dev_0542: a fingertip planned 18 cm out along a line
+        across a hanging ring's hole touched its far side and set it swinging two frames before it arrived, 11% of the
+        ring's size),
         the direction turns toward the surface's normal, in thirds, until the path clears the particles by R + h/2
         beyond one radius of the start; the clearest when none does. `self.approach_clearance` (m) says what it
         cleared. With `settle` only (the default captures as before)."""
