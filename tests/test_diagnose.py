@@ -526,3 +526,21 @@ def test_the_refits_in_worker_processes_give_the_diagnosis_of_one_process(damped
     assert drop(one) == drop(two)
     assert any(t[2] is not None for t in drop(one))          # something was refitted
     assert one["verdict"] == two["verdict"] and one["candidates"] == two["candidates"]
+
+
+def test_diagnose_names_a_late_release_that_damping_mimics(tmp_path):
+    """The mixed pair through `api.diagnose` (`app.diagnose.pair_step`): the hand let go 2 frames later than the stage
+    says; damping passes the held-back test too (a mimic: the late release takes energy out of the swing), the pair
+    step refits them together and the verdict names the release, with its fix."""
+    from physinteract_usd import api
+
+    info = ds.build(tmp_path, release_shift=2, noise=0.015)
+    d = api.diagnose(info["stage"], refit=3, refit_iterations=2, progress=False, log=lambda *a: None,
+                     write_stage=False, starts=1, candidates="damping,interaction:timing,camera:depth_scale")
+    assert d["verdict"] == "missing_effect" and d["candidates"][0]["effect"] == "interaction:timing", d["reason"]
+    assert "--release-frame 7" in d["reason"]
+    by = {t["effect"]: t for t in d["tested"]}
+    assert by["damping"]["accepted"] and by["interaction:timing"]["accepted"]
+    pt = by["damping"]["pair_test"]
+    assert pt["winner"] == "interaction:timing" and pt["adds"]["interaction:timing"]["needed"], pt["why"]
+    assert not pt["adds"]["damping"]["needed"]
