@@ -180,8 +180,8 @@ class Rollout:
         self.v0 = wp.zeros(self.P, dtype=K.vec3, device=m.device)
         # frame 0's F: the identity, or a call's `F0` (always copied in at the start, so a frame graph captured with
         # one holds for the other)
-        self.F0 = wp.array(np.tile(np.eye(3, dtype=m.np_dtype), (self.P, 1, 1)), dtype=K.mat33, device=m.device)
-        self.has_F0 = False
+        self.F0 = wp.zeros(self.P, dtype=K.mat33, device=m.device)
+        self._identity_F0()
         self.ck = Checkpoints(m, self.T)
         self.grad_x = wp.zeros((self.T + 1, self.P), dtype=K.vec3, device=m.device)
         self.grad_F = wp.zeros((self.T + 1, self.P), dtype=K.mat33, device=m.device)
@@ -497,6 +497,10 @@ class Rollout:
             warnings.warn(f"graph capture failed ({e}); running without graphs", RuntimeWarning, stacklevel=3)
             self.graphs = False
             graphs.clear()
+
+    def _identity_F0(self) -> None:
+        self.F0.assign(np.tile(np.eye(3, dtype=self.model.np_dtype), (self.P, 1, 1)))
+        self.has_F0 = False
 
     def _set_start(self, a: SimState) -> None:
         """Frame 0's state into `a`: the rest (positions, `v0`, F = Fv = I, C = 0), F = `F0` where a call gave one."""
@@ -947,7 +951,7 @@ class Rollout:
         if F0 is not None:
             wp.copy(self.F0, wp.from_torch(F0.detach().contiguous(), dtype=K.mat33))
         elif self.has_F0:              # back to the identity after a call with F0
-            self.F0.assign(np.tile(np.eye(3, dtype=self.model.np_dtype), (self.P, 1, 1)))
+            self._identity_F0()
         self.has_F0 = F0 is not None
 
 

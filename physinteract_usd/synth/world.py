@@ -728,8 +728,7 @@ class World:
             free = float(s[np.argmax(gap < 0.5 * self.h)] * length) if clear < 0.5 * self.h else length
             if best is None or free > best[2]:
                 best = (clear, d, free)
-            if clear >= 0.5 * self.h:
-                best = (clear, d, free)
+            if clear >= 0.5 * self.h:          # clear all the way (free is the whole length: it is the best)
                 break
         self.hand_dir, self.approach_clearance = best[1], best[0]
         if best[0] < 0.5 * self.h:
@@ -748,11 +747,11 @@ class World:
         idx = np.where(d < 3.0 * self.h)[0]
         if len(idx) < 4:
             idx = np.argsort(d)[:8]
+        from scipy.spatial.transform import Rotation
+
         a = self.x0[idx] - self.x0[idx].mean(0)
         b = xs[idx] - xs[idx].mean(0)
-        u, _, vt = np.linalg.svd(a.T @ b)
-        sgn = np.sign(np.linalg.det(u @ vt)) or 1.0
-        return (u @ np.diag([1.0, 1.0, sgn]) @ vt).T
+        return Rotation.align_vectors(b, a)[0].as_matrix()
 
     def run(self):
         """The ground truth: x (T, P, 3), F (T, P, 3, 3), frame 0 at rest (with `settle`: the settled state at frames
