@@ -152,7 +152,7 @@ def prepare(work: Path, n: str, grid=None, max_particles=None) -> tuple[Path, Pa
     stage.parent.mkdir(parents=True)
     caps = {"max_particles": int(max_particles)} if max_particles else {}
     api.init(stage, cap, grid=grid or g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
-             max_poisson=g["max_poisson"], density=g["density"], **caps)
+             max_poisson=g["max_poisson"], density=g["density"], preload=bool(g.get("preload", False)), **caps)
     return cap, gt, stage
 
 

@@ -32,6 +32,7 @@ class SimSettings:
     gravity: tuple = (0.0, -9.81, 0.0)
     constitutive_model: str = "fixedCorotated"
     transfer_tau: float = 0.0         # the rate transfer's time constant [s] (SimModel.transfer_tau); 0: APIC
+    preload: bool = False             # the scan carries its weight (sim.preload): frame 0 prestressed on its supports
 
     def to_dict(self) -> dict:
         return {"domain_min": list(map(float, self.domain_min)), "domain_max": list(map(float, self.domain_max)),
@@ -41,7 +42,7 @@ class SimSettings:
                 "poisson_default": self.poisson_default, "poisson_max": self.poisson_max,
                 "density": self.density,
                 "gravity": list(self.gravity), "constitutive_model": self.constitutive_model,
-                "transfer_tau": self.transfer_tau}
+                "transfer_tau": self.transfer_tau, "preload": bool(self.preload)}
 
 
 @dataclass

@@ -453,6 +453,17 @@ class Simulation:
         self.viscous_cfl_modulus: float | None = None
         self._use_bound(self.e_bound if not self.adaptive else
                         self.bound_for(float(np.max(scene.youngs_modulus.clip(st.youngs_min, st.youngs_max)))))
+        # the scan's preload (init --preload; sim.preload): the stress that holds the scan at rest on frame 0's
+        # supports, solved once (it does not depend on E); every forward starts from its stretch at the call's E
+        self.prestress = None
+        if getattr(st, "preload", False):
+            from .sim.preload import equilibrium_stress
+            try:
+                self.prestress = equilibrium_stress(self.model, self.control)
+            except ValueError as exc:
+                raise InputError(scene.path, f"{exc} (the stage was made with init --preload: give the object its "
+                                             "support or the ground effect, or init it again without --preload)") \
+                    from None
         g = scene.gaussians
         self.binding = GaussianBinding.knn(g.means, self.x0, k=knn, dtype=self.tdtype, device=self.tdev)
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.tdtype, device=self.tdev)  # noqa: E731
@@ -568,7 +579,26 @@ class Simulation:
         """x (T, P, 3), F (T, P, 3, 3) for E, nu (P,) and optionally the slots' trajectories and
         the effects' parameters (tensors: differentiable)."""
         E, trajs = self._inputs(E, trajectories)
-        return self.rollout(E.to(self.tdtype), nu.to(self.tdtype), effects=effects, trajectories=trajs)
+        E, nu = E.to(self.tdtype), nu.to(self.tdtype)
+        F0 = self.preload_F(E, nu)
+        return self._from_scan(*self.rollout(E, nu, effects=effects, trajectories=trajs, F0=F0), F0)
+
+    def preload_F(self, E, nu):
+        """Frame 0's deformation gradient (P, 3, 3) at E, nu (differentiable): the scan's preload's stretch
+        (`sim.preload`) where the stage asks for it, else None (the identity: the scan stress-free)."""
+        if self.prestress is None:
+            return None
+        from .sim.preload import preload_F
+        E = torch.as_tensor(E).to(device=self.tdev, dtype=self.tdtype)
+        nu = torch.as_tensor(nu).to(device=self.tdev, dtype=self.tdtype)
+        return preload_F(self.prestress, E, nu, self.scene.settings.constitutive_model)
+
+    @staticmethod
+    def _from_scan(x, F, F0):
+        """(x, F) with F the deformation from the scan (F F0^-1: what the splats, drawn on the scan, deform by)."""
+        if F0 is None:
+            return x, F
+        return x, F @ torch.linalg.inv(F0).to(F.dtype)
 
     def _inputs(self, E, trajectories):
         """E as a tensor (the adaptive substep moved to its stable rung) and the slots' trajectories by slot."""
@@ -586,8 +616,11 @@ class Simulation:
         with these before frame `start`: a grasp or release frame moved to >= start; `Rollout.
         forward_from`). The caller checks that the model is the same (`substeps`, `grid`, rung)."""
         E, trajs = self._inputs(E, trajectories)
-        return self.rollout.forward_from(start, states, E.to(self.tdtype), nu.to(self.tdtype), effects=effects,
-                                         trajectories=trajs)
+        E, nu = E.to(self.tdtype), nu.to(self.tdtype)
+        with torch.no_grad():
+            F0 = self.preload_F(E, nu)
+            return self._from_scan(*self.rollout.forward_from(start, states, E, nu, effects=effects,
+                                                              trajectories=trajs, F0=F0), F0)
 
     def rung_wanted(self, e_max: float, current: float | None = None) -> float:
         """The rung `ensure_stable(e_max)` would move to (the current one when it would not move); from rung
@@ -628,8 +661,10 @@ class Simulation:
         if trajectories is not None:
             trajs = {slot_: tr for (slot_, _), tr in zip(self.traj_slots, trajectories)}
         with torch.no_grad():
-            return ro(torch.as_tensor(E).detach().to(self.tdtype), torch.as_tensor(nu).detach().to(self.tdtype),
-                      effects=effects, trajectories=trajs)
+            E = torch.as_tensor(E).detach().to(self.tdtype)
+            nu = torch.as_tensor(nu).detach().to(self.tdtype)
+            F0 = self.preload_F(E, nu)
+            return self._from_scan(*ro(E, nu, effects=effects, trajectories=trajs, F0=F0), F0)
 
     def simulate_each(self, jobs: list, threads: int | None = None) -> list:
         """Independent simulations without gradients at the current rung: `jobs` a list of (E, nu,
@@ -659,9 +694,10 @@ class Simulation:
             trajs = None if tr is None else {slot: t for (slot, _), t in zip(self.traj_slots, tr)}
             with torch.no_grad():
                 try:
-                    x, F = ro(torch.as_tensor(E).detach().to(self.tdtype), torch.as_tensor(nu).detach().to(self.tdtype),
-                              effects=eff, trajectories=trajs)
-                    out[i] = (x, F)
+                    E = torch.as_tensor(E).detach().to(self.tdtype)
+                    nu = torch.as_tensor(nu).detach().to(self.tdtype)
+                    F0 = self.preload_F(E, nu)
+                    out[i] = self._from_scan(*ro(E, nu, effects=eff, trajectories=trajs, F0=F0), F0)
                 except SimulationError as e:
                     out[i] = e
 
@@ -745,9 +781,13 @@ class Simulation:
                     self._batch_rollouts.pop(next(iter(self._batch_rollouts)))
                 self._batch_rollouts[key] = (tl, Rollout(tl.model, tl.control))
             tl, ro = self._batch_rollouts[key]
+            F0 = None
+            if self.prestress is not None:     # each copy's own preload, copy after copy as the tiled particles are
+                F0 = torch.cat([self.preload_F(E[b], nu[b]) for b in range(start, start + n)])
             try:
                 x, F = ro(tl.stack(E[start:start + n]), tl.stack(nu[start:start + n]), effects=effects,
-                          trajectories=tl.trajectories(trajs, like=E))
+                          trajectories=tl.trajectories(trajs, like=E), F0=F0)
+                x, F = self._from_scan(x, F, F0)
             except SimulationError:
                 if n == 1:
                     x = torch.full((self.T, len(self.x0), 3), float("nan"), dtype=self.tdtype, device=self.tdev)

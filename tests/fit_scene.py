@@ -127,9 +127,10 @@ def render_truth(sd, contact_specs, E=None, nu=NU_TRUE):
 
 
 def build(root, *, E=None, name="scene", density=1000.0, n_frames=N_FRAMES, release=None, e_range=E_RANGE,
-          lift=LIFT, grid=GRID) -> dict:
+          lift=LIFT, grid=GRID, preload=False) -> dict:
     """Capture folder + stage for the bar, frames rendered at E (and `density`; the hand lets go at
-    `release`, None: never). Returns paths and the truth."""
+    `release`, None: never; `preload`: the stage's init --preload, the truth rendered from the bar prestressed on its
+    support). Returns paths and the truth."""
     root = Path(root)
     cap = root / "capture"
     (cap / "frames").mkdir(parents=True, exist_ok=True)
@@ -146,7 +147,7 @@ def build(root, *, E=None, name="scene", density=1000.0, n_frames=N_FRAMES, rele
         write_mask(cap / "masks" / f"{k:06d}.png", box)
     stage = root / f"{name}.usda"
     api.init(stage, cap, grid=grid, padding=PADDING, youngs_range=e_range, max_poisson=MAX_POISSON,
-             poisson=NU_TRUE, density=density)
+             poisson=NU_TRUE, density=density, preload=preload)
     from physinteract_usd.usd.stage import read_stage
 
     sd = read_stage(stage)

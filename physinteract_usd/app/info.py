@@ -35,6 +35,8 @@ def info(stage_path) -> dict:
                        "youngs_range_pa": [sd.settings.youngs_min, sd.settings.youngs_max],
                        # the rate transfer's time constant (physinteract:transferTau, SimModel.transfer_tau); 0: APIC
                        "transfer_tau_s": float(getattr(sd.settings, "transfer_tau", 0.0) or 0.0),
+                       # the scan carries its weight (physinteract:preload, init --preload; sim.preload)
+                       "preload": bool(getattr(sd.settings, "preload", False)),
                        "grid_choice": read_grid_choice(sd.path)},
         "effects": sd.effects,
         "contacts": [{"name": c.name, "type": c.type, "particles": int(len(c.indices)),

@@ -46,6 +46,10 @@ def add_parser(sub):
     s.add_argument("--transfer-tau", type=float, default=0.0, metavar="SECONDS",
                    help="the simulation's rate transfer time constant (docs/sim.md; default 0: APIC, whose "
                         "dissipation grows with the substeps)")
+    s.add_argument("--preload", action="store_true",
+                   help="the scan shows the object carrying its weight (hung on its supports or resting on the "
+                        "ground, already sagged): start every simulation prestressed, at rest on its supports, "
+                        "instead of stress-free (where it would sag again and the fit stiffen E to stop it)")
     s.add_argument("--force", action="store_true",
                    help="replace the generated layers of an existing stage (your root layer is kept)")
     s.add_argument("--discard-fits", action="store_true",
@@ -74,7 +78,8 @@ def run(a) -> int:
                   max_particles=a.max_particles, padding=a.padding,
                   youngs_range=a.youngs_range, poisson=a.poisson, density=a.density,
                   constitutive_model=a.model, max_poisson=a.max_poisson, spacing=a.spacing, force=a.force,
-                  discard_fits=a.discard_fits, yes=a.yes, transfer_tau=a.transfer_tau)
+                  discard_fits=a.discard_fits, yes=a.yes, transfer_tau=a.transfer_tau,
+                  preload=a.preload)
     print(f"wrote {lp.root} (root), {lp.init.name}, {lp.fit.name}")
     print(format_info(api.info(lp.root)))
     return 0

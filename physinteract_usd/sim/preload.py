@@ -24,6 +24,7 @@ pin fully (the pin rule at weight 1; a grasp from frame 0 carries no weight: the
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,8 +115,8 @@ def equilibrium_stress(model: SimModel, control: Control, nu: float | None = Non
     positions under gravity, on the supports `control` has at frame 0 (module doc). `nu`: the Poisson ratio the
     energy is weighted with (default: the model's mean). Raises ValueError where nothing holds the object (no node
     held: its weight cannot be balanced)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.linalg import lsqr
+    from scipy.sparse import coo_matrix, identity
+    from scipy.sparse.linalg import lsqr, spsolve
 
     if model.material not in MATERIALS:
         raise ValueError(f"preload: unknown material {model.material!r}")
@@ -164,11 +165,25 @@ def equilibrium_stress(model: SimModel, control: Control, nu: float | None = Non
     r = 3 * row_of[rows_n[keep]] + axis[keep]
     A = coo_matrix((coef[keep], (r, cols[keep])), shape=(3 * int(free.sum()), 6 * P)).tocsr()
     b = (mass_node[free][:, None] * np.asarray(model.gravity)[None, :]).ravel()
-    sol = lsqr(A, b, atol=atol, btol=atol, iter_lim=iter_lim or 20 * A.shape[1])
-    z = sol[0].reshape(P, 6)
+    # the least-norm z = A^T (A A^T)^-1 b: A A^T is the free nodes' stiffness (the multipliers are their displacements),
+    # sparse and small (3 per node): a direct solve, damped by 1e-9 of its mean diagonal (a node only a particle's
+    # stencil edge reaches can be out of balance: the least-squares balance there, Tikhonov's); lsqr where it fails
+    K = (A @ A.T).tocsc()
+    K = K + identity(K.shape[0], format="csc") * (1e-9 * float(K.diagonal().mean()))
+    zf = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            u = spsolve(K, b)
+            zf = A.T @ u if np.all(np.isfinite(u)) else None
+        except RuntimeError:
+            zf = None
+    if zf is None:
+        zf = lsqr(A, b, atol=atol, btol=atol, iter_lim=iter_lim or 20 * A.shape[1])[0]
+    z = zf.reshape(P, 6)
     tau = np.einsum("pc,cab->pab", z * scale, _B)
     weight = float(m.sum() * np.linalg.norm(model.gravity))
-    resid = float(np.linalg.norm((A @ sol[0] - b).reshape(-1, 3), axis=1).sum() / max(weight, 1e-300))
+    resid = float(np.linalg.norm((A @ zf - b).reshape(-1, 3), axis=1).sum() / max(weight, 1e-300))
     t, Q = np.linalg.eigh(tau)
     return Prestress(tau=tau, eigvecs=Q, eigvals=t, residual=resid, held_nodes=int(held.sum()),
                      free_nodes=int(free.sum()), nu=nu_w)

@@ -1232,6 +1232,8 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
                  "youngs_range": [float(max(1e2, 10 ** (math.floor(math.log10(e_lo) * 2) / 2 - 1))),
                                   float(min(3e6, 10 ** (math.ceil(math.log10(e_hi) * 2) / 2 + 1)))],
                  "max_poisson": 0.45, "density": round(world.density, 3)}
+    if w.get("settle"):
+        suggested["preload"] = True     # the scan is the settled shape: it carries its weight (init --preload)
     info = {
         "scene": f"world_{split}_{seed:04d}", "paper_name": "(world suite)", "origin": "world", "split": split,
         "description": f"a {w['shape']} {'resting on a floor' if w['scenario'] == 'floor' else w['scenario']}; "
@@ -1286,7 +1288,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
         f"World capture {split}/{seed}: {info['description']}.\nGround truth in gt/ (never read by init, extract "
         f"or fit).\n\nSuggested:\n  physinteract-usd init scene.usda --capture {out.name} --grid {world.fit_grid} "
         f"--padding {FIT_PADDING} --youngs-range {ys[0]:g},{ys[1]:g} --max-poisson 0.45 --density "
-        f"{suggested['density']:g}\n" + floor_line)
+        f"{suggested['density']:g}" + (" --preload" if suggested.get("preload") else "") + "\n" + floor_line)
     if split == "validation":
         mark_validation(out)
     _preview(out, rgb, visible, hmask, cam, world)

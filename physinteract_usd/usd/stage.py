@@ -212,6 +212,7 @@ def write_init_stage(path, capture, particles, settings: SimSettings, *, force: 
     sa("particleSpacing", float(settings.particle_spacing))
     sa("substeps", int(settings.substeps))
     sa("transferTau", float(settings.transfer_tau))
+    sa("preload", bool(getattr(settings, "preload", False)))
     sa("youngsModulusMin", float(settings.youngs_min))
     sa("youngsModulusMax", float(settings.youngs_max))
     sa("poissonRatioDefault", float(settings.poisson_default))
@@ -350,7 +351,7 @@ def read_stage(path) -> SceneData:
         density=float(pprim.GetAttribute("physinteract:density").Get()),
         gravity=tuple(float(x) for x in ga("gravity")),
         constitutive_model=str(pprim.GetAttribute("physinteract:constitutiveModel").Get()),
-        transfer_tau=float(ga("transferTau") or 0.0))
+        transfer_tau=float(ga("transferTau") or 0.0), preload=bool(ga("preload") or False))
     effects = {}
     for name, api in EFFECT_APIS.items():
         if scene.HasAPI(api):
