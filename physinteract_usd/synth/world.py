@@ -681,7 +681,8 @@ class World:
             frames += n if last is None else n - 1      # a continuation's frame 1 is the last chunk's end
             last = {k: t[-1].clone() for k, t in ck.items()}
             xs = ck["x"].view(len(ck["x"]), len(self.x0), 3)
-            moved = float(torch.linalg.norm(xs[-1] - xs[-1 - win], dim=1).max()) / size
+            back = min(win, len(xs) - 1)                # a last chunk cut short by the cap may be shorter than win
+            moved = float(torch.linalg.norm(xs[-1] - xs[-1 - back], dim=1).max()) / size
             if moved < self.SETTLE_TOL or frames >= most:
                 break
         for k in ("v", "C"):
