@@ -73,3 +73,23 @@ def test_a_poke_on_a_rings_inner_rim_comes_in_only_as_far_as_its_path_is_clear()
         else:
             assert w.approach_clearance < 0 and 2 * R <= w.approach_len < 0.18    # shortened across the hole
         assert gap.min() > 0, (rim, gap.min())                                     # the swept path misses the ring
+
+
+def test_a_settled_scans_splats_are_deformed_as_frame_0_shows_them():
+    # the scan of a settled truth carries its splats as the truth renders frame 0 (F Sigma F^T), not the rest shapes
+    import torch
+    from physinteract_usd.gaussians import Gaussians
+    from physinteract_usd.render import GaussianBinding, covariance_from_scales_quats
+    from physinteract_usd.synth.world import settled_scan
+
+    rng = np.random.default_rng(0)
+    x0 = rng.uniform(0, 0.1, (60, 3))
+    g = Gaussians.from_colors(x0[:20] + 0.001, np.full((20, 3), 0.5), 0.004)
+    binding = GaussianBinding.knn(g.means, x0, k=4, dtype=torch.float32)
+    F = np.tile(np.array([[1.3, 0.2, 0.0], [0.0, 0.8, 0.0], [0.0, 0.1, 1.0]]), (60, 1, 1))
+    scan = settled_scan(g, binding, x0, F, g.means)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    got = covariance_from_scales_quats(t(scan.scales), t(scan.quats)).numpy()
+    want = F[0] @ covariance_from_scales_quats(t(g.scales), t(g.quats)).numpy() @ F[0].T
+    assert np.allclose(got, want, rtol=1e-4, atol=1e-10)
+    assert not np.allclose(scan.scales, g.scales, rtol=0.05)

@@ -1054,6 +1054,21 @@ def touch_frames(world: World, x: np.ndarray):
     return g, (g + int(after[0]) if len(after) else None)
 
 
+def settled_scan(g: Gaussians, binding, x0, F0, means0, device: str = "cpu") -> Gaussians:
+    """The scan of a settled truth: its splats as frame 0 shows them, at their settled places `means0` and deformed by the
+    settle's F (`binding.apply` at the particles' x0, F0, as the truth renders them). The rest splats' shapes on a 47%
+    sag were a frame-0 picture the scan did not match: dev_0546's preloaded fit went soft to stretch them
+    (docs/benchmarks/world.md)."""
+    from ..gaussians import scales_quats_from_covariance
+    from ..render import covariance_from_scales_quats
+
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=torch.device(device))  # noqa: E731
+    _, covs = binding.apply(t(x0), t(F0), covariance_from_scales_quats(t(g.scales), t(g.quats)))
+    scales, quats = scales_quats_from_covariance(covs)
+    return Gaussians(means=np.asarray(means0), scales=scales, quats=quats, opacities=g.opacities, sh=g.sh,
+                     normals=g.normals)
+
+
 def _render(world: World, g: Gaussians, binding, xs, Fs, hand: Gaussians, hand_pos, hand_R, props: Gaussians | None,
             cam: Camera, bg: np.ndarray, blur: int, device: str):
     from ..render import covariance_from_scales_quats, render
@@ -1205,10 +1220,7 @@ def generate_world(seed: int, out_dir, *, split: str = "dev", overrides: dict | 
     outdir.begin(out)
     scan = g
     if w.get("settle"):     # the scan is of the object at rest on its supports: its settled shape (frame 0's)
-        from ..gaussians import Gaussians
-
-        scan = Gaussians(means=gpos[0], scales=g.scales, quats=g.quats, opacities=g.opacities, sh=g.sh,
-                         normals=g.normals)
+        scan = settled_scan(g, binding, x[0], F[0], gpos[0], device)
     write_ply(scan, out / "object.ply")
     enc = w["encoding"]
     if enc == "mp4":
