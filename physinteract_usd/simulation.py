@@ -579,9 +579,14 @@ class Simulation:
         """x (T, P, 3), F (T, P, 3, 3) for E, nu (P,) and optionally the slots' trajectories and
         the effects' parameters (tensors: differentiable)."""
         E, trajs = self._inputs(E, trajectories)
-        E, nu = E.to(self.tdtype), nu.to(self.tdtype)
+        return self.forward_on(self.rollout, E.to(self.tdtype), nu.to(self.tdtype), effects=effects,
+                               trajectories=trajs)
+
+    def forward_on(self, ro: Rollout, E, nu, **kw):
+        """`ro(E, nu, **kw)` (one of this simulation's rollouts) from the scan's preload where the stage asks for it,
+        F measured from the scan (`_from_scan`)."""
         F0 = self.preload_F(E, nu)
-        return self._from_scan(*self.rollout(E, nu, effects=effects, trajectories=trajs, F0=F0), F0)
+        return self._from_scan(*ro(E, nu, F0=F0, **kw), F0)
 
     def preload_F(self, E, nu):
         """Frame 0's deformation gradient (P, 3, 3) at E, nu (differentiable): the scan's preload's stretch
@@ -661,10 +666,8 @@ class Simulation:
         if trajectories is not None:
             trajs = {slot_: tr for (slot_, _), tr in zip(self.traj_slots, trajectories)}
         with torch.no_grad():
-            E = torch.as_tensor(E).detach().to(self.tdtype)
-            nu = torch.as_tensor(nu).detach().to(self.tdtype)
-            F0 = self.preload_F(E, nu)
-            return self._from_scan(*ro(E, nu, effects=effects, trajectories=trajs, F0=F0), F0)
+            return self.forward_on(ro, torch.as_tensor(E).detach().to(self.tdtype),
+                                   torch.as_tensor(nu).detach().to(self.tdtype), effects=effects, trajectories=trajs)
 
     def simulate_each(self, jobs: list, threads: int | None = None) -> list:
         """Independent simulations without gradients at the current rung: `jobs` a list of (E, nu,
@@ -694,10 +697,9 @@ class Simulation:
             trajs = None if tr is None else {slot: t for (slot, _), t in zip(self.traj_slots, tr)}
             with torch.no_grad():
                 try:
-                    E = torch.as_tensor(E).detach().to(self.tdtype)
-                    nu = torch.as_tensor(nu).detach().to(self.tdtype)
-                    F0 = self.preload_F(E, nu)
-                    out[i] = self._from_scan(*ro(E, nu, effects=eff, trajectories=trajs, F0=F0), F0)
+                    out[i] = self.forward_on(ro, torch.as_tensor(E).detach().to(self.tdtype),
+                                             torch.as_tensor(nu).detach().to(self.tdtype), effects=eff,
+                                             trajectories=trajs)
                 except SimulationError as e:
                     out[i] = e
 

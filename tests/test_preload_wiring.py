@@ -4,25 +4,17 @@ threads' forwards, the probes' eager twins, the tiled copies, a resumed forward)
 clear error where nothing holds the object."""
 from __future__ import annotations
 
-import numpy as np
+import dataclasses
+
 import pytest
 import torch
 
 import fit_scene as fs
 from capture_factory import make_capture
-from physinteract_usd.cli import main
+from test_rate_transfer_wiring import run     # the CLI's exit code, stdout, stderr
 from physinteract_usd.errors import InputError
 from physinteract_usd.simulation import build_simulation
 from physinteract_usd.usd.stage import read_stage
-
-
-def run(argv, capsys):
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_init_writes_the_flag_and_info_says_it(tmp_path, capsys):
@@ -65,8 +57,8 @@ def test_every_simulation_path_starts_from_the_prestressed_scan(bar):
         drift.append(float((x - x0).abs().max()))
         assert (x - x0).abs().max() < 2e-5, E            # at rest at any E (microns)
         assert (F - eye).abs().max() < 5e-3, E           # the splats' deformation: from the scan, none
-    free = build_simulation(sd.__class__(**{**sd.__dict__, "settings": type(sd.settings)(
-        **{**sd.settings.__dict__, "preload": False})}), still, dtype="float64")
+    free = build_simulation(dataclasses.replace(sd, settings=dataclasses.replace(sd.settings, preload=False)), still,
+                            dtype="float64")
     with torch.no_grad():
         xf, _ = free.simulate(torch.full((P,), fs.E_TRUE, dtype=torch.float64), nu)
     assert (xf - x0).abs().max() > 20 * drift[0]         # stress-free, the bar sags from its scan (0.3 mm)

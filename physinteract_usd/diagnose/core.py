@@ -466,11 +466,7 @@ def discretisation_column(run: _Runner, r0: np.ndarray) -> np.ndarray | None:
     try:
         sim._use_bound(b0 * DISCRETISATION_SUBSTEPS ** 2)
         with torch.no_grad():
-            E, nu = b.E.to(sim.tdtype), b.nu.to(sim.tdtype)
-            F0 = sim.preload_F(E, nu) if hasattr(sim, "preload_F") else None
-            x, F = sim.rollout(E, nu, effects=eff, trajectories=None, F0=F0)
-            if F0 is not None:
-                x, F = sim._from_scan(x, F, F0)
+            x, F = sim.forward_on(sim.rollout, b.E.to(sim.tdtype), b.nu.to(sim.tdtype), effects=eff, trajectories=None)
         run.forwards += 1
         col = run.res(x, F) - r0
     except SimulationError as exc:

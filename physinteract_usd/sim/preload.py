@@ -19,8 +19,9 @@ Two steps:
    Rotation does not matter: tau(V R) = tau(V).
 
 The rollout takes it as `F0`. What holds the object: the supports (fixed contacts) active at frame 0, at the nodes they
-pin fully (the pin rule at weight 1; a grasp from frame 0 carries no weight: the hand took hold of an object at rest) and, with the ground effect on the grid nodes, nodes at least half a band under the plane (weight
-1); colliders do not hold it. A partly held node must balance (a blend below 1 lets a residual velocity through).
+pin fully (the pin rule at weight 1; a grasp from frame 0 carries no weight: the hand took hold of an object at rest)
+and, with the ground effect on the grid nodes, nodes at least half a band under the plane (weight 1); colliders do
+not hold it. A partly held node must balance (a blend below 1 lets a residual velocity through).
 """
 from __future__ import annotations
 
