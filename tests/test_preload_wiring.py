@@ -88,3 +88,14 @@ def test_the_paths_agree(bar):
     assert torch.allclose(fr[0], ref[0][0], atol=1e-12) and torch.allclose(fr[1], ref[0][1], atol=1e-12)
     # the lift moves the bar: the prestressed start is not a frozen one
     assert (ref[0][0][-1] - ref[0][0][0]).abs().max() > 1e-3
+
+
+def test_a_twin_under_the_same_holds_shares_the_stress_and_one_without_them_solves_its_own(bar):
+    # the balance is solved once per scene, grid and holds: a probe's twin under the same support takes it (the solve
+    # costs seconds at paper size); a twin without the support solves again, and nothing then holds the bar
+    sc, sd = bar
+    sim = build_simulation(sd, fs.contacts(sd), dtype="float64")
+    twin = sim.forward_twin(fs.contacts(sd, release=2))
+    assert twin.grid == sim.grid and twin.prestress is sim.prestress
+    with pytest.raises(InputError, match="nothing holds the object"):
+        sim.forward_twin(fs.contacts(sd)[:1])

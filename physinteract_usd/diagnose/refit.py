@@ -648,8 +648,8 @@ def judge_probe(diag: Diagnosis, cr: CandidateResult, holdout_every: int = 4, fr
     re-adjustment (their linear step) are fitted on the training rows only (every image element not
     in that fold's held-back frames, and the trajectory prior's rows), the base re-adjusted alike
     without the candidate and the base as it is are the references (it must beat both), and the paired
-    test pools the folds' held-back blocks (`_accept`). Before 2026-11-26 the step and the re-adjustment were fitted on all frames, the
-    held-back ones included, so the held-back test was not one. `realized_loss_drop`: the drop on
+    test pools the folds' held-back blocks (`_accept`). Before 2026-11-26 the step and the re-adjustment
+    were fitted on all frames, the held-back ones included, so the held-back test was not one. `realized_loss_drop`: the drop on
     all frames beyond the base's own linear step (fold 1's amplitude)."""
     ctx = diag._ctx
     prob, res, r0, J, run = ctx["prob"], ctx["res"], ctx["r0a"], diag._J, ctx["run"]

@@ -707,10 +707,9 @@ class World:
 
     def _clear_approach(self, start: np.ndarray, xr: np.ndarray, R: float) -> None:
         """A poke's toucher comes in along `hand_dir` from `approach` away (and a finger's body trails 6 cm behind
-        its tip): where that straight path passes through the object (dev_0542: a fingertip planned 18 cm out along a line
-        across a hanging ring's hole touched its far side and set it swinging two frames before it arrived, 11% of the
-        ring's size),
-        the direction turns toward the surface's normal, in thirds, until the path clears the particles by R + h/2
+        its tip): where that straight path passes through the object (dev_0542: a fingertip planned 18 cm out along a
+        line across a hanging ring's hole touched its far side and set it swinging two frames before it arrived, 11%
+        of the ring's size), the direction turns toward the surface's normal, in thirds, until the path clears the particles by R + h/2
         beyond one radius of the start; the clearest when none does. `self.approach_clearance` (m) says what it
         cleared. With `settle` only (the default captures as before)."""
         from scipy.spatial import cKDTree
@@ -741,6 +740,8 @@ class World:
         best rotation (Kabsch) taking the rest particles within 3 spacings of it to their settled places; the
         identity without `settle`. The toucher's normal, its direction and a poke's push turn with it (dev_0539: a
         sphere planned along the rest normal of a sheet that settled turned grazed it)."""
+        from scipy.spatial.transform import Rotation
+
         xs = getattr(self, "x_scan", None)
         if not self.w.get("settle") or xs is None:
             return np.eye(3)
@@ -748,8 +749,6 @@ class World:
         idx = np.where(d < 3.0 * self.h)[0]
         if len(idx) < 4:
             idx = np.argsort(d)[:8]
-        from scipy.spatial.transform import Rotation
-
         a = self.x0[idx] - self.x0[idx].mean(0)
         b = xs[idx] - xs[idx].mean(0)
         return Rotation.align_vectors(b, a)[0].as_matrix()
