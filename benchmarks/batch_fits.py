@@ -310,7 +310,7 @@ def main(argv=None):
     stage = work / "scene.usda"
     quiet = lambda *x: None  # noqa: E731
     api.init(stage, cap, grid=a.grid, padding=0.3, youngs_range=(1e3, 6e4), max_poisson=0.4, density=150.0,
-             force=True, discard_fits=True, log=quiet)
+             preload=False, force=True, discard_fits=True, log=quiet)
     over = {"confidence_probes": 0}
     if a.patience is not None:
         over["plateau_patience"] = a.patience

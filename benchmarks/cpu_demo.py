@@ -173,7 +173,7 @@ def run_steps(out: Path, cold: bool, fit_args: list[str], init_args: list[str] =
     exe = [sys.executable, "-m", "physinteract_usd"]
     steps = [
         ("init", exe + ["init", stage, "--capture", str(SAMPLE), "--grid", "24", "--padding", "0.3",
-                        "--youngs-range", "1e3,6e4", "--max-poisson", "0.4", "--density", "150",
+                        "--youngs-range", "1e3,6e4", "--max-poisson", "0.4", "--density", "150", "--no-preload",
                         *init_args]),
         ("fit", [sys.executable, __file__, "profiled", stage, *fit_args]),
         ("evaluate", exe + ["evaluate", stage, "--gt", str(SAMPLE / "gt"), "--json"]),

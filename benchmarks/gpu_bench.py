@@ -225,7 +225,7 @@ def main(argv=None):
     if "small" not in skip:
         rows.append(fit_case("small", out, dl, capture="samples/foam_bar", stage="/tmp/gpu_bench/small/scene.usda",
                              init_args=["--grid", "24", "--padding", "0.3", "--youngs-range", "1e3,6e4",
-                                        "--max-poisson", "0.4", "--density", "150"],
+                                        "--max-poisson", "0.4", "--density", "150", "--no-preload"],
                              fit_limit=150, iterations=a.small_iterations, reserve=max(0.0, min(250.0, left(dl) - 160))))
     if "small36" not in skip:
         cap = "/tmp/gpu_bench/small36_foam_bar"
@@ -233,7 +233,7 @@ def main(argv=None):
                              synth=["synth", "foam_bar", cap, "--frames", "36", "--noise", "0.015", "--blur", "3",
                                     "--device", DEVICE, "--force"],
                              init_args=["--grid", "24", "--padding", "0.3", "--youngs-range", "1e3,6e4",
-                                        "--max-poisson", "0.4", "--density", "150"],
+                                        "--max-poisson", "0.4", "--density", "150", "--no-preload"],
                              fit_limit=150, iterations=60, reserve=max(0.0, min(230.0, left(dl) - 120))))
     batch_rows = []
     if "batch" not in skip:
@@ -253,7 +253,7 @@ def main(argv=None):
         rows.append(fit_case("paper", out, dl, capture=cap, stage="/tmp/gpu_bench/paper/scene.usda",
                              synth=["synth", a.paper_scene, cap, "--size", "paper", "--device", DEVICE, "--force"],
                              init_args=["--grid", "100", "--padding", "0.3", "--youngs-range", "1e3,6e4",
-                                        "--max-poisson", "0.4", "--density", "150"],
+                                        "--max-poisson", "0.4", "--density", "150", "--no-preload"],
                              fit_limit=600, iterations=a.paper_iterations, reserve=30))
 
     def f(v, fmt="{:.1f}"):

@@ -35,7 +35,7 @@ TIME=/usr/bin/time; [ -x "$TIME" ] || TIME=""
 echo "rev $(git rev-parse --short HEAD 2>/dev/null || cat REV 2>/dev/null)  PYTHONDONTWRITEBYTECODE=${PYTHONDONTWRITEBYTECODE:-unset}" \
   | tee -a "$OUT/device.txt"
 $PY -m physinteract_usd init "$W/base/scene.usda" --capture samples/foam_bar --grid "$GRID" --padding 0.3 \
-  --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150 > "$OUT/init.log" 2>&1 || { echo "init failed"; cat "$OUT/init.log"; exit 1; }
+  --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150 --no-preload > "$OUT/init.log" 2>&1 || { echo "init failed"; cat "$OUT/init.log"; exit 1; }
 
 variant_env() {   # the environment of a variant, as `env` arguments
   case "$1" in

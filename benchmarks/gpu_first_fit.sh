@@ -16,7 +16,7 @@ warm=$(python3 -c "print(round($t1 - $t0, 1))")
 S=/tmp/gpu_first_fit/scene.usda
 rm -rf /tmp/gpu_first_fit && mkdir -p /tmp/gpu_first_fit
 python3 -m physinteract_usd init $S --capture samples/foam_bar --grid 24 --padding 0.3 --youngs-range 1e3,6e4 \
-  --max-poisson 0.4 --density 150 > "$OUT/init.log" 2>&1
+  --max-poisson 0.4 --density 150 --no-preload > "$OUT/init.log" 2>&1
 for k in 1 2; do
   a=$(date +%s.%N)
   python3 -m physinteract_usd fit $S --contact-from samples/foam_bar/gt --device cuda --json --yes --fresh \

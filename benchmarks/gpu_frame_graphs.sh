@@ -15,7 +15,7 @@ PY=${PYTHON:-python}
 CLI="$PY -m physinteract_usd"
 W=$(mktemp -d); mkdir -p "$W/base"
 $CLI init "$W/base/scene.usda" --capture samples/foam_bar --grid "$GRID" --padding 0.3 --youngs-range 1e3,6e4 \
-  --max-poisson 0.4 --density 150 > "$OUT/init.log" 2>&1 || { echo "init failed"; cat "$OUT/init.log"; exit 1; }
+  --max-poisson 0.4 --density 150 --no-preload > "$OUT/init.log" 2>&1 || { echo "init failed"; cat "$OUT/init.log"; exit 1; }
 (nvidia-smi --query-gpu=name,driver_version --format=csv,noheader || echo "$DEVICE") | tee "$OUT/device.txt"
 printf "path\trepeat\twall_s\texit\tfit_line\n" > "$OUT/frame_graphs_cli.tsv"
 # a first fit warms the kernel caches (not counted)

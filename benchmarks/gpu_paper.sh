@@ -23,7 +23,7 @@ for S in $SCENES; do
   t1=$(date +%s)
   rm -f $W/$S.usda $W/$S.init.usdc $W/$S.fit.usdc
   python3 -m physinteract_usd init "$W/$S.usda" --capture "$W/$S" --grid 100 --padding 0.3 --youngs-range 1e3,6e4 \
-    --max-poisson 0.4 --density 150 >> "$L" 2>&1 || { echo "init $S failed" | tee -a "$L"; continue; }
+    --max-poisson 0.4 --density 150 --no-preload >> "$L" 2>&1 || { echo "init $S failed" | tee -a "$L"; continue; }
   P=$(python3 -m physinteract_usd info "$W/$S.usda" --json | python3 -c "import json,sys; d=json.load(sys.stdin); print(d['particles']['count'], d['simulation']['substeps_per_frame'])")
   t2=$(date +%s)
   timeout 400 python3 -m physinteract_usd fit "$W/$S.usda" --contact-from "$W/$S/gt" --iterations "$ITERS" --device cuda >> "$L" 2>&1

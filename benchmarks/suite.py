@@ -62,7 +62,7 @@ def init_args(sug: dict) -> list[str]:
     """init's flags for a capture's suggested settings (gt.json's suggested_init), the grid aside."""
     return ["--padding", str(sug["padding"]), "--youngs-range", ",".join(str(v) for v in sug["youngs_range"]),
             "--max-poisson", str(sug["max_poisson"]), "--density", str(sug["density"])] + \
-        (["--preload"] if sug.get("preload") else [])
+        {True: ["--preload"], False: ["--no-preload"]}.get(sug.get("preload"), [])
 
 
 def init_caps(a) -> list[str]:

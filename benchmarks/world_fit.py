@@ -121,7 +121,10 @@ def fit_one(work: Path, n: str, iterations: int, seed: int, device: str, log=pri
            "position_error_m": ev.get("position_error_m"), "truth_resolution": ev.get("truth_resolution"), "fit_s": fit_s, "iterations": iterations, "seed": seed,
            "device": device, "true_contacts": bool(true_contacts), "effects": effects, "settings": dict(overrides or {}), "stopped_by": out.stopped_by,
            "interaction_check": [m for m in said if m.startswith(("interaction check", "the interaction may",
-                                                                  "the contact may", "the fitted"))]}
+                                                                  "the contact may", "the fitted"))],
+           # the fit's decision on the scan's preload where the stage left it open (fit/preload_choice.py)
+           "preload": (out.result.settings or {}).get("preload"),
+           "preload_stage": api.read_scene(stage).settings.preload}
     # the fitted E against the truth, the fit's own confidence and (schedule select) its uniform sweep's
     # minima and intervals: is a wrong E at least said to be uncertain?
     summ = out.summary()

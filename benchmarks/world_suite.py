@@ -140,9 +140,10 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print, t
             traceback.print_exc()
 
 
-def prepare(work: Path, n: str, grid=None, max_particles=None) -> tuple[Path, Path, Path]:
+def prepare(work: Path, n: str, grid=None, max_particles=None, preload_hint: bool = False) -> tuple[Path, Path, Path]:
     """gt/ moved out to <n>.gt; the stage initialised with the capture's suggested settings (`grid`:
-    init's --grid instead of the suggested one, e.g. "auto")."""
+    init's --grid instead of the suggested one, e.g. "auto"), but for the scan's preload: left to the fit, as a user
+    who does not know how the object was scanned leaves it (`preload_hint`: the capture's --preload taken too)."""
     cap, gt, stage = work / n, work / f"{n}.gt", work / f"{n}.stage" / "scene.usda"
     if (cap / "gt").exists():
         shutil.rmtree(gt, ignore_errors=True)
@@ -152,7 +153,8 @@ def prepare(work: Path, n: str, grid=None, max_particles=None) -> tuple[Path, Pa
     stage.parent.mkdir(parents=True)
     caps = {"max_particles": int(max_particles)} if max_particles else {}
     api.init(stage, cap, grid=grid or g["grid"], padding=g["padding"], youngs_range=tuple(g["youngs_range"]),
-             max_poisson=g["max_poisson"], density=g["density"], preload=bool(g.get("preload", False)), **caps)
+             max_poisson=g["max_poisson"], density=g["density"],
+             preload=bool(g.get("preload", False)) if preload_hint else None, **caps)
     return cap, gt, stage
 
 

@@ -32,7 +32,9 @@ class SimSettings:
     gravity: tuple = (0.0, -9.81, 0.0)
     constitutive_model: str = "fixedCorotated"
     transfer_tau: float = 0.0         # the rate transfer's time constant [s] (SimModel.transfer_tau); 0: APIC
-    preload: bool = False             # the scan carries its weight (sim.preload): frame 0 prestressed on its supports
+    # the scan carries its weight (sim.preload): frame 0 prestressed on its supports. None: not said (init without
+    # --preload / --no-preload): simulations take the scan stress-free until a fit decides (fit/preload_choice.py)
+    preload: bool | None = False
 
     def to_dict(self) -> dict:
         return {"domain_min": list(map(float, self.domain_min)), "domain_max": list(map(float, self.domain_max)),
@@ -42,7 +44,8 @@ class SimSettings:
                 "poisson_default": self.poisson_default, "poisson_max": self.poisson_max,
                 "density": self.density,
                 "gravity": list(self.gravity), "constitutive_model": self.constitutive_model,
-                "transfer_tau": self.transfer_tau, "preload": bool(self.preload)}
+                "transfer_tau": self.transfer_tau,
+                "preload": None if self.preload is None else bool(self.preload)}
 
 
 @dataclass

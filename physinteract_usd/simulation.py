@@ -459,15 +459,11 @@ class Simulation:
         # `prestress_from` (forward_twin): another simulation's, taken where it was solved for the same scene, grid
         # and holds (a probe under another hand path; the solve costs ~12 s at 48k particles on 2 CPU cores)
         self.prestress = None
+        self._solved_prestress = None
         self._holds = self._holding_key()
-        if getattr(st, "preload", False):
-            from .sim.preload import equilibrium_stress
+        if getattr(st, "preload", False):     # True; None (the fit decides, `use_preload`) and False: stress-free
             try:
-                if prestress_from is not None and prestress_from.prestress is not None \
-                        and prestress_from._holds == self._holds:
-                    self.prestress = prestress_from.prestress
-                else:
-                    self.prestress = equilibrium_stress(self.model, self.control)
+                self.use_preload(True, share_from=prestress_from)
             except ValueError as exc:
                 raise InputError(scene.path, f"{exc} (the stage was made with init --preload: give the object its "
                                              "support or the ground effect, or init it again without --preload)") \
@@ -571,6 +567,23 @@ class Simulation:
             if c.type == "fixed" and c.grasp_frame <= 0:
                 held[np.asarray(c.indices, np.int64)] = True
         return held
+
+    def use_preload(self, on: bool, share_from: "Simulation | None" = None) -> None:
+        """Start every forward from the scan's preload (`on`) or stress-free. The stress is solved once, on first use
+        (or taken from `share_from` where that simulation solved it for the same scene, grid and holds), and kept for
+        a later switch back. Raises ValueError where nothing holds the object at frame 0 (no support, no ground)."""
+        if not on:
+            self.prestress = None
+            return
+        if self._solved_prestress is None:
+            if share_from is not None and share_from._solved_prestress is not None \
+                    and share_from._holds == self._holds:
+                self._solved_prestress = share_from._solved_prestress
+            else:
+                from .sim.preload import equilibrium_stress
+
+                self._solved_prestress = equilibrium_stress(self.model, self.control)
+        self.prestress = self._solved_prestress
 
     def _holding_key(self) -> tuple:
         """What the preload's stress depends on besides the material's nu: the scene, the grid, the supports held from

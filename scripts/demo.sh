@@ -12,7 +12,7 @@ rm -rf "$OUT"/scene.usda "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/sce
 # the capture's README.txt suggests grid 24: ~3 minutes on 2 CPU cores, MA 0.93 (docs/benchmarks/cpu.md;
 # grid 20 before the CPU changes: half grid 24's time, MA 0.84; docs/benchmarks/fit.md)
 physinteract-usd init "$OUT/scene.usda" --capture "$SAMPLE" --grid 24 --padding 0.3 \
-  --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
+  --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150 --no-preload
 # no contact sets on the stage yet: fit extracts the hand, contact, supports and T0 from the video
 physinteract-usd fit "$OUT/scene.usda" "$@"
 physinteract-usd evaluate "$OUT/scene.usda" --gt "$SAMPLE/gt"

@@ -31,7 +31,7 @@ fi
 step "2. init + fit with the base model (fit extracts the hand, contact and supports from the video first)"
 rm -rf "$S" "$OUT"/scene.init.usdc "$OUT"/scene.fit.usdc "$OUT"/scene.versions "$OUT"/scene.extract "$OUT"/scene.report \
   "$OUT"/frames_v1 "$OUT"/frames_v2
-physinteract-usd init "$S" --capture "$CAP" --grid "$GRID" --padding 0.3 --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150
+physinteract-usd init "$S" --capture "$CAP" --grid "$GRID" --padding 0.3 --youngs-range 1e3,6e4 --max-poisson 0.4 --density 150 --no-preload
 physinteract-usd fit "$S" --iterations "$ITERATIONS"
 
 step "3. report on v1: where and when the base model fails"

@@ -127,10 +127,11 @@ def render_truth(sd, contact_specs, E=None, nu=NU_TRUE):
 
 
 def build(root, *, E=None, name="scene", density=1000.0, n_frames=N_FRAMES, release=None, e_range=E_RANGE,
-          lift=LIFT, grid=GRID, preload=False) -> dict:
+          lift=LIFT, grid=GRID, preload=False, stage_preload="same") -> dict:
     """Capture folder + stage for the bar, frames rendered at E (and `density`; the hand lets go at
     `release`, None: never; `preload`: the stage's init --preload, the truth rendered from the bar prestressed on its
-    support). Returns paths and the truth."""
+    support; `stage_preload`: the stage's own setting afterwards where it differs, e.g. None: left to the fit).
+    Returns paths and the truth."""
     root = Path(root)
     cap = root / "capture"
     (cap / "frames").mkdir(parents=True, exist_ok=True)
@@ -157,6 +158,9 @@ def build(root, *, E=None, name="scene", density=1000.0, n_frames=N_FRAMES, rele
         write_image(cap / "frames" / f"{k:06d}.png", frames[k])
         write_mask(cap / "masks" / f"{k:06d}.png", masks[k])
     write_gt_json(root / "gt", sd, specs[0].trajectory, release)
+    if stage_preload != "same" and stage_preload is not preload:    # the truth as made, the stage as the test asks
+        api.init(stage, cap, grid=grid, padding=PADDING, youngs_range=e_range, max_poisson=MAX_POISSON,
+                 poisson=NU_TRUE, density=density, preload=stage_preload, force=True)
     return {"root": root, "capture": cap, "stage": stage, "gt": root / "gt", "positions": x,
             "hand": specs[0].indices, "support": specs[1].indices, "frames": frames, "masks": masks}
 

@@ -19,13 +19,19 @@ from physinteract_usd.usd.stage import read_stage
 
 def test_init_writes_the_flag_and_info_says_it(tmp_path, capsys):
     cap = make_capture(tmp_path / "cap")
-    assert run(["init", tmp_path / "a.usda", "--capture", cap, "--grid", "12"], capsys)[0] == 0
+    code, out, err = run(["init", tmp_path / "a.usda", "--capture", cap, "--grid", "12", "--no-preload"], capsys)
+    assert code == 0, err
+    assert "preload" not in out
     code, out, err = run(["init", tmp_path / "b.usda", "--capture", cap, "--grid", "12", "--preload"], capsys)
     assert code == 0, err
     assert "preloaded scan" in out
-    a, b = read_stage(tmp_path / "a.usda"), read_stage(tmp_path / "b.usda")
-    assert a.settings.preload is False and b.settings.preload is True
-    assert b.settings.to_dict()["preload"] is True
+    code, out, err = run(["init", tmp_path / "c.usda", "--capture", cap, "--grid", "12"], capsys)
+    assert code == 0, err
+    assert "the first fit decides" in out          # neither flag: left to the fit (fit/preload_choice.py)
+    a, b, c = (read_stage(tmp_path / f"{n}.usda") for n in "abc")
+    assert a.settings.preload is False and b.settings.preload is True and c.settings.preload is None
+    assert b.settings.to_dict()["preload"] is True and c.settings.to_dict()["preload"] is None
+    assert run(["init", tmp_path / "d.usda", "--capture", cap, "--preload", "--no-preload"], capsys)[0] == 2
     # nothing holds the capture's object (no support, no ground): a simulation says so, naming the stage
     with pytest.raises(InputError, match=r"b\.usda: .*nothing holds the object.*without --preload"):
         build_simulation(b, [])

@@ -67,6 +67,7 @@ class FitJob:
     starts: int = 1                      # fits from this many starts, the best kept (fit/batched.py)
     alt_start: dict | None = None        # a warm start's second start (`warm_path` "both": the measured hand paths),
                                          # the lower final loss of the two kept (`run_fit`)
+    preload_choice: dict | None = None   # where the stage left it open: the fit's decision (fit/preload_choice.py)
 
 
 @dataclass
@@ -255,6 +256,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     start, resumed_from, history, alt = None, "", [], None
     if resume:
         start, resumed_from, ck = resume_start(stage_path, sd, contacts)
+        sd.settings.preload = decided_preload(sd, ck, sd.reports[-1] if sd.reports and ck is None else None)
         if ck is not None:
             history = list(ck.get("history") or [])
             if iterations is None:
@@ -266,6 +268,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
     elif warm_from is not None:
         start, ver, added, removed = warm_from
         resumed_from = f"warm:{ver}"
+        sd.settings.preload = decided_preload(sd, None, sd.current_report)
         if warm_path in ("measured", "both") and added:
             # the previous version's path may have soaked up the effect just added (diagnose's trajectory check):
             # the hand paths start again from the measured ones, the field and the other effects warm
@@ -357,6 +360,44 @@ def run_fit(job: FitJob, *, progress=True, log=print, on_iteration=None) -> FitR
     else:
         prob = make_problem(job)
     job.problem = prob
+    choice = None
+    if job.scene.settings.preload is None and job.start is None:
+        # the stage does not say whether the scan carries its weight: the frames decide (fit/preload_choice.py)
+        from ..fit.preload_choice import choose_preload
+
+        choice = choose_preload(prob, s.search_evals, log=log)
+        job.scene.settings.preload = choice["preload"]     # the twins, the confidence, the layer written: as chosen
+        job.preload_choice = choice
+        if s.schedule == "bumps":     # its start search is the choice's (the same probes): not run again
+            uniform_e = choice["uniform_e"]
+    result = _optimise_job(job, prob, uniform_e, progress=progress, log=log, on_iteration=on_iteration)
+    if choice is not None and choice.get("probes") and not (result.model or {}).get("uniform_probes"):
+        result.model = {**(result.model or {}), "uniform_probes": choice["probes"]}   # the start search's
+    return record_preload(job, result)
+
+
+def record_preload(job: FitJob, result: FitResult) -> FitResult:
+    """The fit's decision on the scan's preload in its settings (the report; the fit layer authors
+    physinteract:preload from it, usd/fit_io.py), where it made one."""
+    c = job.preload_choice
+    if c is not None:
+        result.settings["preload"] = {k: c[k] for k in ("preload", "loss", "E", "reason")}
+    return result
+
+
+def decided_preload(sd: SceneData, ck: dict | None, report: dict | None):
+    """A resumed or warm-started fit goes on as the fit it continues took the scan (its checkpoint's or its
+    version's decision) where the stage itself leaves it open; None where that fit made none."""
+    if sd.settings.preload is not None:
+        return sd.settings.preload
+    if ck is not None and (ck.get("fingerprint") or {}).get("preload") is not None:
+        return bool(ck["fingerprint"]["preload"])
+    rec = ((report or {}).get("settings") or {}).get("preload")
+    return bool(rec["preload"]) if isinstance(rec, dict) and "preload" in rec else None
+
+
+def _optimise_job(job: FitJob, prob, uniform_e, *, progress=True, log=print, on_iteration=None) -> FitResult:
+    s = job.settings
     if job.starts > 1 and job.start is None:
         from ..fit.batched import fit_starts
 
@@ -485,6 +526,7 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
     def on_iteration(it, loss, mat, trajs):
         if job.problem is not None and tracker.names is names:
             tracker.names = job.problem.sim.slot_names()
+        tracker.fingerprint["preload"] = job.scene.settings.preload    # a resume starts the scan the same way
         tracker(it, loss, mat, trajs)
 
     def on_stop():  # in the signal handler: a stopped fit skips its confidence estimate
@@ -502,6 +544,7 @@ def fit(stage_path, *, iterations=None, joint=True, contact_from=None, contacts=
             if result is None:
                 log(f"{stop.signal}: stopped before the first iteration; nothing written")
                 raise KeyboardInterrupt from None
+            record_preload(job, result)
         stopped_by = stopping.requested()
         if not late and not stopped_by:
             t_notes = time.perf_counter()

@@ -36,7 +36,7 @@ def info(stage_path) -> dict:
                        # the rate transfer's time constant (physinteract:transferTau, SimModel.transfer_tau); 0: APIC
                        "transfer_tau_s": float(getattr(sd.settings, "transfer_tau", 0.0) or 0.0),
                        # the scan carries its weight (physinteract:preload, init --preload; sim.preload)
-                       "preload": bool(getattr(sd.settings, "preload", False)),
+                       "preload": getattr(sd.settings, "preload", False),
                        "grid_choice": read_grid_choice(sd.path)},
         "effects": sd.effects,
         "contacts": [{"name": c.name, "type": c.type, "particles": int(len(c.indices)),

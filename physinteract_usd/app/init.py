@@ -178,14 +178,15 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
          youngs_range=DEFAULT_E_RANGE, poisson=0.3, density=1000.0,
          constitutive_model="fixedCorotated", max_poisson=MAX_POISSON, spacing=None, force=False,
          discard_fits=False, yes=True, max_grid=MAX_AUTO_GRID, max_particles=MAX_AUTO_PARTICLES,
-         transfer_tau=0.0, preload=False, log=print) -> LayerPaths:
+         transfer_tau=0.0, preload=None, log=print) -> LayerPaths:
     """Build a stage from a capture. Returns the LayerPaths written. `grid`: cells along the
     longest side, or "auto" (CELLS_ACROSS cells across the thinnest part, within `max_grid` cells
     and about `max_particles` particles); `log` gets one line saying which grid and why. `force`:
     replace the generated layers of an existing stage (the root layer is kept); `discard_fits`: and
     its fit versions; `yes`: go on even when a frame would need more than budget.MAX_SUBSTEPS substeps.
-    `transfer_tau` [s]: the simulation's rate transfer (docs/sim.md; 0: APIC, the default). `preload`: the scan shows
-    the object carrying its weight (hung or resting, sagged): simulations start it prestressed (sim.preload)."""
+    `transfer_tau` [s]: the simulation's rate transfer (docs/sim.md; 0: APIC, the default). `preload`: True, the scan
+    shows the object carrying its weight (hung or resting, sagged): simulations start it prestressed (sim.preload);
+    False: stress-free; None (default): left to the first fit, which decides by the frames (fit/preload_choice.py)."""
     stage_path = Path(stage_path)
     auto = check_grid(grid, max_grid, max_particles)
     check_target(stage_path, force, discard_fits)
@@ -217,7 +218,7 @@ def init(stage_path, capture_dir=None, *, object=None, video=None, camera=None, 
                                         max_particles, splat_floor(g, cap.object.mesh))
     log(choice.message)
     settings.transfer_tau = transfer_tau
-    settings.preload = bool(preload)
+    settings.preload = None if preload is None else bool(preload)
     budget.check_substeps(settings.substeps, len(parts), int(np.prod(settings.grid_resolution)), cap.n_frames,
                           flag="--youngs-range", yes=yes,
                           detail=f" (largest E {settings.youngs_max:g} Pa on a {settings.cell_size * 1000:.3g} mm grid "

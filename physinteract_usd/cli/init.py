@@ -46,10 +46,14 @@ def add_parser(sub):
     s.add_argument("--transfer-tau", type=float, default=0.0, metavar="SECONDS",
                    help="the simulation's rate transfer time constant (docs/sim.md; default 0: APIC, whose "
                         "dissipation grows with the substeps)")
-    s.add_argument("--preload", action="store_true",
-                   help="the scan shows the object carrying its weight (hung on its supports or resting on the "
-                        "ground, already sagged): start every simulation prestressed, at rest on its supports, "
-                        "instead of stress-free (where it would sag again and the fit stiffen E to stop it)")
+    pre = s.add_mutually_exclusive_group()
+    pre.add_argument("--preload", dest="preload", action="store_const", const=True, default=None,
+                     help="the scan shows the object carrying its weight (hung on its supports or resting on the "
+                          "ground, already sagged): start every simulation prestressed, at rest on its supports, "
+                          "instead of stress-free (where it would sag again and the fit stiffen E to stop it). "
+                          "Neither this nor --no-preload: the first fit decides by the frames")
+    pre.add_argument("--no-preload", dest="preload", action="store_const", const=False,
+                     help="the scan is stress-free (the object was scanned unloaded, and sags in the video)")
     s.add_argument("--force", action="store_true",
                    help="replace the generated layers of an existing stage (your root layer is kept)")
     s.add_argument("--discard-fits", action="store_true",

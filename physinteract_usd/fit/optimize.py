@@ -334,12 +334,13 @@ def _probes_beside(prob: FitProblem, nu):
     return many
 
 
-def uniform_loss(prob: FitProblem, evals: int, log=None) -> tuple[float, float]:
-    """(best uniform E, its reconstruction loss) for a problem, from a fresh uniform field."""
+def uniform_loss(prob: FitProblem, evals: int, log=None, seen: dict | None = None) -> tuple[float, float]:
+    """(best uniform E, its reconstruction loss) for a problem, from a fresh uniform field (`seen`: every probe,
+    as `golden_uniform_search` gives it)."""
     st = prob.scene.settings
     mat = MaterialField(prob.x0, (st.youngs_min, st.youngs_max), st.poisson_max, dtype=prob.tdtype, device=prob.tdev)
     mat.set_uniform(math.sqrt(st.youngs_min * st.youngs_max), min(st.poisson_default, 0.98 * st.poisson_max))
-    return golden_uniform_search(prob, mat, evals, log, with_loss=True)
+    return golden_uniform_search(prob, mat, evals, log, with_loss=True, seen=seen)
 
 
 def select_supports(make_problem, contacts: list, x0: np.ndarray, spacing: float, settings: FitSettings,

@@ -624,7 +624,9 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
                    "pin_rule": list(truth_pin_rule()), "ground_contact": truth_ground_contact()},
         "suggested_init": {"grid": sz.fit_grid, "padding": sz.fit_padding,
                            "youngs_range": list(sz.fit_youngs), "max_poisson": sz.fit_poisson_max,
-                           "density": spec.density, **({"transfer_tau": transfer_tau} if transfer_tau else {})},
+                           "density": spec.density, **({"transfer_tau": transfer_tau} if transfer_tau else {}),
+                           # the truth starts from the scan stress-free (it sags in the video): init --no-preload
+                           "preload": False},
         "generation_seconds": time.perf_counter() - t0,
     }
     write_ground_truth(out, info, e_g, nu_g, gpos,
@@ -636,7 +638,8 @@ def generate(name: str, out_dir, *, size: str = "small", frames: int | None = No
         f"Ground truth in gt/ (never read by init, extract or fit).\n\nSuggested:\n"
         f"  physinteract-usd init scene.usda --capture {out.name} --grid {sz.fit_grid} --padding {sz.fit_padding} "
         f"--youngs-range {ys[0]:g},{ys[1]:g} --max-poisson {sz.fit_poisson_max:g} --density {spec.density:g}"
-        f"{f' --transfer-tau {transfer_tau:g}' if transfer_tau else ''}\n")
+        f"{f' --transfer-tau {transfer_tau:g}' if transfer_tau else ''} --no-preload\n"
+        f"  (--no-preload: the object was scanned unloaded and sags in the video; without it the first fit decides)\n")
     from .preview import contact_sheet
 
     contact_sheet(out, rgb, visible, hmask, cam, gt, out / "preview.png")

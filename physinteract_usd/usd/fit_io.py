@@ -67,7 +67,10 @@ def author_fit_content(stage: Usd.Stage, scene: SceneData, result, contacts, *,
         for name, v in zip(("youngsModulus", "poissonRatio", "confidence"), vals):
             pv.CreatePrimvar(f"physinteract:{name}", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(f32(v))
     author_animation(stage, result.positions, result.gaussian_means, result.gaussian_covs)
-    stage.OverridePrim(SCENE)
+    scene_prim = stage.OverridePrim(SCENE)
+    chosen = (getattr(result, "settings", None) or {}).get("preload")
+    if isinstance(chosen, dict):     # the fit decided whether the scan carries its weight (fit/preload_choice.py)
+        scene_prim.CreateAttribute("physinteract:preload", Sdf.ValueTypeNames.Bool).Set(bool(chosen["preload"]))
     for c in contacts:
         write_contact(stage, SCENE, c, scene.particles_positions, scene.fps)
         fitted = result.trajectories.get(c.name)

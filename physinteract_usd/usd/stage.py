@@ -212,7 +212,8 @@ def write_init_stage(path, capture, particles, settings: SimSettings, *, force: 
     sa("particleSpacing", float(settings.particle_spacing))
     sa("substeps", int(settings.substeps))
     sa("transferTau", float(settings.transfer_tau))
-    sa("preload", bool(getattr(settings, "preload", False)))
+    if getattr(settings, "preload", False) is not None:     # None: left unauthored, the fit decides
+        sa("preload", bool(settings.preload))
     sa("youngsModulusMin", float(settings.youngs_min))
     sa("youngsModulusMax", float(settings.youngs_max))
     sa("poissonRatioDefault", float(settings.poisson_default))
@@ -351,7 +352,7 @@ def read_stage(path) -> SceneData:
         density=float(pprim.GetAttribute("physinteract:density").Get()),
         gravity=tuple(float(x) for x in ga("gravity")),
         constitutive_model=str(pprim.GetAttribute("physinteract:constitutiveModel").Get()),
-        transfer_tau=float(ga("transferTau") or 0.0), preload=bool(ga("preload") or False))
+        transfer_tau=float(ga("transferTau") or 0.0), preload=_authored_bool(scene, "physinteract:preload"))
     effects = {}
     for name, api in EFFECT_APIS.items():
         if scene.HasAPI(api):
@@ -381,6 +382,12 @@ def read_stage(path) -> SceneData:
         effects=effects, contacts=contacts, trajectories=trajectories, reports=reports,
         generator=str(ga("generator")), object_kind="mesh" if stage.GetPrimAtPath(MESH) else "gaussians",
         current_version=current)
+
+
+def _authored_bool(prim, name: str) -> bool | None:
+    """A bool attribute's authored value, None where no layer authors it (the schema's fallback not taken)."""
+    attr = prim.GetAttribute(name)
+    return bool(attr.Get()) if attr and attr.HasAuthoredValue() else None
 
 
 def _resolve(stage_path: Path, asset: str) -> str:

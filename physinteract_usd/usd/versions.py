@@ -104,10 +104,27 @@ def _copy_content(src: Sdf.Layer, dst: Sdf.Layer) -> None:
     names = _content_children(src)
     if names:
         Sdf.CreatePrimInLayer(dst, SCENE)
+    _copy_scene_attribute(src, dst, PRELOAD_ATTR)
     for name in names:
         p = SCENE.AppendChild(name)
         if not Sdf.CopySpec(src, p, dst, p):
             raise OSError(f"{dst.identifier}: could not copy {p}")
+
+
+# the scene's attributes a version carries: whether its fit took the scan preloaded (fit/preload_choice.py)
+PRELOAD_ATTR = "physinteract:preload"
+
+
+def _copy_scene_attribute(src: Sdf.Layer, dst: Sdf.Layer, name: str) -> None:
+    """dst's opinion of the scene's attribute `name` replaced by src's (none where src has none)."""
+    sspec, dspec = src.GetPrimAtPath(SCENE), dst.GetPrimAtPath(SCENE)
+    if dspec is not None and name in dspec.attributes:
+        dspec.RemoveProperty(dspec.attributes[name])
+    if sspec is None or name not in sspec.attributes:
+        return
+    dspec = Sdf.CreatePrimInLayer(dst, SCENE)
+    if not Sdf.CopySpec(src, SCENE.AppendProperty(name), dst, SCENE.AppendProperty(name)):
+        raise OSError(f"{dst.identifier}: could not copy {SCENE}.{name}")
 
 
 def _copy_report(src: Sdf.Layer, dst: Sdf.Layer, n: int) -> None:
