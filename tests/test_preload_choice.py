@@ -67,3 +67,54 @@ def test_a_resumed_or_warm_fit_goes_on_as_the_fit_it_continues():
     assert decided_preload(undecided, None, rep) is True             # the version it continues
     assert decided_preload(undecided, {"fingerprint": {}}, {"settings": {}}) is None   # a fit before the choice
     assert decided_preload(said, ck, rep) is False                   # the stage's own word wins
+
+
+class _Sim:
+    """A simulation stand-in: `use_preload` as Simulation's (ValueError where nothing holds)."""
+
+    def __init__(self, holds=True):
+        self.holds, self.on = holds, False
+
+    def use_preload(self, on, share_from=None):
+        if on and not self.holds:
+            raise ValueError("preload: nothing holds the object at frame 0 (no support, no ground under it)")
+        self.on = bool(on)
+
+
+def _choose(monkeypatch, outcomes, holds=True):
+    """choose_preload on a stand-in whose uniform search gives outcomes[preloaded] ((E, loss) or an exception)."""
+    from physinteract_usd.fit import optimize, preload_choice
+
+    prob = type("P", (), {})()
+    prob.sim = _Sim(holds)
+
+    def fake(p, evals, log=None, seen=None):
+        r = outcomes[p.sim.on]
+        if isinstance(r, Exception):
+            raise r
+        return r
+
+    monkeypatch.setattr(optimize, "uniform_loss", fake)
+    lines = []
+    return preload_choice.choose_preload(prob, 7, log=lines.append), prob.sim, lines
+
+
+def test_the_rule_and_what_it_says(monkeypatch):
+    from physinteract_usd.errors import SimulationError
+
+    # dev_0546 settled (GPU): 3.5% lower preloaded, 549 Pa against 26 kPa: taken, and said to be a close call
+    c, sim, lines = _choose(monkeypatch, {True: (549.0, 0.06015), False: (26340.0, 0.06232)})
+    assert c["preload"] and sim.on and c["unsure"] and c["uniform_e"] == 549.0
+    assert "barely tell the two apart" in lines[0] and "48x" in lines[0]
+    # the bundled sample: 0.4% lower at the same E: within the margin, stress-free kept, nothing to worry about
+    c, sim, lines = _choose(monkeypatch, {True: (27210.0, 0.014350), False: (27210.0, 0.014405)})
+    assert not c["preload"] and not sim.on and not c["unsure"] and "needs > 2% lower" in lines[0]
+    # nothing holds the object: stress-free without a search of the preload
+    c, sim, lines = _choose(monkeypatch, {False: (1e4, 0.01)}, holds=False)
+    assert not c["preload"] and "nothing holds" in c["reason"]
+    # stress-free the simulation fails at every E, preloaded it holds: preloaded
+    c, sim, _ = _choose(monkeypatch, {True: (2e3, 0.02), False: SimulationError("unstable at every E")})
+    assert c["preload"] and sim.on and "stress-free the simulation went unstable" in c["reason"]
+    # neither holds: the fit's own error, as without the choice
+    with pytest.raises(SimulationError):
+        _choose(monkeypatch, {True: SimulationError("a"), False: SimulationError("b")})

@@ -381,7 +381,7 @@ def record_preload(job: FitJob, result: FitResult) -> FitResult:
     physinteract:preload from it, usd/fit_io.py), where it made one."""
     c = job.preload_choice
     if c is not None:
-        result.settings["preload"] = {k: c[k] for k in ("preload", "loss", "E", "reason")}
+        result.settings["preload"] = {k: c.get(k) for k in ("preload", "unsure", "loss", "E", "reason")}
     return result
 
 
