@@ -242,3 +242,92 @@ def vertices_held_by(mesh: TetMesh, particle_positions: np.ndarray, particle_ind
     d, nearest = cKDTree(np.asarray(particle_positions, np.float64)).query(mesh.points)
     held = np.isin(nearest, idx) & (d <= spacing)
     return np.flatnonzero(held)
+
+
+def unloaded_points(mesh: TetMesh, inv_stretch: np.ndarray, held: np.ndarray, *, iterations: int = 200,
+                    tol: float = 1e-7) -> np.ndarray:
+    """(V, 3) the mesh's points at its stress-free rest, from the scan's preload (#23): `inv_stretch` (T, 3, 3) per
+    tetrahedron undoes the preload's stretch there (V^-1 of the scan's F0 = R V: the stress fixes V, not the rotation),
+    and the `held` vertices (a support, the ground) stay where the scan has them. Each tetrahedron's unloaded edges are
+    V^-1 D (D its scan edges) turned by a rotation of its own: the rest and the rotations are found together by
+    alternating a sparse least squares for the points (volume-weighted, its matrix factorised once) and each
+    tetrahedron's best rotation (Procrustes), as-rigid-as-possible solvers do, until the points move less than `tol`
+    of the mesh's size. A bent cantilever unbends: the rotations carry its curvature. A simulator that starts the
+    mesh there and lets gravity act on its supports settles it back into the scan."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    pts = np.asarray(mesh.points, np.float64)
+    tets = np.asarray(mesh.tets, np.int64)
+    held = np.asarray(held, bool)
+    if not held.any():
+        raise ValueError("nothing holds the mesh: its unloaded rest is defined up to a rigid motion")
+    V, T = len(pts), len(tets)
+    target = np.einsum("tij,tjk->tik", np.asarray(inv_stretch, np.float64), mesh.edges())     # (T, 3, 3) columns
+    w = np.sqrt(np.abs(mesh.volumes()))
+    rows, cols, vals = [], [], []
+    for e in range(3):                       # edge e of tet t: x[tets[t, e + 1]] - x[tets[t, 0]] = (R_t target_t)[:, e]
+        r = np.arange(T) * 3 + e
+        rows += [r, r]
+        cols += [tets[:, e + 1], tets[:, 0]]
+        vals += [w, -w]
+    A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * T, V))
+    free = ~held
+    Af, Ah = A[:, free].tocsc(), A[:, held]
+    lu = splu((Af.T @ Af).tocsc())
+    fixed = Ah @ pts[held]
+    size = float(np.max(np.ptp(pts, axis=0)))
+    out = pts.copy()
+    R = _linear_rotations(A, free, held, pts, target, w)     # the start: small rotations, solved with the points
+    for _ in range(int(iterations)):
+        b = (np.einsum("tij,tjk->tik", R, target).transpose(0, 2, 1) * w[:, None, None]).reshape(3 * T, 3) - fixed
+        new = out.copy()
+        new[free] = lu.solve(np.asarray(Af.T @ b))
+        moved = float(np.abs(new - out).max())
+        out = new
+        p = out[tets]
+        D = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
+        U, _, Wt = np.linalg.svd(D @ np.transpose(target, (0, 2, 1)))
+        U[np.linalg.det(U @ Wt) < 0, :, 2] *= -1.0
+        R = U @ Wt
+        if moved < tol * size:
+            break
+    return out
+
+
+def _linear_rotations(A, free, held, pts, target, w):
+    """(T, 3, 3) each tetrahedron's rotation from the linearised problem: the points and a small rotation w_t per
+    tetrahedron (D_t = (I + [w_t]x) target_t) in one sparse least squares, the rotations then exp([w_t]x). It integrates
+    the curvature the stretches carry in one solve, where the alternating solve alone needs thousands of rounds to
+    carry a rotation along a long bar."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    T = len(target)
+    nf = int(free.sum())
+    Af = A[:, free]
+    # rows (t, edge e, axis a); the points' block acts on each axis alike: kron(Af, I3) with rows (t e) a
+    Ax = sp.kron(Af, sp.identity(3, format="csr"), format="csr")                 # (9T, 3 nf)
+    t = target.transpose(0, 2, 1)                                                 # (T, 3 edges, 3 xyz): edge vectors
+    # [t]x w = t x w: the residual (x_j - x_i) - t - w x t = (x_j - x_i) - t + t x w
+    cross = np.zeros((T, 3, 3, 3))                                                # (T, edge, axis, w component)
+    cross[..., 0, 1], cross[..., 0, 2] = -t[..., 2], t[..., 1]
+    cross[..., 1, 0], cross[..., 1, 2] = t[..., 2], -t[..., 0]
+    cross[..., 2, 0], cross[..., 2, 1] = -t[..., 1], t[..., 0]
+    cross *= w[:, None, None, None]
+    r = np.arange(9 * T).reshape(T, 3, 3)
+    c = 3 * np.arange(T)[:, None, None, None] + np.arange(3)[None, None, None, :]
+    Aw = sp.csr_matrix((cross.ravel(), (np.broadcast_to(r[..., None], cross.shape).ravel(),
+                                        np.broadcast_to(c, cross.shape).ravel())), shape=(9 * T, 3 * T))
+    M = sp.hstack([Ax, Aw], format="csc")
+    b = (t * w[:, None, None]).reshape(9 * T) - sp.kron(A[:, held], sp.identity(3, format="csr")) @ pts[held].ravel()
+    # a light Tikhonov term on the rotations (their gauge along a tetrahedron's own symmetry is otherwise free)
+    N = (M.T @ M + sp.diags(np.r_[np.zeros(3 * nf), np.full(3 * T, 1e-9 * float(np.mean(w ** 2)) + 1e-30)])).tocsc()
+    sol = spsolve(N, M.T @ b)
+    om = sol[3 * nf:].reshape(T, 3)
+    ang = np.linalg.norm(om, axis=1)
+    k = om / np.maximum(ang, 1e-30)[:, None]
+    K = np.zeros((T, 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 0], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = -k[:, 2], k[:, 1], k[:, 2], -k[:, 0], -k[:, 1], k[:, 0]
+    s, c1 = np.sin(ang)[:, None, None], (1 - np.cos(ang))[:, None, None]
+    return np.eye(3) + s * K + c1 * (K @ K)

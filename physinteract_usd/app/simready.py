@@ -66,6 +66,9 @@ def build_sim_ready(sd, *, step: int = 1, log=print) -> SimReadyAsset:
             grasps.append(Hold(c.name, verts, np.asarray(traj, np.float64), c.grasp_frame, c.release_frame))
     for s in skipped:
         log(f"note: contact {s}")
+    points, unloaded = mesh.points, None
+    if st.preload:      # the scan carries its weight: the twin's rest is its unloaded shape (#23)
+        points, g, unloaded = _unloaded(sd, mesh, g, tet, w, supports, log)
     particle_volume = float(np.sum(sd.particles_volumes))
     rep = getattr(sd, "current_report", None) or (sd.reports[-1] if sd.reports else None)
     info = {
@@ -81,11 +84,64 @@ def build_sim_ready(sd, *, step: int = 1, log=print) -> SimReadyAsset:
         "splatsOutsideMesh": int(np.sum(w.min(1) < -1e-6)),
         "skippedContacts": skipped,
         "elasticModel": f"{st.constitutive_model} (fitted); E, nu are small-strain moduli",
+        "restShape": "scan" if unloaded is None else "unloaded (the scan's preload taken off; it settles into the scan "
+                                                      "under gravity on its supports)",
     }
-    return SimReadyAsset(points=mesh.points, tets=mesh.tets, surface=mesh.surface, youngs=E, poisson=nu, density=rho,
+    if unloaded is not None:
+        info["unloadedShift"] = unloaded
+    return SimReadyAsset(points=points, tets=mesh.tets, surface=mesh.surface, youngs=E, poisson=nu, density=rho,
                          region=labels, regions=regions, body_youngs=bE, body_poisson=bnu, body_density=float(st.density),
                          gaussians=g, splat_tet=tet, splat_weights=w, supports=supports, grasps=grasps,
                          effects=effects_with_fitted(sd), fps=sd.fps, n_frames=sd.n_frames, info=info)
+
+
+def _unloaded(sd, mesh, g, tet, w, supports, log):
+    """The mesh and the splats at the object's unloaded rest where the stage's scan is preloaded (`sim.preload`): the
+    preload's stretch F0 at the fitted E, nu per particle, carried onto the tetrahedra (`element_values`, its inverse
+    per component), the rest solved with the supports' and the ground's vertices where the scan has them
+    (`tetmesh.unloaded_points`); the splats moved with their tetrahedra, their shapes unstretched likewise. Without
+    this a simulator taking the scan as the rest would let the twin sag under gravity a second time. Returns (points,
+    gaussians, {"max_m", "mean_m"} the vertices' shift)."""
+    import dataclasses
+
+    import torch
+
+    from ..gaussians import scales_quats_from_covariance
+    from ..simulation import build_simulation
+    from ..tetmesh import embedded_positions, unloaded_points
+    from .adapters import effects_with_fitted
+
+    st = sd.settings
+    effects = effects_with_fitted(sd)
+    try:
+        sim = build_simulation(sd, list(sd.contacts), effects=effects, dtype="float64")
+    except (ValueError, InputError) as exc:
+        raise InputError(sd.path, f"the scan is preloaded but its preload cannot be solved for the export: {exc}") \
+            from None
+    E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=torch.float64)
+    nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=torch.float64)
+    with torch.no_grad():
+        inv = np.linalg.inv(sim.preload_F(E, nu).cpu().numpy())                      # (P, 3, 3)
+    x0 = sd.particles_positions
+    G = np.stack([element_values(mesh, x0, inv[:, i, j]) for i in range(3) for j in range(3)], 1).reshape(-1, 3, 3)
+    held = np.zeros(len(mesh.points), bool)
+    for h in supports:
+        held[np.asarray(h.vertices, np.int64)] = True
+    if "ground" in effects:           # the bottom layer rests on the ground: it stays where the scan has it
+        y = mesh.points[:, 1]
+        held |= y <= y.min() + 0.5 * float(st.particle_spacing)
+    try:
+        pts = unloaded_points(mesh, G, held)
+    except ValueError as exc:
+        raise InputError(sd.path, f"the scan is preloaded but {exc}") from None
+    Gs = G[tet]                                                                        # each splat's tetrahedron
+    covs = np.einsum("nij,njk,nlk->nil", Gs, g.covariances(), Gs)
+    scales, quats = scales_quats_from_covariance(covs)
+    g = dataclasses.replace(g, means=embedded_positions(pts, mesh.tets, tet, w), scales=scales, quats=quats)
+    shift = np.linalg.norm(pts - mesh.points, axis=1)
+    log(f"the scan is preloaded: the twin's rest is its unloaded shape (vertices moved up to {1e3 * shift.max():.1f} mm "
+        "from the scan); under gravity on its supports it settles back into the scan")
+    return pts, g, {"max_m": float(shift.max()), "mean_m": float(shift.mean())}
 
 
 def export_sim_ready(stage_path, out_path, *, step: int = 1, log=print) -> dict:
