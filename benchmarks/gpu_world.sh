@@ -21,7 +21,8 @@
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # TRUE_CONTACTS (1: world_fit.py --true-contacts: the fit from the truth's interaction and floor, the material
 # alone), MIN_E_TRUE (world_fit.py --min-e-true: fit only captures whose true median E is at least this, e.g. 1e5),
-# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS). ROWS (default $WORK/rows: the rows and logs; a second
+# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS). SETTLE (1: every truth settled before frame 0; 0: none,
+# as the tables before the 37th session; unset: as each seed draws it, 3 of 4). ROWS (default $WORK/rows: the rows and logs; a second
 # variant on the same captures, e.g. PHYSINTERACT_PIN_RULE=1,0, takes its own ROWS so that its fits are not skipped
 # as already done).
 # Needs python3 with torch, warp, usd-core, opencv, trimesh, scipy, scikit-image on PYTHONPATH.
@@ -44,6 +45,10 @@ TRUTH_FOR_AUTO="${TRUTH_FOR_AUTO-}"   # synth --truth-for-auto N: the truth fine
 if [ "$GRID" = auto ] && [ -z "$TRUTH_FOR_AUTO" ]; then TRUTH_FOR_AUTO="${MAX_PARTICLES:-60000}"; fi
 [ "$TRUTH_FOR_AUTO" = 0 ] && TRUTH_FOR_AUTO=""
 TRUTH_SWEEP="${TRUTH_SWEEP:-}"
+# SETTLE: 1 every truth settled before frame 0, 0 none (the tables before the 37th session), unset: as each seed draws
+SETTLE_FLAG=""
+[ "${SETTLE:-}" = 1 ] && SETTLE_FLAG="--settle"
+[ "${SETTLE:-}" = 0 ] && SETTLE_FLAG="--no-settle"
 NOFIT="${NOFIT:-}"
 TIMING="${TIMING:-}"
 PY="${PYTHON:-python3}"
@@ -76,7 +81,7 @@ worker() {
   {
     t0=$(date +%s)
     step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" \
-      ${TRUTH_FOR_AUTO:+--truth-for-auto "$TRUTH_FOR_AUTO"} || return
+      ${TRUTH_FOR_AUTO:+--truth-for-auto "$TRUTH_FOR_AUTO"} $SETTLE_FLAG || return
     t1=$(date +%s)
     step 5 $PY benchmarks/world_suite.py extract --split "$SPLIT" $FINAL --seeds "$s" --work "$WORK" \
       --json "$ROWS/extract_$n.json" --device "$DEVICE" ${GRID:+--grid "$GRID"} \
@@ -91,7 +96,7 @@ worker() {
   grep -E "^$n|Error|error" "$ROWS/$n.log" | head -5
 }
 export -f worker step
-export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING TRUTH_FOR_AUTO
+export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING TRUTH_FOR_AUTO SETTLE_FLAG
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time

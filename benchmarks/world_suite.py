@@ -110,7 +110,10 @@ def made_for(gt_json: Path):
 
 
 def generate(work: Path, split: str, seeds: list[int], device: str, log=print, truth_for_auto=None,
-             settle: bool = False) -> None:
+             settle: bool | None = None) -> None:
+    """synth --random / --validation SEED for each seed into `work` (`settle` None: as each seed draws it)."""
+    from physinteract_usd.synth.world import draw_world
+
     work.mkdir(parents=True, exist_ok=True)
     if split == "validation":
         mark_validation(work)
@@ -122,18 +125,19 @@ def generate(work: Path, split: str, seeds: list[int], device: str, log=print, t
         if made is not None:
             was = made_for(made)
             was_settled = bool((read_ground_truth(made.parent).get("world") or {}).get("settle"))
-            if was == truth_for_auto and was_settled == bool(settle):
+            want = draw_world(s, split)["settle"] if settle is None else bool(settle)
+            if was == truth_for_auto and was_settled == want:
                 continue
             # a capture this script made for another truth (--truth-for-auto or --settle changed): made again, the
             # stage too
             log(f"{n}: its truth was made for --truth-for-auto {was}{', settled' if was_settled else ''}, not "
-                f"{truth_for_auto}{', settled' if settle else ''}: made again", flush=True)
+                f"{truth_for_auto}{', settled' if want else ''}: made again", flush=True)
             for d in (work / n, work / f"{n}.gt", work / f"{n}.stage"):
                 shutil.rmtree(d, ignore_errors=True)
         t0 = time.perf_counter()
         try:
             api.synth(None, work / n, random=s, split=split, device=device, force=True, log=lambda *a: None,
-                      truth_for_auto=truth_for_auto, overrides={"settle": True} if settle else None)
+                      truth_for_auto=truth_for_auto, overrides=None if settle is None else {"settle": bool(settle)})
             log(f"{n}: {time.perf_counter() - t0:.0f} s", flush=True)
         except Exception as exc:
             log(f"{n}: FAILED {type(exc).__name__}: {exc}", flush=True)
@@ -446,9 +450,13 @@ def main(argv=None):
     ap.add_argument("--truth-for-auto", type=int, default=None, metavar="N",
                     help="generate: synth --truth-for-auto N (the truth finer than init --grid auto --max-particles "
                          "N's fit too; a GPU's work on thin objects; docs/benchmarks/world_fits.md)")
-    ap.add_argument("--settle", action="store_true",
-                    help="generate: synth --settle (the truth settled on its supports before frame 0, the scan its "
-                         "settled shape; a capture made otherwise is made again)")
+    st = ap.add_mutually_exclusive_group()
+    st.add_argument("--settle", dest="settle", action="store_const", const=True, default=None,
+                    help="generate: synth --settle for every seed (the truth settled on its supports before frame 0, "
+                         "the scan its settled shape); default: as each seed draws it (3 of 4); a capture made "
+                         "otherwise is made again")
+    st.add_argument("--no-settle", dest="settle", action="store_const", const=False,
+                    help="generate: synth --no-settle for every seed (the truths unsettled, as before the 37th session)")
     ap.add_argument("--timing", choices=["rules", "model", "hybrid"], default=None,
                     help="extract's timing: the passes' rules, the ninth pass's model, or the model's grasp with "
                          "the rules' release (timing.METHOD; default: the code's)")

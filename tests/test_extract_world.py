@@ -28,7 +28,8 @@ BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 TINY = {"width": 96, "aspect": "4:3", "fps": 20.0, "frames": 16, "masks": "clean", "encoding": "png",
         "noise": 0.004, "blur": 1, "flicker": 0.0, "gaussians": 900, "gt_ratio": 0.7, "e_ratio": 1.0,
         "e_field": "uniform", "grasp_at": 0.2, "motion_share": 0.45, "dwell": 1, "never_released": False,
-        "fill": 0.7, "roll": 0.0, "tremor_mm": 0.5}
+        "fill": 0.7, "roll": 0.0, "tremor_mm": 0.5,
+        "settle": False}     # the unsettled truth these cases were made with (tests/test_world_settle.py: settled)
 CASES = {
     "floor_sphere": dict(TINY, scenario="floor", shape="bar", interaction="pointAdherent", look="sphere",
                          e_max=2e4, length=0.2, thickness=0.35, azimuth=20.0, elevation=30.0,

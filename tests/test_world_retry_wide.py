@@ -32,7 +32,7 @@ def _fake(calls, world, mode):
 
 
 def test_a_persistent_non_finite_truth_takes_the_wide_grid(monkeypatch):
-    w = World(draw_world(190, "dev"))
+    w = World(draw_world(190, "dev", {"settle": False}))   # the main run alone (its draw settles it)
     calls = []
     monkeypatch.setattr(sim_mod, "Rollout", _fake(calls, w, "wide"))
     x, F = w.run()
@@ -45,7 +45,7 @@ def test_a_persistent_non_finite_truth_takes_the_wide_grid(monkeypatch):
 
 
 def test_it_still_raises_when_the_wide_grid_fails_too(monkeypatch):
-    w = World(draw_world(190, "dev"))
+    w = World(draw_world(190, "dev", {"settle": False}))   # the main run alone (its draw settles it)
     calls = []
     monkeypatch.setattr(sim_mod, "Rollout", _fake(calls, w, "never"))
     with pytest.raises(SimulationError, match="non-finite"):

@@ -15,7 +15,7 @@ def test_a_settled_world_is_at_rest_before_the_toucher_arrives_and_the_hand_hold
     from physinteract_usd.synth.world import World, draw_world
 
     # seed 658: a hanging object (400 truth particles, 29 frames): the smallest dev world with a grasp
-    w0 = World(draw_world(658, "dev", None), device="cpu")
+    w0 = World(draw_world(658, "dev", {"settle": False}), device="cpu")     # its draw settles it: asked not to
     x0, _ = w0.run()
     assert _pre_contact(x0, w0.x0, w0.arrive) > 0.03              # the default: it sags before anything touches it
     w1 = World(draw_world(658, "dev", {"settle": True}), device="cpu")
@@ -93,3 +93,17 @@ def test_a_settled_scans_splats_are_deformed_as_frame_0_shows_them():
     want = F[0] @ covariance_from_scales_quats(t(g.scales), t(g.quats)).numpy() @ F[0].T
     assert np.allclose(got, want, rtol=1e-4, atol=1e-10)
     assert not np.allclose(scan.scales, g.scales, rtol=0.05)
+
+
+def test_three_of_four_worlds_settle_by_their_draw_and_no_settle_is_for_world_captures_only(tmp_path, capsys):
+    from physinteract_usd.cli import main
+    from physinteract_usd.synth.world import SETTLED_SHARE, draw_world
+
+    share = np.mean([draw_world(s, "dev")["settle"] for s in range(200)])
+    assert abs(share - SETTLED_SHARE) < 0.1
+    assert draw_world(658, "dev", {"settle": False})["settle"] is False          # an override wins
+    out = tmp_path / "cap"
+    assert main(["synth", "foam_bar", str(out), "--no-settle"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--no-settle" in err[0] and "world captures" in err[0]
+    assert not out.exists()

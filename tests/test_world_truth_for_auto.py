@@ -56,7 +56,7 @@ def test_a_tiny_capture_records_it_and_evaluate_reads_a_finer_truth(tmp_path):
     ov = {"width": 96, "aspect": "4:3", "fps": 20.0, "frames": 6, "masks": "clean", "encoding": "png", "noise": 0.0,
           "blur": 1, "flicker": 0.0, "gaussians": 600, "e_ratio": 1.0, "e_field": "uniform", "scenario": "floor",
           "shape": "bar", "interaction": "pointAdherent", "look": "sphere", "e_max": 2e4, "length": 0.16,
-          "thickness": 0.2, "truth_for_auto": 3000}
+          "thickness": 0.2, "truth_for_auto": 3000, "settle": False}
     cap = tmp_path / "cap"
     info = api.synth(None, cap, random=7, split="dev", overrides=ov, log=lambda *a: None)
     ft = info["gt_sim"]["finer_than"]

@@ -42,10 +42,14 @@ def add_parser(sub):
                    help="world captures: simulate the truth finer than the fit `init --grid auto --max-particles N` "
                         "makes too (default: finer than the suggested grid only, within a CPU's budget; on thin "
                         "objects this costs 3-50x: a GPU's work)")
-    s.add_argument("--settle", action="store_true",
-                   help="world captures: settle the object on its supports (or floor) before frame 0 and write its "
-                        "settled shape as the scan, as a real capture is (default: it starts unsettled and may sag "
-                        "before anything touches it; docs/benchmarks/world.md)")
+    st = s.add_mutually_exclusive_group()
+    st.add_argument("--settle", dest="settle", action="store_const", const=True, default=None,
+                    help="world captures: settle the object on its supports (or floor) before frame 0 and write its "
+                         "settled shape as the scan, as a real capture is (default: as the seed draws it, settled on "
+                         "3 of 4; docs/benchmarks/world.md)")
+    st.add_argument("--no-settle", dest="settle", action="store_const", const=False,
+                    help="world captures: the object starts at its unsettled rest and may sag before anything "
+                         "touches it")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
     return s
@@ -66,13 +70,13 @@ def run(a) -> int:
         split, seed = ("dev", a.random) if a.random is not None else ("validation", a.validation)
         api.synth(None, a.name, frames=a.frames, random=seed, split=split, device=a.device, force=a.force,
                   size=a.size, hidden=a.hidden, noise=a.noise, blur=a.blur, fit_grid=a.fit_grid,
-                  truth_for_auto=a.truth_for_auto, overrides={"settle": True} if a.settle else None,
+                  truth_for_auto=a.truth_for_auto, overrides=None if a.settle is None else {"settle": a.settle},
                   transfer_tau=a.transfer_tau, calibrate=a.calibrate)
         return 0
     if not a.name or not a.out_dir:
         raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
-    if a.settle:
-        raise InputError("--settle", "only for world captures (--random / --validation SEED)")
+    if a.settle is not None:
+        raise InputError("--settle" if a.settle else "--no-settle", "only for world captures (--random / --validation SEED)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
               noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid,
               transfer_tau=a.transfer_tau, calibrate=a.calibrate, truth_for_auto=a.truth_for_auto)
