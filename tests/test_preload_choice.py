@@ -118,3 +118,36 @@ def test_the_rule_and_what_it_says(monkeypatch):
     # neither holds: the fit's own error, as without the choice
     with pytest.raises(SimulationError):
         _choose(monkeypatch, {True: SimulationError("a"), False: SimulationError("b")})
+
+
+def test_a_killed_fit_resumes_with_the_scan_as_it_chose(tmp_path):
+    import subprocess
+    import sys
+    import time
+
+    from physinteract_usd.app.fit_checkpoint import load_checkpoint
+    from physinteract_usd.usd.layout import LayerPaths
+
+    b = fs.build(tmp_path / "bar", E=E, density=E / E_OVER_RHO, n_frames=12, release=4, e_range=(1e3, 1e7),
+                 lift=np.array([0.0, 0.03, 0.0]), preload=True, stage_preload=None)
+    stage = b["stage"]
+    p = subprocess.Popen([sys.executable, "-m", "physinteract_usd", "fit", str(stage), "--contact-from", str(b["gt"]),
+                          "--checkpoint-every", "1", "--patience", "0", "--iterations", "40"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ck, t0 = LayerPaths.of(stage).checkpoint, time.time()
+    while True:
+        c = load_checkpoint(ck) if ck.exists() else None
+        if c is not None and c["loss"] is not None and int(c["iteration"]) >= 2:
+            break
+        assert p.poll() is None, p.communicate()
+        assert time.time() - t0 < 300.0, "the fit never checkpointed a best iterate"
+        time.sleep(0.01)
+    p.kill()
+    p.communicate(timeout=60)
+    assert load_checkpoint(ck)["fingerprint"]["preload"] is True        # the choice the killed fit made
+    assert api.read_scene(stage).settings.preload is None               # nothing written but the checkpoint
+    logs = []
+    out = api.fit(stage, iterations=None, contact_from=b["gt"], resume=True, progress=False, log=logs.append)
+    assert not any(m.startswith("preload: ") for m in logs)             # not decided again: carried on
+    assert out.result.settings["preload"]["preload"] is True
+    assert api.read_scene(stage).settings.preload is True                # and written with the version

@@ -254,6 +254,8 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
             contacts = stage_contacts(sd)
         obs = load_observations(sd)
     start, resumed_from, history, alt = None, "", [], None
+    carried = None       # the scan's preload as the fit this one continues decided it, where the stage says nothing
+    said = sd.settings.preload
     if resume:
         start, resumed_from, ck = resume_start(stage_path, sd, contacts)
         sd.settings.preload = decided_preload(sd, ck, sd.reports[-1] if sd.reports and ck is None else None)
@@ -283,6 +285,9 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         change = ", ".join([f"+{e}" for e in added] + [f"-{e}" for e in removed])
         log(f"effects changed since {ver} ({change}): warm start from {ver}'s field and trajectory, "
             f"{iterations or default_its} iterations (--fresh: a fit from scratch)")
+    if said is None and sd.settings.preload is not None:
+        carried = {"preload": sd.settings.preload, "unsure": None, "loss": {}, "E": {},
+                   "reason": f"as the fit it continues ({resumed_from}) took the scan"}
     if iterations is not None:
         settings.iterations = int(iterations)
     if settings.track_weight > 0:
@@ -291,7 +296,7 @@ def prepare_fit(stage_path, *, iterations=None, joint=True, contact_from=None, c
         log(f"--starts {starts}: a {'resumed' if resume else 'warm-started'} fit goes on from one field; one start")
         starts = 1
     return FitJob(stage_path, sd, obs, list(contacts), effects, settings, device, start, source,
-                  resumed_from, history, starts=int(starts), alt_start=alt)
+                  resumed_from, history, starts=int(starts), alt_start=alt, preload_choice=carried)
 
 
 def preload(device) -> None:
