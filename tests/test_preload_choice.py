@@ -40,6 +40,8 @@ def test_the_fit_takes_the_hypothesis_the_video_was_made_with(tmp_path, truth_pr
     assert any(line.startswith("preload: ") for line in lines)
     # written on the stage (the fit layer): the next simulation, evaluate and export start the same way
     assert api.read_scene(b["stage"]).settings.preload is truth_preloaded
+    why = api.info(b["stage"])["simulation"]["preload_reason"]          # info says who decided and why
+    assert ("looks settled" if truth_preloaded else "taken stress-free") in why
     e = float(np.median(out.result.youngs))
     assert abs(e / E - 1) < 0.15, (truth_preloaded, e, rec)
 

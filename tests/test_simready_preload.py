@@ -77,3 +77,22 @@ def test_newton_settles_the_preloaded_twin_back_into_the_scan(tmp_path):
     assert err[False].max() > 0.015                                       # the scan as rest: it sags again
     assert err[True].mean() < 0.3 * err[False].mean() and err[True].max() < 0.5 * err[False].max(), \
         (err[True].mean(), err[False].mean(), err[True].max(), err[False].max())
+
+
+def test_a_block_compressed_on_the_ground_stands_up_again():
+    # known answer: a block of height H resting on the ground, compressed under its weight (nu = 0: each layer at
+    # height y shortened by rho g (H - y) / E), its bottom layer held where the scan has it: the unloaded rest is the
+    # block at full height, exactly (a compatible stretch without rotations)
+    h, H, c = 0.01, 0.08, 0.05                       # c = rho g H / E: 5% at the bottom
+    rest = tm.tetmesh_from_particles(lattice_box((4, 8, 4), h), h)
+    y = rest.points[:, 1] - rest.points[:, 1].min()
+    sink = c * (y - y ** 2 / (2 * H))                 # the integral of the strain c (1 - y / H) from the bottom
+    scan = rest.points.copy()
+    scan[:, 1] -= sink
+    mesh = tm.TetMesh(points=scan, tets=rest.tets, surface=rest.surface)
+    F = mesh.edges() @ np.linalg.inv(rest.edges())
+    G = np.linalg.inv(0.5 * (F + np.transpose(F, (0, 2, 1))))
+    held = y <= 1e-9
+    back = tm.unloaded_points(mesh, G, held)
+    assert sink.max() > 1.5e-3
+    assert np.abs(back - rest.points).max() < 0.02 * sink.max()

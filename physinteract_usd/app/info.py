@@ -37,6 +37,9 @@ def info(stage_path) -> dict:
                        "transfer_tau_s": float(getattr(sd.settings, "transfer_tau", 0.0) or 0.0),
                        # the scan carries its weight (physinteract:preload, init --preload; sim.preload)
                        "preload": getattr(sd.settings, "preload", False),
+                       # where the current version's fit decided it (fit/preload_choice.py): why
+                       "preload_reason": (((sd.current_report or {}).get("settings") or {}).get("preload") or {})
+                       .get("reason"),
                        "grid_choice": read_grid_choice(sd.path)},
         "effects": sd.effects,
         "contacts": [{"name": c.name, "type": c.type, "particles": int(len(c.indices)),

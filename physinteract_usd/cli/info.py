@@ -38,7 +38,8 @@ def format_info(d: dict) -> str:
            f"grid {'auto' if gc['mode'] == 'auto' else 'as given'})" if (gc := s.get("grid_choice")) else "")
         + (f"; rate transfer tau {s['transfer_tau_s'] * 1000:.3g} ms" if s.get("transfer_tau_s") else "")
         + ({True: "; preloaded scan (prestressed on its supports)", None: "; the scan's preload: the first fit decides"}
-           .get(s.get("preload"), "")),
+           .get(s.get("preload"), ""))
+        + (f" [the fit: {s['preload_reason']}]" if s.get("preload_reason") else ""),
         f"material    E {m['youngs_modulus_pa']['min']:.3g} .. {m['youngs_modulus_pa']['max']:.3g} Pa "
         f"(median {m['youngs_modulus_pa']['median']:.3g}), nu {m['poisson_ratio']['min']:.3f} .. "
         f"{m['poisson_ratio']['max']:.3f}" + ("" if m["fitted"] else "  (not fitted yet)"),
