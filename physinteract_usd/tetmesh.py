@@ -328,6 +328,7 @@ def _linear_rotations(A, free, held, pts, target, w):
     ang = np.linalg.norm(om, axis=1)
     k = om / np.maximum(ang, 1e-30)[:, None]
     K = np.zeros((T, 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 0], K[:, 1, 2], K[:, 2, 0], K[:, 2, 1] = -k[:, 2], k[:, 1], k[:, 2], -k[:, 0], -k[:, 1], k[:, 0]
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K = K - np.transpose(K, (0, 2, 1))                                             # [k]x, skew
     s, c1 = np.sin(ang)[:, None, None], (1 - np.cos(ang))[:, None, None]
     return np.eye(3) + s * K + c1 * (K @ K)

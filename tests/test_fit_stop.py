@@ -104,23 +104,30 @@ def test_sigterm_then_sigint_keep_the_best_iterate_and_never_replace_a_complete_
     assert tree_md5(LayerPaths.of(stage).versions)["v2.usdc"] == v2_snapshot
 
 
-def test_a_killed_fit_resumes_from_its_checkpoint(stage):
+def kill_after_checkpoint(p, stage, timeout: float = 240.0):
+    """SIGKILL the fit `p` as soon as its checkpoint holds a best iterate (iteration >= 2); returns the checkpoint's
+    path. On an idle VM a tiny fit's 40 iterations take under 1.5 s, so a kill at a fixed delay after the first
+    checkpoint landed after the loop."""
     from physinteract_usd.app.fit_checkpoint import load_checkpoint
 
-    p = _start_fit(stage, "--iterations", "40")
     ck = LayerPaths.of(stage).checkpoint
     t0 = time.time()
-    # killed as soon as a checkpoint holds a best iterate: on an idle VM the tiny fit's 40 iterations take
-    # under 1.5 s, so a kill at a fixed delay after the first checkpoint landed after the loop
     while True:
         c = load_checkpoint(ck) if ck.exists() else None
         if c is not None and c["loss"] is not None and int(c["iteration"]) >= 2:
             break
         assert p.poll() is None, p.communicate()
-        assert time.time() - t0 < 240.0, "the fit never checkpointed a best iterate"
+        assert time.time() - t0 < timeout, "the fit never checkpointed a best iterate"
         time.sleep(0.01)
     p.kill()
     p.communicate(timeout=60)
+    return ck
+
+
+def test_a_killed_fit_resumes_from_its_checkpoint(stage):
+    from physinteract_usd.app.fit_checkpoint import load_checkpoint
+
+    ck = kill_after_checkpoint(_start_fit(stage, "--iterations", "40"), stage)
     assert ck.exists() and read_stage(stage).reports == []        # nothing written but the checkpoint
 
     saved = load_checkpoint(ck)

@@ -123,29 +123,13 @@ def test_the_rule_and_what_it_says(monkeypatch):
 
 
 def test_a_killed_fit_resumes_with_the_scan_as_it_chose(tmp_path):
-    import subprocess
-    import sys
-    import time
-
     from physinteract_usd.app.fit_checkpoint import load_checkpoint
-    from physinteract_usd.usd.layout import LayerPaths
+    from test_fit_stop import _start_fit, kill_after_checkpoint
 
     b = fs.build(tmp_path / "bar", E=E, density=E / E_OVER_RHO, n_frames=12, release=4, e_range=(1e3, 1e7),
                  lift=np.array([0.0, 0.03, 0.0]), preload=True, stage_preload=None)
     stage = b["stage"]
-    p = subprocess.Popen([sys.executable, "-m", "physinteract_usd", "fit", str(stage), "--contact-from", str(b["gt"]),
-                          "--checkpoint-every", "1", "--patience", "0", "--iterations", "40"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ck, t0 = LayerPaths.of(stage).checkpoint, time.time()
-    while True:
-        c = load_checkpoint(ck) if ck.exists() else None
-        if c is not None and c["loss"] is not None and int(c["iteration"]) >= 2:
-            break
-        assert p.poll() is None, p.communicate()
-        assert time.time() - t0 < 300.0, "the fit never checkpointed a best iterate"
-        time.sleep(0.01)
-    p.kill()
-    p.communicate(timeout=60)
+    ck = kill_after_checkpoint(_start_fit(stage, "--iterations", "40"), stage, timeout=300.0)
     assert load_checkpoint(ck)["fingerprint"]["preload"] is True        # the choice the killed fit made
     assert api.read_scene(stage).settings.preload is None               # nothing written but the checkpoint
     logs = []

@@ -139,8 +139,8 @@ def _unloaded(sd, mesh, g, tet, w, supports, log):
     scales, quats = scales_quats_from_covariance(covs)
     g = dataclasses.replace(g, means=embedded_positions(pts, mesh.tets, tet, w), scales=scales, quats=quats)
     shift = np.linalg.norm(pts - mesh.points, axis=1)
-    log(f"the scan is preloaded: the twin's rest is its unloaded shape (vertices moved up to {1e3 * shift.max():.1f} mm "
-        "from the scan); under gravity on its supports it settles back into the scan")
+    log(f"the scan is preloaded: the twin's rest is its unloaded shape (vertices moved up to {1e3 * shift.max():.1f} "
+        "mm from the scan); under gravity on its supports it settles back into the scan")
     return pts, g, {"max_m": float(shift.max()), "mean_m": float(shift.mean())}
 
 

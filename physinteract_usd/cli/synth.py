@@ -76,7 +76,8 @@ def run(a) -> int:
     if not a.name or not a.out_dir:
         raise InputError("synth", "give NAME OUT_DIR (or --list, or --random / --validation SEED OUT_DIR)")
     if a.settle is not None:
-        raise InputError("--settle" if a.settle else "--no-settle", "only for world captures (--random / --validation SEED)")
+        raise InputError("--settle" if a.settle else "--no-settle",
+                         "only for world captures (--random / --validation SEED)")
     api.synth(a.name, a.out_dir, size=a.size, frames=a.frames, hidden=a.hidden, strength=a.strength,
               noise=a.noise, blur=a.blur, seed=a.seed, device=a.device, force=a.force, fit_grid=a.fit_grid,
               transfer_tau=a.transfer_tau, calibrate=a.calibrate, truth_for_auto=a.truth_for_auto)
