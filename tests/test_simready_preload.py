@@ -96,3 +96,19 @@ def test_a_block_compressed_on_the_ground_stands_up_again():
     back = tm.unloaded_points(mesh, G, held)
     assert sink.max() > 1.5e-3
     assert np.abs(back - rest.points).max() < 0.02 * sink.max()
+
+
+def test_a_preloaded_scan_nothing_holds_is_one_line_and_writes_nothing(tmp_path, capsys):
+    from capture_factory import make_capture
+    from physinteract_usd.cli import main
+
+    cap = make_capture(tmp_path / "cap")
+    stage = tmp_path / "s.usda"
+    assert main(["init", str(stage), "--capture", str(cap), "--grid", "12", "--preload"]) == 0
+    before = stage.read_bytes()
+    capsys.readouterr()
+    assert main(["export", str(stage), str(tmp_path / "twin.usdc"), "--sim-ready"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "s.usda" in err[0] and "nothing holds the object" in err[0], err
+    assert err[0].count("s.usda") == 1
+    assert stage.read_bytes() == before and not (tmp_path / "twin.usdc").exists()

@@ -116,7 +116,8 @@ def _unloaded(sd, mesh, g, tet, w, supports, log):
     try:
         sim = build_simulation(sd, list(sd.contacts), effects=effects, dtype="float64")
     except (ValueError, InputError) as exc:
-        raise InputError(sd.path, f"the scan is preloaded but its preload cannot be solved for the export: {exc}") \
+        why = exc.problem if isinstance(exc, InputError) else str(exc)
+        raise InputError(sd.path, f"the scan is preloaded but its preload cannot be solved for the export: {why}") \
             from None
     E = torch.as_tensor(np.clip(sd.youngs_modulus, st.youngs_min, st.youngs_max), dtype=torch.float64)
     nu = torch.as_tensor(np.minimum(sd.poisson_ratio, st.poisson_max), dtype=torch.float64)
