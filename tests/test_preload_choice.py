@@ -136,4 +136,5 @@ def test_a_killed_fit_resumes_with_the_scan_as_it_chose(tmp_path):
     out = api.fit(stage, iterations=None, contact_from=b["gt"], resume=True, progress=False, log=logs.append)
     assert not any(m.startswith("preload: ") for m in logs)             # not decided again: carried on
     assert out.result.settings["preload"]["preload"] is True
+    assert out.summary()["preload"]["preload"] is True                   # fit --json says it
     assert api.read_scene(stage).settings.preload is True                # and written with the version

@@ -106,6 +106,8 @@ class FitOutcome:
                 "model": model,
                 "identifiability": identifiability(model, float(r.confidence.mean())
                                                    if self.confidence_estimated else None, float(np.median(r.youngs))),
+                # the fit's decision on the scan's preload where the stage left it open (fit/preload_choice.py)
+                **({"preload": r.settings["preload"]} if isinstance((r.settings or {}).get("preload"), dict) else {}),
                 **({"starts": r.model["starts"], "starts_chosen": r.model.get("starts_chosen"),
                     "starts_mode": r.model.get("starts_mode")} if (r.model or {}).get("starts") else {})}
 

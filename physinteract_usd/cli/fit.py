@@ -172,4 +172,7 @@ def run(a) -> int:
         said = (summary.get("identifiability") or {}).get("sentence")
         if said:
             print(f"  {said}")
+        pre = summary.get("preload")
+        if pre:
+            print(f"  {pre['reason']}")
     return 130 if summary["interrupted"] or summary["stopped_by"] else 0
