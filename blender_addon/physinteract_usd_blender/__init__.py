@@ -178,6 +178,13 @@ class PHYSINTERACT_PG_settings(bpy.types.PropertyGroup):
     model: EnumProperty(name="Model", default="DEFAULT",
                         items=[("DEFAULT", "Default", "The CLI's default (fixed corotated)"),
                                ("fixedCorotated", "Fixed corotated", ""), ("neoHookean", "Neo-Hookean", "")])
+    preload: EnumProperty(name="Scan", default="DEFAULT",
+                          items=[("DEFAULT", "The fit decides", "init without --preload / --no-preload: the first fit "
+                                  "decides by the frames whether the scan carries the object's weight"),
+                                 ("PRELOAD", "Carries its weight", "init --preload: the scan shows the object at rest "
+                                  "on its supports, already sagged"),
+                                 ("STRESS_FREE", "Unloaded", "init --no-preload: scanned unloaded, it sags in the "
+                                  "video")])
     fit_iterations: IntProperty(name="Iterations", default=0, min=0,
                                 description="fit --iterations (0: the CLI's default)")
     sim_ready_path: StringProperty(name="Sim-ready", subtype="FILE_PATH",
@@ -712,7 +719,9 @@ def build_job(context, steps: str) -> runner.Job:
                 density=settings.density or None,
                 model=None if settings.model == "DEFAULT" else settings.model)
                 + _optional_flags(cli, "init", notes, (("--discard-fits", settings.force and settings.discard_fits),
-                                                       ("--yes", settings.accept_slow)))))
+                                                       ("--yes", settings.accept_slow),
+                                                       ("--preload", settings.preload == "PRELOAD"),
+                                                       ("--no-preload", settings.preload == "STRESS_FREE")))))
         elif name == "extract":
             job_steps.append(runner.CliStep("extract", extract_argv(context, cli, p["stage"], notes)))
         elif name == "fit":
@@ -1012,6 +1021,8 @@ def apply_init_settings(s, found: dict) -> None:
             s.youngs_min, s.youngs_max = value
         elif key == "model":
             s.model = value if value in ("fixedCorotated", "neoHookean") else "DEFAULT"
+        elif key == "preload":
+            s.preload = value
         elif key in ("grid", "padding", "poisson", "max_poisson", "density"):
             setattr(s, key, value)
 
@@ -1167,6 +1178,8 @@ class PHYSINTERACT_PT_settings(_Sub, bpy.types.Panel):
         col.prop(s, "max_poisson")
         col.prop(s, "density")
         col.prop(s, "model")
+        if _caps(context, "init", "--preload"):
+            col.prop(s, "preload")
         if _caps(context, "init", "--yes"):
             layout.prop(s, "accept_slow")
         layout.prop(s, "fit_iterations")

@@ -406,7 +406,8 @@ _SUGGESTED_FLAGS = {"--grid": "grid", "--padding": "padding", "--youngs-range": 
 
 def suggested_init(text: str) -> dict:
     """init's settings from a capture's README (`physinteract-usd synth` writes a `Suggested:` init
-    command line): {"grid": 24, "padding": 0.3, "youngs_range": (1e3, 6e4), ...}; {} when none."""
+    command line): {"grid": 24, "padding": 0.3, "youngs_range": (1e3, 6e4), ..., "preload": "STRESS_FREE"}
+    (the panel's Scan item for --preload / --no-preload); {} when none."""
     for line in text.splitlines():
         if " init " not in f" {line} " and not line.strip().startswith("physinteract-usd init"):
             continue
@@ -432,6 +433,9 @@ def suggested_init(text: str) -> dict:
                     out[key] = float(v)
             except ValueError:
                 continue
+        for w, v in (("--preload", "PRELOAD"), ("--no-preload", "STRESS_FREE")):   # the scan's preload, a bare flag
+            if w in words:
+                out["preload"] = v
         if out:
             return out
     return {}

@@ -73,8 +73,10 @@ def test_suggested_settings_of_the_sample(addon, empty_scene):
     assert bpy.ops.physinteract.suggested() == {"FINISHED"}, s.error
     argv = addon.build_job(bpy.context, "init").steps[0].argv
     line = " ".join(argv)
-    for flag in ("--grid 24", "--padding 0.3", "--youngs-range 1000,60000", "--max-poisson 0.4", "--density 150"):
+    for flag in ("--grid 24", "--padding 0.3", "--youngs-range 1000,60000", "--max-poisson 0.4", "--density 150",
+                 "--no-preload"):
         assert flag in line, line
+    assert s.preload == "STRESS_FREE" and "--preload" not in argv
 
 
 # ------------------------------------------------------------------------------ 20 fps
