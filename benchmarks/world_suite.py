@@ -450,13 +450,9 @@ def main(argv=None):
     ap.add_argument("--truth-for-auto", type=int, default=None, metavar="N",
                     help="generate: synth --truth-for-auto N (the truth finer than init --grid auto --max-particles "
                          "N's fit too; a GPU's work on thin objects; docs/benchmarks/world_fits.md)")
-    st = ap.add_mutually_exclusive_group()
-    st.add_argument("--settle", dest="settle", action="store_const", const=True, default=None,
-                    help="generate: synth --settle for every seed (the truth settled on its supports before frame 0, "
-                         "the scan its settled shape); default: as each seed draws it (3 of 4); a capture made "
-                         "otherwise is made again")
-    st.add_argument("--no-settle", dest="settle", action="store_const", const=False,
-                    help="generate: synth --no-settle for every seed (the truths unsettled, as before the 37th session)")
+    from physinteract_usd.cli.synth import add_settle_flags
+
+    add_settle_flags(ap, "generate (synth for every seed; a capture made otherwise is made again)")
     ap.add_argument("--timing", choices=["rules", "model", "hybrid"], default=None,
                     help="extract's timing: the passes' rules, the ninth pass's model, or the model's grasp with "
                          "the rules' release (timing.METHOD; default: the code's)")

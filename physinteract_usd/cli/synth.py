@@ -42,17 +42,21 @@ def add_parser(sub):
                    help="world captures: simulate the truth finer than the fit `init --grid auto --max-particles N` "
                         "makes too (default: finer than the suggested grid only, within a CPU's budget; on thin "
                         "objects this costs 3-50x: a GPU's work)")
-    st = s.add_mutually_exclusive_group()
-    st.add_argument("--settle", dest="settle", action="store_const", const=True, default=None,
-                    help="world captures: settle the object on its supports (or floor) before frame 0 and write its "
-                         "settled shape as the scan, as a real capture is (default: as the seed draws it, settled on "
-                         "3 of 4; docs/benchmarks/world.md)")
-    st.add_argument("--no-settle", dest="settle", action="store_const", const=False,
-                    help="world captures: the object starts at its unsettled rest and may sag before anything "
-                         "touches it")
+    add_settle_flags(s, "world captures")
     s.add_argument("--device", default="cpu", help="cpu or cuda")
     s.add_argument("--force", action="store_true", help="replace an existing synth folder")
     return s
+
+
+def add_settle_flags(parser, what: str) -> None:
+    """`--settle` / `--no-settle` (dest `settle`: True, False, or None: as each world seed draws it) for `what`."""
+    st = parser.add_mutually_exclusive_group()
+    st.add_argument("--settle", dest="settle", action="store_const", const=True, default=None,
+                    help=f"{what}: settle the object on its supports (or floor) before frame 0 and write its settled "
+                         "shape as the scan, as a real capture is (default: as the seed draws it, settled on 3 of 4; "
+                         "docs/benchmarks/world.md)")
+    st.add_argument("--no-settle", dest="settle", action="store_const", const=False,
+                    help=f"{what}: the object starts at its unsettled rest and may sag before anything touches it")
 
 
 def run(a) -> int:
