@@ -21,7 +21,8 @@
 # extract only; a second call on the same WORK then fits, the extraction rows kept).
 # TRUE_CONTACTS (1: world_fit.py --true-contacts: the fit from the truth's interaction and floor, the material
 # alone), MIN_E_TRUE (world_fit.py --min-e-true: fit only captures whose true median E is at least this, e.g. 1e5),
-# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS). SETTLE (1: every truth settled before frame 0; 0: none,
+# NGPUS (a host of several GPUs: seed s on GPU s mod NGPUS), GPUS (a list, e.g. 1,2,3: seed s on the list's (s mod
+# its length)-th GPU, the others left to another job). SETTLE (1: every truth settled before frame 0; 0: none,
 # as the tables before the 37th session; unset: as each seed draws it, 3 of 4). ROWS (default $WORK/rows: the rows and logs; a second
 # variant on the same captures, e.g. PHYSINTERACT_PIN_RULE=1,0, takes its own ROWS so that its fits are not skipped
 # as already done).
@@ -77,7 +78,12 @@ worker() {
   local s=$1 n t0 t1 t2
   n=$(printf '%s_%04d' "$SPLIT" "$s")
   # on a host of several GPUs (NGPUS > 1) seed s runs on GPU s mod NGPUS
-  [ "${NGPUS:-1}" -gt 1 ] && export CUDA_VISIBLE_DEVICES=$(( s % NGPUS ))
+  if [ -n "${GPUS:-}" ]; then  # GPUS=1,2,3: seed s on the (s mod 3)-th of those (another job has the rest)
+    local g=(${GPUS//,/ })
+    export CUDA_VISIBLE_DEVICES=${g[$(( s % ${#g[@]} ))]}
+  elif [ "${NGPUS:-1}" -gt 1 ]; then
+    export CUDA_VISIBLE_DEVICES=$(( s % NGPUS ))
+  fi
   {
     t0=$(date +%s)
     step 5 $PY benchmarks/world_suite.py generate --split "$SPLIT" --seeds "$s" --work "$WORK" --device "$DEVICE" \
@@ -96,7 +102,7 @@ worker() {
   grep -E "^$n|Error|error" "$ROWS/$n.log" | head -5
 }
 export -f worker step
-export TRUE_CONTACTS MIN_E_TRUE NGPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING TRUTH_FOR_AUTO SETTLE_FLAG
+export TRUE_CONTACTS MIN_E_TRUE NGPUS GPUS SPLIT WORK ROWS ITER DEVICE PY FINAL FIT_SETTINGS END GRID MAX_PARTICLES TRUTH_SWEEP NOFIT TIMING TRUTH_FOR_AUTO SETTLE_FLAG
 
 # the first seed alone until its capture is written (Warp's kernel cache is built once, not by
 # every worker at the same time), then the others, JOBS at a time
