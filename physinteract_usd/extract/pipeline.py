@@ -51,7 +51,7 @@ from .interaction_type import classify
 from .lifting import lift_trajectory, track_hand
 from .models import Models
 from .result import INTERACTION_TYPES, ExtractionResult, Hint
-from .supports import support_contacts, toucher_acting, toucher_low, unpin
+from .supports import above_floor, support_contacts, toucher_acting, toucher_low, unpin
 from . import timing as _timing
 from .timing import (apply_overrides, collider_back_out, collider_release, collider_start, find_timing, ramp_start,
                      timing_confidence)
@@ -139,6 +139,7 @@ def extract_interaction(scene, frames, masks=None, *, masks_amodal: bool = False
     contact = lifted.contact
     if not (hint is not None and hint.has_support):
         supports = unpin(an.x0, an.spacing, contact, supports, notes, evidence)
+    contact = above_floor(an.x0, contact, evidence.get("floor"), notes, evidence, an.scene.camera)  # not through it
     return ExtractionResult(contacts=[contact] + supports, hand_masks=an.hand, interaction_type=itype,
                             type_source=tsource,
                             grasp_frame=int(contact.grasp_frame) if itype == "pointAdherent" else g,

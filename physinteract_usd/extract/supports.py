@@ -7,6 +7,7 @@ connected regions (`components`), each cut to its core and shell (`support_core`
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 
@@ -606,3 +607,62 @@ def unpin(x0: np.ndarray, h: float, contact: ContactSet, supports: list, notes: 
                      + "; ".join(said) + "): a fit on them goes unstable; if the object is held there, "
                      "--support-pixel or --support-particles sets it")
     return out
+
+
+# a collider pressing an object onto its floor squeezes at most this share of the object's height under it
+FLOOR_SQUEEZE = 0.5
+
+
+def above_floor(x0: np.ndarray, contact: ContactSet, floor: dict | None, notes: list, evidence: dict,
+                camera=None) -> ContactSet:
+    """The toucher's T0 kept from going through the floor the object rests on, and said so. Its depth is read from
+    the hand's apparent scale, which a fingertip pressing down and toward the camera misreads as a dive (#23:
+    dev_0568, a poke on a sheet on its floor read as a grasp whose path went 5.5 cm down: the held particles were
+    dragged 3.7 cm under the floor and the fit went unstable at every uniform E). A grasp's held particles stay on or
+    above the object's base (they follow T0's displacement from the grasp frame); a collider's sphere (or a plane
+    pressing from above) squeezes at most `FLOOR_SQUEEZE` of the object's height under its contact point. What the
+    image says is kept: a point too low is moved along its camera ray (`camera`, a `Camera`: its depth alone was
+    wrong) up to that level; straight up where the ray does not reach it (or no camera is given). The frames before
+    a grasp, and a collider's frames above that level, are left as read. No floor: unchanged."""
+    if floor is None or contact.trajectory is None:
+        return contact
+    tr = np.asarray(contact.trajectory, np.float64).copy()
+    x0 = np.asarray(x0, np.float64)
+    base = float(x0[:, 1].min())
+    if contact.type == "pointAdherent":
+        if not len(contact.indices):
+            return contact
+        g = min(max(int(contact.grasp_frame), 0), len(tr) - 1)
+        lowest = tr[g, 1] + base - float(x0[contact.indices, 1].min())   # T0's height that puts them on the base
+        sl = slice(g, len(tr))
+    else:
+        # the object's top under the toucher at rest: where a sphere touches it, a plane's highest particle
+        top = float(contact.point(x0)[1]) if contact.type == "pointNonAdherent" else float(x0[:, 1].max())
+        allowed = base + FLOOR_SQUEEZE * max(top - base, 0.0)
+        if contact.type == "pointNonAdherent":
+            lowest = allowed + float(contact.radius)
+        elif float(np.asarray(contact.normal, float)[1]) < -0.7:   # a plane whose object side is below it: a press
+            lowest = allowed
+        else:
+            return contact
+        sl = slice(0, len(tr))
+    under = tr[sl, 1] < lowest
+    if not under.any():
+        return contact
+    depth = float(lowest - tr[sl, 1].min())
+    first = sl.start
+    for k in np.flatnonzero(under) + first:
+        moved = None
+        if camera is not None:
+            eye = np.asarray(camera.at(int(k)).position, np.float64)
+            ray = tr[k] - eye
+            if ray[1] < -1e-9 and eye[1] > lowest:
+                moved = eye + ray * ((lowest - eye[1]) / ray[1])     # along the ray, nearer the camera
+        if moved is None:
+            moved = np.array([tr[k, 0], lowest, tr[k, 2]])
+        tr[k] = moved
+    evidence["path_above_floor"] = {"frames": int(under.sum()), "raised_m": round(depth, 4)}
+    notes.append(f"the {contact.name}'s path went {100 * depth:.1f} cm under what the floor allows on {int(under.sum())} "
+                 "frames (its depth is read from the hand's apparent size): kept on the floor there; if the hand "
+                 "really goes that low, the object is not resting on a floor (--support-pixel)")
+    return replace(contact, trajectory=tr)
