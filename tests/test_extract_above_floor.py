@@ -24,7 +24,8 @@ def _camera():
 
 
 def _dive(start, frames=12, grasp=4, depth=0.08):
-    """T0 at `start` until the grasp, then diving `depth` metres along the camera's ray away from it (a depth misread)."""
+    """T0 at `start` until the grasp, then diving `depth` metres along the camera's ray away from it (a depth
+    misread)."""
     eye = np.asarray(_camera().position)
     tr = np.repeat(np.asarray(start, float)[None], frames, 0)
     ray = (tr[0] - eye) / np.linalg.norm(tr[0] - eye)

@@ -46,3 +46,19 @@ def test_the_message_names_the_ground_only_where_it_is_off_and_most_probes_fell(
                                           (type("S", (), {"effects": {}})(), False)])
 def test_has_ground(sim, expected):
     assert has_ground(type("P", (), {"sim": sim})()) is expected
+
+
+UNSTABLE = "state became non-finite (40 particles, e.g. particle 7; none had walked out of the grid)"
+
+
+def test_unstable_at_every_e_says_the_interaction_not_the_material_and_where_the_probes_failed():
+    """dev_0568 (#23): a grasp whose path dived through the floor went unstable at every uniform E; the error said
+    to check the E range. Now it says what the probes did and that soft and stiff alike point at the interaction."""
+    errs = [SimulationError(UNSTABLE, frame=f, kind="unstable") for f in (16, 17, 17, 19)]
+    msg = str(no_finite_uniform_probe(errs, ground=True))
+    assert "4 of 4 unstable at frames 16-19" in msg
+    assert "not for the material" in msg and "preview image" in msg and "--youngs-range" not in msg
+    mixed = errs[:2] + [_err(SIDE, "+x")]
+    msg = str(no_finite_uniform_probe(mixed, ground=True))
+    assert "2 of 3 unstable at frames 16-17" in msg and "1 of 3 left the grid through its +x face at frame 3" in msg
+    assert "--youngs-range" in msg and "not for the material" not in msg

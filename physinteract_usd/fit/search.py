@@ -92,10 +92,49 @@ def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> Simulation
         return SimulationError(what, frame=None, advice=(
             "it falls through its support or the ground: check the supports (extract) and the ground's height "
             "(physinteract-usd effects list SCENE); a deeper grid below it (init --padding) if it sags that far"))
-    return SimulationError("went unstable or left the grid at every uniform E tried", frame=None,
-                           advice="check the contacts (extract) and the Young's modulus range (init "
-                                  "--youngs-range); a wider grid padding (init --padding) if the object "
-                                  "leaves the domain")
+    what, advice = "went unstable or left the grid at every uniform E tried", (
+        "check the contacts (extract) and the Young's modulus range (init --youngs-range); a wider grid padding "
+        "(init --padding) if the object leaves the domain")
+    said = probe_errors_said(errors)
+    unstable = sum(getattr(e, "kind", "") == "unstable" for e in errors)
+    if errors and unstable == len(errors) and len(errors) >= 3:
+        # soft and stiff alike: not the material, the interaction (#23: dev_0568, a grasp whose path dived through
+        # the floor it rests on)
+        advice = ("unstable at the softest E tried as at the stiffest, so not for the material: the interaction is "
+                  "likely impossible (a grasp dragging the object into the floor or against a support, or a path "
+                  "faster than the grid allows): check the contacts and the path (the preview image extract wrote), "
+                  "the supports and the ground (physinteract-usd effects list SCENE)")
+    return SimulationError(what + (f" ({said})" if said else ""), frame=None, advice=advice)
+
+
+def probe_errors_said(errors) -> str:
+    """The failed probes' errors in a few words: how many went unstable, how many left the grid through which face,
+    and the frames where they did ("" where there are none)."""
+    errors = list(errors)
+    if not errors:
+        return ""
+    parts = []
+    unstable = [e for e in errors if getattr(e, "kind", "") == "unstable"]
+    if unstable:
+        parts.append(f"{len(unstable)} of {len(errors)} unstable{_frames(unstable)}")
+    faces: dict = {}
+    for e in errors:
+        if getattr(e, "kind", "") == "domain":
+            faces.setdefault(getattr(e, "face", "") or "?", []).append(e)
+    for face, es in sorted(faces.items(), key=lambda kv: -len(kv[1])):
+        where = f" through its {face} face" if face != "?" else ""
+        parts.append(f"{len(es)} of {len(errors)} left the grid{where}{_frames(es)}")
+    other = len(errors) - len(unstable) - sum(len(es) for es in faces.values())
+    if other:
+        parts.append(f"{other} of {len(errors)} failed otherwise")
+    return "; ".join(parts)
+
+
+def _frames(errors) -> str:
+    fr = sorted(int(e.frame) for e in errors if getattr(e, "frame", None) is not None)
+    if not fr:
+        return ""
+    return f" at frame {fr[0]}" if fr[0] == fr[-1] else f" at frames {fr[0]}-{fr[-1]}"
 
 
 def has_ground(prob) -> bool | None:
