@@ -663,6 +663,6 @@ def above_floor(x0: np.ndarray, contact: ContactSet, floor: dict | None, notes: 
         tr[k] = moved
     evidence["path_above_floor"] = {"frames": int(under.sum()), "raised_m": round(depth, 4)}
     notes.append(f"the {contact.name}'s path went {100 * depth:.1f} cm under what the floor allows on "
-                 f"{int(under.sum())} frames (its depth is read from the hand's apparent size): kept on the floor there; if the hand "
-                 "really goes that low, the object is not resting on a floor (--support-pixel)")
+                 f"{int(under.sum())} frames (its depth is read from the hand's apparent size): kept on the floor "
+                 "there; if the hand really goes that low, the object is not resting on a floor (--support-pixel)")
     return replace(contact, trajectory=tr)
