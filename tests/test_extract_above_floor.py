@@ -6,7 +6,7 @@ import numpy as np
 
 from physinteract_usd.camera import Camera
 from physinteract_usd.contacts import ContactSet
-from physinteract_usd.extract.supports import FLOOR_SQUEEZE, above_floor, resting_base
+from physinteract_usd.extract.supports import above_floor, resting_base
 
 
 def _lattice(lo, hi, h):
@@ -60,21 +60,26 @@ def test_a_grasp_diving_through_the_floor_is_kept_on_it_along_its_camera_rays():
     assert any("under what the floor allows" in n for n in notes)
 
 
-def test_a_fingertip_pressing_the_slab_squeezes_it_at_most_by_half_and_a_path_above_it_is_untouched():
+def test_a_fingertip_through_the_floor_is_kept_on_it_and_one_pushing_beside_the_slab_is_untouched():
+    """A fingertip (radius 6 mm) pressing down 5 cm from the slab's top, no camera (straight up): kept with its
+    sphere on the floor; one pushing the slab's side with its centre 4 mm above the base (dev_0184's kind: a
+    sideways push, its bottom 2 mm under the base but above the floor half a spacing lower) is left as read."""
     r = 0.006
     cp = np.array([0.0, 0.02, 0.0])
-    tr = np.array([[0.0, 0.02 + r - 0.002 * k, 0.0] for k in range(16)])     # pressing down 3 cm
+    tr = np.array([[0.0, 0.02 + r - 0.005 * k, 0.0] for k in range(11)])     # its bottom from 0.02 down to -0.03
     c = ContactSet("finger", "pointNonAdherent", trajectory=tr, radius=r, contact_point=cp)
     notes, ev = [], {}
-    out = above_floor(SLAB, c, FLOOR, notes, ev)                          # no camera: straight up
+    out = above_floor(SLAB, c, FLOOR, notes, ev)
     bottom = out.trajectory[:, 1] - r
-    assert bottom.min() >= FLOOR_SQUEEZE * 0.02 - 1e-12
-    assert abs(bottom.min() - FLOOR_SQUEEZE * 0.02) < 1e-12
+    assert abs(bottom.min() - FLOOR["height"]) < 1e-12                    # on the floor, not under it
     np.testing.assert_array_equal(out.trajectory[:, [0, 2]], tr[:, [0, 2]])
-    kept = tr[tr[:, 1] - r >= FLOOR_SQUEEZE * 0.02]
-    np.testing.assert_array_equal(out.trajectory[: len(kept)], kept)
-    shallow = ContactSet("finger", "pointNonAdherent", trajectory=tr[:5], radius=r, contact_point=cp)
-    assert above_floor(SLAB, shallow, FLOOR, [], {}) is shallow            # within the squeeze: as read
+    kept = tr[:, 1] - r >= FLOOR["height"]
+    np.testing.assert_array_equal(out.trajectory[kept], tr[kept])
+    assert ev["path_above_floor"]["frames"] == int((~kept).sum()) > 0
+    side = np.array([[-0.08 - r - 0.01 + 0.002 * k, 0.004, 0.0] for k in range(8)])
+    beside = ContactSet("finger", "pointNonAdherent", trajectory=side, radius=r,
+                        contact_point=np.array([-0.08, 0.004, 0.0]))
+    assert above_floor(SLAB, beside, FLOOR, [], {}) is beside
 
 
 def test_without_a_floor_nothing_changes():

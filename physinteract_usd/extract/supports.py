@@ -609,21 +609,18 @@ def unpin(x0: np.ndarray, h: float, contact: ContactSet, supports: list, notes: 
     return out
 
 
-# a collider pressing an object onto its floor squeezes at most this share of the object's height under it
-FLOOR_SQUEEZE = 0.5
-
-
 def above_floor(x0: np.ndarray, contact: ContactSet, floor: dict | None, notes: list, evidence: dict,
                 camera=None) -> ContactSet:
     """The toucher's T0 kept from going through the floor the object rests on, and said so. Its depth is read from
     the hand's apparent scale, which a fingertip pressing down and toward the camera misreads as a dive (#23:
     dev_0568, a poke on a sheet on its floor read as a grasp whose path went 5.5 cm down: the held particles were
     dragged 3.7 cm under the floor and the fit went unstable at every uniform E). A grasp's held particles stay on or
-    above the object's base (they follow T0's displacement from the grasp frame); a collider's sphere (or a plane
-    pressing from above) squeezes at most `FLOOR_SQUEEZE` of the object's height under its contact point. What the
-    image says is kept: a point too low is moved along its camera ray (`camera`, a `Camera`: its depth alone was
-    wrong) up to that level; straight up where the ray does not reach it (or no camera is given). The frames before
-    a grasp, and a collider's frames above that level, are left as read. No floor: unchanged."""
+    above the object's base (they follow T0's displacement from the grasp frame); a collider's sphere, or a plane
+    pressing from above, stays on or above the floor (`floor["height"]`; how far a press may squeeze the object
+    against it is not bounded here: a sphere beside the object may go as low as the floor). What the image says is
+    kept: a point too low is moved along its camera ray (`camera`, a `Camera`: its depth alone was wrong) up to that
+    level; straight up where the ray does not reach it (or no camera is given). The frames before a grasp, and a
+    collider's frames above that level, are left as read. No floor: unchanged."""
     if floor is None or contact.trajectory is None:
         return contact
     tr = np.asarray(contact.trajectory, np.float64).copy()
@@ -636,13 +633,10 @@ def above_floor(x0: np.ndarray, contact: ContactSet, floor: dict | None, notes: 
         lowest = tr[g, 1] + base - float(x0[contact.indices, 1].min())   # T0's height that puts them on the base
         sl = slice(g, len(tr))
     else:
-        # the object's top under the toucher at rest: where a sphere touches it, a plane's highest particle
-        top = float(contact.point(x0)[1]) if contact.type == "pointNonAdherent" else float(x0[:, 1].max())
-        allowed = base + FLOOR_SQUEEZE * max(top - base, 0.0)
         if contact.type == "pointNonAdherent":
-            lowest = allowed + float(contact.radius)
+            lowest = float(floor["height"]) + float(contact.radius)
         elif float(np.asarray(contact.normal, float)[1]) < -0.7:   # a plane whose object side is below it: a press
-            lowest = allowed
+            lowest = float(floor["height"])
         else:
             return contact
         sl = slice(0, len(tr))
