@@ -62,3 +62,14 @@ def test_unstable_at_every_e_says_the_interaction_not_the_material_and_where_the
     msg = str(no_finite_uniform_probe(mixed, ground=True))
     assert "2 of 3 unstable at frames 16-17" in msg and "1 of 3 left the grid through its +x face at frame 3" in msg
     assert "--youngs-range" in msg and "not for the material" not in msg
+
+
+def test_out_through_one_face_at_every_e_points_at_the_interaction():
+    """validation_0009's kind (#23): 11 of 12 probes out through the grid's top at one frame, soft and stiff alike."""
+    up = FELL.replace("-y face", "+y face")
+    errs = [_err(up, "+y")] * 11 + [_err(SIDE, "+z")]
+    msg = str(no_finite_uniform_probe(errs, ground=False))
+    assert "11 of 12 left the grid through its +y face at frame 3" in msg
+    assert "same (+y) face" in msg and "interaction carries it" in msg and "--youngs-range" not in msg
+    split = [_err(up, "+y"), _err(up, "+y"), _err(SIDE, "+x"), _err(SIDE, "+x")]
+    assert "--youngs-range" in str(no_finite_uniform_probe(split, ground=False))

@@ -97,6 +97,8 @@ def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> Simulation
         "(init --padding) if the object leaves the domain")
     said = probe_errors_said(errors)
     unstable = sum(getattr(e, "kind", "") == "unstable" for e in errors)
+    faces = [getattr(e, "face", "") for e in errors if getattr(e, "kind", "") == "domain"]
+    face = max(set(faces), key=faces.count) if faces else ""
     if errors and unstable == len(errors) and len(errors) >= 3:
         # soft and stiff alike: not the material, the interaction (#23: dev_0568, a grasp whose path dived through
         # the floor it rests on)
@@ -104,6 +106,13 @@ def no_finite_uniform_probe(errors=(), ground: bool | None = None) -> Simulation
                   "likely impossible (a grasp dragging the object into the floor or against a support, or a path "
                   "faster than the grid allows): check the contacts and the path (the preview image extract wrote), "
                   "the supports and the ground (physinteract-usd effects list SCENE)")
+    elif len(errors) >= 3 and face and 4 * faces.count(face) >= 3 * len(errors):
+        # out through one face at every E (#23: validation_0009, a clamped bar pulled up out of its grid by a grasp
+        # where extract found no support near the true one)
+        advice = (f"it leaves through the same ({face}) face at the softest E tried as at the stiffest, so the "
+                  "interaction carries it there rather than the material: check the contacts, the path and the "
+                  "supports (the preview image extract wrote); a wider grid padding (init --padding) only if the "
+                  "video shows it going that far")
     return SimulationError(what + (f" ({said})" if said else ""), frame=None, advice=advice)
 
 
