@@ -15,6 +15,7 @@ from ..contacts import ContactSet
 from ..errors import InputError
 from .analysis import Analysis
 from .geometry import back_project, particles_near, sample
+from .lifting import keep_on_ray_in_box
 from .segmentation import dilate
 
 SUPPORT_HINT_RADIUS_M = 0.03  # a support the user points at where none was detected: a clamp's or a hand's size
@@ -644,17 +645,12 @@ def above_floor(x0: np.ndarray, contact: ContactSet, floor: dict | None, notes: 
     if not under.any():
         return contact
     depth = float(lowest - tr[sl, 1].min())
-    first = sl.start
-    for k in np.flatnonzero(under) + first:
-        moved = None
-        if camera is not None:
-            eye = np.asarray(camera.at(int(k)).position, np.float64)
-            ray = tr[k] - eye
-            if ray[1] < -1e-9 and eye[1] > lowest:
-                moved = eye + ray * ((lowest - eye[1]) / ray[1])     # along the ray, nearer the camera
-        if moved is None:
-            moved = np.array([tr[k, 0], lowest, tr[k, 2]])
-        tr[k] = moved
+    above = (np.array([-np.inf, lowest, -np.inf]), np.full(3, np.inf))    # the half-space the path is kept in
+    if camera is not None:
+        kept = keep_on_ray_in_box(camera, tr, above)                          # along each frame's ray
+    else:
+        kept = np.clip(tr, *above)                                            # straight up
+    tr[sl] = kept[sl]
     evidence["path_above_floor"] = {"frames": int(under.sum()), "raised_m": round(depth, 4)}
     notes.append(f"the {contact.name}'s path went {100 * depth:.1f} cm under what the floor allows on "
                  f"{int(under.sum())} frames (its depth is read from the hand's apparent size): kept on the floor "
